@@ -1,0 +1,1 @@
+"""Policies and fine-tuning on top of envs. Nothing here yet."""

@@ -1,0 +1,1 @@
+"""PettingZoo environments built on smart_marl (parallel_env(), env()). Nothing here yet."""

@@ -1,0 +1,713 @@
+"""The canonical scene: the first stage of the data flow, which every reader produces.
+
+A :class:`Scenario` is plain numpy arrays, validated once when it is built:
+
+* ``tracks``: every agent's boxes at 10 Hz (:class:`Tracks`, arrays shaped ``[N, T, ...]``);
+* ``road_map``: typed polylines and polygons with lane topology (:class:`RoadMap`, ragged arrays
+  in CSR form: all points concatenated plus offsets);
+* ``traffic_lights``: per-lane signal states per frame (:class:`TrafficLights`);
+* the self-driving car's index, the tracks to predict, the current frame, the source's scenario
+  id, the source's name and the frame (:class:`SceneFrame`) that maps the scene's local
+  coordinates back to the source's.
+
+Coordinates are metres in a local frame near the scene's centre (float32 stays exact); the
+:class:`SceneFrame` keeps the shift and rotation in float64 so outputs can be written back in the
+source frame. Scenarios are immutable: slicing (:meth:`Scenario.window`,
+:meth:`Scenario.select_tracks`) and transforms (:meth:`Scenario.to_frame`) return new Scenarios
+that share whatever arrays they did not change.
+
+Everything downstream (scene cache, tokenizers, environment, metrics, what-if tools) takes a
+Scenario and never needs to know which file format it came from.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+
+from .errors import ScenarioValidationError
+
+DT_S = 0.1
+"""Seconds between two frames (10 Hz)."""
+
+
+class AgentType(IntEnum):
+    """Agent types. The first three each have a motion-token vocabulary; OTHER is context only."""
+
+    VEHICLE = 0
+    PEDESTRIAN = 1
+    CYCLIST = 2
+    OTHER = 3
+
+
+class MapFeatureType(IntEnum):
+    """Kinds of map feature (WOMD's ``MapFeature`` oneof)."""
+
+    LANE = 0  # centerline polyline
+    ROAD_LINE = 1  # painted line polyline
+    ROAD_EDGE = 2  # boundary of the drivable area, polyline
+    STOP_SIGN = 3  # a single point
+    CROSSWALK = 4  # polygon
+    SPEED_BUMP = 5  # polygon
+    DRIVEWAY = 6  # polygon
+
+
+POLYGON_FEATURES = frozenset({MapFeatureType.CROSSWALK, MapFeatureType.SPEED_BUMP, MapFeatureType.DRIVEWAY})
+
+
+class LaneType(IntEnum):
+    """Subtype of a LANE feature (WOMD codes)."""
+
+    UNDEFINED = 0
+    FREEWAY = 1
+    SURFACE_STREET = 2
+    BIKE_LANE = 3
+
+
+class RoadLineType(IntEnum):
+    """Subtype of a ROAD_LINE feature (WOMD codes)."""
+
+    UNKNOWN = 0
+    BROKEN_SINGLE_WHITE = 1
+    SOLID_SINGLE_WHITE = 2
+    SOLID_DOUBLE_WHITE = 3
+    BROKEN_SINGLE_YELLOW = 4
+    BROKEN_DOUBLE_YELLOW = 5
+    SOLID_SINGLE_YELLOW = 6
+    SOLID_DOUBLE_YELLOW = 7
+    PASSING_DOUBLE_YELLOW = 8
+
+
+class RoadEdgeType(IntEnum):
+    """Subtype of a ROAD_EDGE feature (WOMD codes)."""
+
+    UNKNOWN = 0
+    BOUNDARY = 1
+    MEDIAN = 2
+
+
+class LinkType(IntEnum):
+    """Kinds of directed link between two map features (``RoadMap.links``: from -> to)."""
+
+    SUCCESSOR = 0  # a lane's exit lane (WOMD exit_lanes)
+    PREDECESSOR = 1  # a lane's entry lane (WOMD entry_lanes)
+    LEFT_NEIGHBOR = 2
+    RIGHT_NEIGHBOR = 3
+    STOP_SIGN_LANE = 4  # a stop sign controls this lane
+
+
+class SignalState(IntEnum):
+    """Traffic-signal state of a lane (WOMD codes)."""
+
+    UNKNOWN = 0
+    ARROW_STOP = 1
+    ARROW_CAUTION = 2
+    ARROW_GO = 3
+    STOP = 4
+    CAUTION = 5
+    GO = 6
+    FLASHING_STOP = 7
+    FLASHING_CAUTION = 8
+
+
+def wrap_angle(angle: np.ndarray) -> np.ndarray:
+    """Wrap radians to [-pi, pi)."""
+    return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+def _readonly(array: np.ndarray) -> np.ndarray:
+    view = array.view()
+    view.flags.writeable = False
+    return view
+
+
+def _coerce(owner: Any, name: str, dtype: np.dtype, ndim: int | None = None) -> None:
+    """Coerce ``owner.name`` to a read-only array of ``dtype`` (frozen dataclass friendly)."""
+    value = getattr(owner, name)
+    try:
+        array = np.asarray(value, dtype=dtype)
+    except (TypeError, ValueError) as exc:
+        raise ScenarioValidationError(f"{type(owner).__name__}.{name}: cannot convert to {np.dtype(dtype)}: {exc}")
+    if ndim is not None and array.ndim != ndim:
+        raise ScenarioValidationError(
+            f"{type(owner).__name__}.{name}: expected {ndim} dimensions, got shape {array.shape}"
+        )
+    object.__setattr__(owner, name, _readonly(array))
+
+
+def _check(condition: bool, message: str) -> None:
+    if not condition:
+        raise ScenarioValidationError(message)
+
+
+def _trusted(cls, **values):
+    """Build a dataclass instance from already validated arrays, without re-validating."""
+    obj = object.__new__(cls)
+    for name, value in values.items():
+        if isinstance(value, np.ndarray) and value.flags.writeable:
+            value = _readonly(value)
+        object.__setattr__(obj, name, value)
+    return obj
+
+
+def _replace(obj, **changes):
+    values = {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+    values.update(changes)
+    return _trusted(type(obj), **values)
+
+
+def _arrays_equal(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
+
+
+@dataclass(frozen=True)
+class SceneFrame:
+    """Where the scene's local frame sits in the source's coordinates.
+
+    A local point ``p`` is ``R(heading) @ p[:2] + (x, y)`` and ``p[2] + z`` in the source frame;
+    local headings are source headings minus ``heading``.
+    """
+
+    x: float = 0.0
+    y: float = 0.0
+    z: float = 0.0
+    heading: float = 0.0
+
+    def to_source(self, xyz: np.ndarray) -> np.ndarray:
+        """Local points [..., 2 or 3] -> source points, float64."""
+        xyz = np.asarray(xyz, dtype=np.float64)
+        c, s = math.cos(self.heading), math.sin(self.heading)
+        out = xyz.copy()
+        out[..., 0] = c * xyz[..., 0] - s * xyz[..., 1] + self.x
+        out[..., 1] = s * xyz[..., 0] + c * xyz[..., 1] + self.y
+        if xyz.shape[-1] > 2:
+            out[..., 2] = xyz[..., 2] + self.z
+        return out
+
+    def from_source(self, xyz: np.ndarray) -> np.ndarray:
+        """Source points [..., 2 or 3] -> local points, float64."""
+        xyz = np.asarray(xyz, dtype=np.float64)
+        c, s = math.cos(self.heading), math.sin(self.heading)
+        dx, dy = xyz[..., 0] - self.x, xyz[..., 1] - self.y
+        out = xyz.copy()
+        out[..., 0] = c * dx + s * dy
+        out[..., 1] = -s * dx + c * dy
+        if xyz.shape[-1] > 2:
+            out[..., 2] = xyz[..., 2] - self.z
+        return out
+
+    def heading_to_source(self, heading: np.ndarray) -> np.ndarray:
+        return wrap_angle(np.asarray(heading, dtype=np.float64) + self.heading)
+
+    def compose(self, x: float, y: float, heading: float) -> "SceneFrame":
+        """The frame whose origin is local point (x, y) of this frame, rotated by ``heading``."""
+        sx, sy = self.to_source(np.array([x, y]))
+        return SceneFrame(float(sx), float(sy), self.z, float(wrap_angle(np.float64(self.heading + heading))))
+
+
+@dataclass(frozen=True, eq=False)
+class Tracks:
+    """Agent boxes at 10 Hz. ``N`` tracks, ``T`` frames. Values on invalid frames are arbitrary."""
+
+    ids: np.ndarray  # [N] int64, the source's track ids, unique
+    types: np.ndarray  # [N] int8, AgentType
+    position: np.ndarray  # [N, T, 3] float32, box centre x, y, z (m, local frame)
+    heading: np.ndarray  # [N, T] float32, radians, counter-clockwise from +x
+    velocity: np.ndarray  # [N, T, 2] float32, m/s (local frame)
+    size: np.ndarray  # [N, T, 3] float32, length, width, height (m)
+    valid: np.ndarray  # [N, T] bool
+
+    def __post_init__(self) -> None:
+        _coerce(self, "ids", np.int64, 1)
+        _coerce(self, "types", np.int8, 1)
+        _coerce(self, "position", np.float32, 3)
+        _coerce(self, "heading", np.float32, 2)
+        _coerce(self, "velocity", np.float32, 3)
+        _coerce(self, "size", np.float32, 3)
+        if np.asarray(self.valid).dtype != np.bool_:
+            raise ScenarioValidationError(
+                f"Tracks.valid must be a boolean mask, got dtype {np.asarray(self.valid).dtype}"
+            )
+        _coerce(self, "valid", np.bool_, 2)
+        n, t = self.valid.shape
+        _check(self.ids.shape == (n,), f"Tracks.ids has shape {self.ids.shape}, valid has {n} tracks")
+        _check(self.types.shape == (n,), f"Tracks.types has shape {self.types.shape}, valid has {n} tracks")
+        for name, shape in (("position", (n, t, 3)), ("heading", (n, t)), ("velocity", (n, t, 2)), ("size", (n, t, 3))):
+            got = getattr(self, name).shape
+            _check(got == shape, f"Tracks.{name} has shape {got}, expected {shape} (from valid [{n}, {t}])")
+        _check(len(np.unique(self.ids)) == n, "Tracks.ids are not unique")
+        _check(bool(np.all((self.types >= 0) & (self.types <= AgentType.OTHER))), "Tracks.types outside AgentType")
+        for name in ("position", "heading", "velocity", "size"):
+            values = getattr(self, name)
+            finite = np.isfinite(values)
+            if finite.ndim == 3:
+                finite = finite.all(axis=-1)
+            bad = self.valid & ~finite
+            if bad.any():
+                i, f = np.argwhere(bad)[0]
+                raise ScenarioValidationError(
+                    f"Tracks.{name} is not finite on {int(bad.sum())} valid frame(s), "
+                    f"first at track {int(i)} (id {int(self.ids[i])}) frame {int(f)}"
+                )
+
+    @property
+    def num_tracks(self) -> int:
+        return self.valid.shape[0]
+
+    @property
+    def num_frames(self) -> int:
+        return self.valid.shape[1]
+
+    def box_size(self) -> np.ndarray:
+        """[N, 3] length, width, height of each agent: the median over its valid frames."""
+        size = np.where(self.valid[..., None], self.size, np.nan)
+        with np.errstate(all="ignore"):
+            import warnings
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                out = np.nanmedian(size, axis=1)
+        return np.nan_to_num(out, nan=0.0).astype(np.float32)
+
+    def names(self) -> list[str]:
+        """``"vehicle_1234"``-style names: type and track id."""
+        return [f"{AgentType(int(t)).name.lower()}_{int(i)}" for t, i in zip(self.types, self.ids)]
+
+    def _take(self, index) -> "Tracks":
+        return _trusted(
+            Tracks,
+            ids=self.ids[index],
+            types=self.types[index],
+            position=self.position[index],
+            heading=self.heading[index],
+            velocity=self.velocity[index],
+            size=self.size[index],
+            valid=self.valid[index],
+        )
+
+    def _window(self, start: int, stop: int) -> "Tracks":
+        s = slice(start, stop)
+        return _replace(
+            self,
+            position=self.position[:, s],
+            heading=self.heading[:, s],
+            velocity=self.velocity[:, s],
+            size=self.size[:, s],
+            valid=self.valid[:, s],
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class RoadMap:
+    """The vector map: ``F`` typed features whose points are concatenated (CSR form).
+
+    Feature ``i`` has points ``points[point_offsets[i]:point_offsets[i + 1]]``: a polyline for
+    lanes, road lines and road edges, a polygon outline for crosswalks, speed bumps and driveways,
+    one point for a stop sign. ``links`` are directed (from id, to id) pairs with a
+    :class:`LinkType`; they refer to feature ids, which may be absent from the map (a source that
+    was cropped), see :meth:`link_indices`.
+    """
+
+    ids: np.ndarray  # [F] int64, unique
+    types: np.ndarray  # [F] int8, MapFeatureType
+    subtypes: np.ndarray  # [F] int8, LaneType / RoadLineType / RoadEdgeType, 0 otherwise
+    speed_limit_mph: np.ndarray  # [F] float32, lanes only (0 when unknown), the source's unit
+    interpolating: np.ndarray  # [F] bool, lanes only
+    points: np.ndarray  # [P, 3] float32, x, y, z (m, local frame)
+    point_offsets: np.ndarray  # [F + 1] int64
+    links: np.ndarray  # [E, 2] int64, (from feature id, to feature id)
+    link_types: np.ndarray  # [E] int8, LinkType
+
+    def __post_init__(self) -> None:
+        _coerce(self, "ids", np.int64, 1)
+        _coerce(self, "types", np.int8, 1)
+        _coerce(self, "subtypes", np.int8, 1)
+        _coerce(self, "speed_limit_mph", np.float32, 1)
+        _coerce(self, "interpolating", np.bool_, 1)
+        _coerce(self, "points", np.float32, 2)
+        _coerce(self, "point_offsets", np.int64, 1)
+        links = np.asarray(self.links, dtype=np.int64)
+        object.__setattr__(self, "links", links.reshape(-1, 2) if links.size == 0 else links)
+        _coerce(self, "links", np.int64, 2)
+        _coerce(self, "link_types", np.int8, 1)
+        f = self.ids.shape[0]
+        for name in ("types", "subtypes", "speed_limit_mph", "interpolating"):
+            got = getattr(self, name).shape
+            _check(got == (f,), f"RoadMap.{name} has shape {got}, expected ({f},)")
+        _check(self.points.shape[1:] == (3,), f"RoadMap.points has shape {self.points.shape}, expected [P, 3]")
+        _check(self.point_offsets.shape == (f + 1,), f"RoadMap.point_offsets has shape {self.point_offsets.shape}, expected ({f + 1},)")
+        _check(
+            self.point_offsets[0] == 0 and self.point_offsets[-1] == len(self.points),
+            f"RoadMap.point_offsets must run from 0 to {len(self.points)}",
+        )
+        _check(bool(np.all(np.diff(self.point_offsets) >= 1)), "RoadMap: every feature needs at least one point")
+        _check(bool(np.isfinite(self.points).all()), "RoadMap.points are not all finite")
+        _check(len(np.unique(self.ids)) == f, "RoadMap.ids are not unique")
+        _check(bool(np.all((self.types >= 0) & (self.types <= MapFeatureType.DRIVEWAY))), "RoadMap.types outside MapFeatureType")
+        _check(self.links.shape[1:] == (2,), f"RoadMap.links has shape {self.links.shape}, expected [E, 2]")
+        _check(self.link_types.shape == (len(self.links),), "RoadMap.link_types and links disagree in length")
+        _check(bool(np.all((self.link_types >= 0) & (self.link_types <= LinkType.STOP_SIGN_LANE))), "RoadMap.link_types outside LinkType")
+
+    @classmethod
+    def empty(cls) -> "RoadMap":
+        return cls(
+            ids=np.zeros(0, np.int64), types=np.zeros(0, np.int8), subtypes=np.zeros(0, np.int8),
+            speed_limit_mph=np.zeros(0, np.float32), interpolating=np.zeros(0, bool),
+            points=np.zeros((0, 3), np.float32), point_offsets=np.zeros(1, np.int64),
+            links=np.zeros((0, 2), np.int64), link_types=np.zeros(0, np.int8),
+        )
+
+    @classmethod
+    def from_features(cls, features: Iterable[Mapping[str, Any]], links: Iterable[tuple[int, int, int]] = ()) -> "RoadMap":
+        """Build a map from dicts with keys ``id``, ``type``, ``points`` ([n, 2 or 3]) and the optional
+        ``subtype``, ``speed_limit_mph``, ``interpolating``; ``links`` are (from id, to id, LinkType)."""
+        features = list(features)
+        pts = []
+        for feat in features:
+            p = np.asarray(feat["points"], dtype=np.float64).reshape(-1, np.shape(feat["points"])[-1] if np.ndim(feat["points"]) > 1 else 3)
+            if p.shape[1] == 2:
+                p = np.concatenate([p, np.zeros((len(p), 1))], axis=1)
+            pts.append(p[:, :3])
+        lengths = np.array([len(p) for p in pts], dtype=np.int64)
+        links = list(links)
+        return cls(
+            ids=np.array([f["id"] for f in features], dtype=np.int64),
+            types=np.array([f["type"] for f in features], dtype=np.int8),
+            subtypes=np.array([f.get("subtype", 0) for f in features], dtype=np.int8),
+            speed_limit_mph=np.array([f.get("speed_limit_mph", 0.0) for f in features], dtype=np.float32),
+            interpolating=np.array([f.get("interpolating", False) for f in features], dtype=bool),
+            points=np.concatenate(pts).astype(np.float32) if pts else np.zeros((0, 3), np.float32),
+            point_offsets=np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64),
+            links=np.array([(a, b) for a, b, _ in links], dtype=np.int64).reshape(-1, 2),
+            link_types=np.array([t for _, _, t in links], dtype=np.int8),
+        )
+
+    @property
+    def num_features(self) -> int:
+        return self.ids.shape[0]
+
+    def feature_points(self, index: int) -> np.ndarray:
+        """The points [n, 3] of feature ``index`` (an index, not an id)."""
+        return self.points[self.point_offsets[index] : self.point_offsets[index + 1]]
+
+    def indices_of(self, feature_type: MapFeatureType) -> np.ndarray:
+        return np.flatnonzero(self.types == feature_type)
+
+    def point_feature_index(self) -> np.ndarray:
+        """[P] the feature index of every point."""
+        return np.repeat(np.arange(self.num_features), np.diff(self.point_offsets))
+
+    def link_indices(self, link_type: LinkType) -> np.ndarray:
+        """[E', 2] (from index, to index) of the links of one type whose both ends are in the map."""
+        sel = self.links[self.link_types == link_type]
+        order = np.argsort(self.ids, kind="stable")
+        sorted_ids = self.ids[order]
+        pos = np.searchsorted(sorted_ids, sel)
+        pos = np.clip(pos, 0, max(len(sorted_ids) - 1, 0))
+        found = (sorted_ids[pos] == sel).all(axis=1) if len(sorted_ids) else np.zeros(len(sel), bool)
+        return order[pos[found]].reshape(-1, 2)
+
+    def _transform(self, frame_fn) -> "RoadMap":
+        return _replace(self, points=frame_fn(self.points))
+
+
+@dataclass(frozen=True, eq=False)
+class TrafficLights:
+    """Signal states of ``L`` controlled lanes over ``T`` frames."""
+
+    lane_ids: np.ndarray  # [L] int64, map feature ids of the controlled lanes
+    states: np.ndarray  # [T, L] int8, SignalState (meaningful where present)
+    present: np.ndarray  # [T, L] bool, the source reported this lane's signal on this frame
+    stop_points: np.ndarray  # [L, 3] float32, stop point of each lane (local frame)
+
+    def __post_init__(self) -> None:
+        _coerce(self, "lane_ids", np.int64, 1)
+        _coerce(self, "states", np.int8, 2)
+        _coerce(self, "present", np.bool_, 2)
+        _coerce(self, "stop_points", np.float32, 2)
+        num_lanes = self.lane_ids.shape[0]
+        _check(self.states.shape[1] == num_lanes, f"TrafficLights.states has shape {self.states.shape}, expected [T, {num_lanes}]")
+        _check(self.present.shape == self.states.shape, "TrafficLights.present and states disagree in shape")
+        _check(self.stop_points.shape == (num_lanes, 3), f"TrafficLights.stop_points has shape {self.stop_points.shape}, expected ({num_lanes}, 3)")
+        _check(len(np.unique(self.lane_ids)) == num_lanes, "TrafficLights.lane_ids are not unique")
+        _check(bool(np.all((self.states >= 0) & (self.states <= SignalState.FLASHING_CAUTION))), "TrafficLights.states outside SignalState")
+        _check(bool(np.isfinite(self.stop_points).all()), "TrafficLights.stop_points are not all finite")
+
+    @classmethod
+    def empty(cls, num_frames: int) -> "TrafficLights":
+        return cls(np.zeros(0, np.int64), np.zeros((num_frames, 0), np.int8), np.zeros((num_frames, 0), bool), np.zeros((0, 3), np.float32))
+
+    @property
+    def num_frames(self) -> int:
+        return self.states.shape[0]
+
+    def frames_with_signals(self) -> int:
+        return int(self.present.any(axis=1).sum())
+
+
+@dataclass(frozen=True, eq=False)
+class Scenario:
+    """One driving scene. See the module docstring; build it with keyword arguments."""
+
+    scenario_id: str
+    source: str  # the source's name: "womd", "scenarionet/waymo", "gpudrive", "av2", "sumo"...
+    timestamps_s: np.ndarray  # [T] float64
+    current_frame: int
+    tracks: Tracks
+    road_map: RoadMap
+    traffic_lights: TrafficLights
+    sdc_index: int = -1  # index into tracks, -1 when the source has no self-driving car
+    predict_indices: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # [K] track indices
+    predict_difficulty: np.ndarray | None = None  # [K] int8 (WOMD difficulty), zeros when absent
+    objects_of_interest: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # [M] track ids
+    frame: SceneFrame = SceneFrame()
+    metadata: Mapping[str, Any] = field(default_factory=dict)  # JSON-able extras (city, source path...)
+
+    def __post_init__(self) -> None:
+        _check(isinstance(self.scenario_id, str) and self.scenario_id != "", "Scenario.scenario_id must be a non-empty string")
+        _check(isinstance(self.source, str) and self.source != "", "Scenario.source must be a non-empty string")
+        _check(isinstance(self.tracks, Tracks), "Scenario.tracks must be a Tracks")
+        _check(isinstance(self.road_map, RoadMap), "Scenario.road_map must be a RoadMap")
+        _check(isinstance(self.traffic_lights, TrafficLights), "Scenario.traffic_lights must be a TrafficLights")
+        _check(isinstance(self.frame, SceneFrame), "Scenario.frame must be a SceneFrame")
+        _coerce(self, "timestamps_s", np.float64, 1)
+        _coerce(self, "predict_indices", np.int64, 1)
+        if self.predict_difficulty is None:
+            object.__setattr__(self, "predict_difficulty", np.zeros(len(self.predict_indices), np.int8))
+        _coerce(self, "predict_difficulty", np.int8, 1)
+        _coerce(self, "objects_of_interest", np.int64, 1)
+        object.__setattr__(self, "current_frame", int(self.current_frame))
+        object.__setattr__(self, "sdc_index", int(self.sdc_index))
+        object.__setattr__(self, "metadata", dict(self.metadata))
+        n, t = self.tracks.num_tracks, self.tracks.num_frames
+        _check(self.timestamps_s.shape == (t,), f"Scenario.timestamps_s has shape {self.timestamps_s.shape}, tracks have {t} frames")
+        _check(bool(np.isfinite(self.timestamps_s).all()), "Scenario.timestamps_s are not all finite")
+        _check(self.traffic_lights.num_frames == t, f"TrafficLights has {self.traffic_lights.num_frames} frames, tracks have {t}")
+        _check(0 <= self.current_frame < t, f"Scenario.current_frame {self.current_frame} outside [0, {t})")
+        _check(-1 <= self.sdc_index < n, f"Scenario.sdc_index {self.sdc_index} outside [-1, {n})")
+        _check(bool(np.all((self.predict_indices >= 0) & (self.predict_indices < n))), f"Scenario.predict_indices outside [0, {n})")
+        _check(len(np.unique(self.predict_indices)) == len(self.predict_indices), "Scenario.predict_indices are not unique")
+        _check(self.predict_difficulty.shape == self.predict_indices.shape, "Scenario.predict_difficulty and predict_indices disagree in length")
+
+    # ----------------------------------------------------------------------------- properties
+    @property
+    def num_tracks(self) -> int:
+        return self.tracks.num_tracks
+
+    @property
+    def num_frames(self) -> int:
+        return self.tracks.num_frames
+
+    @property
+    def sdc_id(self) -> int | None:
+        return None if self.sdc_index < 0 else int(self.tracks.ids[self.sdc_index])
+
+    def summary(self) -> dict[str, Any]:
+        """Counts that describe the scene (what ``smart-marl info`` prints)."""
+        rm = self.road_map
+        lanes = rm.indices_of(MapFeatureType.LANE)
+        lane_ids = rm.ids[lanes]
+
+        def lanes_with(link: LinkType) -> int:
+            return int(np.isin(lane_ids, rm.links[rm.link_types == link][:, 0]).sum())
+
+        types, counts = np.unique(self.tracks.types, return_counts=True)
+        per_type = {t.name.lower(): 0 for t in AgentType}
+        per_type.update({AgentType(int(k)).name.lower(): int(c) for k, c in zip(types, counts)})
+        return {
+            "source": self.source,
+            "scenario_id": self.scenario_id,
+            "frames": self.num_frames,
+            "current_frame": self.current_frame,
+            "tracks": self.num_tracks,
+            "tracks_per_type": per_type,
+            "sdc_id": self.sdc_id,
+            "tracks_to_predict": int(len(self.predict_indices)),
+            "lanes": int(len(lanes)),
+            "lanes_with_successors": lanes_with(LinkType.SUCCESSOR),
+            "lanes_with_predecessors": lanes_with(LinkType.PREDECESSOR),
+            "road_lines": int((rm.types == MapFeatureType.ROAD_LINE).sum()),
+            "road_edges": int((rm.types == MapFeatureType.ROAD_EDGE).sum()),
+            "crosswalks": int((rm.types == MapFeatureType.CROSSWALK).sum()),
+            "traffic_light_lanes": int(len(self.traffic_lights.lane_ids)),
+            "traffic_light_frames": self.traffic_lights.frames_with_signals(),
+        }
+
+    # ------------------------------------------------------------------------ slicing, transforms
+    def window(self, start: int, stop: int, current_frame: int | None = None) -> "Scenario":
+        """The frames [start, stop), sharing memory with this scene.
+
+        The current frame keeps its absolute time (``current_frame - start``) unless a new one
+        (relative to ``start``) is given; it must fall inside the window.
+        """
+        t = self.num_frames
+        start, stop, _ = slice(start, stop).indices(t)
+        _check(stop > start, f"window [{start}, {stop}) is empty")
+        current = self.current_frame - start if current_frame is None else int(current_frame)
+        _check(0 <= current < stop - start, f"current frame {current} falls outside the window [{start}, {stop}); pass current_frame=")
+        tl = self.traffic_lights
+        return _replace(
+            self,
+            timestamps_s=self.timestamps_s[start:stop],
+            current_frame=current,
+            tracks=self.tracks._window(start, stop),
+            traffic_lights=_replace(tl, states=tl.states[start:stop], present=tl.present[start:stop]),
+        )
+
+    def select_tracks(self, selection) -> "Scenario":
+        """A subset of the tracks (a boolean mask or indices, in the given order).
+
+        The self-driving car index becomes -1 when it is dropped; tracks to predict that are
+        dropped are removed; objects of interest keep only ids still present.
+        """
+        index = np.asarray(selection)
+        if index.dtype == np.bool_:
+            _check(index.shape == (self.num_tracks,), f"track mask has shape {index.shape}, expected ({self.num_tracks},)")
+            index = np.flatnonzero(index)
+        index = index.astype(np.int64).reshape(-1)
+        _check(bool(np.all((index >= 0) & (index < self.num_tracks))), f"track indices outside [0, {self.num_tracks})")
+        _check(len(np.unique(index)) == len(index), "track indices are not unique")
+        new_of_old = np.full(self.num_tracks, -1, np.int64)
+        new_of_old[index] = np.arange(len(index))
+        keep_pred = new_of_old[self.predict_indices] >= 0
+        tracks = self.tracks._take(index)
+        return _replace(
+            self,
+            tracks=tracks,
+            sdc_index=int(new_of_old[self.sdc_index]) if self.sdc_index >= 0 else -1,
+            predict_indices=new_of_old[self.predict_indices][keep_pred],
+            predict_difficulty=self.predict_difficulty[keep_pred],
+            objects_of_interest=self.objects_of_interest[np.isin(self.objects_of_interest, tracks.ids)],
+        )
+
+    def to_frame(self, x: float, y: float, heading: float = 0.0) -> "Scenario":
+        """The same scene expressed in the frame whose origin is local point (x, y) and whose +x
+        axis points along ``heading`` (radians, local frame). ``frame`` is updated so that
+        :meth:`SceneFrame.to_source` still gives source coordinates."""
+        c, s = math.cos(heading), math.sin(heading)
+        rot = np.array([[c, s], [-s, c]])  # source -> new, applied to row vectors as p @ rot.T
+
+        def move(points: np.ndarray) -> np.ndarray:
+            p = points.astype(np.float64)
+            out = np.empty_like(p)
+            xy = p[..., :2] - (x, y)
+            out[..., :2] = xy @ rot.T
+            if p.shape[-1] > 2:
+                out[..., 2:] = p[..., 2:]
+            return out.astype(np.float32)
+
+        tr = self.tracks
+        tracks = _replace(
+            tr,
+            position=move(tr.position),
+            heading=wrap_angle(tr.heading.astype(np.float64) - heading).astype(np.float32),
+            velocity=(tr.velocity.astype(np.float64) @ rot.T).astype(np.float32),
+        )
+        tl = self.traffic_lights
+        return _replace(
+            self,
+            tracks=tracks,
+            road_map=self.road_map._transform(move),
+            traffic_lights=_replace(tl, stop_points=move(tl.stop_points)),
+            frame=self.frame.compose(x, y, heading),
+        )
+
+    def centered_on(self, track_index: int, frame_index: int | None = None, rotate: bool = True) -> "Scenario":
+        """The scene in the frame of one agent's pose (at the current frame by default)."""
+        f = self.current_frame if frame_index is None else frame_index
+        _check(bool(self.tracks.valid[track_index, f]), f"track {track_index} is not valid on frame {f}")
+        px, py = (float(v) for v in self.tracks.position[track_index, f, :2])
+        h = float(self.tracks.heading[track_index, f]) if rotate else 0.0
+        return self.to_frame(px, py, h)
+
+    # --------------------------------------------------------------------------- comparison
+    def differences(self, other: "Scenario") -> list[str]:
+        """The names of the fields that differ (exact comparison, NaN equal to NaN)."""
+        diffs = []
+        for a_obj, b_obj, prefix in ((self, other, ""), (self.tracks, other.tracks, "tracks."),
+                                     (self.road_map, other.road_map, "road_map."),
+                                     (self.traffic_lights, other.traffic_lights, "traffic_lights.")):
+            for f in dataclasses.fields(a_obj):
+                a, b = getattr(a_obj, f.name), getattr(b_obj, f.name)
+                if isinstance(a, (Tracks, RoadMap, TrafficLights)):
+                    continue
+                if isinstance(a, np.ndarray):
+                    same = isinstance(b, np.ndarray) and _arrays_equal(a, b)
+                else:
+                    same = a == b
+                if not same:
+                    diffs.append(prefix + f.name)
+        return diffs
+
+    def equals(self, other: "Scenario", ignore: Iterable[str] = ("metadata",)) -> bool:
+        """Exact equality of every field but those in ``ignore``."""
+        return not [d for d in self.differences(other) if d not in set(ignore)]
+
+    # ------------------------------------------------------------------ flat arrays (scene cache)
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Flatten into named arrays plus JSON-able scalars; :meth:`from_arrays` inverts it."""
+        arrays: dict[str, np.ndarray] = {"timestamps_s": self.timestamps_s, "predict_indices": self.predict_indices,
+                                         "predict_difficulty": self.predict_difficulty,
+                                         "objects_of_interest": self.objects_of_interest}
+        for prefix, obj in (("tracks", self.tracks), ("road_map", self.road_map), ("traffic_lights", self.traffic_lights)):
+            for f in dataclasses.fields(obj):
+                arrays[f"{prefix}.{f.name}"] = getattr(obj, f.name)
+        meta = {
+            "scenario_id": self.scenario_id,
+            "source": self.source,
+            "current_frame": self.current_frame,
+            "sdc_index": self.sdc_index,
+            "frame": dataclasses.asdict(self.frame),
+            "metadata": self.metadata,
+        }
+        return arrays, meta
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any], validate: bool = True) -> "Scenario":
+        parts: dict[str, dict[str, np.ndarray]] = {"tracks": {}, "road_map": {}, "traffic_lights": {}}
+        top = {}
+        for key, value in arrays.items():
+            prefix, _, name = key.partition(".")
+            if name:
+                parts[prefix][name] = value
+            else:
+                top[key] = value
+        kwargs = dict(
+            scenario_id=meta["scenario_id"], source=meta["source"], current_frame=meta["current_frame"],
+            sdc_index=meta["sdc_index"], frame=SceneFrame(**meta["frame"]), metadata=meta.get("metadata", {}),
+            **top,
+        )
+        if validate:
+            return cls(tracks=Tracks(**parts["tracks"]), road_map=RoadMap(**parts["road_map"]),
+                       traffic_lights=TrafficLights(**parts["traffic_lights"]), **kwargs)
+        kwargs["current_frame"] = int(kwargs["current_frame"])
+        kwargs["sdc_index"] = int(kwargs["sdc_index"])
+        kwargs["metadata"] = dict(kwargs["metadata"])
+        return _trusted(cls, tracks=_trusted(Tracks, **parts["tracks"]), road_map=_trusted(RoadMap, **parts["road_map"]),
+                        traffic_lights=_trusted(TrafficLights, **parts["traffic_lights"]), **kwargs)
+
+
+def choose_frame(scenario_positions: np.ndarray, valid: np.ndarray, sdc_index: int, current_frame: int,
+                 fallback: np.ndarray | None = None) -> SceneFrame:
+    """The local frame readers use: the self-driving car's position at the current frame (exactly,
+    so re-reading a written scene picks the same origin), else the mean of the valid positions at
+    the current frame, else ``fallback`` (e.g. the map's centre), else the source origin.
+
+    ``scenario_positions`` are source coordinates [N, T, 3] (float64).
+    """
+    if 0 <= sdc_index < len(valid) and valid[sdc_index, current_frame]:
+        x, y, z = scenario_positions[sdc_index, current_frame]
+        return SceneFrame(float(x), float(y), float(z), 0.0)
+    cur = valid[:, current_frame] if valid.size else np.zeros(0, bool)
+    if cur.any():
+        x, y, z = scenario_positions[cur, current_frame].mean(axis=0)
+        return SceneFrame(float(x), float(y), float(z), 0.0)
+    if fallback is not None and len(fallback):
+        x, y, z = np.asarray(fallback, np.float64).reshape(-1, 3).mean(axis=0)
+        return SceneFrame(float(x), float(y), float(z), 0.0)
+    return SceneFrame()
