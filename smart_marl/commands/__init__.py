@@ -1,0 +1,1 @@
+"""Subcommands of the smart-marl command line (see smart_marl.cli)."""
