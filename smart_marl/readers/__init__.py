@@ -14,24 +14,27 @@ from __future__ import annotations
 
 import glob as _glob
 import importlib
+import importlib.util
 import os
 from pathlib import Path
 from typing import Iterable, Iterator
 
+from ..cache import SceneCache, is_cache_dir
 from ..errors import ScenarioReadError, UnknownFormatError
 from ..scenario import Scenario
 
 # Order matters: the first module whose sniff() accepts a file reads it.
-_FORMAT_MODULES = ("womd", "scenarionet", "smart_pkl", "gpudrive_json", "av2")
+_FORMAT_MODULES = ("scene_cache", "womd", "scenarionet", "smart_pkl", "gpudrive_json", "av2")
 
 # In a directory, only names like these are taken as scene files (README.md, .binproto... are not).
-_SCENE_NAME_HINTS = (".tfrecord", "tfrecord-", ".pkl", ".pickle", ".json", ".parquet")
+_SCENE_NAME_HINTS = (".smsc", ".tfrecord", "tfrecord-", ".pkl", ".pickle", ".json", ".parquet")
 _SNIFF_BYTES = 4096
 
 
 def _formats():
     for name in _FORMAT_MODULES:
-        yield importlib.import_module(f"{__name__}.{name}")
+        if importlib.util.find_spec(f"{__name__}.{name}") is not None:
+            yield importlib.import_module(f"{__name__}.{name}")
 
 
 def format_names() -> list[str]:
@@ -76,6 +79,8 @@ def expand_paths(path_or_glob: str | os.PathLike | Iterable[str | os.PathLike]) 
             out.extend(expand_paths(item))
         return out
     text = os.fspath(path_or_glob)
+    if os.path.isdir(text) and is_cache_dir(text):
+        return [str(p) for p in SceneCache(text).shard_paths()]
     if os.path.isdir(text):
         files = sorted(str(p) for p in Path(text).rglob("*") if p.is_file() and _is_scene_name(p.name))
         return [f for f in files if not _is_companion(f)]
