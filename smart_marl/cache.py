@@ -94,8 +94,12 @@ class ShardReader:
             raise ScenarioReadError(self.path, f"cannot open shard: {exc}") from exc
         if self._map[: len(MAGIC)] != MAGIC:
             raise ScenarioReadError(self.path, "not a smart-marl scene-cache shard (bad magic)")
-        (header_len,) = struct.unpack_from("<Q", self._map, len(MAGIC))
         start = len(MAGIC) + 8
+        if len(self._map) < start:
+            raise ScenarioReadError(self.path, f"truncated shard: {len(self._map)} bytes, shorter than its header")
+        (header_len,) = struct.unpack_from("<Q", self._map, len(MAGIC))
+        if start + header_len > len(self._map):
+            raise ScenarioReadError(self.path, f"truncated shard: header of {header_len} bytes runs past the end")
         try:
             self._entries = json.loads(bytes(self._map[start : start + header_len]))["scenes"]
         except (ValueError, KeyError) as exc:
@@ -110,8 +114,11 @@ class ShardReader:
         arrays = {}
         for name, (dtype, shape, offset, nbytes) in entry["arrays"].items():
             count = int(np.prod(shape)) if shape else 1
-            arrays[name] = np.frombuffer(self._map, dtype=np.dtype(dtype), count=count,
-                                         offset=self._data_start + offset).reshape(shape)
+            try:
+                arrays[name] = np.frombuffer(self._map, dtype=np.dtype(dtype), count=count,
+                                             offset=self._data_start + offset).reshape(shape)
+            except ValueError as exc:
+                raise ScenarioReadError(self.path, f"truncated or corrupt array {name!r}: {exc}", record=i) from exc
         # Arrays were validated when the shard was written; skip re-validation on the hot path.
         return Scenario.from_arrays(arrays, entry["meta"], validate=False)
 
