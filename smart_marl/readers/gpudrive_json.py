@@ -1,0 +1,511 @@
+"""Reader: GPUDrive / Nocturne JSON scenes -> :class:`smart_marl.Scenario` (first stage of the flow).
+
+One JSON file holds one WOMD-derived scene: ``objects`` (per-agent lists of ``position`` {x, y[, z]},
+``heading``, ``velocity`` {x, y}, ``valid``, plus scalar ``width``/``length``[/``height``] and a
+``type`` string), ``roads`` (typed polylines/polygons under ``geometry``), ``tl_states`` and, in
+newer GPUDrive files, ``scenario_id`` and ``metadata``. What this reader decides, and why:
+
+* **Flavour / ``source``.** Nocturne wrote ``name``, ``objects``, ``roads``, ``tl_states`` with 2-D
+  points and headings in degrees; early GPUDrive wrote the same layout (so such files read as
+  ``"nocturne"`` wherever they come from). Later GPUDrive converters added ``scenario_id``,
+  ``metadata``, ``z`` coordinates, object ``id``/``height``/``mark_as_expert`` and road
+  ``id``/``map_element_id``. A file carrying any of these reads as ``source="gpudrive"``.
+* **Heading unit.** Converters that write object ``id`` also switched to radians wrapped to
+  [-pi, pi]; the older ones wrote ``math.degrees(heading)`` unwrapped (values like 543.8). So:
+  radians when the objects carry ``id`` and every valid heading lies within [-2 pi, 2 pi], degrees
+  otherwise (``metadata["heading_unit_in_source"]`` says which). On the shared files this agrees
+  with the direction of motion of moving agents to within 0.02 rad (median).
+* **Ids.** Track ids are the objects' ``id`` when given, else their index; map feature ids are the
+  roads' ``id`` when given, else their index.
+* **Types.** ``vehicle``/``pedestrian``/``cyclist``; anything else (``other``, ``unset``) is OTHER.
+* **Sizes.** ``length``, ``width`` (and ``height``) are one box per object (the converter takes the
+  last valid state), repeated on every frame. Without ``height``, :data:`DEFAULT_HEIGHT_M` per type.
+  Without ``z``, z = 0 (tracks and map alike).
+* **Map subtypes.** From ``map_element_id`` when present (GPUDrive's Waymax-style codes: lanes 0-3,
+  road lines 5-13, road edges 14-16, i.e. the WOMD codes shifted); otherwise UNDEFINED / UNKNOWN.
+  The JSON has **no lane topology** (no entry/exit lanes, neighbours or stop-sign lanes): the
+  RoadMap has no links.
+* **Traffic lights.** ``tl_states`` maps a WOMD lane id to ``{"state": [names], "x": [...],
+  "y": [...], "z": [...], "time_index": [...]}`` (frame indices); state names (``"stop"``,
+  ``"arrow_go"``...) map onto :class:`SignalState`; the stop point is the lane's first reported one.
+  Lane ids refer to road ids, so in files without road ids they may not resolve to a feature.
+* **Roles.** ``metadata.sdc_track_index`` is the self-driving car (else -1),
+  ``metadata.tracks_to_predict`` (track_index, difficulty) the tracks to predict,
+  ``metadata.objects_of_interest`` (track ids) the objects of interest.
+* **Time.** 10 Hz. The current frame is index 10 (WOMD's 1.1 s of history) for the 91-frame scenes
+  these converters produce, ``min(10, T - 1)`` for any other length.
+* **Scenario id.** ``scenario_id`` when given, else ``name`` without ``.json`` (Nocturne's ``name`` is
+  the WOMD shard and index, e.g. ``tfrecord-00358-of-01000_65``), else the file stem.
+
+Values on invalid frames (the converters write -1e4 or 1e-4 there) are replaced by zeros.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from itertools import chain
+from operator import itemgetter
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from ..errors import ScenarioReadError, ScenarioValidationError
+from ..scenario import (
+    DT_S, AgentType, MapFeatureType, RoadMap, Scenario, SignalState, TrafficLights, Tracks, choose_frame,
+)
+
+NAME = "gpudrive_json"
+
+WOMD_CURRENT_FRAME = 10
+"""Current frame of a WOMD-derived scene (11 frames of history)."""
+
+DEFAULT_HEIGHT_M = {
+    AgentType.VEHICLE: 1.6,
+    AgentType.PEDESTRIAN: 1.8,
+    AgentType.CYCLIST: 1.7,
+    AgentType.OTHER: 1.0,
+}
+"""Box height used when the file gives none (Nocturne files): typical WOMD heights per type."""
+
+_AGENT_TYPES = {"vehicle": AgentType.VEHICLE, "pedestrian": AgentType.PEDESTRIAN, "cyclist": AgentType.CYCLIST}
+
+_ROAD_TYPES = {
+    "lane": MapFeatureType.LANE,
+    "road_line": MapFeatureType.ROAD_LINE,
+    "road_edge": MapFeatureType.ROAD_EDGE,
+    "stop_sign": MapFeatureType.STOP_SIGN,
+    "crosswalk": MapFeatureType.CROSSWALK,
+    "speed_bump": MapFeatureType.SPEED_BUMP,
+    "driveway": MapFeatureType.DRIVEWAY,
+}
+
+# map_element_id (GPUDrive / Waymax codes) -> (first code, number of subtypes) per feature type
+_SUBTYPE_CODES = {
+    MapFeatureType.LANE: (0, 4),
+    MapFeatureType.ROAD_LINE: (5, 9),
+    MapFeatureType.ROAD_EDGE: (14, 3),
+}
+
+_OBJECT_FIELDS = ("position", "heading", "velocity", "valid", "width", "length", "type")
+_GPUDRIVE_TOP_KEYS = ("scenario_id", "metadata")
+_GPUDRIVE_OBJECT_KEYS = ("id", "height", "mark_as_expert")
+_GPUDRIVE_ROAD_KEYS = ("id", "map_element_id")
+
+_XY = itemgetter("x", "y")
+_XYZ = itemgetter("x", "y", "z")
+
+_SCAN_CHUNK_BYTES = 1 << 20
+_SCAN_LIMIT_BYTES = 64 << 20
+
+
+# ----------------------------------------------------------------------------------------- sniff
+def sniff(path: str, head: bytes) -> bool:
+    """A JSON object (``{`` after whitespace) with ``"objects"`` near its start; when the head does
+    not show it, the file (``.json`` only) is scanned in chunks for both ``"objects"`` and
+    ``"roads"`` (the roads come after megabytes of objects, so they are rarely in the head)."""
+    text = head.lstrip()
+    if not text.startswith(b"{"):
+        return False
+    if b'"objects"' in head[:1024] and (b'"roads"' in head or b'"position"' in head):
+        return True
+    if not str(path).lower().endswith(".json"):
+        return False
+    return _file_mentions(path, (b'"objects"', b'"roads"'))
+
+
+def _file_mentions(path: str, needles: tuple[bytes, ...]) -> bool:
+    found = set()
+    tail = b""
+    try:
+        with open(path, "rb") as f:
+            read = 0
+            while read < _SCAN_LIMIT_BYTES:
+                chunk = f.read(_SCAN_CHUNK_BYTES)
+                if not chunk:
+                    break
+                read += len(chunk)
+                window = tail + chunk
+                found.update(n for n in needles if n in window)
+                if len(found) == len(needles):
+                    return True
+                tail = window[-32:]
+    except OSError:
+        return False
+    return False
+
+
+# ------------------------------------------------------------------------------------------ read
+def read(path: str | os.PathLike) -> Iterator[Scenario]:
+    """Yield the one Scenario of a GPUDrive / Nocturne JSON file."""
+    path = os.fspath(path)
+    yield scenario_from_json(_load_json(path), path)
+
+
+def _load_json(path: str) -> dict:
+    try:
+        with open(path, "rb") as f:
+            data = json.load(f)
+    except json.JSONDecodeError as exc:
+        raise ScenarioReadError(path, f"invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from exc
+    except UnicodeDecodeError as exc:
+        raise ScenarioReadError(path, f"not UTF-8 text: {exc}") from exc
+    except OSError as exc:
+        raise ScenarioReadError(path, f"cannot read: {exc.strerror or exc}") from exc
+    if not isinstance(data, dict):
+        raise ScenarioReadError(path, f"top level is a JSON {type(data).__name__}, expected an object")
+    return data
+
+
+def scenario_from_json(data: dict[str, Any], path: str = "<memory>") -> Scenario:
+    """Build a Scenario from an already parsed GPUDrive / Nocturne JSON dict (see the module doc)."""
+    for key in ("objects", "roads"):
+        if key not in data:
+            raise ScenarioReadError(path, f"missing top-level field '{key}'")
+        if not isinstance(data[key], list):
+            raise ScenarioReadError(path, f"'{key}' is a {type(data[key]).__name__}, expected a list", record=key)
+    objects, roads = data["objects"], data["roads"]
+    metadata_in = data.get("metadata") or {}
+    if not isinstance(metadata_in, dict):
+        raise ScenarioReadError(path, "'metadata' is not an object", record="metadata")
+
+    track = _read_objects(objects, path)
+    num_frames = track["valid"].shape[1]
+    road = _read_roads(roads, path)
+    flavour = _flavour(data, objects, roads, track["has_z"] or road["has_z"])
+
+    current_frame = WOMD_CURRENT_FRAME if num_frames > WOMD_CURRENT_FRAME else num_frames - 1
+    sdc_index = int(metadata_in.get("sdc_track_index", -1))
+    if not -1 <= sdc_index < len(objects):
+        raise ScenarioReadError(path, f"sdc_track_index {sdc_index} outside [0, {len(objects)})", record="metadata")
+    predict, difficulty = [], []
+    for k, entry in enumerate(metadata_in.get("tracks_to_predict", []) or []):
+        try:
+            index = int(entry["track_index"] if isinstance(entry, dict) else entry)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ScenarioReadError(path, f"bad entry {entry!r}", record=f"metadata.tracks_to_predict[{k}]") from exc
+        if not 0 <= index < len(objects):
+            raise ScenarioReadError(path, f"track_index {index} outside [0, {len(objects)})",
+                                    record=f"metadata.tracks_to_predict[{k}]")
+        predict.append(index)
+        difficulty.append(int(entry.get("difficulty", 0)) if isinstance(entry, dict) else 0)
+    interest = np.asarray(metadata_in.get("objects_of_interest", []) or [], dtype=np.int64)
+
+    frame = choose_frame(track["position"], track["valid"], sdc_index, current_frame,
+                         fallback=road["points"] if len(road["points"]) else None)
+    origin = np.array([frame.x, frame.y, frame.z])
+    position = np.where(track["valid"][..., None], track["position"] - origin, 0.0)
+
+    lights = _read_traffic_lights(data.get("tl_states"), num_frames, origin, path)
+    scenario_id = data.get("scenario_id") or _strip_json(data.get("name")) or Path(path).stem
+    meta: dict[str, Any] = {
+        "source_path": os.path.abspath(path) if path != "<memory>" else path,
+        "file_name": data.get("name") if isinstance(data.get("name"), str) else Path(path).name,
+        "heading_unit_in_source": track["heading_unit"],
+    }
+    if track["experts"] is not None:
+        meta["mark_as_expert_ids"] = track["experts"]
+
+    try:
+        return Scenario(
+            scenario_id=str(scenario_id),
+            source=flavour,
+            timestamps_s=np.arange(num_frames) * DT_S,
+            current_frame=current_frame,
+            tracks=Tracks(ids=track["ids"], types=track["types"], position=position, heading=track["heading"],
+                          velocity=track["velocity"], size=track["size"], valid=track["valid"]),
+            road_map=RoadMap(
+                ids=road["ids"], types=road["types"], subtypes=road["subtypes"],
+                speed_limit_mph=np.zeros(len(road["ids"]), np.float32), interpolating=np.zeros(len(road["ids"]), bool),
+                points=road["points"] - origin if len(road["points"]) else road["points"],
+                point_offsets=road["offsets"], links=np.zeros((0, 2), np.int64), link_types=np.zeros(0, np.int8),
+            ),
+            traffic_lights=lights,
+            sdc_index=sdc_index,
+            predict_indices=np.asarray(predict, np.int64),
+            predict_difficulty=np.asarray(difficulty, np.int8),
+            objects_of_interest=interest,
+            frame=frame,
+            metadata=meta,
+        )
+    except ScenarioValidationError as exc:
+        raise ScenarioReadError(path, str(exc)) from exc
+
+
+def _strip_json(name: Any) -> str | None:
+    if not isinstance(name, str) or not name:
+        return None
+    return name[:-5] if name.lower().endswith(".json") else name
+
+
+def _flavour(data: dict, objects: list, roads: list, has_z: bool) -> str:
+    if has_z or any(k in data for k in _GPUDRIVE_TOP_KEYS):
+        return "gpudrive"
+    if objects and any(k in objects[0] for k in _GPUDRIVE_OBJECT_KEYS):
+        return "gpudrive"
+    if roads and any(k in roads[0] for k in _GPUDRIVE_ROAD_KEYS):
+        return "gpudrive"
+    return "nocturne"
+
+
+# --------------------------------------------------------------------------------------- objects
+def _read_objects(objects: list, path: str) -> dict[str, Any]:
+    n = len(objects)
+    for i, obj in enumerate(objects):
+        if not isinstance(obj, dict):
+            raise ScenarioReadError(path, f"is a {type(obj).__name__}, expected an object", record=f"objects[{i}]")
+        for key in _OBJECT_FIELDS:
+            if key not in obj:
+                raise ScenarioReadError(path, f"missing field '{key}'", record=f"objects[{i}]")
+    if n == 0:
+        num_frames = 0
+    else:
+        num_frames = len(objects[0]["valid"])
+    for i, obj in enumerate(objects):
+        for key in ("position", "heading", "velocity", "valid"):
+            seq = obj[key]
+            if not isinstance(seq, list) or len(seq) != num_frames:
+                got = len(seq) if isinstance(seq, list) else type(seq).__name__
+                raise ScenarioReadError(path, f"'{key}' has {got} entries, expected {num_frames} (as objects[0].valid)",
+                                        record=f"objects[{i}]")
+    if n and num_frames == 0:
+        raise ScenarioReadError(path, "objects have no frames", record="objects[0]")
+
+    all_pos = list(chain.from_iterable(o["position"] for o in objects))
+    has_z = bool(all_pos) and all(isinstance(p, dict) and "z" in p for p in (all_pos[0], all_pos[-1]))
+    position = np.zeros((n, num_frames, 3), np.float64)
+    try:
+        if has_z:
+            position[:] = np.array(list(map(_XYZ, all_pos)), np.float64).reshape(n, num_frames, 3)
+        else:
+            position[..., :2] = np.array(list(map(_XY, all_pos)), np.float64).reshape(n, num_frames, 2)
+    except (KeyError, TypeError, ValueError):
+        position, has_z = _points_slow(objects, "position", num_frames, path)
+    try:
+        velocity = np.array(list(map(_XY, chain.from_iterable(o["velocity"] for o in objects))),
+                            np.float64).reshape(n, num_frames, 2)
+    except (KeyError, TypeError, ValueError):
+        velocity = _points_slow(objects, "velocity", num_frames, path, dims=2)[0][..., :2]
+    try:
+        heading = np.array([o["heading"] for o in objects], np.float64).reshape(n, num_frames)
+    except (TypeError, ValueError) as exc:
+        raise ScenarioReadError(path, f"'heading' holds a non-number: {exc}", record=_first_bad(objects, "heading")) from exc
+    valid = np.array([o["valid"] for o in objects], dtype=None if n else bool).reshape(n, num_frames)
+    if valid.dtype != np.bool_:  # JSON true/false give a boolean array; anything else is named
+        for i, obj in enumerate(objects):
+            for f, v in enumerate(obj["valid"]):
+                if not isinstance(v, bool):
+                    raise ScenarioReadError(path, f"valid[{f}] is {v!r}, expected true/false", record=f"objects[{i}]")
+    types = np.array([_AGENT_TYPES.get(o["type"], AgentType.OTHER) for o in objects], np.int8)
+    try:
+        length = np.array([o["length"] for o in objects], np.float64)
+        width = np.array([o["width"] for o in objects], np.float64)
+        height = np.array([o.get("height", DEFAULT_HEIGHT_M[AgentType(int(t))]) for o, t in zip(objects, types)], np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ScenarioReadError(path, f"a box size is not a number: {exc}") from exc
+
+    has_ids = n > 0 and all("id" in o for o in objects)
+    if n and not has_ids and any("id" in o for o in objects):
+        i = next(i for i, o in enumerate(objects) if "id" not in o)
+        raise ScenarioReadError(path, "missing field 'id' (other objects have one)", record=f"objects[{i}]")
+    ids = np.array([o["id"] for o in objects], np.int64) if has_ids else np.arange(n, dtype=np.int64)
+    if len(np.unique(ids)) != n:
+        uniq, counts = np.unique(ids, return_counts=True)
+        dup = int(uniq[counts > 1][0])
+        raise ScenarioReadError(path, f"track id {dup} is used by more than one object",
+                                record=f"objects[{int(np.flatnonzero(ids == dup)[1])}]")
+
+    # NaN / inf on valid frames: name the object, the field and the frame
+    for name, values in (("position", position), ("velocity", velocity), ("heading", heading)):
+        finite = np.isfinite(values) if values.ndim == 2 else np.isfinite(values).all(axis=-1)
+        bad = valid & ~finite
+        if bad.any():
+            i, f = np.argwhere(bad)[0]
+            raise ScenarioReadError(path, f"'{name}' is not finite on valid frame {int(f)}", record=f"objects[{int(i)}]")
+    for name, values in (("length", length), ("width", width), ("height", height)):
+        bad = ~np.isfinite(values) & valid.any(axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise ScenarioReadError(path, f"'{name}' is not finite", record=f"objects[{i}]")
+
+    valid_heading = heading[valid]
+    radians = has_ids and (valid_heading.size == 0 or float(np.abs(valid_heading).max()) <= 2 * math.pi + 1e-3)
+    heading_rad = heading if radians else np.radians(heading)
+    heading_rad = np.where(valid, (heading_rad + np.pi) % (2 * np.pi) - np.pi, 0.0)
+    size = np.broadcast_to(np.stack([length, width, height], axis=-1)[:, None, :], (n, num_frames, 3))
+    experts = [int(i) for i, o in zip(ids, objects) if o.get("mark_as_expert")] if any(
+        "mark_as_expert" in o for o in objects) else None
+    return {
+        "ids": ids, "types": types, "position": position, "has_z": has_z, "valid": valid,
+        "heading": heading_rad, "heading_unit": "radians" if radians else "degrees",
+        "velocity": np.where(valid[..., None], velocity, 0.0), "size": size, "experts": experts,
+    }
+
+
+def _points_slow(objects: list, key: str, num_frames: int, path: str, dims: int = 3) -> tuple[np.ndarray, bool]:
+    """Per-point reading, only to find and name a malformed point (the fast path failed)."""
+    out = np.zeros((len(objects), num_frames, 3), np.float64)
+    has_z = False
+    for i, obj in enumerate(objects):
+        for f, p in enumerate(obj[key]):
+            record = f"objects[{i}].{key}[{f}]"
+            if not isinstance(p, dict):
+                raise ScenarioReadError(path, f"is a {type(p).__name__}, expected an object with x, y", record=record)
+            for axis in ("x", "y"):
+                if axis not in p:
+                    raise ScenarioReadError(path, f"missing field '{axis}'", record=record)
+            try:
+                out[i, f, 0], out[i, f, 1] = float(p["x"]), float(p["y"])
+                if dims == 3 and "z" in p:
+                    out[i, f, 2] = float(p["z"])
+                    has_z = True
+            except (TypeError, ValueError) as exc:
+                raise ScenarioReadError(path, f"a coordinate is not a number: {exc}", record=record) from exc
+    return out, has_z
+
+
+def _first_bad(objects: list, key: str) -> str:
+    for i, obj in enumerate(objects):
+        try:
+            np.asarray(obj[key], np.float64)
+        except (TypeError, ValueError):
+            return f"objects[{i}]"
+    return "objects"
+
+
+# ----------------------------------------------------------------------------------------- roads
+def _read_roads(roads: list, path: str) -> dict[str, Any]:
+    f = len(roads)
+    types = np.zeros(f, np.int8)
+    subtypes = np.zeros(f, np.int8)
+    lengths = np.zeros(f, np.int64)
+    for i, road in enumerate(roads):
+        record = f"roads[{i}]"
+        if not isinstance(road, dict):
+            raise ScenarioReadError(path, f"is a {type(road).__name__}, expected an object", record=record)
+        for key in ("type", "geometry"):
+            if key not in road:
+                raise ScenarioReadError(path, f"missing field '{key}'", record=record)
+        kind = _ROAD_TYPES.get(road["type"])
+        if kind is None:
+            raise ScenarioReadError(path, f"unknown road type {road['type']!r} (known: {', '.join(_ROAD_TYPES)})",
+                                    record=record)
+        types[i] = kind
+        geometry = road["geometry"]
+        if not isinstance(geometry, list) or not geometry:
+            raise ScenarioReadError(path, "'geometry' has no points", record=record)
+        lengths[i] = len(geometry)
+        code = road.get("map_element_id")
+        if kind in _SUBTYPE_CODES and isinstance(code, int):
+            first, count = _SUBTYPE_CODES[kind]
+            if first <= code < first + count:
+                subtypes[i] = code - first
+
+    has_ids = f > 0 and all("id" in r for r in roads)
+    if f and not has_ids and any("id" in r for r in roads):
+        i = next(i for i, r in enumerate(roads) if "id" not in r)
+        raise ScenarioReadError(path, "missing field 'id' (other roads have one)", record=f"roads[{i}]")
+    try:
+        ids = np.array([r["id"] for r in roads], np.int64) if has_ids else np.arange(f, dtype=np.int64)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ScenarioReadError(path, f"a road id is not an integer: {exc}", record="roads") from exc
+    if len(np.unique(ids)) != f:
+        uniq, counts = np.unique(ids, return_counts=True)
+        dup = int(uniq[counts > 1][0])
+        raise ScenarioReadError(path, f"road id {dup} is used by more than one road",
+                                record=f"roads[{int(np.flatnonzero(ids == dup)[1])}]")
+
+    all_points = list(chain.from_iterable(r["geometry"] for r in roads))
+    has_z = bool(all_points) and isinstance(all_points[0], dict) and "z" in all_points[0]
+    try:
+        if has_z:
+            points = np.array(list(map(_XYZ, all_points)), np.float64).reshape(-1, 3)
+        else:
+            xy = np.array(list(map(_XY, all_points)), np.float64).reshape(-1, 2)
+            points = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
+    except (KeyError, TypeError, ValueError):
+        points, has_z = _road_points_slow(roads, path)
+    offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.all():
+        k = int(np.flatnonzero(~finite)[0])
+        i = int(np.searchsorted(offsets, k, side="right") - 1)
+        raise ScenarioReadError(path, f"geometry point {k - offsets[i]} is not finite", record=f"roads[{i}]")
+    return {"ids": ids, "types": types, "subtypes": subtypes, "points": points, "offsets": offsets, "has_z": has_z}
+
+
+def _road_points_slow(roads: list, path: str) -> tuple[np.ndarray, bool]:
+    rows = []
+    has_z = False
+    for i, road in enumerate(roads):
+        for k, p in enumerate(road["geometry"]):
+            record = f"roads[{i}].geometry[{k}]"
+            if not isinstance(p, dict):
+                raise ScenarioReadError(path, f"is a {type(p).__name__}, expected an object with x, y", record=record)
+            for axis in ("x", "y"):
+                if axis not in p:
+                    raise ScenarioReadError(path, f"missing field '{axis}'", record=record)
+            try:
+                rows.append((float(p["x"]), float(p["y"]), float(p.get("z", 0.0))))
+            except (TypeError, ValueError) as exc:
+                raise ScenarioReadError(path, f"a coordinate is not a number: {exc}", record=record) from exc
+            has_z = has_z or "z" in p
+    return np.array(rows, np.float64).reshape(-1, 3), has_z
+
+
+# -------------------------------------------------------------------------------- traffic lights
+def _signal_state(name: Any) -> SignalState | None:
+    if isinstance(name, int) and 0 <= name <= SignalState.FLASHING_CAUTION:
+        return SignalState(name)
+    if not isinstance(name, str):
+        return None
+    key = name.strip().upper()
+    key = key[len("LANE_STATE_"):] if key.startswith("LANE_STATE_") else key
+    return SignalState.__members__.get(key)
+
+
+def _read_traffic_lights(tl_states: Any, num_frames: int, origin: np.ndarray, path: str) -> TrafficLights:
+    if not tl_states:
+        return TrafficLights.empty(num_frames)
+    if not isinstance(tl_states, dict):
+        raise ScenarioReadError(path, f"'tl_states' is a {type(tl_states).__name__}, expected an object keyed by lane id",
+                                record="tl_states")
+    lane_ids, stop_points = [], []
+    states = np.zeros((num_frames, len(tl_states)), np.int8)
+    present = np.zeros((num_frames, len(tl_states)), bool)
+    for col, (lane_key, entry) in enumerate(tl_states.items()):
+        record = f"tl_states[{lane_key}]"
+        try:
+            lane_ids.append(int(lane_key))
+        except ValueError as exc:
+            raise ScenarioReadError(path, f"lane id {lane_key!r} is not an integer", record=record) from exc
+        if not isinstance(entry, dict):
+            raise ScenarioReadError(path, f"is a {type(entry).__name__}, expected an object", record=record)
+        for key in ("state", "time_index", "x", "y"):
+            if key not in entry:
+                raise ScenarioReadError(path, f"missing field '{key}'", record=record)
+        names, frames = entry["state"], entry["time_index"]
+        if len(names) != len(frames):
+            raise ScenarioReadError(path, f"{len(names)} states but {len(frames)} time indices", record=record)
+        codes = [_signal_state(s) for s in names]
+        if any(c is None for c in codes):
+            bad = names[[c is None for c in codes].index(True)]
+            raise ScenarioReadError(path, f"unknown signal state {bad!r}", record=record)
+        frames = np.asarray(frames, np.int64)
+        if frames.size and (frames.min() < 0 or frames.max() >= num_frames):
+            raise ScenarioReadError(path, f"time_index outside [0, {num_frames})", record=record)
+        states[frames, col] = np.asarray(codes, np.int8)
+        present[frames, col] = True
+        if not entry["x"]:
+            raise ScenarioReadError(path, "no stop point", record=record)
+        z = entry.get("z") or [0.0]
+        stop_points.append((float(entry["x"][0]), float(entry["y"][0]), float(z[0])))
+    if len(set(lane_ids)) != len(lane_ids):
+        raise ScenarioReadError(path, "a lane appears twice", record="tl_states")
+    try:
+        return TrafficLights(lane_ids=np.asarray(lane_ids, np.int64), states=states, present=present,
+                             stop_points=np.asarray(stop_points, np.float64).reshape(-1, 3) - origin)
+    except ScenarioValidationError as exc:
+        raise ScenarioReadError(path, str(exc), record="tl_states") from exc
