@@ -28,9 +28,12 @@ def synthetic_scenario(seed: int = 0, num_frames: int = 91, num_vehicles: int = 
                              points=np.stack([xs[:21], np.full(21, y), np.zeros(21)], 1)))
         features.append(dict(id=b, type=MapFeatureType.LANE, subtype=LaneType.SURFACE_STREET, speed_limit_mph=30.0,
                              points=np.stack([xs[20:], np.full(21, y), np.zeros(21)], 1)))
-        links += [(a, b, LinkType.SUCCESSOR), (b, a, LinkType.PREDECESSOR)]
-        if k > 0:
-            links += [(a, a - 2, LinkType.RIGHT_NEIGHBOR), (a - 2, a, LinkType.LEFT_NEIGHBOR)]
+    for k in range(lane_count):  # links grouped per lane in WOMD's order, so a WOMD round trip is exact
+        a, b = 100 + 2 * k, 101 + 2 * k
+        links += [(a, b, LinkType.SUCCESSOR)]
+        links += [(a, a + 2, LinkType.LEFT_NEIGHBOR)] if k < lane_count - 1 else []
+        links += [(a, a - 2, LinkType.RIGHT_NEIGHBOR)] if k > 0 else []
+        links += [(b, a, LinkType.PREDECESSOR)]
     half = lane_count * lane_width_m / 2
     for i, y in enumerate((-half, half)):
         features.append(dict(id=200 + i, type=MapFeatureType.ROAD_EDGE, subtype=RoadEdgeType.BOUNDARY,
@@ -66,19 +69,24 @@ def synthetic_scenario(seed: int = 0, num_frames: int = 91, num_vehicles: int = 
         heading[i] = np.pi / 2
         vel[i, :, 1] = speed
         size[i] = (0.8, 0.8, 1.8)
-    ox, oy, oz = source_origin
     pos[..., 2] = 0.8
+    # Like the readers: the local frame's origin is the self-driving car at the current frame.
+    current = min(10, num_frames - 1)
+    offset = pos[0, current].copy()
+    pos -= offset
+    road_map = road_map._transform(lambda p: (p - offset).astype(np.float32))
+    ox, oy, oz = np.asarray(source_origin) + offset
     tl_states = np.where((np.arange(num_frames) // 40) % 2 == 0, SignalState.GO, SignalState.STOP)
     return Scenario(
         scenario_id=f"synthetic-{seed:04d}",
         source="synthetic",
         timestamps_s=t,
-        current_frame=min(10, num_frames - 1),
+        current_frame=current,
         tracks=Tracks(ids=np.arange(n) + 1, types=types, position=pos, heading=heading, velocity=vel, size=size,
                       valid=valid),
         road_map=road_map,
         traffic_lights=TrafficLights(lane_ids=[101], states=tl_states[:, None], present=np.ones((num_frames, 1), bool),
-                                     stop_points=[[0.0, -(lane_count - 1) / 2 * lane_width_m, 0.0]]),
+                                     stop_points=[[0.0, -(lane_count - 1) / 2 * lane_width_m, 0.0] - offset]),
         sdc_index=0,
         predict_indices=[1, 2],
         frame=SceneFrame(ox, oy, oz, 0.0),
