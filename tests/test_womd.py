@@ -392,3 +392,35 @@ def test_bad_submission_file_names_the_file(tmp_path):
         read_submission(path)
     with pytest.raises(ScenarioReadError, match=r"missing\.binproto: cannot open"):
         read_submission(tmp_path / "missing.binproto")
+
+
+# ------------------------------------------------------------------- vectorised decoding path
+@pytest.mark.parametrize("name", [ONE_SCENARIO, INPUT_SCENARIO])
+def test_numpy_scanner_path_equals_the_plain_protobuf_path(shared_data, name):
+    [payload] = list(tfrecord.iter_records(shared_data / name))
+    fast = womd.decode_scenario(payload)
+    plain = womd.scenario_from_proto(pb.Scenario.FromString(payload))
+    assert fast.equals(plain, ignore=())
+
+
+def test_unknown_field_inside_a_map_point_falls_back_to_protobuf(one_proto):
+    view = pb.RAW_POINTS["Scenario"].FromString(one_proto.SerializeToString())
+    lane = next(f for f in view.map_features if f.HasField("lane"))
+    lane.lane.polyline[0] = lane.lane.polyline[0] + b"\x20\x05"  # field 4, varint 5: unknown to MapPoint
+    with_unknown = view.SerializeToString()
+    assert womd.scan_fixed_width_messages([lane.lane.polyline[0]], womd._MAP_POINT_FIELDS) is None
+    assert womd.decode_scenario(with_unknown).equals(womd.decode_scenario(one_proto.SerializeToString()))
+
+
+def test_scanner_decodes_fields_in_any_order_and_absent_ones_as_zero():
+    chunks = [
+        pb.ObjectState(center_x=1.5, valid=True).SerializeToString(),
+        pb.ObjectState(length=3.0, heading=2.0).SerializeToString(),
+        b"\x45\x00\x00\x80\x3f\x2d\x00\x00\x40\x40",  # heading 1.0 then length 3.0: same length, other order
+        b"",
+    ]
+    out = womd.scan_fixed_width_messages(chunks, womd._OBJECT_STATE_FIELDS)
+    assert out["center_x"].tolist() == [1.5, 0.0, 0.0, 0.0]
+    assert out["heading"].tolist() == [0.0, 2.0, 1.0, 0.0]
+    assert out["length"].tolist() == [0.0, 3.0, 3.0, 0.0]
+    assert out["valid"].tolist() == [1, 0, 0, 0]

@@ -153,15 +153,38 @@ def build_file_descriptor() -> descriptor_pb2.FileDescriptorProto:
     return fdp
 
 
-def _build_classes() -> dict[str, type]:
+# The fields that the raw-points view reads as undecoded bytes (one element per sub-message).
+RAW_POINT_FIELDS = {
+    ("Track", "states"), ("LaneCenter", "polyline"), ("RoadLine", "polyline"), ("RoadEdge", "polyline"),
+    ("Crosswalk", "polygon"), ("SpeedBump", "polygon"), ("Driveway", "polygon"),
+}
+
+
+def build_raw_points_descriptor() -> descriptor_pb2.FileDescriptorProto:
+    """The same schema in which the repeated ``ObjectState`` and ``MapPoint`` fields of
+    :data:`RAW_POINT_FIELDS` are ``repeated bytes`` (the same wire type): parsing a record with it
+    leaves every state and map point as its serialized bytes, which the WOMD reader decodes for a
+    whole scene at once with numpy instead of one Python attribute access per value."""
+    fdp = build_file_descriptor()
+    fdp.name = FILE_NAME.replace(".proto", "_raw_points.proto")
+    for msg in fdp.message_type:
+        for field in msg.field:
+            if (msg.name, field.name) in RAW_POINT_FIELDS:
+                field.type = _F.TYPE_BYTES
+                field.ClearField("type_name")
+    return fdp
+
+
+def _build_classes(fdp: descriptor_pb2.FileDescriptorProto) -> dict[str, type]:
     # A private pool: never clashes with a real waymo_open_dataset installed in the same process.
     pool = descriptor_pool.DescriptorPool()
-    file_desc = pool.Add(build_file_descriptor())
-    del file_desc  # pool.Add returns the FileDescriptor in some versions, None in others
+    pool.Add(fdp)
     return {name: message_factory.GetMessageClass(pool.FindMessageTypeByName(f"{PACKAGE}.{name}")) for name in _MESSAGES}
 
 
-_CLASSES = _build_classes()
+_CLASSES = _build_classes(build_file_descriptor())
+RAW_POINTS = _build_classes(build_raw_points_descriptor())
+"""Message classes of the raw-points view (see :func:`build_raw_points_descriptor`), by name."""
 
 MapPoint = _CLASSES["MapPoint"]
 BoundarySegment = _CLASSES["BoundarySegment"]
@@ -185,4 +208,4 @@ JointScene = _CLASSES["JointScene"]
 ScenarioRollouts = _CLASSES["ScenarioRollouts"]
 SimAgentsChallengeSubmission = _CLASSES["SimAgentsChallengeSubmission"]
 
-__all__ = ["build_file_descriptor", *_MESSAGES]
+__all__ = ["build_file_descriptor", "build_raw_points_descriptor", "RAW_POINTS", *_MESSAGES]

@@ -30,9 +30,13 @@ a traffic-light lane that is never reported on any frame cannot be written. Map 
 points (no polyline, or a stop sign without a position) cannot be a RoadMap feature: they are left
 out and their ids listed in ``metadata["map_features_without_points"]``.
 
-Decoding is vectorised per scene: each repeated field is turned into one numpy array with a single
-list comprehension (``valid``, positions... of all states of all tracks at once), never one numpy
-call per point.
+Decoding is vectorised per scene. A record is parsed with the raw-points view of the schema
+(:data:`smart_marl.proto.womd.RAW_POINTS`), which leaves every ``ObjectState`` and ``MapPoint`` as
+its serialized bytes; the bytes of all states (all map points) of the scene are joined and decoded
+at once by :func:`scan_fixed_width_messages`, a numpy scanner for messages made only of
+fixed-width fields. A record it cannot decode that way (a field it does not know inside a state or
+point, a multi-byte varint) falls back to the plain schema and one attribute access per value,
+with the same result.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ from __future__ import annotations
 import os
 import warnings
 import zlib
+from itertools import chain
 from typing import Iterable, Iterator
 
 import numpy as np
@@ -94,6 +99,116 @@ def read(path: str | os.PathLike) -> Iterator[Scenario]:
 
 
 # -------------------------------------------------------------------------------------- decoding
+# (tag byte, column, width in bytes, numpy dtype); tag = field number << 3 | wire type.
+_OBJECT_STATE_FIELDS = (
+    (0x11, "center_x", 8, "<f8"), (0x19, "center_y", 8, "<f8"), (0x21, "center_z", 8, "<f8"),
+    (0x2D, "length", 4, "<f4"), (0x35, "width", 4, "<f4"), (0x3D, "height", 4, "<f4"), (0x45, "heading", 4, "<f4"),
+    (0x4D, "velocity_x", 4, "<f4"), (0x55, "velocity_y", 4, "<f4"), (0x58, "valid", 1, "u1"),  # valid: a 1-byte varint
+)
+_MAP_POINT_FIELDS = ((0x09, "x", 8, "<f8"), (0x11, "y", 8, "<f8"), (0x19, "z", 8, "<f8"))
+
+
+def scan_fixed_width_messages(chunks: list[bytes], fields) -> dict[str, np.ndarray] | None:
+    """Decode many small serialized messages at once: ``chunks[i]`` is message ``i``; every field
+    is one of ``fields`` (single-byte tag, fixed width). Returns one array per field (the proto
+    default 0 where a message lacks the field; the last value where it repeats one), or None when
+    a message holds anything else (the caller then decodes it with protobuf).
+
+    Messages of one length almost always share one layout (the serializer writes fields in number
+    order): each such group is checked and sliced as a 2-D byte array; the rest go through a
+    scanner that advances every message by one field per numpy step.
+    """
+    count = len(chunks)
+    lengths = np.fromiter(map(len, chunks), dtype=np.int64, count=count)
+    buf = np.frombuffer(b"".join(chunks), dtype=np.uint8)
+    ends = np.cumsum(lengths)
+    starts = ends - lengths
+    out = {name: np.zeros(count, dtype=dtype) for _, name, _, dtype in fields}
+    spec = {tag: (name, width, dtype) for tag, name, width, dtype in fields}
+    width_of_tag = np.zeros(256, np.int64)
+    for tag, _, width, _ in fields:
+        width_of_tag[tag] = width
+    leftover = []
+    for length in np.unique(lengths).tolist():
+        rows = np.flatnonzero(lengths == length)
+        if length == 0:
+            continue
+        block = buf.reshape(count, length) if len(rows) == count else buf[starts[rows, None] + np.arange(length)]
+        layout, offset, first = [], 0, block[0].tolist()
+        while offset < length:
+            tag = first[offset]
+            width = int(width_of_tag[tag])
+            if not width or offset + 1 + width > length:
+                return None  # an unknown field, or a truncated one
+            layout.append((offset, tag))
+            offset += 1 + width
+        same = (block[:, [o for o, _ in layout]] == np.array([t for _, t in layout], np.uint8)).all(axis=1)
+        for offset, tag in layout:
+            name, width, dtype = spec[tag]
+            raw = np.ascontiguousarray(block[same, offset + 1 : offset + 1 + width])
+            if width == 1 and np.any(raw >= 0x80):
+                return None  # a varint longer than one byte
+            out[name][rows[same]] = raw.view(dtype).reshape(-1)
+        if not same.all():
+            leftover.append(rows[~same])
+    if leftover:
+        rows = np.concatenate(leftover)
+        pos = starts.copy()
+        while len(rows):
+            p = pos[rows]
+            tags = buf[p]
+            width = width_of_tag[tags]
+            if not width.all() or np.any(p + 1 + width > ends[rows]):
+                return None
+            for tag, name, w, dtype in fields:
+                hit = tags == tag
+                if hit.any():
+                    raw = buf[(p[hit] + 1)[:, None] + np.arange(w)]
+                    if w == 1 and np.any(raw >= 0x80):
+                        return None
+                    out[name][rows[hit]] = raw.view(dtype).reshape(-1)
+            pos[rows] = p + 1 + width
+            rows = rows[pos[rows] < ends[rows]]
+    return out
+
+
+def _check_state_counts(message, num_frames: int, path: str, record: int) -> None:
+    tracks = message.tracks
+    counts = [len(t.states) for t in tracks]
+    bad = [i for i, c in enumerate(counts) if c != num_frames]
+    if bad:
+        i = bad[0]
+        raise ScenarioReadError(
+            path, f"scenario {message.scenario_id}: track {i} (id {tracks[i].id}) has {counts[i]} states but there are "
+            f"{num_frames} timestamps", record,
+        )
+
+
+def _track_arrays_raw(view, num_frames: int, path: str, record: int):
+    """Like :func:`_track_arrays` from a raw-points view; None when the states need protobuf."""
+    _check_state_counts(view, num_frames, path, record)
+    tracks = view.tracks
+    n = len(tracks)
+    cols = scan_fixed_width_messages(list(chain.from_iterable(t.states for t in tracks)), _OBJECT_STATE_FIELDS)
+    if cols is None:
+        return None
+    ids = np.array([t.id for t in tracks], dtype=np.int64)
+    types = np.array([t.object_type for t in tracks], dtype=np.int64)
+    shape = (n, num_frames)
+    xyz = np.stack([cols["center_x"], cols["center_y"], cols["center_z"]], axis=-1).reshape(*shape, 3)
+    floats = np.stack([cols[k] for k in ("length", "width", "height", "heading", "velocity_x", "velocity_y")],
+                      axis=-1).reshape(*shape, 6)
+    return ids, types, xyz, floats, cols["valid"].astype(bool).reshape(shape)
+
+
+def _raw_points(polylines: list) -> np.ndarray | None:
+    """[P, 3] float64 source points from lists of serialized MapPoints; None when they need protobuf."""
+    cols = scan_fixed_width_messages(list(chain.from_iterable(polylines)), _MAP_POINT_FIELDS)
+    if cols is None:
+        return None
+    return np.stack([cols["x"], cols["y"], cols["z"]], axis=-1)
+
+
 def parse_scenario_proto(payload: bytes, path: str = "<bytes>", record: int = 0):
     """The ``waymo.open_dataset.Scenario`` message of one record (ScenarioReadError if it is not one)."""
     try:
@@ -109,25 +224,33 @@ def parse_scenario_proto(payload: bytes, path: str = "<bytes>", record: int = 0)
 
 def decode_scenario(payload: bytes, path: str = "<bytes>", record: int = 0) -> Scenario:
     """Decode one serialized WOMD ``Scenario`` into a :class:`Scenario` (local frame, see module doc)."""
-    message = parse_scenario_proto(payload, path, record)
+    payload = bytes(payload)
     try:
+        view = pb.RAW_POINTS["Scenario"].FromString(payload)
+    except (DecodeError, RuntimeError, ValueError):
+        view = None  # the plain parse below says what is wrong
+    message = view if view is not None and view.scenario_id and len(view.timestamps_seconds) else None
+    try:
+        if message is not None:
+            try:
+                return scenario_from_proto(message, path=path, record=record)
+            except _NeedsProtobuf:
+                pass
+        message = parse_scenario_proto(payload, path, record)
         return scenario_from_proto(message, path=path, record=record)
     except ScenarioValidationError as exc:
         raise ScenarioReadError(path, f"scenario {message.scenario_id}: {exc}", record) from exc
 
 
+class _NeedsProtobuf(Exception):
+    """The raw-points view met states or points the numpy scanner does not decode."""
+
+
 def _track_arrays(message, num_frames: int, path: str, record: int):
     """All tracks at once: ids [N], WOMD types [N], doubles [N, T, 3], floats [N, T, 6], valid [N, T]."""
+    _check_state_counts(message, num_frames, path, record)
     tracks = message.tracks
     n = len(tracks)
-    counts = [len(t.states) for t in tracks]
-    bad = [i for i, c in enumerate(counts) if c != num_frames]
-    if bad:
-        i = bad[0]
-        raise ScenarioReadError(
-            path, f"scenario {message.scenario_id}: track {i} (id {tracks[i].id}) has {counts[i]} states but there are "
-            f"{num_frames} timestamps", record,
-        )
     ids = np.array([t.id for t in tracks], dtype=np.int64)
     types = np.array([t.object_type for t in tracks], dtype=np.int64)
     states = [s for t in tracks for s in t.states]
@@ -138,9 +261,11 @@ def _track_arrays(message, num_frames: int, path: str, record: int):
     return ids, types, xyz, floats, valid
 
 
-def _map_arrays(message):
+def _map_arrays(message, raw: bool = False):
     """Map features: ids, types, subtypes, speed limits, interpolating, source points [P, 3], lengths,
-    links [(from, to, LinkType)], ids of features without points."""
+    links [(from, to, LinkType)], ids of features without points. ``raw``: ``message`` is a
+    raw-points view (points are serialized MapPoints); the points are then None when they need
+    protobuf to decode."""
     ids, types, subtypes, speeds, interp, lengths, polylines = [], [], [], [], [], [], []
     links: list[tuple[int, int, int]] = []
     without_points: list[int] = []
@@ -152,7 +277,10 @@ def _map_arrays(message):
         kind, points_field = _FEATURE_KINDS[oneof]
         data = getattr(feature, oneof)
         if points_field is None:  # stop sign: one point
-            points = [data.position] if data.HasField("position") else []
+            if not data.HasField("position"):
+                points = []
+            else:
+                points = [data.position.SerializeToString()] if raw else [data.position]
         else:
             points = getattr(data, points_field)
         if not len(points):
@@ -177,7 +305,10 @@ def _map_arrays(message):
             interp.append(False)
             if kind == MapFeatureType.STOP_SIGN:
                 links.extend((fid, to, LinkType.STOP_SIGN_LANE) for to in data.lane)
-    points = np.array([(p.x, p.y, p.z) for pl in polylines for p in pl], dtype=np.float64).reshape(-1, 3)
+    if raw:
+        points = _raw_points(polylines)
+    else:
+        points = np.array([(p.x, p.y, p.z) for pl in polylines for p in pl], dtype=np.float64).reshape(-1, 3)
     return ids, types, subtypes, speeds, interp, points, lengths, links, without_points
 
 
@@ -204,7 +335,9 @@ def _traffic_light_arrays(message, num_frames: int, path: str, record: int):
 
 
 def scenario_from_proto(message, path: str = "<bytes>", record: int = 0) -> Scenario:
-    """A :class:`Scenario` from a parsed ``waymo.open_dataset.Scenario`` message."""
+    """A :class:`Scenario` from a parsed ``waymo.open_dataset.Scenario`` message (of
+    :mod:`smart_marl.proto.womd`, or of its raw-points view)."""
+    raw = isinstance(message, pb.RAW_POINTS["Scenario"])
     timestamps = np.array(message.timestamps_seconds, dtype=np.float64)
     num_frames = len(timestamps)
     current = int(message.current_time_index)
@@ -212,14 +345,19 @@ def scenario_from_proto(message, path: str = "<bytes>", record: int = 0) -> Scen
         raise ScenarioReadError(
             path, f"scenario {message.scenario_id}: current_time_index {current} outside [0, {num_frames})", record
         )
-    ids, womd_types, xyz_source, floats, valid = _track_arrays(message, num_frames, path, record)
+    arrays = (_track_arrays_raw if raw else _track_arrays)(message, num_frames, path, record)
+    if arrays is None:
+        raise _NeedsProtobuf()
+    ids, womd_types, xyz_source, floats, valid = arrays
     num_tracks = len(ids)
     sdc = int(message.sdc_track_index) if message.HasField("sdc_track_index") else -1
     if not -1 <= sdc < num_tracks:
         raise ScenarioReadError(path, f"scenario {message.scenario_id}: sdc_track_index {sdc} outside [-1, {num_tracks})", record)
 
     (map_ids, map_types, subtypes, speeds, interp, map_points_source, lengths, links,
-     without_points) = _map_arrays(message)
+     without_points) = _map_arrays(message, raw=raw)
+    if map_points_source is None:
+        raise _NeedsProtobuf()
     frame = choose_frame(xyz_source, valid, sdc, current, fallback=map_points_source)
     origin = np.array([frame.x, frame.y, frame.z])
 
