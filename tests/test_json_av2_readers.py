@@ -386,3 +386,16 @@ def test_every_shared_json_and_av2_scene_reads_through_read_scenarios(shared_dat
     counts = {folder: sum(1 for _ in read_scenarios(shared_data / folder))
               for folder in ("gpudrive_json", "nocturne_json", "av2")}
     assert counts == {"gpudrive_json": 11, "nocturne_json": 3, "av2": 1}
+
+
+def test_json_and_av2_scenes_survive_the_flat_array_round_trip(shared_data):
+    """What the scene cache stores (arrays plus JSON-able scalars) rebuilds the same scenes."""
+    pytest.importorskip("pyarrow")
+    from smart_marl.scenario import Scenario
+
+    for path in (shared_data / GPUDRIVE_FILE, shared_data / NOCTURNE_FILE, shared_data / AV2_FILE):
+        scene = _read_one(path)
+        arrays, meta = scene.to_arrays()
+        again = Scenario.from_arrays(arrays, json.loads(json.dumps(meta)))
+        assert again.equals(scene, ignore=()), path.name
+        assert all(a.flags.c_contiguous for a in arrays.values()), path.name

@@ -268,7 +268,7 @@ def _read_tracks(columns: dict[str, np.ndarray], path: str) -> tuple[dict[str, A
     type_names = columns["object_type"].astype(str)[first_row[order]]
     types = np.array([AGENT_TYPES.get(t, AgentType.OTHER) for t in type_names], np.int8)
     box = np.array([DEFAULT_SIZE_M.get(t, OTHER_SIZE_M) for t in type_names], np.float64).reshape(n, 3)
-    size = np.broadcast_to(box[:, None, :], (n, num_frames, 3))
+    size = np.repeat(box[:, None, :], num_frames, axis=1)
 
     category_col = "object_category" if "object_category" in columns else "track_category" if "track_category" in columns else None
     category = (columns[category_col].astype(np.int64)[first_row[order]] if category_col
