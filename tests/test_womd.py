@@ -424,3 +424,11 @@ def test_scanner_decodes_fields_in_any_order_and_absent_ones_as_zero():
     assert out["heading"].tolist() == [0.0, 2.0, 1.0, 0.0]
     assert out["length"].tolist() == [0.0, 3.0, 3.0, 0.0]
     assert out["valid"].tolist() == [1, 0, 0, 0]
+
+
+def test_numpy_encoding_is_what_protobuf_itself_writes(one_scenario):
+    encoded = womd.encode_scenario(one_scenario)
+    assert pb.Scenario.FromString(encoded).SerializeToString() == encoded
+    rotated = one_scenario.to_frame(3.0, 4.0, 1.1)  # float64 velocities cast to the float fields
+    encoded = womd.encode_scenario(rotated)
+    assert pb.Scenario.FromString(encoded).SerializeToString() == encoded

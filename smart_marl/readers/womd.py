@@ -412,17 +412,38 @@ def _check_int32(values: np.ndarray, what: str, scenario_id: str) -> None:
         raise ValueError(f"scenario {scenario_id}: {what} do not fit WOMD's int32")
 
 
-def scenario_to_proto(scenario: Scenario):
-    """A ``waymo.open_dataset.Scenario`` message holding ``scenario`` in its source frame.
+# The canonical encodings of an ObjectState with every field set and of a MapPoint with x, y, z: what
+# protobuf writes (fields in number order), built for a whole scene at once with numpy.
+_STATE_RECORD = np.dtype([(f"tag_{name}", "u1") if i % 2 == 0 else (name, dtype)
+                          for _, name, _, dtype in _OBJECT_STATE_FIELDS for i in (0, 1)])
+_POINT_RECORD = np.dtype([(f"tag_{name}", "u1") if i % 2 == 0 else (name, dtype)
+                          for _, name, _, dtype in _MAP_POINT_FIELDS for i in (0, 1)])
+
+
+def _encode_fixed(fields, dtype: np.dtype, columns: dict[str, np.ndarray]) -> list[bytes]:
+    """One serialized message per row of ``columns``, every field of ``fields`` set."""
+    count = len(next(iter(columns.values())))
+    records = np.zeros(count, dtype=dtype)
+    for tag, name, _, _ in fields:
+        records[f"tag_{name}"] = tag
+        records[name] = columns[name]
+    blob, width = records.tobytes(), dtype.itemsize
+    return [blob[k : k + width] for k in range(0, count * width, width)]
+
+
+def encode_scenario(scenario: Scenario) -> bytes:
+    """The serialized WOMD ``Scenario`` record of ``scenario``, in its source frame.
 
     Positions are written as ``frame.to_source(local)`` (float64), headings and velocities are
     rotated back when the frame is rotated. Only what a Scenario holds is written (see the module
     docstring); links WOMD cannot express (from a feature that is neither a lane nor a stop sign, of
     a type its source feature cannot hold, or from an id not in the map) are left out with a warning.
+    States and map points are encoded for the whole scene at once (numpy) into the raw-points view.
     """
+    raw = pb.RAW_POINTS
     sid = scenario.scenario_id
     frame = scenario.frame
-    message = pb.Scenario(scenario_id=sid, current_time_index=scenario.current_frame)
+    message = raw["Scenario"](scenario_id=sid, current_time_index=scenario.current_frame)
     message.timestamps_seconds.extend(scenario.timestamps_s.tolist())
     if scenario.sdc_index >= 0:
         message.sdc_track_index = scenario.sdc_index
@@ -431,7 +452,7 @@ def scenario_to_proto(scenario: Scenario):
     tr = scenario.tracks
     _check_int32(tr.ids, "track ids", sid)
     _check_int32(scenario.objects_of_interest, "objects_of_interest", sid)
-    xyz = frame.to_source(tr.position).tolist()
+    xyz = frame.to_source(tr.position)
     if frame.heading == 0.0:  # keep the float32 values bit for bit
         heading, velocity = tr.heading, tr.velocity
     else:
@@ -439,38 +460,40 @@ def scenario_to_proto(scenario: Scenario):
         v = tr.velocity.astype(np.float64)
         heading = frame.heading_to_source(tr.heading)
         velocity = np.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], axis=-1)
-    heading, velocity, size, valid = heading.tolist(), velocity.tolist(), tr.size.tolist(), tr.valid.tolist()
-    ObjectState = pb.ObjectState
+    states = _encode_fixed(_OBJECT_STATE_FIELDS, _STATE_RECORD, {
+        "center_x": xyz[..., 0].ravel(), "center_y": xyz[..., 1].ravel(), "center_z": xyz[..., 2].ravel(),
+        "length": tr.size[..., 0].ravel(), "width": tr.size[..., 1].ravel(), "height": tr.size[..., 2].ravel(),
+        "heading": np.asarray(heading).ravel(), "velocity_x": np.asarray(velocity)[..., 0].ravel(),
+        "velocity_y": np.asarray(velocity)[..., 1].ravel(), "valid": tr.valid.ravel(),
+    }) if tr.num_tracks else []
+    num_frames = tr.num_frames
     for i, (track_id, agent_type) in enumerate(zip(tr.ids.tolist(), tr.types.tolist())):
         track = message.tracks.add(id=track_id, object_type=_WOMD_TYPE_OF_AGENT[AgentType(agent_type)])
-        track.states.extend([
-            ObjectState(center_x=p[0], center_y=p[1], center_z=p[2], length=sz[0], width=sz[1], height=sz[2],
-                        heading=h, velocity_x=vl[0], velocity_y=vl[1], valid=ok)
-            for p, h, vl, sz, ok in zip(xyz[i], heading[i], velocity[i], size[i], valid[i])
-        ])
+        track.states.extend(states[i * num_frames : (i + 1) * num_frames])
     message.objects_of_interest.extend(scenario.objects_of_interest.tolist())
     for index, difficulty in zip(scenario.predict_indices.tolist(), scenario.predict_difficulty.tolist()):
         message.tracks_to_predict.add(track_index=index, difficulty=difficulty)
 
     # ---- map
     rm = scenario.road_map
-    points = frame.to_source(rm.points).tolist()
+    src = frame.to_source(rm.points)
+    points = _encode_fixed(_MAP_POINT_FIELDS, _POINT_RECORD, {"x": src[:, 0], "y": src[:, 1], "z": src[:, 2]}) if len(src) else []
     offsets = rm.point_offsets.tolist()
     links_from: dict[int, list[tuple[int, int]]] = {}
     for (a, b), t in zip(rm.links.tolist(), rm.link_types.tolist()):
         links_from.setdefault(a, []).append((b, t))
     written_links = 0
-    MapPoint = pb.MapPoint
+    speeds, subtypes, interpolating = rm.speed_limit_mph.tolist(), rm.subtypes.tolist(), rm.interpolating.tolist()
     for i, (fid, ftype) in enumerate(zip(rm.ids.tolist(), rm.types.tolist())):
         kind = MapFeatureType(ftype)
         feature = message.map_features.add(id=fid)
         data = getattr(feature, _ONEOF_OF_TYPE[kind])
-        pts = [MapPoint(x=x, y=y, z=z) for x, y, z in points[offsets[i]:offsets[i + 1]]]
+        pts = points[offsets[i] : offsets[i + 1]]
         out_links = links_from.get(fid, [])
         if kind == MapFeatureType.LANE:
-            data.speed_limit_mph = float(rm.speed_limit_mph[i])
-            data.type = int(rm.subtypes[i])
-            data.interpolating = bool(rm.interpolating[i])
+            data.speed_limit_mph = speeds[i]
+            data.type = subtypes[i]
+            data.interpolating = interpolating[i]
             data.polyline.extend(pts)
             data.exit_lanes.extend([b for b, t in out_links if t == LinkType.SUCCESSOR])
             data.entry_lanes.extend([b for b, t in out_links if t == LinkType.PREDECESSOR])
@@ -483,11 +506,11 @@ def scenario_to_proto(scenario: Scenario):
         elif kind == MapFeatureType.STOP_SIGN:
             if len(pts) != 1:
                 warnings.warn(f"scenario {sid}: stop sign {fid} has {len(pts)} points; WOMD keeps the first", stacklevel=2)
-            data.position.CopyFrom(pts[0])
+            data.position.MergeFromString(pts[0])
             data.lane.extend([b for b, t in out_links if t == LinkType.STOP_SIGN_LANE])
             written_links += sum(t == LinkType.STOP_SIGN_LANE for _, t in out_links)
         elif kind in (MapFeatureType.ROAD_LINE, MapFeatureType.ROAD_EDGE):
-            data.type = int(rm.subtypes[i])
+            data.type = subtypes[i]
             data.polyline.extend(pts)
         else:
             data.polygon.extend(pts)
@@ -499,20 +522,21 @@ def scenario_to_proto(scenario: Scenario):
 
     # ---- traffic lights
     tl = scenario.traffic_lights
-    stops = frame.to_source(tl.stop_points).tolist()
-    lane_ids, states = tl.lane_ids.tolist(), tl.states.tolist()
+    MapPoint = raw["MapPoint"]
+    stops = [MapPoint(x=x, y=y, z=z) for x, y, z in frame.to_source(tl.stop_points).tolist()]
+    lane_ids, states_tl = tl.lane_ids.tolist(), tl.states.tolist()
     for f, present in enumerate(tl.present.tolist()):
         dynamic = message.dynamic_map_states.add()
         for j, is_present in enumerate(present):
             if is_present:
-                x, y, z = stops[j]
-                dynamic.lane_states.add(lane=lane_ids[j], state=states[f][j], stop_point=MapPoint(x=x, y=y, z=z))
-    return message
+                dynamic.lane_states.add(lane=lane_ids[j], state=states_tl[f][j], stop_point=stops[j])
+    return message.SerializeToString()
 
 
-def encode_scenario(scenario: Scenario) -> bytes:
-    """The serialized WOMD ``Scenario`` record of ``scenario``."""
-    return scenario_to_proto(scenario).SerializeToString()
+def scenario_to_proto(scenario: Scenario):
+    """A ``waymo.open_dataset.Scenario`` message (:mod:`smart_marl.proto.womd`) holding ``scenario``
+    in its source frame: the parse of :func:`encode_scenario`."""
+    return pb.Scenario.FromString(encode_scenario(scenario))
 
 
 def write_womd_tfrecord(scenarios: Iterable[Scenario] | Scenario, path: str | os.PathLike, compress: bool = False) -> int:
