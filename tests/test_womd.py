@@ -16,7 +16,7 @@ from smart_marl.errors import ScenarioReadError
 from smart_marl.proto import womd as pb
 from smart_marl.readers import read_scenarios, tfrecord, womd
 from smart_marl.readers.submission import read_submission, write_submission
-from smart_marl.scenario import AgentType, LinkType, MapFeatureType
+from smart_marl.scenario import LinkType, MapFeatureType
 from smart_marl.synthetic import synthetic_scenario
 
 ONE_SCENARIO = "womd_tfrecord/motion_data_one_scenario.tfrecord"
@@ -432,3 +432,17 @@ def test_numpy_encoding_is_what_protobuf_itself_writes(one_scenario):
     rotated = one_scenario.to_frame(3.0, 4.0, 1.1)  # float64 velocities cast to the float fields
     encoded = womd.encode_scenario(rotated)
     assert pb.Scenario.FromString(encoded).SerializeToString() == encoded
+
+
+def test_truncated_gzip_file_names_file_and_record(tmp_path, one_path):
+    gz = tmp_path / "cut.tfrecord.gz"
+    gz.write_bytes(gzip.compress(one_path.read_bytes())[:200_000])
+    with pytest.raises(ScenarioReadError, match=r"cut\.tfrecord\.gz, record 0: ") as info:
+        list(womd.read(gz))
+    assert info.value.record == 0
+
+
+def test_reading_with_the_numpy_crc_gives_the_same_scene(monkeypatch, one_path, one_scenario):
+    monkeypatch.setattr(tfrecord, "_crc32c_fast", None)  # as without the crc32c package
+    [again] = list(womd.read(one_path))
+    assert again.equals(one_scenario)

@@ -53,7 +53,7 @@ from google.protobuf.message import DecodeError
 from ..errors import ScenarioReadError, ScenarioValidationError
 from ..proto import womd as pb
 from ..scenario import (
-    AgentType, LinkType, MapFeatureType, RoadMap, SceneFrame, Scenario, TrafficLights, Tracks, choose_frame,
+    AgentType, LinkType, MapFeatureType, RoadMap, Scenario, TrafficLights, Tracks, choose_frame,
 )
 from . import tfrecord
 
