@@ -1,0 +1,517 @@
+"""Bird's-eye-view rendering of a scene and recording of episodes as GIF or MP4.
+
+Stage: a view at the end of the data flow. It reads a :class:`~smart_marl.scenario.Scenario`
+(for its map, traffic-light stop points and self-driving car) and per-frame agent states given as
+plain arrays, and hands back RGB images (``np.ndarray [H, W, 3] uint8``); nothing here changes a
+scene. Used by the demo, the PettingZoo env's ``render()`` and the what-if tool.
+
+* :class:`BevRenderer` draws the static map once (lane centrelines, bike lanes, painted lines by
+  colour and dash, road edges, crosswalks, speed bumps, driveways, stop signs) and then, per frame,
+  only updates the artists that move: agents as oriented boxes with a heading tick, fading recent
+  trajectories, traffic-light dots at the stop points and a text overlay. When the view does not
+  move between frames the static map is blitted from a cached background.
+* :func:`render_scenario_frame` renders the logged state of a scene at one frame.
+* :class:`EpisodeRecorder` collects frames and writes a GIF or an MP4 (by extension).
+* :func:`render_log_replay` writes the logged scene as an animation.
+
+matplotlib (Agg backend) and imageio are optional dependencies (the ``render`` extra); they are
+imported when first needed. Coordinates are the scene's local frame in metres; an image row grows
+downwards, so world +y is up in the picture.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .scenario import AgentType, LaneType, MapFeatureType, RoadLineType, Scenario, SignalState
+
+FRAME_FPS = 10.0
+"""Frames per second of an animation with one image per 0.1 s frame (real time)."""
+TOKEN_STEP_FPS = 2.0
+"""Frames per second of an animation with one image per 0.5 s token step (real time)."""
+
+# ---------------------------------------------------------------------------------------- style
+BACKGROUND = "#d9d9d9"
+LANE_COLOR = "#9a9a9a"
+BIKE_LANE_COLOR = "#3f9e6e"
+ROAD_EDGE_COLOR = "#262626"
+WHITE_LINE_COLOR = "#ffffff"
+YELLOW_LINE_COLOR = "#f0b400"
+UNKNOWN_LINE_COLOR = "#bdbdbd"
+CROSSWALK_FACE = "#ececec"
+CROSSWALK_HATCH = "#8c8c8c"
+SPEED_BUMP_COLOR = "#e08a3c"
+DRIVEWAY_COLOR = "#c8c8c8"
+STOP_SIGN_COLOR = "#b71c1c"
+
+EGO_COLOR = "#d81b60"
+"""The self-driving car (or the agent the view follows)."""
+# per AgentType: (controlled fill, background fill)
+AGENT_COLORS = {
+    AgentType.VEHICLE: ("#1565c0", "#90a9c9"),
+    AgentType.PEDESTRIAN: ("#ef6c00", "#f0c08a"),
+    AgentType.CYCLIST: ("#2e7d32", "#9ccc9f"),
+    AgentType.OTHER: ("#6a1b9a", "#bfa6cc"),
+}
+AGENT_EDGE_COLOR = "#1a1a1a"
+MIN_AGENT_PX = 4.0
+"""Smallest drawn box side in pixels (a 0.5 m pedestrian is 2.5 px at the default zoom)."""
+
+LIGHT_RED, LIGHT_YELLOW, LIGHT_GREEN, LIGHT_UNKNOWN = "#e53935", "#fdd835", "#43a047", "#7f7f7f"
+_LIGHT_COLOR_OF_STATE = {
+    SignalState.UNKNOWN: LIGHT_UNKNOWN,
+    SignalState.ARROW_STOP: LIGHT_RED,
+    SignalState.STOP: LIGHT_RED,
+    SignalState.FLASHING_STOP: LIGHT_RED,
+    SignalState.ARROW_CAUTION: LIGHT_YELLOW,
+    SignalState.CAUTION: LIGHT_YELLOW,
+    SignalState.FLASHING_CAUTION: LIGHT_YELLOW,
+    SignalState.ARROW_GO: LIGHT_GREEN,
+    SignalState.GO: LIGHT_GREEN,
+}
+
+_WHITE_LINES = {RoadLineType.BROKEN_SINGLE_WHITE, RoadLineType.SOLID_SINGLE_WHITE, RoadLineType.SOLID_DOUBLE_WHITE}
+_BROKEN_LINES = {RoadLineType.BROKEN_SINGLE_WHITE, RoadLineType.BROKEN_SINGLE_YELLOW, RoadLineType.BROKEN_DOUBLE_YELLOW}
+_DOUBLE_LINES = {RoadLineType.SOLID_DOUBLE_WHITE, RoadLineType.BROKEN_DOUBLE_YELLOW, RoadLineType.SOLID_DOUBLE_YELLOW,
+                 RoadLineType.PASSING_DOUBLE_YELLOW}
+
+
+def _rgba(color: str, alpha: float = 1.0) -> np.ndarray:
+    from matplotlib.colors import to_rgba
+
+    r, g, b, _ = to_rgba(color)
+    return np.array([r, g, b, alpha])
+
+
+def color_uint8(color: str) -> np.ndarray:
+    """A matplotlib colour as the ``uint8 [3]`` RGB it has in a rendered image."""
+    return np.round(_rgba(color)[:3] * 255).astype(np.uint8)
+
+
+def _light_color_table() -> np.ndarray:
+    """[9, 4] RGBA of each SignalState code."""
+    return np.stack([_rgba(_LIGHT_COLOR_OF_STATE[SignalState(s)]) for s in range(len(SignalState))])
+
+
+def box_outlines(positions: np.ndarray, headings: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """[N, 5, 2] outlines of oriented boxes (a rectangle whose front edge has a small nose, so the
+    heading reads at a glance): ``positions`` [N, 2] centres, ``headings`` [N] radians,
+    ``sizes`` [N, 2] (length, width) in metres."""
+    half_l = sizes[:, 0:1] / 2
+    half_w = sizes[:, 1:2] / 2
+    nose = np.minimum(half_w, half_l * 0.5) * 0.6  # how far the front corners are cut back
+    # local (along, across) coordinates of: rear-right, front-right (cut), nose, front-left (cut), rear-left
+    along = np.concatenate([-half_l, half_l - nose, half_l, half_l - nose, -half_l], axis=1)
+    across = np.concatenate([-half_w, -half_w, np.zeros_like(half_w), half_w, half_w], axis=1)
+    c, s = np.cos(headings)[:, None], np.sin(headings)[:, None]
+    x = positions[:, 0:1] + c * along - s * across
+    y = positions[:, 1:2] + s * along + c * across
+    return np.stack([x, y], axis=-1)
+
+
+def _polylines(road_map, index: np.ndarray) -> list[np.ndarray]:
+    offsets = road_map.point_offsets
+    return [np.asarray(road_map.points[offsets[i]:offsets[i + 1], :2], np.float64) for i in index]
+
+
+def _offset_polyline(points: np.ndarray, offset_m: float) -> np.ndarray:
+    """A polyline shifted sideways by ``offset_m`` (left positive), for double painted lines."""
+    if len(points) < 2:
+        return points
+    d = np.gradient(points, axis=0)
+    norm = np.linalg.norm(d, axis=1, keepdims=True)
+    d = d / np.where(norm > 1e-9, norm, 1.0)
+    return points + offset_m * np.stack([-d[:, 1], d[:, 0]], axis=1)
+
+
+class BevRenderer:
+    """Renders frames of one scene seen from above.
+
+    ``center`` picks the view: ``"sdc"`` follows the ego agent (the scene's self-driving car, or
+    ``ego_index`` given to :meth:`render`) frame by frame; ``"agents"`` is a fixed view on the
+    middle of every logged valid agent position of the scene; ``(x, y)`` is a fixed view on that
+    local point. The view is a square of side ``2 * view_radius_m`` rendered at ``size_px`` pixels.
+
+    One matplotlib figure is created and reused: the static map is drawn once and every call to
+    :meth:`render` only updates the moving artists.
+    """
+
+    def __init__(self, scenario: Scenario, size_px: int = 600, view_radius_m: float = 60.0,
+                 center: str | tuple[float, float] = "sdc", dpi: float = 100.0,
+                 show_lane_centerlines: bool = True):
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        self.scenario = scenario
+        self.size_px = int(size_px)
+        self.view_radius_m = float(view_radius_m)
+        self.dpi = float(dpi)
+        if isinstance(center, str):
+            if center not in ("sdc", "agents"):
+                raise ValueError(f"center must be 'sdc', 'agents' or an (x, y) pair, got {center!r}")
+            self.center = center
+        else:
+            x, y = (float(v) for v in center)
+            self.center = (x, y)
+        self._fixed_center = self._initial_center()
+        self._last_center = self._fixed_center
+
+        # A Figure with an Agg canvas, not pyplot: no global state, no window.
+        self.figure = Figure(figsize=(self.size_px / self.dpi, self.size_px / self.dpi), dpi=self.dpi)
+        self.canvas = FigureCanvasAgg(self.figure)
+        self.figure.patch.set_facecolor(BACKGROUND)
+        ax = self.figure.add_axes((0.0, 0.0, 1.0, 1.0))
+        ax.set_axis_off()
+        ax.set_facecolor(BACKGROUND)
+        ax.set_aspect("auto")  # square axes and square limits: 1 m is the same on both axes
+        ax.set_autoscale_on(False)
+        self.ax = ax
+        self._px_per_m = self.size_px / (2 * self.view_radius_m)
+        self._draw_static_map(show_lane_centerlines)
+        self._make_dynamic_artists()
+        self._background = None  # (view limits, cached pixels of the static layer)
+
+    # ------------------------------------------------------------------------------ the view
+    def _initial_center(self) -> tuple[float, float]:
+        sc = self.scenario
+        if isinstance(self.center, tuple):
+            return self.center
+        tr = sc.tracks
+        if self.center == "sdc" and sc.sdc_index >= 0 and tr.valid[sc.sdc_index].any():
+            f = sc.current_frame if tr.valid[sc.sdc_index, sc.current_frame] else int(np.argmax(tr.valid[sc.sdc_index]))
+            return tuple(float(v) for v in tr.position[sc.sdc_index, f, :2])
+        if tr.valid.any():
+            xy = tr.position[..., :2][tr.valid].astype(np.float64)
+            return tuple(float(v) for v in (xy.min(axis=0) + xy.max(axis=0)) / 2)
+        pts = sc.road_map.points
+        if len(pts):
+            return tuple(float(v) for v in (pts[:, :2].min(axis=0) + pts[:, :2].max(axis=0)) / 2)
+        return (0.0, 0.0)
+
+    def view_center(self, positions: np.ndarray | None = None, valid: np.ndarray | None = None,
+                    ego_index: int | None = None) -> tuple[float, float]:
+        """The local point at the image centre for a frame with these agent states."""
+        if self.center != "sdc":
+            return self._fixed_center
+        ego = self.scenario.sdc_index if ego_index is None else ego_index
+        if positions is not None and 0 <= ego < len(positions) and (valid is None or valid[ego]):
+            return float(positions[ego, 0]), float(positions[ego, 1])
+        return self._last_center
+
+    def world_to_pixel(self, xy: np.ndarray, center: tuple[float, float]) -> np.ndarray:
+        """Local points [..., 2] (m) -> (row, col) pixel coordinates [..., 2] (float) in an image
+        rendered with the view centred on ``center``."""
+        xy = np.asarray(xy, np.float64)
+        col = (xy[..., 0] - center[0]) * self._px_per_m + self.size_px / 2
+        row = (center[1] - xy[..., 1]) * self._px_per_m + self.size_px / 2
+        return np.stack([row, col], axis=-1)
+
+    # ------------------------------------------------------------------------ the static map
+    def _draw_static_map(self, show_lane_centerlines: bool) -> None:
+        from matplotlib.collections import LineCollection, PolyCollection
+
+        rm = self.scenario.road_map
+        ax = self.ax
+        lw = max(self._px_per_m / 5.0, 0.5)  # line widths scale a little with the zoom (points)
+
+        def add_lines(index, color, width, z, style="solid"):
+            if len(index):
+                ax.add_collection(LineCollection(_polylines(rm, index), colors=color, linewidths=width,
+                                                 linestyles=style, zorder=z, capstyle="butt"))
+
+        def add_polygons(index, face, z, hatch=None, edge=None):
+            if len(index):
+                polys = [p for p in _polylines(rm, index) if len(p) >= 3]
+                if polys:
+                    ax.add_collection(PolyCollection(polys, facecolors=face, edgecolors=edge or face,
+                                                     hatch=hatch, linewidths=0.6, zorder=z))
+
+        types, sub = rm.types, rm.subtypes
+        add_polygons(np.flatnonzero(types == MapFeatureType.DRIVEWAY), DRIVEWAY_COLOR, 1)
+        add_polygons(np.flatnonzero(types == MapFeatureType.CROSSWALK), CROSSWALK_FACE, 2, hatch="////",
+                     edge=CROSSWALK_HATCH)
+        add_polygons(np.flatnonzero(types == MapFeatureType.SPEED_BUMP), SPEED_BUMP_COLOR, 2, hatch="xx",
+                     edge="#a85a1c")
+        lanes = types == MapFeatureType.LANE
+        bike = lanes & (sub == LaneType.BIKE_LANE)
+        if show_lane_centerlines:
+            add_lines(np.flatnonzero(lanes & ~bike), LANE_COLOR, 0.6 * lw, 3)
+        add_lines(np.flatnonzero(bike), BIKE_LANE_COLOR, 1.0 * lw, 3, style=(0, (2, 2)))
+
+        lines = np.flatnonzero(types == MapFeatureType.ROAD_LINE)
+        white = np.isin(sub[lines], list(_WHITE_LINES))
+        yellow = np.isin(sub[lines], [t for t in RoadLineType if t not in _WHITE_LINES and t != RoadLineType.UNKNOWN])
+        broken = np.isin(sub[lines], list(_BROKEN_LINES))
+        double = np.isin(sub[lines], list(_DOUBLE_LINES))
+        for color, kind in ((WHITE_LINE_COLOR, white), (YELLOW_LINE_COLOR, yellow), (UNKNOWN_LINE_COLOR, ~(white | yellow))):
+            for dashed in (False, True):
+                sel = lines[kind & (broken == dashed)]
+                if not len(sel):
+                    continue
+                polys, is_double = _polylines(rm, sel), double[kind & (broken == dashed)]
+                paths = [p for p, d in zip(polys, is_double) if not d]
+                for p, d in zip(polys, is_double):
+                    if d:
+                        paths += [_offset_polyline(p, 0.12), _offset_polyline(p, -0.12)]
+                ax.add_collection(LineCollection(paths, colors=color, linewidths=0.9 * lw, zorder=4,
+                                                 linestyles=(0, (4, 4)) if dashed else "solid", capstyle="butt"))
+        add_lines(np.flatnonzero(types == MapFeatureType.ROAD_EDGE), ROAD_EDGE_COLOR, 1.6 * lw, 5)
+
+        stops = np.flatnonzero(types == MapFeatureType.STOP_SIGN)
+        if len(stops):
+            xy = rm.points[rm.point_offsets[stops], :2]
+            side_pt = max(2.2 * self._px_per_m, 9.0) * 72 / self.dpi  # ~2.2 m across, at least 9 px
+            ax.scatter(xy[:, 0], xy[:, 1], s=side_pt ** 2, marker="8", c=STOP_SIGN_COLOR, edgecolors="white",
+                       linewidths=1.2, zorder=6)
+            ax.scatter(xy[:, 0], xy[:, 1], s=(side_pt * 0.35) ** 2, marker="s", c="white", linewidths=0, zorder=6)
+
+    # ---------------------------------------------------------------------- moving artists
+    def _make_dynamic_artists(self) -> None:
+        from matplotlib.collections import LineCollection, PathCollection, PolyCollection
+
+        ax = self.ax
+        dot_pt = max(1.4 * self._px_per_m * 72 / self.dpi, 3.0)  # light dot diameter: ~1.4 m
+        self._lights = ax.scatter(np.zeros(0), np.zeros(0), s=dot_pt ** 2, edgecolors="#111111",
+                                  linewidths=0.6, zorder=7)
+        assert isinstance(self._lights, PathCollection)
+        self._trails = LineCollection([], linewidths=max(0.3 * self._px_per_m, 1.0), zorder=8, capstyle="round")
+        self._boxes = PolyCollection([], edgecolors=AGENT_EDGE_COLOR, linewidths=0.7, zorder=9)
+        self._text = ax.text(0.012, 0.988, "", transform=ax.transAxes, ha="left", va="top", fontsize=11,
+                             family="monospace", zorder=10,
+                             bbox=dict(boxstyle="round,pad=0.3", facecolor="white", alpha=0.8, edgecolor="none"))
+        for artist in (self._trails, self._boxes):
+            ax.add_collection(artist)
+        self._dynamic = (self._lights, self._trails, self._boxes, self._text)
+        for artist in self._dynamic:
+            artist.set_animated(True)
+        self._light_table = _light_color_table()
+        colors = np.zeros((2, len(AgentType), 4))
+        for t in AgentType:
+            colors[0, t], colors[1, t] = _rgba(AGENT_COLORS[t][1]), _rgba(AGENT_COLORS[t][0])
+        self._agent_table = colors  # [controlled?, type] -> RGBA
+        self._ego_rgba = _rgba(EGO_COLOR)
+
+    def agent_colors(self, types: np.ndarray, controlled: np.ndarray, ego_index: int | None = None) -> np.ndarray:
+        """[N, 4] RGBA fill of each agent: by type, strong when controlled, the ego colour for ego."""
+        types = np.clip(np.asarray(types, np.int64), 0, len(AgentType) - 1)
+        out = self._agent_table[np.asarray(controlled, bool).astype(np.int64), types].copy()
+        if ego_index is not None and 0 <= ego_index < len(out):
+            out[ego_index] = self._ego_rgba
+        return out
+
+    # ------------------------------------------------------------------------------ render
+    def render(self, positions: np.ndarray, headings: np.ndarray, sizes: np.ndarray, valid: np.ndarray,
+               types: np.ndarray, controlled: np.ndarray | None = None, *, ego_index: int | None = None,
+               trajectories: np.ndarray | None = None, trajectories_valid: np.ndarray | None = None,
+               light_states: np.ndarray | None = None, light_present: np.ndarray | None = None,
+               text: str | None = None, center: tuple[float, float] | None = None) -> np.ndarray:
+        """One frame as ``[H, W, 3] uint8``.
+
+        Args:
+            positions: [N, 2] (or [N, 3]) box centres, local frame (m).
+            headings: [N] radians. sizes: [N, 2] (or [N, 3]) length, width (m).
+            valid: [N] bool, agents drawn. types: [N] AgentType codes.
+            controlled: [N] bool, agents a policy controls (strong colours); None: none.
+            ego_index: the agent drawn in the ego colour and followed by ``center="sdc"``;
+                None: the scene's self-driving car when the arrays are the scene's tracks
+                (N equal to its track count), else no ego. -1: no ego.
+            trajectories: [N, K, 2] recent positions, oldest first, drawn as fading lines;
+                ``trajectories_valid`` [N, K] masks them.
+            light_states: [L] SignalState codes of the scene's traffic-light lanes (the order of
+                ``scenario.traffic_lights.lane_ids``); ``light_present`` [L] hides absent ones.
+            text: an overlay in the top-left corner (e.g. step and time).
+            center: overrides the view centre (m) for this frame.
+        """
+        positions = np.asarray(positions, np.float64)[:, :2]
+        n = len(positions)
+        headings = np.asarray(headings, np.float64).reshape(n)
+        sizes = np.asarray(sizes, np.float64)[:, :2].reshape(n, 2)
+        valid = np.asarray(valid, bool).reshape(n)
+        types = np.asarray(types).reshape(n)
+        controlled = np.zeros(n, bool) if controlled is None else np.asarray(controlled, bool).reshape(n)
+        if ego_index is None:
+            ego_index = self.scenario.sdc_index if n == self.scenario.num_tracks else -1
+        view = center if center is not None else self.view_center(positions, valid, ego_index)
+        self._last_center = view
+
+        colors = self.agent_colors(types, controlled, ego_index)
+        # draw the ego last so that it is never covered by an overlapping box
+        order = np.flatnonzero(valid)
+        if 0 <= ego_index < n and valid[ego_index]:
+            order = np.concatenate([order[order != ego_index], [ego_index]])
+        # boxes are drawn at least MIN_AGENT_PX pixels across so that pedestrians stay visible
+        drawn_sizes = np.maximum(sizes[order], MIN_AGENT_PX / self._px_per_m)
+        self._boxes.set_verts(box_outlines(positions[order], headings[order], drawn_sizes))
+        self._boxes.set_facecolors(colors[order])
+
+        if trajectories is not None and np.shape(trajectories)[1] >= 2:
+            traj = np.asarray(trajectories, np.float64)[:, :, :2]
+            k = traj.shape[1]
+            tv = np.ones(traj.shape[:2], bool) if trajectories_valid is None else np.asarray(trajectories_valid, bool)
+            seg = np.stack([traj[:, :-1], traj[:, 1:]], axis=2)  # [N, K-1, 2, 2]
+            seg_ok = tv[:, :-1] & tv[:, 1:] & valid[:, None]
+            alpha = np.broadcast_to(np.linspace(0.08, 0.9, k - 1), seg_ok.shape)
+            seg_rgba = np.repeat(colors[:, None, :], k - 1, axis=1)
+            seg_rgba[..., 3] = alpha
+            self._trails.set_segments(seg[seg_ok])
+            self._trails.set_colors(seg_rgba[seg_ok])
+        else:
+            self._trails.set_segments([])
+
+        tl = self.scenario.traffic_lights
+        if light_states is not None and len(tl.lane_ids):
+            states = np.clip(np.asarray(light_states, np.int64).reshape(-1), 0, len(SignalState) - 1)
+            shown = np.ones(len(states), bool) if light_present is None else np.asarray(light_present, bool).reshape(-1)
+            self._lights.set_offsets(np.asarray(tl.stop_points[shown, :2], np.float64))
+            self._lights.set_facecolors(self._light_table[states[shown]])
+        else:
+            self._lights.set_offsets(np.zeros((0, 2)))
+
+        self._text.set_text(text or "")
+        self._text.set_visible(bool(text))
+        return self._draw(view)
+
+    def _draw(self, view: tuple[float, float]) -> np.ndarray:
+        r = self.view_radius_m
+        limits = (view[0] - r, view[0] + r, view[1] - r, view[1] + r)
+        canvas = self.canvas
+        if self._background is None or self._background[0] != limits:
+            self.ax.set_xlim(limits[0], limits[1])
+            self.ax.set_ylim(limits[2], limits[3])
+            canvas.draw()  # the static layer only: the moving artists are "animated"
+            self._background = (limits, canvas.copy_from_bbox(self.figure.bbox))
+        else:
+            canvas.restore_region(self._background[1])
+        for artist in self._dynamic:
+            self.ax.draw_artist(artist)
+        rgba = np.asarray(canvas.buffer_rgba())
+        return np.ascontiguousarray(rgba[..., :3])
+
+    # ------------------------------------------------------------------- logged-state helper
+    def render_logged(self, frame_index: int, history_frames: int = 10, controlled: np.ndarray | None = None,
+                      text: str | None = "auto") -> np.ndarray:
+        """The scene's logged state at ``frame_index``: every valid track, the last
+        ``history_frames`` frames as trails, that frame's traffic lights. ``controlled`` defaults
+        to the tracks to predict; ``text="auto"`` writes the frame number and time."""
+        sc = self.scenario
+        tr = sc.tracks
+        f = int(frame_index)
+        if not 0 <= f < sc.num_frames:
+            raise IndexError(f"frame {f} outside [0, {sc.num_frames}) of scenario {sc.scenario_id}")
+        if controlled is None:
+            controlled = np.zeros(sc.num_tracks, bool)
+            controlled[sc.predict_indices] = True
+        start = max(0, f - history_frames)
+        trajectories = tr.position[:, start:f + 1, :2] if history_frames > 0 else None
+        tv = tr.valid[:, start:f + 1] if history_frames > 0 else None
+        if text == "auto":
+            t_s = sc.timestamps_s[f] - sc.timestamps_s[0]
+            text = f"{sc.scenario_id}  frame {f:3d}  t={t_s:4.1f} s"
+        tl = sc.traffic_lights
+        return self.render(tr.position[:, f, :2], tr.heading[:, f], tr.size[:, f, :2], tr.valid[:, f], tr.types,
+                           controlled, trajectories=trajectories, trajectories_valid=tv,
+                           light_states=tl.states[f] if len(tl.lane_ids) else None,
+                           light_present=tl.present[f] if len(tl.lane_ids) else None, text=text)
+
+    def close(self) -> None:
+        """Release the figure (it is not registered with pyplot, so this only drops references)."""
+        self.figure.clear()
+        self._background = None
+
+
+def render_scenario_frame(scenario: Scenario, frame_index: int | None = None, *, history_frames: int = 10,
+                          controlled: np.ndarray | None = None, text: str | None = "auto", **renderer_kw) -> np.ndarray:
+    """The logged state of ``scenario`` at ``frame_index`` (its current frame by default) as an RGB
+    image ``[H, W, 3] uint8``. ``renderer_kw`` go to :class:`BevRenderer` (size_px, view_radius_m,
+    center, dpi)."""
+    renderer = BevRenderer(scenario, **renderer_kw)
+    frame = scenario.current_frame if frame_index is None else frame_index
+    return renderer.render_logged(frame, history_frames=history_frames, controlled=controlled, text=text)
+
+
+# ------------------------------------------------------------------------------------ recording
+_FORMATS = {".gif": "gif", ".mp4": "mp4"}
+
+
+class EpisodeRecorder:
+    """Collects RGB frames and writes them as a GIF or an MP4, chosen by the path's extension.
+
+    ``fps`` is the playback rate: :data:`FRAME_FPS` (10) for one image per 0.1 s frame,
+    :data:`TOKEN_STEP_FPS` (2) for one image per 0.5 s token step, or anything else. Frames are
+    kept in memory until :meth:`write` (600x600 RGB is ~1 MB a frame). MP4s are H.264 through the
+    ffmpeg binary that the ``imageio-ffmpeg`` wheel ships; odd image sizes are padded to even.
+    """
+
+    def __init__(self, path: str | os.PathLike, fps: float = FRAME_FPS):
+        self.path = Path(path)
+        ext = self.path.suffix.lower()
+        if ext not in _FORMATS:
+            raise ValueError(f"EpisodeRecorder: cannot write {self.path}: unknown extension {ext or '(none)'!r}; "
+                             f"use one of {', '.join(_FORMATS)}")
+        if not fps > 0:
+            raise ValueError(f"EpisodeRecorder: fps must be positive, got {fps}")
+        self.format = _FORMATS[ext]
+        self.fps = float(fps)
+        self.frames: list[np.ndarray] = []
+
+    def add(self, frame: np.ndarray) -> None:
+        """Append one ``[H, W, 3] uint8`` image (all frames must share a size)."""
+        frame = np.asarray(frame)
+        if frame.ndim != 3 or frame.shape[2] not in (3, 4) or frame.dtype != np.uint8:
+            raise ValueError(f"EpisodeRecorder: a frame must be [H, W, 3] uint8, got {frame.shape} {frame.dtype}")
+        if self.frames and frame.shape[:2] != self.frames[0].shape[:2]:
+            raise ValueError(f"EpisodeRecorder: frame size {frame.shape[:2]} differs from the first {self.frames[0].shape[:2]}")
+        self.frames.append(np.ascontiguousarray(frame[..., :3]))
+
+    def extend(self, frames: Sequence[np.ndarray]) -> None:
+        for frame in frames:
+            self.add(frame)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def write(self) -> Path:
+        """Write the file (creating its folder) and return its path."""
+        if not self.frames:
+            raise ValueError(f"EpisodeRecorder: no frames to write to {self.path}")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.format == "gif":
+            import imageio.v3 as iio
+
+            # Pillow stores durations in ms; loop=0 repeats forever.
+            iio.imwrite(self.path, np.stack(self.frames), extension=".gif", duration=1000.0 / self.fps, loop=0)
+        else:
+            import imageio_ffmpeg
+
+            h, w = self.frames[0].shape[:2]
+            ph, pw = h + h % 2, w + w % 2
+            writer = imageio_ffmpeg.write_frames(str(self.path), (pw, ph), fps=self.fps, codec="libx264",
+                                                 pix_fmt_out="yuv420p", macro_block_size=1, quality=7,
+                                                 ffmpeg_log_level="error")
+            writer.send(None)
+            try:
+                for frame in self.frames:
+                    if (ph, pw) != (h, w):
+                        frame = np.pad(frame, ((0, ph - h), (0, pw - w), (0, 0)), mode="edge")
+                    writer.send(np.ascontiguousarray(frame))
+            finally:
+                writer.close()
+        return self.path
+
+
+def render_log_replay(scenario: Scenario, path: str | os.PathLike, fps: float = FRAME_FPS, every: int = 1,
+                      history_frames: int = 10, **renderer_kw) -> Path:
+    """Write the logged scene as an animation (GIF or MP4 by extension): every ``every``-th frame
+    from the first to the last, at ``fps``. Returns the path."""
+    if every < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
+    renderer = BevRenderer(scenario, **renderer_kw)
+    recorder = EpisodeRecorder(path, fps=fps)
+    for f in range(0, scenario.num_frames, every):
+        recorder.add(renderer.render_logged(f, history_frames=history_frames))
+    renderer.close()
+    return recorder.write()
