@@ -290,6 +290,27 @@ def _write_manifest(out_dir: Path, inputs: list[str], markers: dict[str, dict], 
     _atomic_write(out_dir / MANIFEST, [json.dumps(manifest, indent=1).encode()])
 
 
+def scene_entry(scenario: Scenario, shard_file: str) -> dict[str, Any]:
+    """The manifest entry of one scene written into ``shard_file`` (for :func:`write_manifest`)."""
+    return _scene_entry(scenario, shard_file)
+
+
+def write_manifest(out: str | os.PathLike, shards: list[dict[str, Any]], inputs: Sequence[str] = (),
+                   skipped: Sequence[dict[str, str]] = ()) -> None:
+    """Write ``manifest.json`` for shards written with :func:`write_shard` by a producer other than
+    :func:`preprocess` (e.g. a simulator). ``shards``: ``{"file", "input", "scenes": [scene_entry(...)]}``."""
+    manifest = {
+        "kind": MANIFEST_KIND,
+        "version": 1,
+        "created_unix_s": time.time(),
+        "num_scenes": sum(len(s["scenes"]) for s in shards),
+        "inputs": list(inputs),
+        "shards": list(shards),
+        "skipped": list(skipped),
+    }
+    _atomic_write(Path(out) / MANIFEST, [json.dumps(manifest, indent=1).encode()])
+
+
 class PreprocessError(SmartMarlError):
     """An input file was bad and ``skip_bad`` was off."""
 

@@ -18,6 +18,7 @@ _COMMAND_MODULES = (
     "smart_marl.commands.info",
     "smart_marl.commands.preprocess",
     "smart_marl.commands.demo",
+    "smart_marl.commands.generate_sumo",
 )
 
 

@@ -1,0 +1,416 @@
+"""SUMO road networks: random networks from ``netgenerate`` and their vector maps.
+
+Stage: the map half of the SUMO source (traffic simulator -> **Scenario**). A :class:`NetworkSpec`
+(drawn by :func:`random_network_spec`) says which network ``netgenerate`` builds (grid, spider or
+random topology, 1-4 lanes, block lengths, perturbed node positions for varied angles, junction
+control, sidewalks, crossings, bike lanes); :func:`build_network` runs it; :func:`network_map`
+turns the ``.net.xml`` into a :class:`NetworkMap` (the whole network's map features in source
+coordinates), which :meth:`NetworkMap.crop` cuts into the :class:`~smart_marl.scenario.RoadMap` of
+one scene.
+
+What becomes what (decided here, relied on by the tests):
+
+* LANE: every lane (normal and internal junction lanes, so that the topology is continuous through
+  junctions) that a car or a bicycle may use; ``BIKE_LANE`` for bicycle-only lanes,
+  ``SURFACE_STREET`` otherwise. SUCCESSOR links follow SUMO connections (a lane -> the internal lane
+  that crosses the junction -> the lane after it); PREDECESSOR links are exactly their reverse;
+  LEFT/RIGHT neighbours are the adjacent lanes of the same edge with the same subtype. Speed limits
+  are SUMO's lane speeds in mph.
+* Sidewalks and walking areas are not in the map (they are not lanes for vehicles and WOMD has no
+  such feature); pedestrians walk there as agents.
+* CROSSWALK: SUMO pedestrian crossings, as the polygon of the crossing lane (its centre line
+  widened to its width).
+* ROAD_EDGE (BOUNDARY): the boundary of the drivable area, the union of every LANE's polygon (small
+  cracks between junction lanes closed, small holes dropped), oriented so that the drivable area is
+  on the left of each polyline; cut to the scene's radius.
+* STOP_SIGN: one at the end of every lane whose junction link has a stop or all-way-stop rule
+  (``priority_stop`` / ``allway_stop`` junctions), linked to that lane.
+* Traffic lights: every signal link of SUMO controls the internal lane that crosses the junction
+  (one per movement, so a left turn and a straight movement from the same lane keep their own
+  signals); its stop point is the first point of that internal lane (the stop line).
+
+Source coordinates are SUMO's metres rotated by the spec's ``rotation_rad`` about SUMO's origin and
+quantised to 2**-16 m, so that float32 local coordinates convert back and forth exactly.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import os
+import subprocess
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..scenario import LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadMap, SignalState
+
+MPH_PER_MPS = 2.2369362920544
+QUANTUM = 2.0 ** -16
+"""Source coordinates are multiples of this (m) so that local float32 <-> source float64 is exact."""
+
+# Feature id spaces (a scene's features keep these ids; lanes are numbered from 1).
+CROSSWALK_ID0 = 1_000_000
+STOP_SIGN_ID0 = 2_000_000
+ROAD_EDGE_ID0 = 3_000_000
+
+_VEHICLE_CLASSES = ("passenger", "truck", "bus", "delivery")
+
+INSTALL_HINT = 'SUMO is an optional extra: pip install "smart-marl[sumo]" (eclipse-sumo, libsumo, sumolib, shapely)'
+
+
+class SumoUnavailableError(ImportError):
+    """The SUMO packages (eclipse-sumo, libsumo, sumolib) or shapely are not installed."""
+
+
+def require_sumo():
+    """``(sumo package, sumolib, libsumo)`` imported lazily, or a clear :class:`SumoUnavailableError`."""
+    try:
+        import sumo  # eclipse-sumo: the binaries and SUMO_HOME
+        import sumolib
+        os.environ.setdefault("SUMO_HOME", sumo.SUMO_HOME)
+        with contextlib.redirect_stdout(io.StringIO()):  # libsumo prints a pyarrow version note on import
+            import libsumo
+    except ImportError as exc:
+        raise SumoUnavailableError(f"{INSTALL_HINT} ({exc})") from exc
+    return sumo, sumolib, libsumo
+
+
+def sumo_binary(name: str) -> str:
+    """The path of a SUMO binary (``netgenerate``, ``sumo``...) inside the eclipse-sumo wheel."""
+    sumo, _, _ = require_sumo()
+    path = Path(sumo.SUMO_HOME) / "bin" / name
+    if not path.exists():
+        raise SumoUnavailableError(f"{path} is missing from the eclipse-sumo package; {INSTALL_HINT}")
+    return os.fspath(path)
+
+
+# ------------------------------------------------------------------------------------ network specs
+@dataclass(frozen=True)
+class NetworkSpec:
+    """What ``netgenerate`` builds. ``params`` are the topology's own options (without ``--``)."""
+
+    kind: str  # "grid" | "spider" | "rand"
+    params: dict[str, Any]
+    lanes: int  # default lane number (1-4)
+    random_lanenumber: bool  # draw each edge's lane number from [1, lanes]
+    speed_mps: float
+    junction_type: str  # netgenerate default.junctions.type
+    tls_guess: bool  # on top of the junction type: put lights where traffic is heavy
+    sidewalks: bool
+    crossings: bool
+    bikelanes: bool
+    perturb_m: float  # node position perturbation (normal sigma): varied angles and block lengths
+    rotation_rad: float  # rotation of the whole network in the source frame
+    seed: int
+
+    def netgenerate_args(self, out_path: str) -> list[str]:
+        args = [f"--{self.kind}"]
+        for key, value in self.params.items():
+            if value is True:
+                args.append(f"--{self.kind}.{key}")
+            elif value is not False:
+                args += [f"--{self.kind}.{key}", str(value)]
+        args += ["--default.lanenumber", str(self.lanes), "--default.speed", f"{self.speed_mps:.3f}",
+                 "--default.junctions.type", self.junction_type, "--seed", str(self.seed),
+                 "--no-turnarounds", "--output-file", out_path, "--no-warnings", "--xml-validation", "never"]
+        if self.random_lanenumber:
+            args.append("--random-lanenumber")
+        if self.tls_guess:
+            args += ["--tls.guess", "--tls.guess.threshold", "70"]
+        if self.sidewalks:
+            args += ["--sidewalks.guess", "--sidewalks.guess.min-speed", "0", "--sidewalks.guess.max-speed", "100"]
+            if self.crossings:
+                args += ["--crossings.guess", "--crossings.guess.speed-threshold", "100"]
+        if self.bikelanes:
+            args += ["--bikelanes.guess", "--bikelanes.guess.min-speed", "0", "--bikelanes.guess.max-speed", "100"]
+        if self.perturb_m > 0:
+            args += ["--perturb-x", f"norm(0,{self.perturb_m:.2f})", "--perturb-y", f"norm(0,{self.perturb_m:.2f})"]
+        return args
+
+    def to_metadata(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def random_network_spec(rng: np.random.Generator, pedestrians: bool = True, bicycles: bool = True) -> NetworkSpec:
+    """A random network: topology, sizes and rules drawn from ``rng``."""
+    kind = str(rng.choice(["grid", "spider", "rand"], p=[0.45, 0.2, 0.35]))
+    if kind == "grid":
+        params = {"x-number": int(rng.integers(3, 6)), "y-number": int(rng.integers(2, 5)),
+                  "x-length": round(float(rng.uniform(60, 180)), 1), "y-length": round(float(rng.uniform(60, 180)), 1),
+                  "attach-length": round(float(rng.uniform(40, 120)), 1)}
+        perturb = float(rng.choice([0.0, rng.uniform(1, 8)]))
+    elif kind == "spider":
+        params = {"arm-number": int(rng.integers(4, 8)), "circle-number": int(rng.integers(2, 4)),
+                  "space-radius": round(float(rng.uniform(60, 140)), 1), "omit-center": bool(rng.random() < 0.5)}
+        perturb = float(rng.choice([0.0, rng.uniform(1, 5)]))
+    else:
+        params = {"iterations": int(rng.integers(20, 60)), "min-distance": round(float(rng.uniform(60, 90)), 1),
+                  "max-distance": round(float(rng.uniform(120, 220)), 1), "min-angle": round(float(rng.uniform(35, 60)), 1),
+                  "bidi-probability": round(float(rng.uniform(0.8, 1.0)), 2)}
+        perturb = 0.0
+    lanes = int(rng.choice([1, 2, 3, 4], p=[0.25, 0.4, 0.25, 0.1]))
+    junction_type = str(rng.choice(["traffic_light", "priority", "priority_stop", "allway_stop", "right_before_left"],
+                                   p=[0.5, 0.25, 0.1, 0.07, 0.08]))
+    return NetworkSpec(
+        kind=kind, params=params, lanes=lanes, random_lanenumber=bool(lanes > 1 and rng.random() < 0.5),
+        speed_mps=round(float(rng.choice([8.33, 11.11, 13.89, 16.67, 19.44])), 2), junction_type=junction_type,
+        tls_guess=bool(junction_type != "traffic_light" and rng.random() < 0.4),
+        sidewalks=bool(pedestrians), crossings=bool(pedestrians),
+        bikelanes=bool(bicycles and rng.random() < 0.6), perturb_m=round(perturb, 2),
+        rotation_rad=round(float(rng.uniform(-math.pi, math.pi)), 4), seed=int(rng.integers(1, 2**31 - 1)),
+    )
+
+
+def build_network(spec: NetworkSpec, out_path: str | os.PathLike) -> Path:
+    """Run ``netgenerate`` for ``spec``; returns the ``.net.xml`` path."""
+    out_path = Path(out_path)
+    cmd = [sumo_binary("netgenerate"), *spec.netgenerate_args(os.fspath(out_path))]
+    result = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "SUMO_HOME": _sumo_home()})
+    if result.returncode != 0 or not out_path.exists():
+        raise RuntimeError(f"netgenerate failed ({result.returncode}) for {spec}: {result.stderr.strip()[-2000:]}")
+    return out_path
+
+
+def _sumo_home() -> str:
+    sumo, _, _ = require_sumo()
+    return os.fspath(sumo.SUMO_HOME)
+
+
+# ------------------------------------------------------------------------------------ network maps
+def quantize(values: np.ndarray) -> np.ndarray:
+    """Round source coordinates to multiples of :data:`QUANTUM` (float64)."""
+    return np.round(np.asarray(values, np.float64) / QUANTUM) * QUANTUM
+
+
+def rotation_matrix(rotation_rad: float) -> np.ndarray:
+    c, s = math.cos(rotation_rad), math.sin(rotation_rad)
+    return np.array([[c, -s], [s, c]])
+
+
+@dataclass
+class NetworkMap:
+    """The whole network's map in source coordinates (float64), ready to be cropped per scene."""
+
+    lane_ids: np.ndarray  # [L] int64
+    lane_sumo_ids: list[str]
+    lane_subtypes: np.ndarray  # [L] int8 LaneType
+    lane_speed_mph: np.ndarray  # [L] float32
+    lane_widths_m: np.ndarray  # [L] float64
+    lane_points: np.ndarray  # [P, 3] float64
+    lane_offsets: np.ndarray  # [L + 1]
+    lane_links: np.ndarray  # [E, 3] int64 (from lane id, to lane id, LinkType)
+    crosswalk_points: np.ndarray  # [Q, 3]
+    crosswalk_offsets: np.ndarray  # [C + 1]
+    stop_sign_points: np.ndarray  # [S, 3]
+    stop_sign_lanes: np.ndarray  # [S] int64 lane ids
+    road_edges: list[np.ndarray]  # oriented closed rings [n, 2] (drivable area on the left)
+    signal_links: dict[str, np.ndarray]  # tls id -> [links] lane id of each SUMO link index (-1: none)
+    signal_stop_points: dict[int, np.ndarray]  # controlled lane id -> stop point [3]
+    lane_index_of_sumo: dict[str, int] = field(default_factory=dict)
+    stats: dict[str, Any] = field(default_factory=dict)
+
+    def to_source_xy(self, xy: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+        return quantize(np.asarray(xy, np.float64) @ rotation.T)
+
+    def crop(self, center_xy: np.ndarray, radius_m: float, origin: np.ndarray) -> tuple[RoadMap, np.ndarray]:
+        """The RoadMap of the features within ``radius_m`` of ``center_xy`` (source frame), in the local
+        frame whose origin is ``origin`` (source [3]); also the ids of the lanes kept."""
+        import shapely
+
+        center = np.asarray(center_xy, np.float64)[:2]
+        features: list[dict[str, Any]] = []
+
+        def near(points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+            if len(offsets) <= 1:
+                return np.zeros(0, bool)
+            d2 = ((points[:, :2] - center) ** 2).sum(1)
+            return np.minimum.reduceat(d2, offsets[:-1]) <= radius_m ** 2
+
+        def local(points: np.ndarray) -> np.ndarray:
+            return (points - origin).astype(np.float32)
+
+        keep_lane = near(self.lane_points, self.lane_offsets)
+        lane_index = np.flatnonzero(keep_lane)
+        kept_ids = self.lane_ids[lane_index]
+        for i in lane_index:
+            features.append(dict(id=int(self.lane_ids[i]), type=MapFeatureType.LANE, subtype=int(self.lane_subtypes[i]),
+                                 speed_limit_mph=float(self.lane_speed_mph[i]),
+                                 points=local(self.lane_points[self.lane_offsets[i]:self.lane_offsets[i + 1]])))
+        for k in np.flatnonzero(near(self.crosswalk_points, self.crosswalk_offsets)):
+            features.append(dict(id=CROSSWALK_ID0 + int(k), type=MapFeatureType.CROSSWALK,
+                                 points=local(self.crosswalk_points[self.crosswalk_offsets[k]:self.crosswalk_offsets[k + 1]])))
+        stop_links = []
+        if len(self.stop_sign_points):
+            d2 = ((self.stop_sign_points[:, :2] - center) ** 2).sum(1)
+            for k in np.flatnonzero((d2 <= radius_m ** 2) & np.isin(self.stop_sign_lanes, kept_ids)):
+                fid = STOP_SIGN_ID0 + int(k)
+                features.append(dict(id=fid, type=MapFeatureType.STOP_SIGN, points=local(self.stop_sign_points[k:k + 1])))
+                stop_links.append((fid, int(self.stop_sign_lanes[k]), LinkType.STOP_SIGN_LANE))
+        circle = shapely.Point(*center).buffer(radius_m, quad_segs=32)
+        edge_count = 0
+        for ring in self.road_edges:
+            piece = shapely.LineString(ring).intersection(circle)
+            for line in getattr(piece, "geoms", [piece]):
+                if line.is_empty or line.geom_type != "LineString" or line.length < 0.5:
+                    continue
+                xy = quantize(np.asarray(line.coords))
+                pts = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
+                pts[:, 2] = origin[2]
+                features.append(dict(id=ROAD_EDGE_ID0 + edge_count, type=MapFeatureType.ROAD_EDGE,
+                                     subtype=RoadEdgeType.BOUNDARY, points=local(pts)))
+                edge_count += 1
+        # lane links whose both ends are kept, then the stop signs' links; ordered per feature as WOMD stores them
+        links = self.lane_links[np.isin(self.lane_links[:, 0], kept_ids) & np.isin(self.lane_links[:, 1], kept_ids)]
+        all_links = [tuple(int(v) for v in row) for row in links] + stop_links
+        position = {f["id"]: k for k, f in enumerate(features)}
+        all_links.sort(key=lambda link: (position[link[0]], link[2]))
+        return RoadMap.from_features(features, all_links), kept_ids
+
+
+def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0) -> NetworkMap:
+    """Read a ``.net.xml`` into a :class:`NetworkMap` (see the module docstring for what becomes what)."""
+    import shapely
+    from shapely.geometry import polygon as shapely_polygon
+
+    _, sumolib, _ = require_sumo()
+    net = sumolib.net.readNet(os.fspath(net_path), withInternal=True)
+    rot = rotation_matrix(rotation_rad)
+
+    def shape3d(lane) -> np.ndarray:
+        pts = np.asarray(lane.getShape3D() if hasattr(lane, "getShape3D") else lane.getShape(), np.float64)
+        if pts.shape[1] == 2:
+            pts = np.concatenate([pts, np.zeros((len(pts), 1))], axis=1)
+        out = pts.copy()
+        out[:, :2] = quantize(pts[:, :2] @ rot.T)
+        out[:, 2] = quantize(pts[:, 2])
+        return out
+
+    lanes, subtypes = [], []
+    crossings = []
+    for edge in net.getEdges(withInternal=True):
+        function = edge.getFunction()
+        if function == "crossing":
+            crossings.extend(edge.getLanes())
+            continue
+        if function == "walkingarea":
+            continue
+        for lane in edge.getLanes():
+            cars = any(lane.allows(c) for c in _VEHICLE_CLASSES)
+            bikes = lane.allows("bicycle")
+            if not cars and not bikes:
+                continue  # sidewalks and other lanes that no vehicle uses
+            if len(lane.getShape()) < 2:
+                continue
+            lanes.append(lane)
+            subtypes.append(LaneType.SURFACE_STREET if cars else LaneType.BIKE_LANE)
+    index_of = {lane.getID(): k for k, lane in enumerate(lanes)}
+    lane_ids = np.arange(1, len(lanes) + 1, dtype=np.int64)
+    shapes = [shape3d(lane) for lane in lanes]
+    lengths = np.array([len(s) for s in shapes], np.int64)
+
+    successors: list[list[int]] = [[] for _ in lanes]
+    stop_sign_lanes, signal_rows = [], []
+    for k, lane in enumerate(lanes):
+        stop_rule = False
+        for conn in lane.getOutgoing():
+            via = conn.getViaLaneID()
+            target = via if via else conn.getToLane().getID()
+            j = index_of.get(target)
+            if j is not None and lane_ids[j] not in successors[k]:
+                successors[k].append(int(lane_ids[j]))
+            stop_rule |= conn.getState() in ("s", "w")
+            if conn.getTLSID() and conn.getTLLinkIndex() >= 0:
+                controlled = index_of.get(via) if via else None
+                if controlled is not None:
+                    signal_rows.append((conn.getTLSID(), conn.getTLLinkIndex(), controlled))
+        if stop_rule and lane.getEdge().getFunction() != "internal":
+            stop_sign_lanes.append(k)
+    predecessors: list[list[int]] = [[] for _ in lanes]
+    for k, succ in enumerate(successors):
+        for to in succ:
+            predecessors[int(to) - 1].append(int(lane_ids[k]))
+    links = []
+    for k, lane in enumerate(lanes):
+        links += [(lane_ids[k], to, LinkType.SUCCESSOR) for to in successors[k]]
+        links += [(lane_ids[k], fr, LinkType.PREDECESSOR) for fr in predecessors[k]]
+        edge_lanes = lane.getEdge().getLanes()
+        i = lane.getIndex()
+        for nb_index, kind in ((i + 1, LinkType.LEFT_NEIGHBOR), (i - 1, LinkType.RIGHT_NEIGHBOR)):
+            if 0 <= nb_index < len(edge_lanes):
+                j = index_of.get(edge_lanes[nb_index].getID())
+                if j is not None and subtypes[j] == subtypes[k]:
+                    links.append((lane_ids[k], lane_ids[j], kind))
+    lane_links = np.array(links, np.int64).reshape(-1, 3)
+
+    # traffic lights: tls id -> lane id per link index
+    signal_links: dict[str, np.ndarray] = {}
+    signal_stop_points: dict[int, np.ndarray] = {}
+    for tls_id, link_index, k in signal_rows:
+        table = signal_links.setdefault(tls_id, np.full(0, -1, np.int64))
+        if link_index >= len(table):
+            table = np.concatenate([table, np.full(link_index + 1 - len(table), -1, np.int64)])
+        table[link_index] = lane_ids[k]
+        signal_links[tls_id] = table
+        signal_stop_points[int(lane_ids[k])] = shapes[k][0]
+
+    # crosswalks: crossing lanes widened to their width
+    cw_pts, cw_len = [], []
+    for lane in crossings:
+        line = np.asarray(lane.getShape(), np.float64)[:, :2] @ rot.T
+        if len(line) < 2:
+            continue
+        poly = shapely.LineString(line).buffer(lane.getWidth() / 2, cap_style="flat")
+        ring = np.asarray(shapely_polygon.orient(poly, 1.0).exterior.coords)[:-1]
+        pts = np.zeros((len(ring), 3))
+        pts[:, :2] = quantize(ring)
+        cw_pts.append(pts)
+        cw_len.append(len(pts))
+
+    # road edges: boundary of the union of lane polygons
+    polys = [shapely.LineString(s[:, :2]).buffer(lanes[k].getWidth() / 2, cap_style="flat", quad_segs=2)
+             for k, s in enumerate(shapes) if np.ptp(s[:, :2], axis=0).max() > 1e-3]
+    drivable = shapely.unary_union(polys).buffer(0.75, quad_segs=2).buffer(-0.75, quad_segs=2)
+    drivable = drivable.simplify(0.05)
+    rings: list[np.ndarray] = []
+    for poly in getattr(drivable, "geoms", [drivable]):
+        if poly.is_empty or poly.geom_type != "Polygon":
+            continue
+        poly = shapely_polygon.orient(poly, 1.0)  # exterior counter-clockwise, holes clockwise: drivable on the left
+        rings.append(np.asarray(poly.exterior.coords))
+        rings += [np.asarray(h.coords) for h in poly.interiors if shapely.Polygon(h).area >= 25.0]
+
+    stop_pts = np.array([shapes[k][-1] for k in stop_sign_lanes], np.float64).reshape(-1, 3)
+    junction_types = sorted({n.getType() for n in net.getNodes()})
+    return NetworkMap(
+        lane_ids=lane_ids,
+        lane_sumo_ids=[lane.getID() for lane in lanes],
+        lane_subtypes=np.array(subtypes, np.int8),
+        lane_speed_mph=np.array([lane.getSpeed() * MPH_PER_MPS for lane in lanes], np.float32),
+        lane_widths_m=np.array([lane.getWidth() for lane in lanes]),
+        lane_points=np.concatenate(shapes) if shapes else np.zeros((0, 3)),
+        lane_offsets=np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64),
+        lane_links=lane_links,
+        crosswalk_points=np.concatenate(cw_pts) if cw_pts else np.zeros((0, 3)),
+        crosswalk_offsets=np.concatenate([[0], np.cumsum(cw_len)]).astype(np.int64),
+        stop_sign_points=stop_pts,
+        stop_sign_lanes=lane_ids[np.array(stop_sign_lanes, np.int64)] if stop_sign_lanes else np.zeros(0, np.int64),
+        road_edges=rings,
+        signal_links=signal_links,
+        signal_stop_points=signal_stop_points,
+        lane_index_of_sumo=index_of,
+        stats={"lanes": len(lanes), "crossings": len(cw_len), "traffic_lights": len(signal_links),
+               "stop_signs": len(stop_sign_lanes), "junction_types": junction_types,
+               "edges": sum(1 for e in net.getEdges() if e.getFunction() == "")},
+    )
+
+
+# SUMO signal characters -> SignalState (https://sumo.dlr.de/docs/Simulation/Traffic_Lights.html#signal_state_definitions)
+SIGNAL_OF_CHAR = np.zeros(256, np.int8)
+for _chars, _state in (("Gg", SignalState.GO), ("yYu", SignalState.CAUTION), ("rR", SignalState.STOP),
+                       ("o", SignalState.FLASHING_CAUTION), ("s", SignalState.FLASHING_STOP), ("O", SignalState.UNKNOWN)):
+    for _c in _chars:
+        SIGNAL_OF_CHAR[ord(_c)] = _state

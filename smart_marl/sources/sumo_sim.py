@@ -1,0 +1,428 @@
+"""SUMO traffic: demand, one simulation, and the scenes cut from it.
+
+Stage: the traffic half of the SUMO source (traffic simulator -> **Scenario**). For one simulation
+(:func:`simulate_scenes`): a random network (:mod:`.sumo_net`), random vehicle types with varied
+driver parameters (:func:`random_vehicle_types`), random trips for cars, trucks, buses, bicycles and
+pedestrians (:func:`write_demand`), a libsumo run at 0.1 s steps with a warm-up, every agent's
+state recorded per step (:class:`Recording`), then several 9.1 s scenes cut around moving
+vehicles chosen as the self-driving car (:func:`cut_scene`).
+
+Conversions: SUMO gives a vehicle's front-bumper centre and an angle in degrees clockwise from
+north; a track holds the box centre (front minus half the length along the heading) and the
+heading in radians counter-clockwise from +x; the velocity is the speed along the heading.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from ..scenario import AgentType, SceneFrame, Scenario, TrafficLights, Tracks
+from .sumo_net import (
+    SIGNAL_OF_CHAR, NetworkMap, NetworkSpec, build_network, network_map, quantize, random_network_spec,
+    require_sumo, rotation_matrix, sumo_binary,
+)
+
+SCENE_FRAMES = 91
+CURRENT_FRAME = 10
+DT_S = 0.1
+SOURCE = "sumo"
+
+
+@dataclass(frozen=True)
+class SumoConfig:
+    """Everything that shapes the generated scenes (the defaults give WOMD-like scenes)."""
+
+    scenes_per_sim: int = 8  # scenes cut from one simulation (different times, different egos)
+    scene_spacing_s: float = 4.0  # time between the starts of two scenes of one simulation
+    warmup_s: float = 40.0  # simulated before the first scene so that traffic is established
+    radius_m: float = 80.0  # agents within this distance of the self-driving car are kept
+    map_radius_m: float = 120.0  # map features within this distance of the self-driving car are kept
+    max_agents: int = 128
+    max_predict: int = 8  # tracks to predict: the self-driving car and the nearest fully valid agents
+    pedestrians: bool = True
+    bicycles: bool = True
+    sublane: bool = False  # SUMO's sub-lane model (--lateral-resolution): 2.5x slower than the default
+    lateral_resolution_m: float = 0.8
+    lane_change_duration_s: tuple[float, float] = (2.0, 4.5)  # without sub-lanes: continuous lane changes
+    demand_scale: float = 1.0  # multiplies the random departure rates
+
+    def sim_duration_s(self) -> float:
+        return self.warmup_s + (self.scenes_per_sim - 1) * self.scene_spacing_s + SCENE_FRAMES * DT_S + 0.5
+
+
+# ------------------------------------------------------------------------------------ demand
+def _u(rng: np.random.Generator, lo: float, hi: float) -> str:
+    return f"{rng.uniform(lo, hi):.3f}"
+
+
+def random_vehicle_types(rng: np.random.Generator, config: SumoConfig) -> list[dict[str, str]]:
+    """vType attribute dicts: several car variants, a truck, a bus, bicycles and pedestrians, each with
+    its own driver (speed factor and deviation, imperfection, reaction time, gaps, lane-change style)."""
+    types = []
+    lc_model = "SL2015" if config.sublane else "LC2013"
+
+    def driver(kind: str) -> dict[str, str]:
+        d = {"sigma": _u(rng, 0.05, 0.7), "tau": _u(rng, 0.6, 1.6), "minGap": _u(rng, 1.2, 3.0),
+             "speedFactor": _u(rng, 0.85, 1.2), "speedDev": _u(rng, 0.03, 0.2),
+             "carFollowModel": str(rng.choice(["Krauss", "IDM", "EIDM"], p=[0.5, 0.3, 0.2])),
+             "laneChangeModel": lc_model, "lcStrategic": _u(rng, 0.3, 2.0), "lcCooperative": _u(rng, 0.2, 1.0),
+             "lcSpeedGain": _u(rng, 0.3, 3.0), "lcKeepRight": _u(rng, 0.2, 2.0), "lcAssertive": _u(rng, 1.0, 3.0),
+             "lcImpatience": _u(rng, 0.0, 0.8), "emergencyDecel": "9.0"}
+        if config.sublane:
+            d["maxSpeedLat"] = _u(rng, 0.6, 1.4)
+            d["latAlignment"] = str(rng.choice(["center", "center", "right", "arbitrary"]))
+        if d["carFollowModel"] == "EIDM":
+            d["sigma"] = "0"  # EIDM models imperfection itself
+        return d
+
+    for k in range(int(rng.integers(3, 7))):
+        types.append({"id": f"car{k}", "vClass": "passenger", "length": _u(rng, 3.8, 5.2), "width": _u(rng, 1.7, 2.0),
+                      "height": _u(rng, 1.4, 1.9), "accel": _u(rng, 1.8, 3.5), "decel": _u(rng, 3.5, 5.5), **driver("car")})
+    types.append({"id": "truck", "vClass": "truck", "length": _u(rng, 7.0, 12.0), "width": _u(rng, 2.3, 2.55),
+                  "height": _u(rng, 3.0, 4.0), "accel": _u(rng, 0.8, 1.5), "decel": _u(rng, 3.0, 4.5), **driver("truck")})
+    types.append({"id": "bus", "vClass": "bus", "length": _u(rng, 10.0, 13.0), "width": "2.5", "height": "3.2",
+                  "accel": _u(rng, 0.8, 1.4), "decel": _u(rng, 3.0, 4.0), **driver("bus")})
+    if config.bicycles:
+        for k in range(2):
+            d = driver("bike")
+            d.update(speedFactor=_u(rng, 0.7, 1.1), minGap=_u(rng, 0.5, 1.5))
+            types.append({"id": f"bike{k}", "vClass": "bicycle", "length": _u(rng, 1.6, 1.9), "width": _u(rng, 0.55, 0.75),
+                          "height": _u(rng, 1.6, 1.9), "accel": _u(rng, 0.8, 1.5), "decel": _u(rng, 2.0, 3.5),
+                          "maxSpeed": _u(rng, 4.0, 7.5), **d})
+    if config.pedestrians:
+        for k in range(2):
+            types.append({"id": f"ped{k}", "vClass": "pedestrian", "length": _u(rng, 0.4, 0.8), "width": _u(rng, 0.5, 0.8),
+                          "height": _u(rng, 1.5, 1.9), "maxSpeed": _u(rng, 1.1, 1.7), "speedDev": _u(rng, 0.05, 0.2)})
+    return types
+
+
+def write_demand(path: Path, net, types: list[dict[str, str]], rng: np.random.Generator, config: SumoConfig,
+                 duration_s: float) -> dict[str, int]:
+    """A route file: the vTypes and random trips (vehicles, bicycles) and walks (pedestrians), sorted by
+    departure. SUMO routes the trips itself at insertion; unroutable ones are dropped. Returns counts."""
+    edges = [e for e in net.getEdges() if e.getFunction() == ""]
+
+    def edges_for(vclass: str) -> list[str]:
+        return [e.getID() for e in edges if any(lane.allows(vclass) for lane in e.getLanes()) and e.getLength() > 5]
+
+    total_km = sum(e.getLength() * len(e.getLanes()) for e in edges) / 1000.0
+    car_types = [t["id"] for t in types if t["vClass"] == "passenger"]
+    rate_scale = config.demand_scale * float(rng.uniform(0.5, 1.5))
+    # departures per second per lane-km of network
+    streams = [("veh", "passenger", car_types, 0.065 * total_km * rate_scale),
+               ("veh", "truck", ["truck"], 0.003 * total_km * rate_scale),
+               ("veh", "bus", ["bus"], 0.0015 * total_km * rate_scale)]
+    if config.bicycles:
+        streams.append(("veh", "bicycle", ["bike0", "bike1"], 0.008 * total_km * rate_scale))
+    if config.pedestrians:
+        streams.append(("person", "pedestrian", ["ped0", "ped1"], 0.02 * total_km * rate_scale))
+    rows: list[tuple[float, str]] = []
+    counts: dict[str, int] = {}
+    for kind, vclass, type_ids, per_s in streams:
+        pool = edges_for(vclass)
+        if len(pool) < 2 or per_s <= 0:
+            continue
+        # a burst at the start (the network fills quickly) then a Poisson stream
+        n = int(rng.poisson(per_s * duration_s)) + int(per_s * 12)
+        departs = np.sort(np.concatenate([rng.uniform(0, 3, int(per_s * 12)), rng.uniform(0, duration_s, n - int(per_s * 12))]))
+        for k, depart in enumerate(departs):
+            a, b = rng.choice(len(pool), 2, replace=False)
+            vtype = type_ids[int(rng.integers(len(type_ids)))]
+            vid = f"{vclass}{k}"
+            if kind == "veh":
+                rows.append((depart, f'<trip id="{vid}" type="{vtype}" depart="{depart:.1f}" from="{pool[a]}" to="{pool[b]}" '
+                                     f'departLane="best" departSpeed="max" departPos="random"/>'))
+            else:
+                rows.append((depart, f'<person id="{vid}" type="{vtype}" depart="{depart:.1f}" departPos="random">'
+                                     f'<walk from="{pool[a]}" to="{pool[b]}" arrivalPos="random"/></person>'))
+        counts[vclass] = len(departs)
+    rows.sort(key=lambda r: r[0])
+    with open(path, "w") as f:
+        f.write("<routes>\n")
+        for t in types:
+            attrs = " ".join(f"{k}={quoteattr(v)}" for k, v in t.items())
+            f.write(f"  <vType {attrs}/>\n")
+        for _, row in rows:
+            f.write(f"  {row}\n")
+        f.write("</routes>\n")
+    return counts
+
+
+# ------------------------------------------------------------------------------------ recording
+_TYPE_OF_VCLASS = {"passenger": AgentType.VEHICLE, "truck": AgentType.VEHICLE, "bus": AgentType.VEHICLE,
+                   "delivery": AgentType.VEHICLE, "bicycle": AgentType.CYCLIST, "pedestrian": AgentType.PEDESTRIAN}
+
+
+@dataclass
+class Recording:
+    """Every agent's SUMO state on every recorded step, as dense arrays [A, T] (source frame)."""
+
+    sumo_ids: list[str]
+    types: np.ndarray  # [A] int8 AgentType
+    size: np.ndarray  # [A, 3] length, width, height
+    center: np.ndarray  # [A, T, 3] box centre, source frame, quantised
+    heading: np.ndarray  # [A, T] radians, source frame
+    velocity: np.ndarray  # [A, T, 2] m/s, source frame
+    speed: np.ndarray  # [A, T] m/s
+    valid: np.ndarray  # [A, T]
+    signal_states: dict[int, np.ndarray] = field(default_factory=dict)  # lane id -> [T] SignalState
+    start_time_s: float = 0.0
+
+
+def run_simulation(net_path: Path, route_path: Path, duration_s: float, record_from_s: float, seed: int,
+                   config: SumoConfig, nmap: NetworkMap, rotation_rad: float, lane_change_s: float = 3.0) -> Recording:
+    """Run SUMO (libsumo, 0.1 s steps) and record every vehicle and person from ``record_from_s`` on."""
+    _, _, libsumo = require_sumo()
+    from traci import constants as tc
+
+    args = [sumo_binary("sumo"), "-n", os.fspath(net_path), "-r", os.fspath(route_path), "--step-length", f"{DT_S}",
+            "--begin", "0", "--end", f"{duration_s:.1f}", "--seed", str(seed), "--no-step-log", "true",
+            "--no-warnings", "true", "--ignore-route-errors", "true", "--time-to-teleport", "-1",
+            "--collision.action", "warn", "--collision.check-junctions", "false", "--max-depart-delay", "3",
+            "--xml-validation", "never", "--duration-log.disable", "true", "--verbose", "false",
+            "--default.speeddev", "0.1"]
+    if config.sublane:
+        args += ["--lateral-resolution", f"{config.lateral_resolution_m}"]
+    else:
+        args += ["--lanechange.duration", f"{lane_change_s:.2f}"]
+    variables = (tc.VAR_POSITION3D, tc.VAR_ANGLE, tc.VAR_SPEED)
+    libsumo.start(args)
+    try:
+        tls_ids = [t for t in libsumo.trafficlight.getIDList() if t in nmap.signal_links]
+        tls_lengths = [len(libsumo.trafficlight.getRedYellowGreenState(t)) for t in tls_ids]
+        index_of: dict[str, int] = {}
+        info: list[tuple[int, float, float, float]] = []  # type, length, width, height
+        rows_frame: list[int] = []
+        rows_agent: list[int] = []
+        rows_values: list[tuple] = []
+        signals: list[str] = []
+        first_record = int(round(record_from_s / DT_S))
+        total_steps = int(round(duration_s / DT_S))
+        step = 0
+        while step < total_steps:
+            libsumo.simulationStep()
+            step += 1
+            for vid in libsumo.simulation.getDepartedIDList():
+                libsumo.vehicle.subscribe(vid, variables)
+            for pid in libsumo.simulation.getDepartedPersonIDList():
+                libsumo.person.subscribe(pid, variables)
+            if step < first_record:
+                continue
+            frame = step - first_record
+            for domain, prefix in ((libsumo.vehicle, "v:"), (libsumo.person, "p:")):
+                for sid, values in domain.getAllSubscriptionResults().items():
+                    key = prefix + sid
+                    a = index_of.get(key)
+                    if a is None:
+                        a = index_of[key] = len(info)
+                        vclass = domain.getVehicleClass(sid) if prefix == "v:" else "pedestrian"
+                        info.append((_TYPE_OF_VCLASS.get(vclass, AgentType.OTHER), domain.getLength(sid),
+                                     domain.getWidth(sid), domain.getHeight(sid)))
+                    rows_frame.append(frame)
+                    rows_agent.append(a)
+                    pos = values[tc.VAR_POSITION3D]
+                    rows_values.append((pos[0], pos[1], pos[2], values[tc.VAR_ANGLE], values[tc.VAR_SPEED]))
+            states = [libsumo.trafficlight.getRedYellowGreenState(t) for t in tls_ids]
+            signals.append("".join(st.ljust(n, "O")[:n] for st, n in zip(states, tls_lengths)))
+    finally:
+        libsumo.close()
+
+    num_frames = total_steps - first_record + 1
+    num_agents = len(info)
+    fr = np.asarray(rows_frame, np.int64)
+    ag = np.asarray(rows_agent, np.int64)
+    vals = np.asarray(rows_values, np.float64).reshape(-1, 5)
+    info_arr = np.asarray(info, np.float64).reshape(-1, 4)
+    valid = np.zeros((num_agents, num_frames), bool)
+    valid[ag, fr] = True
+    front = np.zeros((num_agents, num_frames, 3))
+    front[ag, fr] = vals[:, :3]
+    angle = np.zeros((num_agents, num_frames))
+    angle[ag, fr] = vals[:, 3]
+    speed = np.zeros((num_agents, num_frames))
+    speed[ag, fr] = vals[:, 4]
+    heading = np.pi / 2 - np.radians(angle) + rotation_rad
+    heading = (heading + np.pi) % (2 * np.pi) - np.pi
+    rot = rotation_matrix(rotation_rad)
+    front[..., :2] = front[..., :2] @ rot.T
+    velocity = speed[..., None] * np.stack([np.cos(heading), np.sin(heading)], axis=-1)
+    peds = np.flatnonzero(info_arr[:, 0] == AgentType.PEDESTRIAN)
+    if len(peds):
+        front[peds, :, :2], velocity[peds], heading[peds] = smooth_walkers(front[peds, :, :2], valid[peds], heading[peds])
+        speed[peds] = np.linalg.norm(velocity[peds], axis=-1)
+    length = info_arr[:, 1]
+    center = front.copy()
+    center[..., 0] -= 0.5 * length[:, None] * np.cos(heading)
+    center[..., 1] -= 0.5 * length[:, None] * np.sin(heading)
+    center[..., 2] += 0.5 * info_arr[:, 3][:, None]  # box centre height
+    center = quantize(np.where(valid[..., None], center, 0.0))
+
+    # signal states per controlled lane: SUMO link index k of a light -> its k-th state character
+    signal_states: dict[int, np.ndarray] = {}
+    if tls_ids and signals:
+        chars = np.frombuffer("".join(signals).encode(), np.uint8).reshape(len(signals), -1)
+        column = 0
+        for t, n in zip(tls_ids, tls_lengths):
+            for link_index, lane_id in enumerate(nmap.signal_links[t][:n]):
+                if lane_id >= 0:
+                    signal_states[int(lane_id)] = SIGNAL_OF_CHAR[chars[:, column + link_index]]
+            column += n
+    return Recording(sumo_ids=list(index_of), types=info_arr[:, 0].astype(np.int8), size=info_arr[:, 1:4],
+                     center=center, heading=heading, velocity=velocity, speed=speed, valid=valid, signal_states=signal_states,
+                     start_time_s=first_record * DT_S)
+
+
+def smooth_walkers(xy: np.ndarray, valid: np.ndarray, heading: np.ndarray, window: int = 9,
+                   max_yaw_rate: float = 2 * math.pi, min_speed_mps: float = 0.2):
+    """Pedestrian tracks made physical: SUMO's walkers start and stop instantly, turn on the spot and
+    shift sideways between sidewalk stripes. Positions ``xy`` [P, T, 2] are averaged over ``window``
+    frames (valid ones only), velocities are their central differences, headings follow the velocity
+    (held while standing) and turn at most ``max_yaw_rate`` (rad/s). Returns (xy, velocity, heading)."""
+    k = window // 2
+    w = valid.astype(np.float64)
+    cs = np.cumsum(np.pad(xy * w[..., None], ((0, 0), (k + 1, k), (0, 0))), axis=1)
+    cw = np.cumsum(np.pad(w, ((0, 0), (k + 1, k))), axis=1)
+    total = cw[:, window:] - cw[:, :-window]
+    smooth = (cs[:, window:] - cs[:, :-window]) / np.maximum(total, 1.0)[..., None]
+    smooth = np.where(valid[..., None], smooth, 0.0)
+    prev_ok = valid.copy()
+    prev_ok[:, 1:] &= valid[:, :-1]
+    prev_ok[:, 0] = False
+    next_ok = valid.copy()
+    next_ok[:, :-1] &= valid[:, 1:]
+    next_ok[:, -1] = False
+    fwd = np.zeros_like(smooth)
+    fwd[:, :-1] = smooth[:, 1:] - smooth[:, :-1]
+    bwd = np.zeros_like(smooth)
+    bwd[:, 1:] = smooth[:, 1:] - smooth[:, :-1]
+    diff = np.where((prev_ok & next_ok)[..., None], 0.5 * (fwd + bwd),
+                    np.where(next_ok[..., None], fwd, np.where(prev_ok[..., None], bwd, 0.0)))
+    velocity = diff / DT_S
+    speed = np.linalg.norm(velocity, axis=-1)
+    target = np.where(speed > min_speed_mps, np.arctan2(velocity[..., 1], velocity[..., 0]), np.nan)
+    out = heading.copy()
+    step = max_yaw_rate * DT_S
+    for t in range(xy.shape[1]):  # over frames, vectorised over walkers
+        goal = np.where(np.isnan(target[:, t]), out[:, t - 1] if t else heading[:, 0], target[:, t])
+        if t == 0:
+            out[:, 0] = goal
+            continue
+        turn = (goal - out[:, t - 1] + np.pi) % (2 * np.pi) - np.pi
+        limited = out[:, t - 1] + np.clip(turn, -step, step)
+        out[:, t] = np.where(valid[:, t] & valid[:, t - 1], limited, goal)
+    out = (out + np.pi) % (2 * np.pi) - np.pi
+    return smooth, velocity, out
+
+
+# ------------------------------------------------------------------------------------ scenes
+def scene_candidates(rec: Recording, start: int, min_speed_mps: float = 2.0) -> np.ndarray:
+    """Indices of vehicles that can be the self-driving car of the scene starting at frame ``start``:
+    valid on all 91 frames and moving at the current frame."""
+    stop = start + SCENE_FRAMES
+    if stop > rec.valid.shape[1]:
+        return np.zeros(0, np.int64)
+    ok = (rec.types == AgentType.VEHICLE) & rec.valid[:, start:stop].all(axis=1)
+    ok &= rec.speed[:, start + CURRENT_FRAME] >= min_speed_mps
+    return np.flatnonzero(ok)
+
+
+def cut_scene(rec: Recording, nmap: NetworkMap, start: int, ego: int, config: SumoConfig, scenario_id: str,
+              metadata: dict[str, Any]) -> Scenario:
+    """The 91-frame Scenario starting at recorded frame ``start`` with agent ``ego`` as the self-driving
+    car: every agent that comes within ``radius_m`` of it on some frame (nearest first, at most
+    ``max_agents``), the map within ``map_radius_m``, the signals of the lanes kept."""
+    s = slice(start, start + SCENE_FRAMES)
+    cur = start + CURRENT_FRAME
+    valid = rec.valid[:, s]
+    center = rec.center[:, s]
+    ego_xy = rec.center[ego, s, :2]  # [T, 2]
+    dist = np.linalg.norm(center[..., :2] - ego_xy[None], axis=-1)
+    dist = np.where(valid, dist, np.inf).min(axis=1)
+    near = np.flatnonzero(dist <= config.radius_m)
+    near = near[near != ego]
+    near = near[np.argsort(dist[near], kind="stable")][: config.max_agents - 1]
+    index = np.concatenate([[ego], np.sort(near)])
+    origin = rec.center[ego, cur].copy()
+
+    v = valid[index]
+    pos = np.where(v[..., None], center[index] - origin, 0.0).astype(np.float32)
+    heading = np.where(v, rec.heading[index, s], 0.0)
+    velocity = np.where(v[..., None], rec.velocity[index, s], 0.0)
+    size = np.where(v[..., None], rec.size[index][:, None, :], 0.0)
+    tracks = Tracks(ids=index + 1, types=rec.types[index], position=pos, heading=heading.astype(np.float32),
+                    velocity=velocity.astype(np.float32), size=size.astype(np.float32), valid=v)
+
+    road_map, kept_lanes = nmap.crop(origin[:2], config.map_radius_m, origin)
+    lanes = sorted(int(k) for k in kept_lanes if int(k) in rec.signal_states)
+    if lanes:
+        states = np.stack([rec.signal_states[k][s] for k in lanes], axis=1)
+        stops = np.stack([nmap.signal_stop_points[k] for k in lanes]) - origin
+        lights = TrafficLights(lane_ids=lanes, states=states, present=np.ones(states.shape, bool),
+                               stop_points=stops.astype(np.float32))
+    else:
+        lights = TrafficLights.empty(SCENE_FRAMES)
+
+    # tracks to predict: the self-driving car and the nearest agents valid on every frame
+    full = np.flatnonzero(v.all(axis=1))
+    full = full[np.argsort(np.linalg.norm(pos[full, CURRENT_FRAME, :2], axis=-1), kind="stable")]
+    predict = full[: config.max_predict]
+    return Scenario(
+        scenario_id=scenario_id, source=SOURCE, timestamps_s=np.arange(SCENE_FRAMES) * DT_S,
+        current_frame=CURRENT_FRAME, tracks=tracks, road_map=road_map, traffic_lights=lights, sdc_index=0,
+        predict_indices=np.sort(predict), frame=SceneFrame(float(origin[0]), float(origin[1]), float(origin[2]), 0.0),
+        metadata={**metadata, "start_time_s": round(rec.start_time_s + start * DT_S, 1),
+                  "sdc_sumo_id": rec.sumo_ids[ego]},
+    )
+
+
+def sim_seed(seed: int, sim_index: int) -> int:
+    """The seed of simulation ``sim_index`` of a run seeded with ``seed`` (independent of workers)."""
+    return int(np.random.SeedSequence([int(seed), int(sim_index)]).generate_state(1)[0] & 0x7FFFFFFF)
+
+
+def scenario_id(seed: int, sim_index: int, k: int) -> str:
+    return f"sumo-{seed}-{sim_index:06d}-{k:02d}"
+
+
+def simulate_scenes(seed: int, sim_index: int, config: SumoConfig = SumoConfig(),
+                    workdir: str | os.PathLike | None = None) -> list[Scenario]:
+    """One simulation: a random network and demand (from ``seed`` and ``sim_index``), SUMO at 0.1 s
+    steps, then up to ``config.scenes_per_sim`` scenes cut at different times around different
+    moving vehicles. Fewer scenes when too few vehicles qualify (e.g. a jammed network)."""
+    _, sumolib, _ = require_sumo()
+    s = sim_seed(seed, sim_index)
+    rng = np.random.default_rng(s)
+    spec = random_network_spec(rng, pedestrians=config.pedestrians, bicycles=config.bicycles)
+    with tempfile.TemporaryDirectory(prefix="smart-marl-sumo-", dir=workdir) as tmp:
+        tmp = Path(tmp)
+        net_path = build_network(spec, tmp / "net.net.xml")
+        nmap = network_map(net_path, spec.rotation_rad)
+        net = sumolib.net.readNet(os.fspath(net_path))
+        types = random_vehicle_types(rng, config)
+        duration = config.sim_duration_s()
+        counts = write_demand(tmp / "demand.rou.xml", net, types, rng, config, duration)
+        lane_change_s = float(rng.uniform(*config.lane_change_duration_s))
+        rec = run_simulation(net_path, tmp / "demand.rou.xml", duration, config.warmup_s, s, config, nmap,
+                             spec.rotation_rad, lane_change_s)
+    metadata = {"generator": "smart_marl.sources.sumo", "seed": int(seed), "sim_index": int(sim_index),
+                "sim_seed": s, "network": spec.to_metadata(), "network_stats": nmap.stats, "demand": counts,
+                "sublane": config.sublane, "lane_change_duration_s": None if config.sublane else round(lane_change_s, 2)}
+    scenes, used = [], set()
+    spacing = int(round(config.scene_spacing_s / DT_S))
+    for k in range(config.scenes_per_sim):
+        start = k * spacing
+        candidates = [c for c in scene_candidates(rec, start) if c not in used]
+        if not candidates:
+            continue
+        ego = int(candidates[int(rng.integers(len(candidates)))])
+        used.add(ego)
+        scenes.append(cut_scene(rec, nmap, start, ego, config, scenario_id(seed, sim_index, k), metadata))
+    return scenes
