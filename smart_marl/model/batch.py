@@ -1,0 +1,172 @@
+"""Model stage, input side: tokenized scenes -> padded batch tensors (:class:`SmartBatch`).
+
+Per scene (in DataLoader workers, never in the training step): rolling-matching motion tokens
+(:func:`smart_marl.tokens.tokenize_motion`, with top-k token noise for training), road pieces and
+their road tokens (:mod:`smart_marl.tokens.road`), the successor pairs along road sequences and the
+pieces whose content is hidden for the road next-token task. :func:`collate_scenes` pads those
+per-scene arrays into one batch of tensors, so the model sees several scenes without a per-scene
+Python loop.
+
+Alignment: the agent input at token step s is token s placed at the pose it reached (the end of
+token s); its target is the token of step s + 1, valid when both tokens are valid. The target is
+the noise-free (nearest) token from the pose the (possibly noised) sequence reached, so the model
+learns to correct drift (``MotionTokens.nearest_ids``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+
+from ..scenario import AgentType, Scenario, SignalState
+from ..tokens import MotionVocabulary, tokenize_motion
+from ..tokens.road import RoadVocabulary, match_road_pieces, road_pieces, road_successor_pairs
+from .roadnet import NUM_LIGHT_STATES, NUM_ROAD_TYPES
+
+NO_LIGHT = NUM_LIGHT_STATES - 1
+_SUBTYPES = 9  # road type id = feature_type * 9 + subtype (MapFeatureType 0..6, subtypes 0..8)
+assert 7 * _SUBTYPES <= NUM_ROAD_TYPES
+
+
+@dataclass
+class SmartBatch:
+    """B scenes, N agents (padded), S token steps, R road pieces (padded), E road pairs (padded)."""
+
+    agent_tokens: torch.Tensor  # [B, N, S] long, token id in the agent's type vocabulary (0 where invalid)
+    agent_valid: torch.Tensor  # [B, N, S] bool
+    agent_type: torch.Tensor  # [B, N] long, 0..2 (padding: 0, never valid)
+    agent_shape: torch.Tensor  # [B, N, 3] float, length, width, height (m)
+    agent_start_pose: torch.Tensor  # [B, N, S, 3] float, where token s starts
+    agent_pose: torch.Tensor  # [B, N, S, 3] float, where token s ends (the pose the sequence reached)
+    target_tokens: torch.Tensor  # [B, N, S] long, token of step s + 1
+    target_valid: torch.Tensor  # [B, N, S] bool
+    road_points: torch.Tensor  # [B, R, P, 2] float, piece points in the piece's frame
+    road_pose: torch.Tensor  # [B, R, 3] float
+    road_type: torch.Tensor  # [B, R] long
+    road_light: torch.Tensor  # [B, R] long, SignalState at the current frame, NO_LIGHT when unsignalised
+    road_valid: torch.Tensor  # [B, R] bool
+    road_token: torch.Tensor  # [B, R] long, nearest road-vocabulary token
+    road_masked: torch.Tensor  # [B, R] bool, content hidden (targets of the road next-token task)
+    road_pairs: torch.Tensor  # [B, E, 2] long, (piece i -> next piece j) along road sequences
+    road_pair_valid: torch.Tensor  # [B, E] bool
+
+    def to(self, device, non_blocking: bool = False) -> "SmartBatch":
+        return SmartBatch(**{f.name: getattr(self, f.name).to(device, non_blocking=non_blocking) for f in fields(self)})
+
+    def pin_memory(self) -> "SmartBatch":
+        return SmartBatch(**{f.name: getattr(self, f.name).pin_memory() for f in fields(self)})
+
+    @property
+    def num_scenes(self) -> int:
+        return int(self.agent_tokens.shape[0])
+
+    def num_target_tokens(self) -> int:
+        return int(self.target_valid.sum())
+
+
+@dataclass
+class RoadArrays:
+    """The static road part of one scene (cached per scene by the dataset)."""
+
+    local: np.ndarray  # [R, P, 2]
+    pose: np.ndarray  # [R, 3]
+    type_id: np.ndarray  # [R]
+    light: np.ndarray  # [R]
+    token: np.ndarray  # [R]
+    pairs: np.ndarray  # [E, 2]
+
+
+def scene_road(scenario: Scenario, road_vocab: RoadVocabulary) -> RoadArrays:
+    """Road pieces, their tokens, types, light states (at the current frame) and successor pairs."""
+    pieces = road_pieces(scenario.road_map, scenario.traffic_lights)
+    ids, _, _ = match_road_pieces(pieces.local, road_vocab) if pieces.num_pieces else (np.zeros(0, np.int64),) * 3
+    light = np.full(pieces.num_pieces, NO_LIGHT, np.int64)
+    tl = scenario.traffic_lights
+    has = pieces.traffic_light_index >= 0
+    if has.any():
+        f = scenario.current_frame
+        li = pieces.traffic_light_index[has]
+        light[has] = np.where(tl.present[f, li], tl.states[f, li], int(SignalState.UNKNOWN))
+    pairs, _ = road_successor_pairs(pieces, scenario.road_map)
+    type_id = pieces.feature_type.astype(np.int64) * _SUBTYPES + np.clip(pieces.feature_subtype, 0, _SUBTYPES - 1)
+    return RoadArrays(local=pieces.local, pose=pieces.pose, type_id=type_id, light=light, token=ids, pairs=pairs)
+
+
+def crop_road(road: RoadArrays, keep: np.ndarray) -> RoadArrays:
+    """The pieces where ``keep`` [R] is true, successor pairs re-indexed (pairs touching a dropped piece go)."""
+    new_index = np.cumsum(keep) - 1
+    pk = keep[road.pairs[:, 0]] & keep[road.pairs[:, 1]] if len(road.pairs) else np.zeros(0, bool)
+    return RoadArrays(local=road.local[keep], pose=road.pose[keep], type_id=road.type_id[keep], light=road.light[keep],
+                      token=road.token[keep], pairs=new_index[road.pairs[pk]].reshape(-1, 2))
+
+
+def scene_tensors(scenario: Scenario, motion_vocab: MotionVocabulary, road: RoadArrays, noise_topk: int = 0,
+                  road_mask_prob: float = 0.15, rng: np.random.Generator | int | None = None, motion_tokens=None,
+                  road_keep_radius_m: float | None = None) -> dict[str, np.ndarray]:
+    """One scene's unpadded arrays (see :class:`SmartBatch` for the meaning of each).
+
+    Agents kept: those with at least one valid motion token (type OTHER never has one).
+    ``motion_tokens`` may be given (already tokenized without noise) to skip the rolling matching.
+    ``road_keep_radius_m``: drop road pieces farther than this from every valid agent pose. With
+    ``map_radius_m + road_layers * road_radius_m`` this changes no agent's features (no dropped
+    piece is reachable through map-agent and RoadNet attention), only the road task's piece set.
+    """
+    rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    mt = motion_tokens if motion_tokens is not None else tokenize_motion(scenario, motion_vocab, noise_topk=noise_topk, rng=rng)
+    keep = np.flatnonzero(mt.valid.any(1))
+    valid = mt.valid[keep]
+    if road_keep_radius_m is not None and len(road.token):
+        xy = mt.reached[keep][:, 1:][valid][:, :2]  # valid token end poses [M, 2]
+        if len(xy):
+            near = torch.cdist(torch.from_numpy(road.pose[:, :2]).float(), torch.from_numpy(xy).float()).amin(1) <= road_keep_radius_m
+            road = crop_road(road, near.numpy())
+        else:
+            road = crop_road(road, np.zeros(len(road.token), bool))
+    tr = scenario.tracks
+    size = np.where(tr.valid[keep][..., None], tr.size[keep], np.nan)
+    shape = np.nan_to_num(np.nanmedian(size, axis=1)) if len(keep) else np.zeros((0, 3))
+    target = np.zeros_like(mt.ids[keep])
+    target[:, :-1] = mt.nearest_ids[keep][:, 1:]
+    target_valid = np.zeros_like(valid)
+    target_valid[:, :-1] = valid[:, :-1] & valid[:, 1:]
+    masked = rng.random(len(road.token)) < road_mask_prob
+    return dict(
+        agent_tokens=mt.ids[keep], agent_valid=valid, agent_type=mt.types[keep].astype(np.int64),
+        agent_shape=shape.astype(np.float32), agent_start_pose=mt.start_pose[keep], agent_pose=mt.reached[keep][:, 1:],
+        target_tokens=target, target_valid=target_valid,
+        road_points=road.local, road_pose=road.pose, road_type=road.type_id, road_light=road.light,
+        road_valid=np.ones(len(road.token), bool), road_token=road.token, road_masked=masked,
+        road_pairs=road.pairs, road_pair_valid=np.ones(len(road.pairs), bool),
+    )
+
+
+_PAD_DIMS = {  # which leading dims are padded: "n" agents, "s" steps, "r" road pieces, "e" pairs
+    "agent_tokens": "ns", "agent_valid": "ns", "agent_type": "n", "agent_shape": "n", "agent_start_pose": "ns",
+    "agent_pose": "ns", "target_tokens": "ns", "target_valid": "ns", "road_points": "r", "road_pose": "r",
+    "road_type": "r", "road_light": "r", "road_valid": "r", "road_token": "r", "road_masked": "r", "road_pairs": "e",
+    "road_pair_valid": "e",
+}
+
+
+def collate_scenes(scenes: list[dict[str, np.ndarray]]) -> SmartBatch:
+    """Pad per-scene arrays (from :func:`scene_tensors`) to the batch's largest N, S, R, E and stack."""
+    if not scenes:
+        raise ValueError("cannot collate an empty list of scenes")
+    size = {
+        "n": max(max(len(s["agent_type"]) for s in scenes), 1),
+        "s": max(s["agent_tokens"].shape[1] if s["agent_tokens"].ndim == 2 else 0 for s in scenes) or 1,
+        "r": max(max(len(s["road_token"]) for s in scenes), 1),
+        "e": max(max(len(s["road_pairs"]) for s in scenes), 1),
+    }
+    out = {}
+    for name, dims in _PAD_DIMS.items():
+        first = np.asarray(scenes[0][name])
+        trailing = first.shape[len(dims):]
+        arr = np.zeros((len(scenes), *[size[d] for d in dims], *trailing), first.dtype)
+        for i, s in enumerate(scenes):
+            a = np.asarray(s[name])
+            arr[(i, *[slice(0, a.shape[k]) for k in range(len(dims))])] = a.reshape(*a.shape[: len(dims)], *trailing)
+        out[name] = torch.from_numpy(arr)
+    return SmartBatch(**out)

@@ -1,0 +1,52 @@
+"""Model stage, RoadNet: road-vector tokens -> road encodings (SMART sec. 3.2).
+
+Each road token (a road piece of at most 5 m) is embedded from its points (in the piece's own
+frame) plus road-type and traffic-light embeddings, then refined by self-attention among road
+tokens within ``road_radius_m`` (10 m), with RPE from the relative poses. The encodings are
+computed once per scene and read by MotionNet's map-to-agent attention; a head on them predicts
+the next road token along a road sequence (the road next-token task).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+
+from .layers import FourierEmbedding, NeighbourAttention, knn_within, mlp, relative_pose_features
+
+NUM_ROAD_TYPES = 64  # ids given by the batch builder: feature type * 9 + subtype (see batch.py)
+NUM_LIGHT_STATES = 10  # SignalState 0..8 plus 9 = no light on this piece
+
+
+class RoadNet(nn.Module):
+    def __init__(self, cfg) -> None:
+        super().__init__()
+        d = cfg.hidden_dim
+        self.cfg = cfg
+        self.piece_mlp = mlp(2 * cfg.road_piece_points, d, d)  # points of the piece in its frame
+        self.type_emb = nn.Embedding(NUM_ROAD_TYPES, d)
+        self.light_emb = nn.Embedding(NUM_LIGHT_STATES, d)
+        self.mask_emb = nn.Parameter(torch.zeros(d))  # replaces a masked piece's content (road task)
+        self.rpe = FourierEmbedding(3, d, cfg.num_freq_bands)
+        self.layers = nn.ModuleList(
+            NeighbourAttention(d, cfg.num_heads, cfg.head_dim, cfg.dropout, bipartite=False) for _ in range(cfg.num_road_layers)
+        )
+
+    def forward(self, points: torch.Tensor, pose: torch.Tensor, road_type: torch.Tensor, light: torch.Tensor,
+                valid: torch.Tensor, masked: torch.Tensor | None = None) -> torch.Tensor:
+        """points [B, R, P, 2], pose [B, R, 3], road_type [B, R], light [B, R], valid [B, R],
+        masked [B, R] (pieces whose content is hidden) -> road encodings [B, R, d]."""
+        b, r = valid.shape
+        x = self.piece_mlp(points.flatten(-2))  # (B, R, d)
+        if masked is not None:
+            x = torch.where(masked[..., None], self.mask_emb.to(x.dtype).expand_as(x), x)
+        x = x + self.type_emb(road_type) + self.light_emb(light)
+        idx, nmask = knn_within(pose[..., :2], pose[..., :2], self.cfg.road_radius_m, self.cfg.road_neighbours, valid, valid)  # (B, R, K)
+        key_pose = torch.gather(pose, 1, idx.reshape(b, -1, 1).expand(-1, -1, 3)).view(b, r, -1, 3)  # (B, R, K, 3)
+        rpe = self.rpe(relative_pose_features(pose[:, :, None, :], key_pose))  # (B, R, K, d)
+        flat_idx = (idx + torch.arange(b, device=idx.device)[:, None, None] * r).view(b * r, -1)  # rows of x.view(B*R, d)
+        x = x.reshape(b * r, -1)
+        nmask, rpe = nmask.view(b * r, -1), rpe.view(b * r, nmask.shape[-1], -1)
+        for layer in self.layers:
+            x = layer(x, x, flat_idx, nmask, rpe)
+        return x.view(b, r, -1)

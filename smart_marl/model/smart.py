@@ -1,0 +1,145 @@
+"""Model stage: the SMART model (RoadNet + MotionNet + next-token heads) and its named configs.
+
+What comes in: a :class:`~smart_marl.model.batch.SmartBatch` (padded tensors of motion tokens and
+road tokens of several scenes). What goes out: per-(agent, step) features, next-motion-token
+logits per agent type (each over its own vocabulary) and road next-token logits.
+
+Named configs follow the paper's Table 6 (``smart-1m``, ``smart-7m``, ``smart-26m``,
+``smart-101m``); :func:`get_config` takes a name or a dict and applies overrides.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import torch
+import torch.nn as nn
+
+from ..errors import SmartMarlError
+from .layers import mlp
+from .motionnet import NUM_MOTION_TYPES, MotionNet
+from .roadnet import RoadNet
+
+
+class ModelConfigError(SmartMarlError, ValueError):
+    """An unknown model config name or field."""
+
+
+@dataclass
+class SmartConfig:
+    """SMART hyperparameters (Table 6 of the paper, plus the dense-neighbourhood sizes)."""
+
+    name: str = "smart-1m"
+    hidden_dim: int = 64
+    num_heads: int = 8
+    head_dim: int = 8
+    num_road_layers: int = 1
+    num_agent_blocks: int = 2
+    motion_vocab_sizes: tuple[int, int, int] = (512, 512, 512)  # vehicle, pedestrian, cyclist
+    road_vocab_size: int = 1024
+    agent_radius_m: float = 60.0
+    map_radius_m: float = 30.0
+    road_radius_m: float = 10.0
+    temporal_window_tokens: int = 6  # 3 s
+    agent_neighbours: int = 32  # K of the dense neighbourhoods
+    map_neighbours: int = 32
+    road_neighbours: int = 16
+    road_piece_points: int = 11
+    num_freq_bands: int = 64
+    dropout: float = 0.1
+
+    def __post_init__(self) -> None:
+        self.motion_vocab_sizes = tuple(int(v) for v in self.motion_vocab_sizes)
+        if len(self.motion_vocab_sizes) != NUM_MOTION_TYPES:
+            raise ModelConfigError(f"motion_vocab_sizes needs 3 sizes (vehicle, pedestrian, cyclist), got {self.motion_vocab_sizes}")
+        if self.num_heads * self.head_dim != self.hidden_dim:
+            raise ModelConfigError(f"num_heads * head_dim must equal hidden_dim, got {self.num_heads} * {self.head_dim} != {self.hidden_dim}")
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["motion_vocab_sizes"] = list(self.motion_vocab_sizes)
+        return d
+
+
+NAMED_CONFIGS: dict[str, dict[str, Any]] = {
+    # name: (Table 6) hidden, heads x head dim, road layers, agent blocks, motion vocab per type
+    "smart-1m": dict(hidden_dim=64, num_heads=8, head_dim=8, num_road_layers=1, num_agent_blocks=2, motion_vocab_sizes=(512,) * 3),
+    "smart-7m": dict(hidden_dim=128, num_heads=8, head_dim=16, num_road_layers=3, num_agent_blocks=6, motion_vocab_sizes=(1024,) * 3),
+    "smart-26m": dict(hidden_dim=256, num_heads=8, head_dim=32, num_road_layers=1, num_agent_blocks=6, motion_vocab_sizes=(1024,) * 3),
+    "smart-101m": dict(hidden_dim=512, num_heads=8, head_dim=64, num_road_layers=3, num_agent_blocks=6, motion_vocab_sizes=(2048,) * 3),
+}
+PAPER_PARAMS = {"smart-1m": 1.0e6, "smart-7m": 7.2e6, "smart-26m": 26.9e6, "smart-101m": 101.0e6}
+
+
+def get_config(name_or_dict: str | Mapping[str, Any], **overrides: Any) -> SmartConfig:
+    """A :class:`SmartConfig` from a named config (``smart-1m`` ...) or a dict (which may itself
+    name a base config under ``name``), with ``overrides`` applied."""
+    if isinstance(name_or_dict, str):
+        base = {"name": name_or_dict}
+    else:
+        base = dict(name_or_dict)
+    values: dict[str, Any] = {}
+    if base.get("name") is not None and base["name"] not in NAMED_CONFIGS and not isinstance(name_or_dict, Mapping):
+        raise ModelConfigError(f"unknown model config {base['name']!r}; known: {', '.join(NAMED_CONFIGS)}")
+    if base.get("name") in NAMED_CONFIGS:
+        values.update(NAMED_CONFIGS[base["name"]])
+    values.update(base)
+    values.update(overrides)
+    known = {f.name for f in dataclasses.fields(SmartConfig)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ModelConfigError(f"unknown model config field(s) {unknown}; known: {sorted(known)}")
+    return SmartConfig(**values)
+
+
+class SMART(nn.Module):
+    """RoadNet + MotionNet + heads. The motion vocabularies' contours are buffers (they are part
+    of the model: the token embedding reads them), shaped [V_t, 6, 4, 2] per type."""
+
+    def __init__(self, config: SmartConfig, motion_contours: list[torch.Tensor] | None = None) -> None:
+        super().__init__()
+        self.config = config
+        d = config.hidden_dim
+        for t, v in enumerate(config.motion_vocab_sizes):
+            c = torch.zeros(v, 6, 4, 2) if motion_contours is None else torch.as_tensor(motion_contours[t], dtype=torch.float32)
+            if c.shape != (v, 6, 4, 2):
+                raise ModelConfigError(f"motion vocabulary of type {t} has shape {tuple(c.shape)}, the config wants ({v}, 6, 4, 2)")
+            self.register_buffer(f"motion_contour_{t}", c.clone())
+        self.road_net = RoadNet(config)
+        self.motion_net = MotionNet(config)
+        self.motion_heads = nn.ModuleList(mlp(d, d, v, layers=3) for v in config.motion_vocab_sizes)
+        self.road_head = mlp(d, d, config.road_vocab_size, layers=3)
+
+    @property
+    def motion_contours(self) -> list[torch.Tensor]:
+        return [getattr(self, f"motion_contour_{t}") for t in range(NUM_MOTION_TYPES)]
+
+    def encode_road(self, batch, masked: torch.Tensor | None = None) -> torch.Tensor:
+        """Road encodings [B, R, d] (computed once per scene at inference)."""
+        return self.road_net(batch.road_points, batch.road_pose, batch.road_type, batch.road_light, batch.road_valid, masked)
+
+    def forward(self, batch, road_masked: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """batch (SmartBatch) -> (agent features [B, N, S, d], road encodings [B, R, d])."""
+        road_x = self.encode_road(batch, road_masked)
+        x = self.motion_net.embed_agents(batch.agent_tokens, batch.agent_type, batch.agent_shape, batch.agent_start_pose,
+                                         batch.agent_pose, self.motion_contours)
+        nbrs = self.motion_net.neighbourhoods(batch.agent_pose, batch.agent_valid, batch.road_pose, batch.road_valid)
+        return self.motion_net(x, road_x, nbrs), road_x
+
+    def motion_logits(self, features: torch.Tensor, agent_type: torch.Tensor) -> list[torch.Tensor]:
+        """Logits of every (agent, step) under each type's head: features [..., d] -> per type
+        [..., V_t] (pick the row's own type with ``agent_type``). For training use :mod:`.losses`,
+        which runs each head only on its type's rows."""
+        return [head(features) for head in self.motion_heads]
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())
+
+
+def model_parameter_count(config: SmartConfig) -> int:
+    """Parameter count of a config without allocating its weights (meta device)."""
+    with torch.device("meta"):
+        return count_parameters(SMART(config))
