@@ -18,7 +18,10 @@ _COMMAND_MODULES = (
     "smart_marl.commands.info",
     "smart_marl.commands.preprocess",
     "smart_marl.commands.demo",
+    "smart_marl.commands.train",
+    "smart_marl.commands.models",
     "smart_marl.commands.generate_sumo",
+    "smart_marl.commands.vocab",
 )
 
 

@@ -14,9 +14,10 @@ then keeps the first ``size`` centres of that pass, so that the samples left unc
 Output: the indices of the centre samples (the vocabulary entries are real samples, not means)
 and the tolerance. Deterministic given the seed (CPU float32 arithmetic, fixed order).
 
-Cost: a pass is at most ``size`` steps, each one a distance computation against the samples still
-remaining, which shrink quickly for driving data. The bisection first runs on a subsample to
-bracket the tolerance, then refines on all samples (see :func:`kdisks`).
+Cost: a pass is at most ``size`` steps. A step does not scan every sample: linear keys of the
+points bound the distance from below (see ``_Index``), so the samples are sorted by one key once,
+and a step computes exact distances only for the live samples whose keys all lie within the
+tolerance of the centre's (a binary search plus filters). Passes are cheap enough that the bisection runs on all samples.
 """
 
 from __future__ import annotations
@@ -25,7 +26,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 __all__ = ["KDisksResult", "kdisks", "kdisks_pass", "mean_point_distance"]
 
@@ -44,35 +44,79 @@ class KDisksResult:
     passes: int  # k-disks passes run by the tolerance search
 
 
-def kdisks_pass(samples: torch.Tensor, tolerance_m: float, max_centres: int, progress=None) -> tuple[np.ndarray, int]:
-    """One k-disks pass over ``samples`` [M, P*2] float32, already in the random visiting order.
+def _key_directions(num_points: int, phase: float, offset_rad: float) -> np.ndarray:
+    """Unit vectors [P, 2], one per point, at angles ``offset + (pi/3) sin(2.39 i + phase)``."""
+    ang = offset_rad + (np.pi / 3) * np.sin(2.39 * np.arange(num_points) + phase)
+    return np.stack([np.cos(ang), np.sin(ang)], -1).astype(np.float32)
 
-    Returns (centre rows [K <= max_centres], samples remaining when it stopped). The pass stops
-    when ``max_centres`` centres are taken or nothing is left.
+
+class _Index:
+    """Samples sorted by a scalar key, for the candidate search of a k-disks step.
+
+    Any key ``k(p) = mean_i a_i . p_i`` with unit vectors ``a_i`` satisfies
+    ``|k(p) - k(q)| <= mean_i |p_i - q_i|`` (the distance), so only samples whose keys are all
+    within the tolerance of the centre's can be within it. The sort key mixes x with per-point
+    varying directions (so that boxes turning in place, which share their mean point, still differ
+    in key); the filter keys are the mean point's x and y and a second mixed key.
     """
-    x = samples
-    rows = torch.arange(x.shape[0])
-    centres: list[int] = []
-    num_points = x.shape[1] // 2
-    while x.shape[0] > 0 and len(centres) < max_centres:
-        centres.append(int(rows[0]))
-        d = (x - x[0]).square_().view(x.shape[0], num_points, 2).sum(-1).sqrt_().mean(-1)  # [R]
-        keep = d > tolerance_m
-        keep[0] = False
-        x, rows = x[keep], rows[keep]
-        if progress is not None:
-            progress.update(1)
-    return np.asarray(centres, dtype=np.int64), int(x.shape[0])
+
+    def __init__(self, samples: np.ndarray):
+        p = samples.shape[1]
+        primary = (samples * _key_directions(p, 0.0, 0.0)).sum(-1).mean(-1)  # [M]
+        filters = np.stack([samples[..., 0].mean(-1), samples[..., 1].mean(-1),
+                            (samples * _key_directions(p, 1.0, np.pi / 2)).sum(-1).mean(-1)], -1)  # [M, 3]
+        self.sort = np.argsort(primary, kind="stable")
+        self.key = np.ascontiguousarray(primary[self.sort])
+        self.filters = np.ascontiguousarray(filters[self.sort])
+        self.pts = np.ascontiguousarray(samples[self.sort])  # [M, P, 2], sorted
+        self.rank = np.empty_like(self.sort)
+        self.rank[self.sort] = np.arange(len(self.sort))
+
+    def run(self, order: np.ndarray, tolerance_m: float, max_centres: int, progress=None) -> tuple[np.ndarray, int]:
+        """One pass visiting samples in ``order``; returns (centre sample indices, samples left)."""
+        m = len(self.key)
+        alive = np.ones(m, bool)  # in sorted positions
+        order_pos = self.rank[order]  # visiting order as sorted positions
+        centres: list[int] = []
+        ptr, left, tol = 0, m, float(tolerance_m)
+        while left > 0 and len(centres) < max_centres:
+            while True:  # next live sample in visiting order
+                seg = np.flatnonzero(alive[order_pos[ptr : ptr + 4096]])
+                if len(seg):
+                    ptr += int(seg[0])
+                    break
+                ptr += 4096
+            c = int(order_pos[ptr])
+            centres.append(c)
+            lo = int(np.searchsorted(self.key, self.key[c] - tol, "left"))
+            hi = int(np.searchsorted(self.key, self.key[c] + tol, "right"))
+            near = (np.abs(self.filters[lo:hi] - self.filters[c]) <= tol).all(-1)
+            cand = lo + np.flatnonzero(alive[lo:hi] & near)
+            d = np.sqrt(((self.pts[cand] - self.pts[c]) ** 2).sum(-1)).mean(-1)
+            gone = cand[d <= tol]
+            alive[gone] = False
+            left -= len(gone)  # the centre itself is among them (distance 0)
+            if progress is not None:
+                progress.update(1)
+        left = int(alive.sum())
+        return self.sort[np.asarray(centres, dtype=np.int64)], left
 
 
-def kdisks(samples: np.ndarray, size: int, seed: int = 0, subsample: int = 100_000, iterations: int = 14,
-           refine_iterations: int = 6, progress: bool = True, desc: str = "k-disks") -> KDisksResult:
+def kdisks_pass(samples: np.ndarray, tolerance_m: float, max_centres: int, seed: int = 0) -> tuple[np.ndarray, int]:
+    """One k-disks pass over ``samples`` [M, P, 2] in the random order of ``seed``: (centre indices, samples left)."""
+    samples = np.asarray(samples, np.float32)
+    order = np.random.default_rng(seed).permutation(len(samples))
+    return _Index(samples).run(order, tolerance_m, max_centres)
+
+
+def kdisks(samples: np.ndarray, size: int, seed: int = 0, iterations: int = 24, progress: bool = True,
+           desc: str = "k-disks") -> KDisksResult:
     """Choose ``size`` centres among ``samples`` [M, P, 2] by k-disks with a searched tolerance.
 
-    The tolerance search is a bisection on log(tolerance) for the largest tolerance whose pass
-    reaches ``size`` centres: ``iterations`` steps on a random subsample of ``subsample`` samples
-    (cheap) to bracket it, then ``refine_iterations`` steps on all samples within a factor-of-2
-    bracket around it. The centres are those of the best full-data pass.
+    The search is a bisection on log(tolerance) for the largest tolerance whose pass reaches
+    ``size`` centres (at most ``iterations`` passes; it stops early when a pass reaches ``size``
+    centres with nothing left uncovered, or the bracket is within 1 %). All passes visit the
+    samples in the same random order (the seed's).
 
     Fewer distinct samples than ``size``: every distinct sample becomes a centre (tolerance 0) and
     the result has fewer than ``size`` centres; the callers decide what to do about it (the motion
@@ -81,65 +125,40 @@ def kdisks(samples: np.ndarray, size: int, seed: int = 0, subsample: int = 100_0
     samples = np.asarray(samples, dtype=np.float32)
     if samples.ndim != 3 or samples.shape[-1] != 2:
         raise ValueError(f"samples must be [M, P, 2], got {samples.shape}")
-    m = samples.shape[0]
     if size < 1:
         raise ValueError(f"size must be >= 1, got {size}")
-    rng = np.random.default_rng(seed)
-    order = rng.permutation(m)
-    flat = torch.from_numpy(np.ascontiguousarray(samples[order].reshape(m, -1)))
-
+    m = samples.shape[0]
+    order = np.random.default_rng(seed).permutation(m)
+    index = _Index(samples)
     from tqdm.auto import tqdm
 
     passes = 0
 
-    def run(x: torch.Tensor, tol: float, bar_desc: str) -> tuple[np.ndarray, int]:
+    def run(tol: float, tag: str) -> tuple[np.ndarray, int]:
         nonlocal passes
         passes += 1
-        with tqdm(total=size, desc=bar_desc, disable=not progress, leave=False, unit="centre") as bar:
-            return kdisks_pass(x, tol, size, bar)
+        with tqdm(total=size, desc=f"{desc} {tag} tol={tol:.5f}", disable=not progress, leave=False, unit="centre") as bar:
+            return index.run(order, tol, size, bar)
 
-    # Not enough distinct samples: all of them.
-    _, first_of_unique = np.unique(samples[order].reshape(m, -1), axis=0, return_index=True)
-    if len(first_of_unique) <= size:
-        rows = np.sort(first_of_unique)
-        return KDisksResult(order[rows], 0.0, m, 0, passes)
-
-    # Scale of the data: a typical distance between samples.
-    probe = flat[: min(m, 2000)].view(-1, flat.shape[1] // 2, 2)
-    scale = float((probe[:, None] - probe[None, :200]).square().sum(-1).sqrt().mean(-1).median()) or 1.0
-
-    def bisect(x: torch.Tensor, lo: float, hi: float, steps: int, tag: str):
-        """lo reaches size (or is assumed to), hi does not; returns the best (tol, centres) at lo."""
-        best = None
-        for it in range(steps):
-            mid = math.sqrt(lo * hi)
-            centres, remaining = run(x, mid, f"{desc} {tag} {it + 1}/{steps} tol={mid:.4f}")
-            if len(centres) >= size:
-                lo, best = mid, (mid, centres, remaining)
-                if remaining == 0:  # exactly exhausted at size centres: cannot do better
-                    break
-            else:
-                hi = mid
-        return lo, hi, best
-
-    # 1) bracket on a subsample (the first rows of the random order are a random subsample)
-    sub = flat[: min(m, max(subsample, 4 * size))]
-    lo, hi = scale * 1e-4, scale * 2.0
-    lo, hi, found = bisect(sub, lo, hi, iterations, "bracket")
-    if sub.shape[0] == m and found is not None:
-        tol, centres, remaining = found
-        return KDisksResult(order[centres], float(tol), m, int(remaining), passes)
-    # More samples need more centres at a given tolerance, so the full-data tolerance lies at or
-    # above the subsample's; the bracket is widened by 2x either way for safety.
-    lo_full, hi_full = lo / 2.0, hi * 2.0
-    centres, remaining = run(flat, lo_full, f"{desc} refine low tol={lo_full:.4f}")
-    while len(centres) < size:  # rare: push the lower end down until it reaches size
-        lo_full /= 2.0
-        centres, remaining = run(flat, lo_full, f"{desc} refine low tol={lo_full:.4f}")
-    best = (lo_full, centres, remaining)
-    if remaining > 0:
-        _, _, found = bisect(flat, lo_full, hi_full, refine_iterations, "refine")
-        if found is not None:
-            best = found
-    tol, centres, remaining = best
-    return KDisksResult(order[centres], float(tol), m, int(remaining), passes)
+    centres, left = run(0.0, "distinct")
+    if len(centres) < size:  # fewer distinct samples than tokens: all of them
+        return KDisksResult(order[:0].astype(np.int64) if m == 0 else centres, 0.0, m, 0, passes)
+    best = (0.0, centres, left)
+    if left == 0:
+        return KDisksResult(centres, 0.0, m, 0, passes)
+    probe = samples[order[: min(m, 500)]]
+    scale = float(np.median(np.sqrt(((probe[:, None] - probe[None, :100]) ** 2).sum(-1)).mean(-1))) or 1.0
+    lo, hi = scale * 1e-6, scale * 4.0
+    for it in range(iterations):
+        mid = math.sqrt(lo * hi)
+        centres, left = run(mid, f"{it + 1}/{iterations}")
+        if len(centres) >= size:
+            lo, best = mid, (mid, centres, left)
+            if left == 0:
+                break
+        else:
+            hi = mid
+        if hi / lo < 1.01:
+            break
+    tol, centres, left = best
+    return KDisksResult(np.asarray(centres, np.int64), float(tol), m, int(left), passes)

@@ -37,6 +37,7 @@ Definitions (SMART sec. 3.1, the reference code rainmaker22/SMART):
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Mapping
 
@@ -232,7 +233,8 @@ def build_motion_vocabulary(snippets: Mapping[AgentType, np.ndarray], sizes: int
         size = int(sizes[t] if isinstance(sizes, Mapping) else sizes)
         real = np.asarray(snippets.get(t, np.zeros((0, POSES_PER_TOKEN, 3))), np.float32)
         if len(real) == 0:
-            raise ValueError(f"no {AgentType(t).name.lower()} snippets to build a vocabulary from")
+            warnings.warn(f"no {AgentType(t).name.lower()} snippets: the vocabulary has no {AgentType(t).name.lower()} tokens")
+            continue
         samples = real
         want = min_samples_per_token * size
         if len(real) < want:
@@ -242,6 +244,8 @@ def build_motion_vocabulary(snippets: Mapping[AgentType, np.ndarray], sizes: int
         res = kdisks(contour, size, seed=int(rng.integers(2**31)), progress=progress, desc=f"k-disks {TYPE_KEYS[t]} {size}")
         types[t] = TypeVocab.from_poses(samples[res.centre_indices], length, width, tolerance_m=res.tolerance_m,
                                         requested_size=size, num_samples=len(samples), num_real_samples=len(real))
+    if not types:
+        raise ValueError("no snippets of any motion type to build a vocabulary from")
     return MotionVocabulary(types=types, method="kdisks", seed=seed, provenance=dict(provenance or {}))
 
 
