@@ -137,9 +137,14 @@ class BevRenderer:
     middle of every logged valid agent position of the scene; ``(x, y)`` is a fixed view on that
     local point. The view is a square of side ``2 * view_radius_m`` rendered at ``size_px`` pixels.
 
-    One matplotlib figure is created and reused: the static map is drawn once and every call to
-    :meth:`render` only updates the moving artists.
+    How it stays fast: the static map is rasterised once per *tile* (a square of 1.5 view widths on
+    a global pixel grid, kept in a small cache) by a second, off-screen figure; a frame copies its
+    window out of the tile (the view is snapped to whole pixels, at most half a pixel off) and
+    draws only the moving artists over it. Because tiles and the snapping depend only on the view
+    centre, the same input always gives the same image, whatever was rendered before.
     """
+
+    TILE_CACHE_SIZE = 4
 
     def __init__(self, scenario: Scenario, size_px: int = 600, view_radius_m: float = 60.0,
                  center: str | tuple[float, float] = "sdc", dpi: float = 100.0,
@@ -161,20 +166,29 @@ class BevRenderer:
         self._fixed_center = self._initial_center()
         self._last_center = self._fixed_center
 
-        # A Figure with an Agg canvas, not pyplot: no global state, no window.
-        self.figure = Figure(figsize=(self.size_px / self.dpi, self.size_px / self.dpi), dpi=self.dpi)
-        self.canvas = FigureCanvasAgg(self.figure)
-        self.figure.patch.set_facecolor(BACKGROUND)
-        ax = self.figure.add_axes((0.0, 0.0, 1.0, 1.0))
-        ax.set_axis_off()
-        ax.set_facecolor(BACKGROUND)
-        ax.set_aspect("auto")  # square axes and square limits: 1 m is the same on both axes
-        ax.set_autoscale_on(False)
-        self.ax = ax
         self._px_per_m = self.size_px / (2 * self.view_radius_m)
-        self._draw_static_map(show_lane_centerlines)
+        self._tile_step_px = max(self.size_px // 2, 1)
+        self._tile_px = self.size_px + self._tile_step_px
+
+        def new_figure(size_px: int):
+            # A Figure with an Agg canvas, not pyplot: no global state, no window.
+            fig = Figure(figsize=(size_px / self.dpi, size_px / self.dpi), dpi=self.dpi)
+            canvas = FigureCanvasAgg(fig)
+            fig.patch.set_facecolor(BACKGROUND)
+            ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+            ax.set_axis_off()
+            ax.set_aspect("auto")  # square axes and square limits: 1 m is the same on both axes
+            ax.set_autoscale_on(False)
+            return fig, canvas, ax
+
+        # the static layer: an off-screen figure one tile wide
+        self._tile_figure, self._tile_canvas, self._tile_ax = new_figure(self._tile_px)
+        self._draw_static_map(self._tile_ax, show_lane_centerlines)
+        self._tiles: dict[tuple[int, int], np.ndarray] = {}  # (kx, ky) -> [tile, tile, 4] uint8, LRU order
+        # the moving layer: drawn over a copy of the tile's window
+        self.figure, self.canvas, self.ax = new_figure(self.size_px)
+        self.ax.patch.set_visible(False)
         self._make_dynamic_artists()
-        self._background = None  # (view limits, cached pixels of the static layer)
         self._font = None  # FreeType font of the text overlay, loaded on first use
 
     # ------------------------------------------------------------------------------ the view
@@ -194,15 +208,33 @@ class BevRenderer:
             return tuple(float(v) for v in (pts[:, :2].min(axis=0) + pts[:, :2].max(axis=0)) / 2)
         return (0.0, 0.0)
 
-    def view_center(self, positions: np.ndarray | None = None, valid: np.ndarray | None = None,
-                    ego_index: int | None = None) -> tuple[float, float]:
-        """The local point at the image centre for a frame with these agent states."""
+    def _wanted_center(self, positions, valid, ego_index) -> tuple[float, float]:
         if self.center != "sdc":
             return self._fixed_center
         ego = self.scenario.sdc_index if ego_index is None else ego_index
         if positions is not None and 0 <= ego < len(positions) and (valid is None or valid[ego]):
             return float(positions[ego, 0]), float(positions[ego, 1])
         return self._last_center
+
+    def _view_edges_px(self, center: tuple[float, float]) -> tuple[int, int]:
+        """(left, bottom) edges of the view on the global pixel grid (pixel ``i`` spans
+        ``[i, i + 1) / px_per_m`` metres)."""
+        half = self.size_px / 2
+        return (int(np.floor(center[0] * self._px_per_m - half + 0.5)),
+                int(np.floor(center[1] * self._px_per_m - half + 0.5)))
+
+    def snap_center(self, center: tuple[float, float]) -> tuple[float, float]:
+        """The centre of the image actually rendered for a wanted centre (within half a pixel)."""
+        left, bottom = self._view_edges_px(center)
+        half = self.size_px / 2
+        return (left + half) / self._px_per_m, (bottom + half) / self._px_per_m
+
+    def view_center(self, positions: np.ndarray | None = None, valid: np.ndarray | None = None,
+                    ego_index: int | None = None) -> tuple[float, float]:
+        """The local point at the image centre for a frame with these agent states (for
+        :meth:`world_to_pixel`): the ego's position when following it, else the fixed centre,
+        snapped to the pixel grid."""
+        return self.snap_center(self._wanted_center(positions, valid, ego_index))
 
     def world_to_pixel(self, xy: np.ndarray, center: tuple[float, float]) -> np.ndarray:
         """Local points [..., 2] (m) -> (row, col) pixel coordinates [..., 2] (float) in an image
@@ -213,11 +245,10 @@ class BevRenderer:
         return np.stack([row, col], axis=-1)
 
     # ------------------------------------------------------------------------ the static map
-    def _draw_static_map(self, show_lane_centerlines: bool) -> None:
+    def _draw_static_map(self, ax, show_lane_centerlines: bool) -> None:
         from matplotlib.collections import LineCollection, PolyCollection
 
         rm = self.scenario.road_map
-        ax = self.ax
         lw = max(self._px_per_m / 5.0, 0.5)  # line widths scale a little with the zoom (points)
 
         def add_lines(index, color, width, z, style="solid"):
@@ -285,8 +316,6 @@ class BevRenderer:
         for artist in (self._trails, self._boxes):
             ax.add_collection(artist)
         self._dynamic = (self._lights, self._trails, self._boxes)
-        for artist in self._dynamic:
-            artist.set_animated(True)
         self._light_table = _light_color_table()
         colors = np.zeros((2, len(AgentType), 4))
         for t in AgentType:
@@ -334,8 +363,8 @@ class BevRenderer:
         controlled = np.zeros(n, bool) if controlled is None else np.asarray(controlled, bool).reshape(n)
         if ego_index is None:
             ego_index = self.scenario.sdc_index if n == self.scenario.num_tracks else -1
-        view = center if center is not None else self.view_center(positions, valid, ego_index)
-        self._last_center = view
+        wanted = center if center is not None else self._wanted_center(positions, valid, ego_index)
+        self._last_center = wanted
 
         colors = self.agent_colors(types, controlled, ego_index)
         # draw the ego last so that it is never covered by an overlapping box
@@ -378,26 +407,42 @@ class BevRenderer:
         else:
             self._lights.set_offsets(np.zeros((0, 2)))
 
-        image = self._draw(view)
+        image = self._draw(*self._view_edges_px(wanted))
         if text:
             self._overlay_text(image, text)
         return image
 
-    def _draw(self, view: tuple[float, float]) -> np.ndarray:
-        r = self.view_radius_m
-        limits = (view[0] - r, view[0] + r, view[1] - r, view[1] + r)
-        canvas = self.canvas
-        if self._background is None or self._background[0] != limits:
-            self.ax.set_xlim(limits[0], limits[1])
-            self.ax.set_ylim(limits[2], limits[3])
-            canvas.draw()  # the static layer only: the moving artists are "animated"
-            self._background = (limits, canvas.copy_from_bbox(self.figure.bbox))
-        else:
-            canvas.restore_region(self._background[1])
+    def _tile(self, kx: int, ky: int) -> np.ndarray:
+        """The static map rasterised over global pixels [k * step, k * step + tile) on each axis."""
+        key = (kx, ky)
+        if key in self._tiles:
+            self._tiles[key] = self._tiles.pop(key)  # most recently used last
+            return self._tiles[key]
+        step, size = self._tile_step_px, self._tile_px
+        self._tile_ax.set_xlim(kx * step / self._px_per_m, (kx * step + size) / self._px_per_m)
+        self._tile_ax.set_ylim(ky * step / self._px_per_m, (ky * step + size) / self._px_per_m)
+        self._tile_canvas.draw()
+        tile = np.array(self._tile_canvas.buffer_rgba())  # a copy: the canvas is reused
+        self._tiles[key] = tile
+        while len(self._tiles) > self.TILE_CACHE_SIZE:
+            self._tiles.pop(next(iter(self._tiles)))
+        return tile
+
+    def _draw(self, left: int, bottom: int) -> np.ndarray:
+        """The static layer's window with the moving artists drawn over it, [H, W, 3] uint8."""
+        size, step = self.size_px, self._tile_step_px
+        kx, ky = left // step, bottom // step
+        tile = self._tile(kx, ky)
+        col0 = left - kx * step
+        row0 = (ky * step + self._tile_px) - (bottom + size)  # image rows grow downwards
+        renderer = self.canvas.get_renderer()
+        buffer = np.asarray(renderer.buffer_rgba())
+        buffer[...] = tile[row0:row0 + size, col0:col0 + size]
+        self.ax.set_xlim(left / self._px_per_m, (left + size) / self._px_per_m)
+        self.ax.set_ylim(bottom / self._px_per_m, (bottom + size) / self._px_per_m)
         for artist in self._dynamic:
             self.ax.draw_artist(artist)
-        rgba = np.asarray(canvas.buffer_rgba())
-        return np.ascontiguousarray(rgba[..., :3])
+        return np.ascontiguousarray(buffer[..., :3])
 
     def _overlay_text(self, image: np.ndarray, text: str) -> None:
         """Write ``text`` (dark, on a light box) into the top-left corner of ``image`` in place.
@@ -454,7 +499,8 @@ class BevRenderer:
     def close(self) -> None:
         """Release the figure (it is not registered with pyplot, so this only drops references)."""
         self.figure.clear()
-        self._background = None
+        self._tile_figure.clear()
+        self._tiles.clear()
 
 
 def render_scenario_frame(scenario: Scenario, frame_index: int | None = None, *, history_frames: int = 10,

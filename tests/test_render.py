@@ -207,3 +207,37 @@ def test_log_replay_writes_one_image_per_selected_frame(tmp_path):
     path = render_log_replay(scenario, tmp_path / "replay.gif", fps=5, every=4, size_px=120)
     frames = iio.imread(path, index=None)
     assert frames.shape[:3] == (len(range(0, 21, 4)), 120, 120)
+
+
+def test_map_and_agents_stay_aligned_while_the_view_follows_the_sdc_across_tiles():
+    scenario = synthetic_scenario(3)
+    tr, rm = scenario.tracks, scenario.road_map
+    edge = rm.feature_points(int(rm.indices_of(MapFeatureType.ROAD_EDGE)[0]))
+    edge_y = float(edge[0, 1])
+    renderer = BevRenderer(scenario, size_px=SIZE_PX, view_radius_m=12.0, center="sdc")
+    ego = scenario.sdc_index
+    frames = range(0, scenario.num_frames, 6)
+    images = {}
+    for f in frames:
+        images[f] = image = renderer.render_logged(f, history_frames=0, text=None)
+        center = renderer.view_center(tr.position[:, f, :2], tr.valid[:, f])
+        ego_xy = tr.position[ego, f, :2]
+        assert np.abs(np.subtract(center, ego_xy)).max() <= 0.5 / renderer._px_per_m  # snapped to half a pixel
+        assert np.array_equal(_pixel(image, renderer, ego_xy, center), color_uint8(EGO_COLOR))
+        for dx in (-8.0, 3.0, 9.0):  # the road edge's pixels are where the view transform puts them
+            assert np.array_equal(_pixel(image, renderer, (ego_xy[0] + dx, edge_y), center), color_uint8(ROAD_EDGE_COLOR))
+    travelled_m = tr.position[ego, frames[-1], 0] - tr.position[ego, 0, 0]
+    assert travelled_m > 2 * 12.0  # the view crossed several tiles
+    again = BevRenderer(scenario, size_px=SIZE_PX, view_radius_m=12.0, center="sdc")
+    for f in (frames[-1], frames[0]):  # a fresh renderer, visiting the tiles in another order
+        assert np.array_equal(again.render_logged(f, history_frames=0, text=None), images[f])
+
+
+def test_text_overlay_is_confined_to_the_top_left_corner(womd):
+    renderer = BevRenderer(womd, size_px=SIZE_PX, center="agents")
+    plain = renderer.render_logged(10, text=None)
+    titled = renderer.render_logged(10, text="step 3  t=1.5 s")
+    changed = np.argwhere(np.any(plain != titled, axis=-1))
+    assert len(changed) > 50
+    assert changed[:, 0].max() < 40 and changed[:, 1].max() < SIZE_PX * 0.75
+    assert titled[changed[:, 0], changed[:, 1]].min() < 60  # dark glyphs on a light box
