@@ -22,6 +22,7 @@ _COMMAND_MODULES = (
     "smart_marl.commands.models",
     "smart_marl.commands.generate_sumo",
     "smart_marl.commands.vocab",
+    "smart_marl.commands.eval",
 )
 
 

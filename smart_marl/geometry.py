@@ -279,7 +279,7 @@ def _side_sign(q, seg: RoadEdgeSegments, idx: np.ndarray) -> np.ndarray:
 
 
 def signed_distance_to_road_edges(points_xyz: np.ndarray, segments: RoadEdgeSegments,
-                                  z_stretch: float = Z_STRETCH, cell_m: float = 4.0) -> np.ndarray:
+                                  z_stretch: float = Z_STRETCH, cell_m: float = 2.0) -> np.ndarray:
     """Signed 2D distance [...] of points [..., 3] to the road-edge polylines: positive = off road
     (right of a counter-clockwise edge), negative = on road.
 
@@ -303,7 +303,7 @@ def signed_distance_to_road_edges(points_xyz: np.ndarray, segments: RoadEdgeSegm
 
 
 def nearest_segment_indices(q: np.ndarray, start: np.ndarray, end: np.ndarray, z_stretch: float = 1.0,
-                            cell_m: float = 4.0) -> np.ndarray:
+                            cell_m: float = 2.0) -> np.ndarray:
     """Index [N] of the segment nearest (3D, z stretched) to each point q [N, 3]; first on ties.
 
     Exact: per cell of points, every segment whose lower bound (distance to its midpoint minus its
@@ -328,28 +328,76 @@ def nearest_segment_indices(q: np.ndarray, start: np.ndarray, end: np.ndarray, z
     verts = np.concatenate([ss, es[-1:]], axis=0) if len(ss) else ss
     verts = np.concatenate([ss, es], axis=0)
     out = np.empty(len(q), np.int64)
+    cols = tuple(np.ascontiguousarray(a) for a in (*start.T, *(end - start).T))
     order = np.argsort(inv, kind="stable")
+    verts = np.unique(verts, axis=0)
     bounds = np.searchsorted(inv[order], np.arange(num_cells + 1))
     chunk = max(1, int(2_000_000 // max(len(ss), 1)))
     for c0 in range(0, num_cells, chunk):
         c1 = min(num_cells, c0 + chunk)
         r = ref[c0:c1]
-        ub = np.sqrt(((r[:, None, :] - verts[None]) ** 2).sum(-1)).min(axis=1) + 2 * radius[c0:c1]
-        lb = np.sqrt(((r[:, None, :] - mid[None]) ** 2).sum(-1)) - half[None]
+        ub = _pairwise_distance(r, verts).min(axis=1) + 2 * radius[c0:c1]
+        lb = _pairwise_distance(r, mid) - half[None]
         cand_mask = lb <= ub[:, None] + 1e-9
         counts = cand_mask.sum(axis=1)
-        kmax = int(counts.max())
-        # candidate segment indices per cell, in increasing segment index (first-on-ties like argmin)
-        cand = np.argsort(~cand_mask, axis=1, kind="stable")[:, :kmax]
-        cand_valid = np.arange(kmax)[None] < counts[:, None]
-        qi = order[bounds[c0]:bounds[c1]]
-        cell_of_q = inv[qi] - c0
-        cq = cand[cell_of_q]  # [n, kmax]
-        vq = cand_valid[cell_of_q]
-        d3, _, _, _ = _segment_terms(q[qi][:, None, :], start[cq], end[cq], z_stretch)
-        d3 = np.where(vq, d3, np.inf)
-        out[qi] = cq[np.arange(len(qi)), np.argmin(d3, axis=1)]
+        # cells in groups of similar candidate counts, so that one crowded cell does not pad all
+        by_count = np.argsort(counts, kind="stable")
+        group_bounds = _count_groups(counts[by_count])
+        for g0, g1 in zip(group_bounds[:-1], group_bounds[1:]):
+            cells_g = by_count[g0:g1]
+            kmax = int(counts[cells_g].max())
+            # candidate segment indices per cell, in increasing index (first on ties, like argmin)
+            cand = np.argsort(~cand_mask[cells_g], axis=1, kind="stable")[:, :kmax]
+            cand_valid = np.arange(kmax)[None] < counts[cells_g][:, None]
+            local_of_cell = np.full(c1 - c0, -1)
+            local_of_cell[cells_g] = np.arange(len(cells_g))
+            qi = np.concatenate([order[bounds[c0 + c]:bounds[c0 + c + 1]] for c in cells_g]) if len(cells_g) < 64 else \
+                order[bounds[c0]:bounds[c1]][np.isin(inv[order[bounds[c0]:bounds[c1]]] - c0, cells_g)]
+            cell_of_q = local_of_cell[inv[qi] - c0]
+            cq = cand[cell_of_q]  # [n, kmax]
+            vq = cand_valid[cell_of_q]
+            d3 = _segment_distance3(q[qi][:, None, :], cols, cq, z_stretch)
+            d3 = np.where(vq, d3, np.inf)
+            out[qi] = cq[np.arange(len(qi)), np.argmin(d3, axis=1)]
     return out
+
+
+def _pairwise_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Euclidean distances [n, m] between points a [n, d] and b [m, d] (per component: exact at
+    source-frame magnitudes, unlike the |a|^2 + |b|^2 - 2ab expansion)."""
+    acc = None
+    for k in range(a.shape[1]):
+        d = a[:, k, None] - b[None, :, k]
+        d *= d
+        acc = d if acc is None else acc.__iadd__(d)
+    return np.sqrt(acc, out=acc)
+
+
+def _count_groups(sorted_counts: np.ndarray) -> list[int]:
+    """Split points of ascending candidate counts into groups whose counts are within 1.5x."""
+    bounds = [0]
+    n = len(sorted_counts)
+    while bounds[-1] < n:
+        lo = max(int(sorted_counts[bounds[-1]]), 1)
+        nxt = int(np.searchsorted(sorted_counts, lo * 1.5, side="right"))
+        bounds.append(max(nxt, bounds[-1] + 1))
+    return bounds
+
+
+def _segment_distance3(q, cols, idx, z_stretch):
+    """Only the stretched 3D point-segment distance (the search's inner loop), per component:
+    ``cols`` = (sx, sy, sz, ex, ey, ez) segment starts and start-to-end vectors [S], ``idx`` the
+    candidate segments [n, k] of the points q [n, 1, 3]."""
+    qx, qy, qz = q[..., 0], q[..., 1], q[..., 2]
+    sx, sy, sz, ex, ey, ez = (c[idx] for c in cols)
+    px, py, pz = qx - sx, qy - sy, qz - sz
+    denom = ex * ex + ey * ey
+    num = px * ex + py * ey
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = num / denom
+    t = np.where(denom > 0, np.clip(t, 0.0, 1.0), 0.0)
+    dx, dy, dz = px - ex * t, py - ey * t, (pz - ez * t) * z_stretch
+    return np.sqrt(dx * dx + dy * dy + dz * dz)
 
 
 # ------------------------------------------------------------------------ time to collision

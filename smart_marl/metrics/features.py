@@ -220,6 +220,18 @@ def _quirky_lane_distance(q, start, end):
     return np.sqrt(((sp + se * tc) ** 2).sum(-1))
 
 
+def _quirky_lane_distance_cols(q, cols, idx):
+    """:func:`_quirky_lane_distance` of points q [n, 2] to candidate segments idx [n, k], per component."""
+    sx, sy, ex, ey = (c[idx] for c in cols)
+    px, py = q[:, 0, None] - sx, q[:, 1, None] - sy
+    denom = ex * ex + ey * ey
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = (px * ex + py * ey) / denom
+    t = np.where(denom > 0, np.clip(t, 0.0, 1.0), 0.0)
+    dx, dy = px + ex * t, py + ey * t
+    return np.sqrt(dx * dx + dy * dy)
+
+
 def _nearest_lane(q: np.ndarray, lanes, cell_m: float = 8.0) -> np.ndarray:
     """Lane index [N] of the nearest lane segment (quirky distance, first on ties) for points [N, 2]."""
     nl, p, _ = lanes.points.shape
@@ -238,7 +250,7 @@ def _nearest_lane(q: np.ndarray, lanes, cell_m: float = 8.0) -> np.ndarray:
     np.maximum.at(hi, inv, q)
     ref = 0.5 * (lo + hi)
     rad = 0.5 * np.sqrt(((hi - lo) ** 2).sum(-1))
-    dref = np.sqrt(((ref[:, None] - start[None]) ** 2).sum(-1))  # [C, S]
+    dref = geometry._pairwise_distance(ref, start)  # [C, S]
     ub = np.where(seg_valid[None], dref + seg_len[None], np.inf).min(axis=1) + rad
     lb = np.where(seg_valid[None], dref - seg_len[None] - rad[:, None], np.inf)
     cand_mask = lb <= ub[:, None] + 1e-9
@@ -247,7 +259,8 @@ def _nearest_lane(q: np.ndarray, lanes, cell_m: float = 8.0) -> np.ndarray:
     cand = np.argsort(~cand_mask, axis=1, kind="stable")[:, :kmax]
     cvalid = np.arange(kmax)[None] < counts[:, None]
     cq, vq = cand[inv], cvalid[inv]
-    d = _quirky_lane_distance(q[:, None, :], start[cq], end[cq])
+    d = _quirky_lane_distance_cols(q, (start[:, 0].copy(), start[:, 1].copy(), (end - start)[:, 0].copy(),
+                                       (end - start)[:, 1].copy()), cq)
     d = np.where(vq, d, np.inf)
     best = cq[np.arange(len(q)), np.argmin(d, axis=1)]
     return best // (p - 1)

@@ -25,12 +25,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import SmartMarlError
 from ..geometry import RoadEdgeSegments
 from ..scenario import AgentType, LaneType, MapFeatureType, Scenario, SceneFrame
 from .config import CURRENT_STEP, NUM_SIMULATION_STEPS, NUM_STEPS
 
 
-class RolloutError(ValueError):
+class RolloutError(SmartMarlError, ValueError):
     """Simulated rollouts that do not fit the scene (wrong steps, missing or extra agents)."""
 
 

@@ -1,0 +1,105 @@
+"""``smart-marl eval``: sim-agents realism metrics of rollouts, from a submission file or a policy.
+
+Stage: metrics (the end of the data flow). ``--submission FILE`` scores the rollouts a
+``SimAgentsChallengeSubmission`` file holds; ``--policy NAME`` first generates them
+(constant_velocity, log_replay, random; ``prior`` needs the SMART rollout engine). Prints a table
+per feature and category plus the meta-metric and minADE, or one JSON object with ``--json``;
+``--write-submission OUT`` saves policy rollouts as an uploadable submission file.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+POLICY_CHOICES = ("constant_velocity", "log_replay", "random", "prior")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "eval", help="sim-agents realism metrics (WOSAC 2024/2025) of a submission file or a baseline policy",
+        description="Score rollouts of the scenes in PATH with the Waymo Open Sim Agents Challenge realism metrics "
+                    "(same numbers as the official package). Rollouts come from --submission FILE or are "
+                    "generated with --policy.")
+    p.add_argument("--scenes", required=True, metavar="PATH", help="scene file, folder or glob (91-step WOMD-like scenes)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--submission", metavar="FILE", help="a SimAgentsChallengeSubmission file (.binproto)")
+    src.add_argument("--policy", choices=POLICY_CHOICES, help="generate rollouts with a baseline policy")
+    p.add_argument("--checkpoint", metavar="C", help="model checkpoint (for --policy prior)")
+    p.add_argument("--rollouts", type=int, default=32, help="rollouts per scene for --policy (default 32)")
+    p.add_argument("--seed", type=int, default=0, help="random seed for --policy (default 0)")
+    p.add_argument("--rules", choices=("2024", "2025"), default="2025", help="challenge rules (default 2025)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--write-submission", metavar="OUT", help="with --policy: also write the rollouts as a submission file")
+    p.add_argument("--format", default=None, help="force a scene reader instead of detecting the format")
+    p.set_defaults(func=run)
+
+
+def format_table(result: dict) -> str:
+    from ..metrics.config import get_rules
+
+    rules = get_rules(result["rules"])
+    lines = [f"sim-agents realism ({result['rules']} rules), {result['num_scenarios']} scenario(s)",
+             f"{'feature':<30} {'likelihood':>10} {'weight':>7}"]
+    for cat, members in rules.categories().items():
+        for m in members:
+            lines.append(f"{m:<30} {result['likelihoods'][m]:>10.4f} {rules.features[m].weight:>7.2f}")
+        lines.append(f"{'  = ' + cat:<30} {result[cat]:>10.4f}")
+    lines.append(f"{'realism meta-metric':<30} {result['meta_metric']:>10.4f}")
+    lines.append(f"{'minADE (m)':<30} {result['min_ade']:>10.4f}")
+    return "\n".join(lines)
+
+
+def run(args) -> int:
+    from tqdm import tqdm
+
+    from ..metrics import aggregate, logged_scene, score_rollouts
+    from ..metrics.baselines import policy_rollouts
+    from ..metrics.inputs import RolloutError
+    from ..metrics.submission import ScenarioRolloutArrays, check_against_scene, rollouts_from_submission, write_rollouts
+    from ..readers import read_scenarios
+
+    if args.policy == "prior":
+        print("smart-marl eval: error: --policy prior needs the SMART rollout engine, which does not exist yet "
+              "(use --policy constant_velocity|log_replay|random, or score a --submission file)", file=sys.stderr)
+        return 2
+    if args.write_submission and not args.policy:
+        print("smart-marl eval: error: --write-submission needs --policy", file=sys.stderr)
+        return 2
+    if args.rollouts < 1:
+        print("smart-marl eval: error: --rollouts must be >= 1", file=sys.stderr)
+        return 2
+    submitted = rollouts_from_submission(args.submission) if args.submission else None
+    results, written = [], []
+    seen = set()
+    scenes = read_scenarios(args.scenes, format=args.format) if args.format else read_scenarios(args.scenes)
+    for scenario in tqdm(scenes, desc="eval", unit="scene", file=sys.stderr, disable=None):
+        scene = logged_scene(scenario)
+        if submitted is not None:
+            arrays = submitted.get(scenario.scenario_id)
+            if arrays is None:
+                raise RolloutError(f"{args.submission}: no rollouts for scenario {scenario.scenario_id} "
+                                   f"(the file has {sorted(submitted)[:5]})")
+            check_against_scene(arrays, scene, args.submission)
+            rollouts = arrays.to_rollouts(scenario.frame)
+            where = args.submission
+        else:
+            rollouts = policy_rollouts(args.policy, scenario, args.rollouts, args.seed)
+            where = f"--policy {args.policy}"
+            if args.write_submission:
+                written.append(ScenarioRolloutArrays(scenario.scenario_id, rollouts.object_ids,
+                                                     rollouts.to_source(scenario.frame).astype("float32")))
+        seen.add(scenario.scenario_id)
+        results.append(score_rollouts(scene, rollouts, args.rules, where=where))
+    if not results:
+        print(f"smart-marl eval: error: no scenes in {args.scenes}", file=sys.stderr)
+        return 1
+    if args.write_submission:
+        write_rollouts(args.write_submission, written, description=f"smart-marl baseline policy {args.policy}")
+    out = aggregate(results, args.rules)
+    if args.json:
+        keys = ("meta_metric", "kinematic", "interactive", "map_based", "min_ade", "likelihoods", "num_scenarios", "rules")
+        print(json.dumps({k: out[k] for k in keys}))
+    else:
+        print(format_table(out))
+    return 0
