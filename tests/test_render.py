@@ -241,3 +241,8 @@ def test_text_overlay_is_confined_to_the_top_left_corner(womd):
     assert len(changed) > 50
     assert changed[:, 0].max() < 40 and changed[:, 1].max() < SIZE_PX * 0.75
     assert titled[changed[:, 0], changed[:, 1]].min() < 60  # dark glyphs on a light box
+
+
+def test_renderer_rejects_an_unknown_view_centre():
+    with pytest.raises(ValueError, match="center must be 'sdc', 'agents' or an \\(x, y\\) pair"):
+        BevRenderer(synthetic_scenario(0), center="middle")
