@@ -1,102 +1,31 @@
-"""Bird's-eye-view rendering of a scene and recording of episodes as GIF or MP4.
+"""The bird's-eye-view renderer: a scene's static map drawn once, agents drawn per frame.
 
-Stage: a view at the end of the data flow. It reads a :class:`~smart_marl.scenario.Scenario`
-(for its map, traffic-light stop points and self-driving car) and per-frame agent states given as
-plain arrays, and hands back RGB images (``np.ndarray [H, W, 3] uint8``); nothing here changes a
-scene. Used by the demo, the PettingZoo env's ``render()`` and the what-if tool.
+Stage: rendering, at the end of the data flow. :class:`BevRenderer` reads a
+:class:`~smart_marl.scenario.Scenario` (its map, traffic-light stop points and self-driving car)
+and per-frame agent states given as plain arrays, and hands back RGB images
+(``np.ndarray [H, W, 3] uint8``); nothing here changes a scene.
 
-* :class:`BevRenderer` draws the static map once (lane centrelines, bike lanes, painted lines by
-  colour and dash, road edges, crosswalks, speed bumps, driveways, stop signs) and then, per frame,
-  only draws what moves over a copy of it: agents as oriented boxes with a pointed front, fading
-  recent trajectories, traffic-light dots at the stop points and a text overlay. About 40-60
-  frames/s at 600x600 px for a WOMD scene of 83 agents and 199 lanes on a shared 2-core CPU.
-* :func:`render_scenario_frame` renders the logged state of a scene at one frame.
-* :class:`EpisodeRecorder` collects frames and writes a GIF or an MP4 (by extension).
-* :func:`render_log_replay` writes the logged scene as an animation.
+The static map (lane centrelines, bike lanes, painted lines by colour and dash, road edges,
+crosswalks, speed bumps, driveways, stop signs) is rasterised once per tile; each frame copies its
+window and draws only what moves over it: agents as oriented boxes with a pointed front, fading
+recent trajectories, traffic-light dots at the stop points and a text overlay. About 40-60
+frames/s at 600x600 px for a WOMD scene of 83 agents and 199 lanes on a shared 2-core CPU.
 
-matplotlib (Agg backend) and imageio are optional dependencies (the ``render`` extra); they are
-imported when first needed. Coordinates are the scene's local frame in metres; an image row grows
-downwards, so world +y is up in the picture.
+matplotlib (Agg canvas, never pyplot, never a window) is imported when a renderer is built.
+Coordinates are the scene's local frame in metres; image rows grow downwards, so world +y is up.
 """
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-from typing import Sequence
-
 import numpy as np
 
-from .scenario import AgentType, LaneType, MapFeatureType, RoadLineType, Scenario, SignalState
-
-FRAME_FPS = 10.0
-"""Frames per second of an animation with one image per 0.1 s frame (real time)."""
-TOKEN_STEP_FPS = 2.0
-"""Frames per second of an animation with one image per 0.5 s token step (real time)."""
-
-# ---------------------------------------------------------------------------------------- style
-BACKGROUND = "#d9d9d9"
-LANE_COLOR = "#9a9a9a"
-BIKE_LANE_COLOR = "#3f9e6e"
-ROAD_EDGE_COLOR = "#262626"
-WHITE_LINE_COLOR = "#ffffff"
-YELLOW_LINE_COLOR = "#f0b400"
-UNKNOWN_LINE_COLOR = "#bdbdbd"
-CROSSWALK_FACE = "#ececec"
-CROSSWALK_HATCH = "#8c8c8c"
-SPEED_BUMP_COLOR = "#e08a3c"
-DRIVEWAY_COLOR = "#c8c8c8"
-STOP_SIGN_COLOR = "#b71c1c"
-
-EGO_COLOR = "#d81b60"
-"""The self-driving car (or the agent the view follows)."""
-# per AgentType: (controlled fill, background fill)
-AGENT_COLORS = {
-    AgentType.VEHICLE: ("#1565c0", "#90a9c9"),
-    AgentType.PEDESTRIAN: ("#ef6c00", "#f0c08a"),
-    AgentType.CYCLIST: ("#2e7d32", "#9ccc9f"),
-    AgentType.OTHER: ("#6a1b9a", "#bfa6cc"),
-}
-AGENT_EDGE_COLOR = "#1a1a1a"
-TEXT_SIZE_PT = 11.0
-MIN_AGENT_PX = 4.0
-"""Smallest drawn box side in pixels (a 0.5 m pedestrian is 2.5 px at the default zoom)."""
-
-LIGHT_RED, LIGHT_YELLOW, LIGHT_GREEN, LIGHT_UNKNOWN = "#e53935", "#fdd835", "#43a047", "#7f7f7f"
-_LIGHT_COLOR_OF_STATE = {
-    SignalState.UNKNOWN: LIGHT_UNKNOWN,
-    SignalState.ARROW_STOP: LIGHT_RED,
-    SignalState.STOP: LIGHT_RED,
-    SignalState.FLASHING_STOP: LIGHT_RED,
-    SignalState.ARROW_CAUTION: LIGHT_YELLOW,
-    SignalState.CAUTION: LIGHT_YELLOW,
-    SignalState.FLASHING_CAUTION: LIGHT_YELLOW,
-    SignalState.ARROW_GO: LIGHT_GREEN,
-    SignalState.GO: LIGHT_GREEN,
-}
-
-_WHITE_LINES = {RoadLineType.BROKEN_SINGLE_WHITE, RoadLineType.SOLID_SINGLE_WHITE, RoadLineType.SOLID_DOUBLE_WHITE}
-_BROKEN_LINES = {RoadLineType.BROKEN_SINGLE_WHITE, RoadLineType.BROKEN_SINGLE_YELLOW, RoadLineType.BROKEN_DOUBLE_YELLOW}
-_DOUBLE_LINES = {RoadLineType.SOLID_DOUBLE_WHITE, RoadLineType.BROKEN_DOUBLE_YELLOW, RoadLineType.SOLID_DOUBLE_YELLOW,
-                 RoadLineType.PASSING_DOUBLE_YELLOW}
-
-
-def _rgba(color: str, alpha: float = 1.0) -> np.ndarray:
-    from matplotlib.colors import to_rgba
-
-    r, g, b, _ = to_rgba(color)
-    return np.array([r, g, b, alpha])
-
-
-def color_uint8(color: str) -> np.ndarray:
-    """A matplotlib colour as the ``uint8 [3]`` RGB it has in a rendered image."""
-    return np.round(_rgba(color)[:3] * 255).astype(np.uint8)
-
-
-def _light_color_table() -> np.ndarray:
-    """[9, 4] RGBA of each SignalState code."""
-    return np.stack([_rgba(_LIGHT_COLOR_OF_STATE[SignalState(s)]) for s in range(len(SignalState))])
-
+from ..scenario import AgentType, LaneType, MapFeatureType, RoadLineType, Scenario, SignalState
+from .style import (
+    AGENT_COLORS, AGENT_EDGE_COLOR, BACKGROUND, BIKE_LANE_COLOR, BROKEN_LINES, CROSSWALK_FACE, CROSSWALK_HATCH,
+    DOUBLE_LINES, DRIVEWAY_COLOR, EGO_COLOR, LANE_COLOR, MIN_AGENT_PX, ROAD_EDGE_COLOR, SPEED_BUMP_COLOR,
+    STOP_SIGN_COLOR, TEXT_SIZE_PT, UNKNOWN_LINE_COLOR, WHITE_LINE_COLOR, WHITE_LINES, YELLOW_LINE_COLOR,
+    light_color_table, rgba,
+)
 
 def box_outlines(positions: np.ndarray, headings: np.ndarray, sizes: np.ndarray) -> np.ndarray:
     """[N, 5, 2] outlines of oriented boxes (a rectangle whose front edge has a small nose, so the
@@ -276,10 +205,10 @@ class BevRenderer:
         add_lines(np.flatnonzero(bike), BIKE_LANE_COLOR, 1.0 * lw, 3, style=(0, (2, 2)))
 
         lines = np.flatnonzero(types == MapFeatureType.ROAD_LINE)
-        white = np.isin(sub[lines], list(_WHITE_LINES))
-        yellow = np.isin(sub[lines], [t for t in RoadLineType if t not in _WHITE_LINES and t != RoadLineType.UNKNOWN])
-        broken = np.isin(sub[lines], list(_BROKEN_LINES))
-        double = np.isin(sub[lines], list(_DOUBLE_LINES))
+        white = np.isin(sub[lines], list(WHITE_LINES))
+        yellow = np.isin(sub[lines], [t for t in RoadLineType if t not in WHITE_LINES and t != RoadLineType.UNKNOWN])
+        broken = np.isin(sub[lines], list(BROKEN_LINES))
+        double = np.isin(sub[lines], list(DOUBLE_LINES))
         for color, kind in ((WHITE_LINE_COLOR, white), (YELLOW_LINE_COLOR, yellow), (UNKNOWN_LINE_COLOR, ~(white | yellow))):
             for dashed in (False, True):
                 sel = lines[kind & (broken == dashed)]
@@ -316,12 +245,12 @@ class BevRenderer:
         for artist in (self._trails, self._boxes):
             ax.add_collection(artist)
         self._dynamic = (self._lights, self._trails, self._boxes)
-        self._light_table = _light_color_table()
+        self._light_table = light_color_table()
         colors = np.zeros((2, len(AgentType), 4))
         for t in AgentType:
-            colors[0, t], colors[1, t] = _rgba(AGENT_COLORS[t][1]), _rgba(AGENT_COLORS[t][0])
+            colors[0, t], colors[1, t] = rgba(AGENT_COLORS[t][1]), rgba(AGENT_COLORS[t][0])
         self._agent_table = colors  # [controlled?, type] -> RGBA
-        self._ego_rgba = _rgba(EGO_COLOR)
+        self._ego_rgba = rgba(EGO_COLOR)
 
     def agent_colors(self, types: np.ndarray, controlled: np.ndarray, ego_index: int | None = None) -> np.ndarray:
         """[N, 4] RGBA fill of each agent: by type, strong when controlled, the ego colour for ego."""
@@ -511,87 +440,3 @@ def render_scenario_frame(scenario: Scenario, frame_index: int | None = None, *,
     renderer = BevRenderer(scenario, **renderer_kw)
     frame = scenario.current_frame if frame_index is None else frame_index
     return renderer.render_logged(frame, history_frames=history_frames, controlled=controlled, text=text)
-
-
-# ------------------------------------------------------------------------------------ recording
-_FORMATS = {".gif": "gif", ".mp4": "mp4"}
-
-
-class EpisodeRecorder:
-    """Collects RGB frames and writes them as a GIF or an MP4, chosen by the path's extension.
-
-    ``fps`` is the playback rate: :data:`FRAME_FPS` (10) for one image per 0.1 s frame,
-    :data:`TOKEN_STEP_FPS` (2) for one image per 0.5 s token step, or anything else. Frames are
-    kept in memory until :meth:`write` (600x600 RGB is ~1 MB a frame). MP4s are H.264 through the
-    ffmpeg binary that the ``imageio-ffmpeg`` wheel ships; odd image sizes are padded to even.
-    """
-
-    def __init__(self, path: str | os.PathLike, fps: float = FRAME_FPS):
-        self.path = Path(path)
-        ext = self.path.suffix.lower()
-        if ext not in _FORMATS:
-            raise ValueError(f"EpisodeRecorder: cannot write {self.path}: unknown extension {ext or '(none)'!r}; "
-                             f"use one of {', '.join(_FORMATS)}")
-        if not fps > 0:
-            raise ValueError(f"EpisodeRecorder: fps must be positive, got {fps}")
-        self.format = _FORMATS[ext]
-        self.fps = float(fps)
-        self.frames: list[np.ndarray] = []
-
-    def add(self, frame: np.ndarray) -> None:
-        """Append one ``[H, W, 3] uint8`` image (all frames must share a size)."""
-        frame = np.asarray(frame)
-        if frame.ndim != 3 or frame.shape[2] not in (3, 4) or frame.dtype != np.uint8:
-            raise ValueError(f"EpisodeRecorder: a frame must be [H, W, 3] uint8, got {frame.shape} {frame.dtype}")
-        if self.frames and frame.shape[:2] != self.frames[0].shape[:2]:
-            raise ValueError(f"EpisodeRecorder: frame size {frame.shape[:2]} differs from the first {self.frames[0].shape[:2]}")
-        self.frames.append(np.ascontiguousarray(frame[..., :3]))
-
-    def extend(self, frames: Sequence[np.ndarray]) -> None:
-        for frame in frames:
-            self.add(frame)
-
-    def __len__(self) -> int:
-        return len(self.frames)
-
-    def write(self) -> Path:
-        """Write the file (creating its folder) and return its path."""
-        if not self.frames:
-            raise ValueError(f"EpisodeRecorder: no frames to write to {self.path}")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        if self.format == "gif":
-            import imageio.v3 as iio
-
-            # Pillow stores durations in ms; loop=0 repeats forever.
-            iio.imwrite(self.path, np.stack(self.frames), extension=".gif", duration=1000.0 / self.fps, loop=0)
-        else:
-            import imageio_ffmpeg
-
-            h, w = self.frames[0].shape[:2]
-            ph, pw = h + h % 2, w + w % 2
-            writer = imageio_ffmpeg.write_frames(str(self.path), (pw, ph), fps=self.fps, codec="libx264",
-                                                 pix_fmt_out="yuv420p", macro_block_size=1, quality=7,
-                                                 ffmpeg_log_level="error")
-            writer.send(None)
-            try:
-                for frame in self.frames:
-                    if (ph, pw) != (h, w):
-                        frame = np.pad(frame, ((0, ph - h), (0, pw - w), (0, 0)), mode="edge")
-                    writer.send(np.ascontiguousarray(frame))
-            finally:
-                writer.close()
-        return self.path
-
-
-def render_log_replay(scenario: Scenario, path: str | os.PathLike, fps: float = FRAME_FPS, every: int = 1,
-                      history_frames: int = 10, **renderer_kw) -> Path:
-    """Write the logged scene as an animation (GIF or MP4 by extension): every ``every``-th frame
-    from the first to the last, at ``fps``. Returns the path."""
-    if every < 1:
-        raise ValueError(f"every must be >= 1, got {every}")
-    renderer = BevRenderer(scenario, **renderer_kw)
-    recorder = EpisodeRecorder(path, fps=fps)
-    for f in range(0, scenario.num_frames, every):
-        recorder.add(renderer.render_logged(f, history_frames=history_frames))
-    renderer.close()
-    return recorder.write()
