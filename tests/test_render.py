@@ -246,3 +246,35 @@ def test_text_overlay_is_confined_to_the_top_left_corner(womd):
 def test_renderer_rejects_an_unknown_view_centre():
     with pytest.raises(ValueError, match="center must be 'sdc', 'agents' or an \\(x, y\\) pair"):
         BevRenderer(synthetic_scenario(0), center="middle")
+
+
+def _distance_to_segments(points: np.ndarray, polyline: np.ndarray) -> np.ndarray:
+    """[P] distance of pixel points [P, 2] to a polyline [K, 2] (both (row, col))."""
+    a, b = polyline[:-1][None], polyline[1:][None]  # [1, K-1, 2]
+    ab = b - a
+    t = np.clip(((points[:, None] - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-9), 0, 1)
+    return np.linalg.norm(points[:, None] - (a + t[..., None] * ab), axis=-1).min(axis=1)
+
+
+def test_trails_follow_each_agents_own_path_and_never_join_agents():
+    scenario = synthetic_scenario(0)
+    renderer = BevRenderer(scenario, size_px=SIZE_PX, view_radius_m=20.0, center=(0.0, 0.0))
+    n = 3
+    positions = np.array([[-10.0, -8.0], [10.0, 8.0], [0.0, 15.0]])
+    k = np.linspace(-1.0, 0.0, 8)[None, :, None]
+    trajectories = positions[:, None, :] + k * np.array([[12.0, 0.0], [0.0, -14.0], [6.0, 0.0]])[:, None, :]
+    valid_traj = np.ones((n, 8), bool)
+    valid_traj[2, 3] = False  # a gap: the segments on both sides of it are not drawn
+    state = dict(positions=positions, headings=np.zeros(n), sizes=np.full((n, 2), 1.0), valid=np.ones(n, bool),
+                 types=np.zeros(n, np.int8), controlled=np.array([True, False, True]), ego_index=-1)
+    plain = renderer.render(**state)
+    trails = renderer.render(**state, trajectories=trajectories, trajectories_valid=valid_traj)
+    changed = np.argwhere(np.any(plain != trails, axis=-1)).astype(np.float64) + 0.5
+    assert len(changed) > 30
+    pix = [renderer.world_to_pixel(trajectories[i], (0.0, 0.0)) for i in range(n)]
+    pieces = [pix[0], pix[1], pix[2][:3], pix[2][4:]]
+    dist = np.min([_distance_to_segments(changed, p) for p in pieces], axis=0)
+    assert dist.max() <= 4.0  # within the line's half width and antialiasing of some agent's own path
+    # nothing is drawn across the gap of agent 2 (between its samples 2 and 4)
+    gap_mid = renderer.world_to_pixel(trajectories[2, 3], (0.0, 0.0))
+    assert np.linalg.norm(changed - gap_mid, axis=1).min() > 2.0

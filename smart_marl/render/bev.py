@@ -27,6 +27,7 @@ from .style import (
     light_color_table, rgba,
 )
 
+
 def box_outlines(positions: np.ndarray, headings: np.ndarray, sizes: np.ndarray) -> np.ndarray:
     """[N, 5, 2] outlines of oriented boxes (a rectangle whose front edge has a small nose, so the
     heading reads at a glance): ``positions`` [N, 2] centres, ``headings`` [N] radians,
