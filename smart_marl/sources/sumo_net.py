@@ -52,6 +52,9 @@ MPH_PER_MPS = 2.2369362920544
 QUANTUM = 2.0 ** -16
 """Source coordinates are multiples of this (m) so that local float32 <-> source float64 is exact."""
 
+LANE_POINT_SPACING_M = 1.0
+"""Lane centre lines and road edges get a point at least every metre (WOMD's are ~0.5 m apart)."""
+
 # Feature id spaces (a scene's features keep these ids; lanes are numbered from 1).
 CROSSWALK_ID0 = 1_000_000
 STOP_SIGN_ID0 = 2_000_000
@@ -186,6 +189,17 @@ def quantize(values: np.ndarray) -> np.ndarray:
     return np.round(np.asarray(values, np.float64) / QUANTUM) * QUANTUM
 
 
+def densify(points: np.ndarray, max_spacing_m: float) -> np.ndarray:
+    """A polyline [n, D] with points added on its segments so that none is longer than ``max_spacing_m``
+    (its own vertices are kept)."""
+    seg = np.linalg.norm(np.diff(points[:, :2], axis=0), axis=1)
+    pieces = np.maximum(np.ceil(seg / max_spacing_m).astype(np.int64), 1)
+    start = np.repeat(np.arange(len(seg)), pieces)
+    frac = (np.arange(pieces.sum()) - np.repeat(np.cumsum(pieces) - pieces, pieces)) / np.repeat(pieces, pieces)
+    out = points[start] + frac[:, None] * (points[start + 1] - points[start])
+    return np.concatenate([out, points[-1:]])
+
+
 def rotation_matrix(rotation_rad: float) -> np.ndarray:
     c, s = math.cos(rotation_rad), math.sin(rotation_rad)
     return np.array([[c, -s], [s, c]])
@@ -216,19 +230,22 @@ class NetworkMap:
     def to_source_xy(self, xy: np.ndarray, rotation: np.ndarray) -> np.ndarray:
         return quantize(np.asarray(xy, np.float64) @ rotation.T)
 
-    def crop(self, center_xy: np.ndarray, radius_m: float, origin: np.ndarray) -> tuple[RoadMap, np.ndarray]:
-        """The RoadMap of the features within ``radius_m`` of ``center_xy`` (source frame), in the local
-        frame whose origin is ``origin`` (source [3]); also the ids of the lanes kept."""
+    def crop(self, path_xy: np.ndarray, radius_m: float, origin: np.ndarray) -> tuple[RoadMap, np.ndarray]:
+        """The RoadMap of the features within ``radius_m`` of the path ``path_xy`` ([K, 2] source frame:
+        the self-driving car's positions over the scene), in the local frame whose origin is ``origin``
+        (source [3]); also the ids of the lanes kept."""
         import shapely
 
-        center = np.asarray(center_xy, np.float64)[:2]
+        path = np.asarray(path_xy, np.float64).reshape(-1, 2)
         features: list[dict[str, Any]] = []
+
+        def min_d2(points: np.ndarray) -> np.ndarray:
+            return (((points[:, None, :2] - path[None]) ** 2).sum(-1)).min(axis=1)
 
         def near(points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
             if len(offsets) <= 1:
                 return np.zeros(0, bool)
-            d2 = ((points[:, :2] - center) ** 2).sum(1)
-            return np.minimum.reduceat(d2, offsets[:-1]) <= radius_m ** 2
+            return np.minimum.reduceat(min_d2(points), offsets[:-1]) <= radius_m ** 2
 
         def local(points: np.ndarray) -> np.ndarray:
             return (points - origin).astype(np.float32)
@@ -245,19 +262,19 @@ class NetworkMap:
                                  points=local(self.crosswalk_points[self.crosswalk_offsets[k]:self.crosswalk_offsets[k + 1]])))
         stop_links = []
         if len(self.stop_sign_points):
-            d2 = ((self.stop_sign_points[:, :2] - center) ** 2).sum(1)
+            d2 = min_d2(self.stop_sign_points)
             for k in np.flatnonzero((d2 <= radius_m ** 2) & np.isin(self.stop_sign_lanes, kept_ids)):
                 fid = STOP_SIGN_ID0 + int(k)
                 features.append(dict(id=fid, type=MapFeatureType.STOP_SIGN, points=local(self.stop_sign_points[k:k + 1])))
                 stop_links.append((fid, int(self.stop_sign_lanes[k]), LinkType.STOP_SIGN_LANE))
-        circle = shapely.Point(*center).buffer(radius_m, quad_segs=32)
+        area = (shapely.LineString(path) if len(path) > 1 else shapely.Point(*path[0])).buffer(radius_m, quad_segs=16)
         edge_count = 0
         for ring in self.road_edges:
-            piece = shapely.LineString(ring).intersection(circle)
+            piece = shapely.LineString(ring).intersection(area)
             for line in getattr(piece, "geoms", [piece]):
-                if line.is_empty or line.geom_type != "LineString" or line.length < 0.5:
+                if line.is_empty or line.geom_type != "LineString" or line.length < 0.5:  # (a point touch)
                     continue
-                xy = quantize(np.asarray(line.coords))
+                xy = quantize(densify(np.asarray(line.coords)[:, :2], LANE_POINT_SPACING_M))
                 pts = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
                 pts[:, 2] = origin[2]
                 features.append(dict(id=ROAD_EDGE_ID0 + edge_count, type=MapFeatureType.ROAD_EDGE,
@@ -284,9 +301,9 @@ def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0) -> Netwo
         pts = np.asarray(lane.getShape3D() if hasattr(lane, "getShape3D") else lane.getShape(), np.float64)
         if pts.shape[1] == 2:
             pts = np.concatenate([pts, np.zeros((len(pts), 1))], axis=1)
-        out = pts.copy()
-        out[:, :2] = quantize(pts[:, :2] @ rot.T)
-        out[:, 2] = quantize(pts[:, 2])
+        out = densify(pts, LANE_POINT_SPACING_M)
+        out[:, :2] = quantize(out[:, :2] @ rot.T)
+        out[:, 2] = quantize(out[:, 2])
         return out
 
     lanes, subtypes = [], []
@@ -370,8 +387,9 @@ def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0) -> Netwo
         cw_pts.append(pts)
         cw_len.append(len(pts))
 
-    # road edges: boundary of the union of lane polygons
-    polys = [shapely.LineString(s[:, :2]).buffer(lanes[k].getWidth() / 2, cap_style="flat", quad_segs=2)
+    # road edges: boundary of the union of lane polygons (square caps: a dead-end road reaches half a
+    # lane width past its lanes' ends)
+    polys = [shapely.LineString(s[:, :2]).buffer(lanes[k].getWidth() / 2, cap_style="square", quad_segs=2)
              for k, s in enumerate(shapes) if np.ptp(s[:, :2], axis=0).max() > 1e-3]
     drivable = shapely.unary_union(polys).buffer(0.75, quad_segs=2).buffer(-0.75, quad_segs=2)
     drivable = drivable.simplify(0.05)

@@ -44,7 +44,7 @@ class SumoConfig:
     scene_spacing_s: float = 4.0  # time between the starts of two scenes of one simulation
     warmup_s: float = 40.0  # simulated before the first scene so that traffic is established
     radius_m: float = 80.0  # agents within this distance of the self-driving car are kept
-    map_radius_m: float = 120.0  # map features within this distance of the self-driving car are kept
+    map_radius_m: float = 100.0  # map features within this distance of the self-driving car's path are kept
     max_agents: int = 128
     max_predict: int = 8  # tracks to predict: the self-driving car and the nearest fully valid agents
     pedestrians: bool = True
@@ -253,6 +253,8 @@ def run_simulation(net_path: Path, route_path: Path, duration_s: float, record_f
     heading = (heading + np.pi) % (2 * np.pi) - np.pi
     rot = rotation_matrix(rotation_rad)
     front[..., :2] = front[..., :2] @ rot.T
+    riders = np.flatnonzero(info_arr[:, 0] != AgentType.PEDESTRIAN)
+    heading[riders] = smooth_heading(heading[riders], valid[riders])
     velocity = speed[..., None] * np.stack([np.cos(heading), np.sin(heading)], axis=-1)
     peds = np.flatnonzero(info_arr[:, 0] == AgentType.PEDESTRIAN)
     if len(peds):
@@ -280,19 +282,31 @@ def run_simulation(net_path: Path, route_path: Path, duration_s: float, record_f
                      start_time_s=first_record * DT_S)
 
 
+def _window_mean(values: np.ndarray, valid: np.ndarray, window: int) -> np.ndarray:
+    """Mean of ``values`` [A, T, C] over a centred window of frames, valid frames only."""
+    k = window // 2
+    w = valid.astype(np.float64)
+    cs = np.cumsum(np.pad(values * w[..., None], ((0, 0), (k + 1, k), (0, 0))), axis=1)
+    cw = np.cumsum(np.pad(w, ((0, 0), (k + 1, k))), axis=1)
+    total = cw[:, window:] - cw[:, :-window]
+    return (cs[:, window:] - cs[:, :-window]) / np.maximum(total, 1.0)[..., None]
+
+
+def smooth_heading(heading: np.ndarray, valid: np.ndarray, window: int = 5) -> np.ndarray:
+    """Headings [A, T] averaged (as unit vectors) over ``window`` frames: SUMO's angle jumps by a few
+    degrees where a lane's polyline kinks or meets the next lane; a real car turns smoothly."""
+    unit = np.stack([np.cos(heading), np.sin(heading)], axis=-1)
+    mean = _window_mean(unit, valid, window)
+    return np.where(valid, np.arctan2(mean[..., 1], mean[..., 0]), heading)
+
+
 def smooth_walkers(xy: np.ndarray, valid: np.ndarray, heading: np.ndarray, window: int = 9,
                    max_yaw_rate: float = 2 * math.pi, min_speed_mps: float = 0.2):
     """Pedestrian tracks made physical: SUMO's walkers start and stop instantly, turn on the spot and
     shift sideways between sidewalk stripes. Positions ``xy`` [P, T, 2] are averaged over ``window``
     frames (valid ones only), velocities are their central differences, headings follow the velocity
     (held while standing) and turn at most ``max_yaw_rate`` (rad/s). Returns (xy, velocity, heading)."""
-    k = window // 2
-    w = valid.astype(np.float64)
-    cs = np.cumsum(np.pad(xy * w[..., None], ((0, 0), (k + 1, k), (0, 0))), axis=1)
-    cw = np.cumsum(np.pad(w, ((0, 0), (k + 1, k))), axis=1)
-    total = cw[:, window:] - cw[:, :-window]
-    smooth = (cs[:, window:] - cs[:, :-window]) / np.maximum(total, 1.0)[..., None]
-    smooth = np.where(valid[..., None], smooth, 0.0)
+    smooth = np.where(valid[..., None], _window_mean(xy, valid, window), 0.0)
     prev_ok = valid.copy()
     prev_ok[:, 1:] &= valid[:, :-1]
     prev_ok[:, 0] = False
@@ -360,7 +374,7 @@ def cut_scene(rec: Recording, nmap: NetworkMap, start: int, ego: int, config: Su
     tracks = Tracks(ids=index + 1, types=rec.types[index], position=pos, heading=heading.astype(np.float32),
                     velocity=velocity.astype(np.float32), size=size.astype(np.float32), valid=v)
 
-    road_map, kept_lanes = nmap.crop(origin[:2], config.map_radius_m, origin)
+    road_map, kept_lanes = nmap.crop(ego_xy[::10], config.map_radius_m, origin)
     lanes = sorted(int(k) for k in kept_lanes if int(k) in rec.signal_states)
     if lanes:
         states = np.stack([rec.signal_states[k][s] for k in lanes], axis=1)

@@ -1,0 +1,291 @@
+"""SUMO-generated scenes: maps, tracks, determinism, the generate-sumo command and the WOMD round trip.
+
+Two small simulations (a grid and a spider network, seed 0) are generated once per session, a few
+seconds of CPU; the command test runs one more simulation in two worker processes.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("libsumo", reason="SUMO is an optional extra: pip install 'smart-marl[sumo]'")
+pytest.importorskip("sumolib", reason="SUMO is an optional extra: pip install 'smart-marl[sumo]'")
+pytest.importorskip("shapely", reason="the SUMO source needs shapely (smart-marl[sumo])")
+
+from smart_marl.scenario import AgentType, LaneType, LinkType, MapFeatureType, Scenario, SignalState, wrap_angle  # noqa: E402
+from smart_marl.sources.sumo import SumoConfig, generate_scenes, simulate_scenes  # noqa: E402
+
+SMALL = SumoConfig(scenes_per_sim=4, warmup_s=20.0, scene_spacing_s=3.0)
+
+# physical bounds per type: speed (m/s), |acceleration| (m/s^2), |yaw rate| (rad/s), displacement per frame (m)
+BOUNDS = {
+    AgentType.VEHICLE: dict(speed=45.0, accel=10.0, yaw_rate=3.0, step=4.5),
+    AgentType.CYCLIST: dict(speed=12.0, accel=5.0, yaw_rate=3.0, step=1.2),
+    AgentType.PEDESTRIAN: dict(speed=3.0, accel=8.0, yaw_rate=2 * np.pi + 1e-3, step=0.3),
+}
+
+
+@pytest.fixture(scope="module")
+def scenes() -> list[Scenario]:
+    out = simulate_scenes(0, 0, SMALL) + simulate_scenes(0, 1, SMALL)
+    assert len(out) >= 6
+    return out
+
+
+def lane_polylines(scenario: Scenario) -> dict[int, np.ndarray]:
+    rm = scenario.road_map
+    return {int(rm.ids[i]): rm.feature_points(i)[:, :2].astype(np.float64) for i in rm.indices_of(MapFeatureType.LANE)}
+
+
+# ----------------------------------------------------------------------------------------- maps
+def test_networks_vary_between_simulations(scenes):
+    kinds = {s.metadata["network"]["kind"] for s in scenes}
+    assert kinds == {"grid", "spider"}  # seed 0: simulation 0 is a grid, simulation 1 a spider web
+    assert all(s.metadata["network"]["rotation_rad"] != 0 for s in scenes)
+
+
+def test_every_lane_has_a_polyline_and_a_speed_limit(scenes):
+    for s in scenes:
+        rm = s.road_map
+        lanes = rm.indices_of(MapFeatureType.LANE)
+        assert len(lanes) > 20
+        assert np.all(np.diff(rm.point_offsets)[lanes] >= 2)
+        assert np.all(rm.speed_limit_mph[lanes] > 5) and np.all(rm.speed_limit_mph[lanes] < 80)
+        assert set(np.unique(rm.subtypes[lanes])) <= {LaneType.SURFACE_STREET, LaneType.BIKE_LANE}
+
+
+def test_successor_starts_where_its_predecessor_ends(scenes):
+    checked = 0
+    for s in scenes:
+        lanes = lane_polylines(s)
+        for a, b in s.road_map.links[s.road_map.link_types == LinkType.SUCCESSOR]:
+            gap = np.linalg.norm(lanes[int(a)][-1] - lanes[int(b)][0])
+            assert gap < 0.5, f"{s.scenario_id}: lane {a} ends {gap:.2f} m from its successor {b}"
+            checked += 1
+    assert checked > 500
+
+
+def test_predecessor_links_are_the_reverse_of_successor_links(scenes):
+    for s in scenes:
+        rm = s.road_map
+        succ = {(int(a), int(b)) for a, b in rm.links[rm.link_types == LinkType.SUCCESSOR]}
+        pred = {(int(b), int(a)) for a, b in rm.links[rm.link_types == LinkType.PREDECESSOR]}
+        assert succ == pred and succ
+        left = {(int(a), int(b)) for a, b in rm.links[rm.link_types == LinkType.LEFT_NEIGHBOR]}
+        right = {(int(b), int(a)) for a, b in rm.links[rm.link_types == LinkType.RIGHT_NEIGHBOR]}
+        assert left == right  # b is a's left neighbour exactly when a is b's right neighbour
+
+
+def test_neighbouring_lanes_run_side_by_side(scenes):
+    s = scenes[0]
+    lanes = lane_polylines(s)
+    links = s.road_map.links[s.road_map.link_types == LinkType.LEFT_NEIGHBOR]
+    assert len(links)
+    for a, b in links:
+        mid = lanes[int(a)][len(lanes[int(a)]) // 2]
+        d = np.linalg.norm(lanes[int(b)] - mid, axis=1).min()
+        assert 1.0 < d < 5.0  # one lane width apart, roughly
+
+
+def _side_of_nearest_edge(points: np.ndarray, edges: list[np.ndarray]):
+    """For each point: a value that is positive when it lies on the left of its nearest road-edge
+    polyline (the normal of the nearest segment, or at a vertex the sum of both segments' unit
+    normals), its distance to that polyline, and whether the nearest point is an open polyline end
+    (where left and right are undefined)."""
+    a = np.concatenate([e[:-1] for e in edges])
+    b = np.concatenate([e[1:] for e in edges])
+    first = np.concatenate([np.arange(len(e) - 1) == 0 for e in edges])
+    last = np.concatenate([np.arange(len(e) - 1) == len(e) - 2 for e in edges])
+    ab = b - a
+    normal = np.stack([-ab[:, 1], ab[:, 0]], 1) / np.maximum(np.linalg.norm(ab, axis=1), 1e-12)[:, None]  # left
+    t = np.clip((((points[:, None] - a[None]) * ab[None]).sum(-1)) / np.maximum((ab ** 2).sum(-1), 1e-12)[None], 0, 1)
+    d = np.linalg.norm(points[:, None] - (a[None] + t[..., None] * ab[None]), axis=-1)
+    k = d.argmin(axis=1)
+    tk = t[np.arange(len(points)), k]
+    n = normal[k].copy()
+    at_start, at_end = tk <= 0.0, tk >= 1.0
+    n[at_start & ~first[k]] += normal[k[at_start & ~first[k]] - 1]
+    n[at_end & ~last[k]] += normal[k[at_end & ~last[k]] + 1]
+    open_end = (at_start & first[k]) | (at_end & last[k])
+    foot = a[k] + tk[:, None] * ab[k]
+    return ((points - foot) * n).sum(1), d[np.arange(len(points)), k], open_end
+
+
+def test_road_edges_enclose_the_lanes(scenes):
+    """Road edges are oriented with the drivable area on their left: every lane point near the scene's
+    centre lies on the left of its nearest road-edge segment, at least a few decimetres inside."""
+    for s in scenes:
+        rm = s.road_map
+        edges = [rm.feature_points(i)[:, :2].astype(np.float64) for i in rm.indices_of(MapFeatureType.ROAD_EDGE)]
+        assert edges
+        points = np.concatenate(list(lane_polylines(s).values()))
+        points = points[np.linalg.norm(points, axis=1) < 60.0]
+        side, dist, open_end = _side_of_nearest_edge(points, edges)
+        assert (~open_end).sum() > 0.9 * len(points)
+        side, dist = side[~open_end], dist[~open_end]
+        assert np.all(side > 0), f"{s.scenario_id}: {(side <= 0).sum()} lane points outside the road edges"
+        assert dist.min() > 0.3
+
+
+def test_crosswalks_exist_when_pedestrians_walk(scenes):
+    for s in scenes:
+        assert s.metadata["network"]["crossings"]
+        crosswalks = s.road_map.indices_of(MapFeatureType.CROSSWALK)
+        assert len(crosswalks) > 0
+        for i in crosswalks:
+            poly = s.road_map.feature_points(i)[:, :2]
+            assert len(poly) >= 4
+            x, y = poly[:, 0], poly[:, 1]
+            area = 0.5 * abs(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1)))
+            assert 5.0 < area < 200.0  # a few metres wide, a road wide
+
+
+def test_traffic_lights_control_map_lanes_at_their_start(scenes):
+    lit = [s for s in scenes if len(s.traffic_lights.lane_ids)]
+    assert lit  # the grid has traffic lights
+    for s in lit:
+        tl = s.traffic_lights
+        lanes = lane_polylines(s)
+        assert tl.present.all()
+        assert set(np.unique(tl.states)) <= {SignalState.GO, SignalState.CAUTION, SignalState.STOP,
+                                              SignalState.FLASHING_STOP, SignalState.FLASHING_CAUTION}
+        for lane_id, stop in zip(tl.lane_ids, tl.stop_points):
+            assert np.allclose(lanes[int(lane_id)][0], stop[:2], atol=1e-3)
+        # signals change over a cycle: some lane sees GO and STOP across the 16 traffic-light frames it has
+        assert SignalState.GO in tl.states and SignalState.STOP in tl.states
+
+
+# ----------------------------------------------------------------------------------------- tracks
+def test_scene_layout_matches_womd(scenes):
+    for s in scenes:
+        assert s.source == "sumo" and s.num_frames == 91 and s.current_frame == 10
+        assert np.allclose(s.timestamps_s, np.arange(91) * 0.1)
+        assert s.sdc_index == 0 and s.tracks.valid[0].all()
+        assert np.all(s.tracks.position[0, 10] == 0)  # the local frame's origin is the SDC at the current frame
+        assert np.linalg.norm(s.tracks.velocity[0, 10]) >= 2.0  # the SDC is moving
+        assert 0 in s.predict_indices and len(s.predict_indices) <= 8
+        assert {AgentType.VEHICLE, AgentType.PEDESTRIAN, AgentType.CYCLIST} >= set(np.unique(s.tracks.types).tolist())
+
+
+def test_every_agent_comes_within_the_radius_of_the_sdc(scenes):
+    for s in scenes:
+        tr = s.tracks
+        d = np.linalg.norm(tr.position[..., :2] - tr.position[0:1, :, :2], axis=-1)
+        closest = np.where(tr.valid, d, np.inf).min(axis=1)
+        assert np.all(closest <= SMALL.radius_m + 1e-3)
+
+
+def _kinematics(s: Scenario):
+    tr = s.tracks
+    pos = tr.position[..., :2].astype(np.float64)
+    both = tr.valid[:, 1:] & tr.valid[:, :-1]
+    step = np.linalg.norm(np.diff(pos, axis=1), axis=-1)
+    speed = np.linalg.norm(tr.velocity.astype(np.float64), axis=-1)
+    accel = np.abs(np.diff(speed, axis=1)) / 0.1
+    yaw_rate = np.abs(wrap_angle(np.diff(tr.heading.astype(np.float64), axis=1))) / 0.1
+    return both, step, speed, accel, yaw_rate
+
+
+@pytest.mark.parametrize("agent_type", [AgentType.VEHICLE, AgentType.CYCLIST, AgentType.PEDESTRIAN])
+def test_tracks_are_physical_per_type(scenes, agent_type):
+    """No teleports; speeds, accelerations and yaw rates within physical bounds for the type."""
+    bound = BOUNDS[agent_type]
+    frames = 0
+    for s in scenes:
+        both, step, speed, accel, yaw_rate = _kinematics(s)
+        of_type = (s.tracks.types == agent_type)[:, None]
+        m = both & of_type
+        frames += int(m.sum())
+        assert step[m].max(initial=0) <= bound["step"], f"{s.scenario_id}: a {agent_type.name} jumped {step[m].max():.2f} m"
+        assert speed[s.tracks.valid & of_type].max(initial=0) <= bound["speed"]
+        assert accel[m].max(initial=0) <= bound["accel"], f"{s.scenario_id}: {agent_type.name} accel {accel[m].max():.1f}"
+        assert yaw_rate[m].max(initial=0) <= bound["yaw_rate"], f"{s.scenario_id}: {agent_type.name} yaw rate {yaw_rate[m].max():.2f}"
+    assert frames > 200  # the scenes hold this type at all
+
+
+def test_boxes_move_along_their_heading(scenes):
+    """SUMO's angle (degrees clockwise from north) becomes a counter-clockwise heading from +x: moving
+    vehicles travel where they point, and their velocity agrees with their displacement."""
+    angles, ratios = [], []
+    for s in scenes:
+        tr = s.tracks
+        d = np.diff(tr.position[..., :2].astype(np.float64), axis=1)
+        moving = (tr.valid[:, 1:] & tr.valid[:, :-1] & (np.linalg.norm(d, axis=-1) > 0.5)
+                  & (tr.types == AgentType.VEHICLE)[:, None])
+        angles.append(np.abs(wrap_angle(np.arctan2(d[..., 1], d[..., 0]) - tr.heading[:, :-1]))[moving])
+        v = 0.5 * (tr.velocity[:, 1:] + tr.velocity[:, :-1])
+        ratios.append((np.linalg.norm(d, axis=-1) / 0.1 / np.maximum(np.linalg.norm(v, axis=-1), 1e-6))[moving])
+    angles, ratios = np.concatenate(angles), np.concatenate(ratios)
+    assert np.median(angles) < 0.01 and np.percentile(angles, 99) < 0.3
+    assert abs(np.median(ratios) - 1.0) < 0.02
+
+
+def test_vehicle_sizes_come_from_their_types(scenes):
+    for s in scenes:
+        size = s.tracks.box_size()
+        veh = s.tracks.types == AgentType.VEHICLE
+        assert np.all((size[veh, 0] >= 3.8) & (size[veh, 0] <= 13.0) & (size[veh, 1] >= 1.7) & (size[veh, 1] <= 2.6))
+        ped = s.tracks.types == AgentType.PEDESTRIAN
+        assert np.all(size[ped, 0] <= 0.8)
+
+
+# ------------------------------------------------------------------------------- determinism, files
+def test_same_seed_gives_the_same_scenes(scenes):
+    again = simulate_scenes(0, 0, SMALL)
+    first = [s for s in scenes if s.metadata["sim_index"] == 0]
+    assert [s.scenario_id for s in again] == [s.scenario_id for s in first]
+    assert all(a.equals(b, ignore=()) for a, b in zip(again, first))
+
+
+def test_womd_tfrecord_of_a_generated_scene_reads_back_identical(scenes, tmp_path):
+    from smart_marl.readers.womd import write_womd_tfrecord
+    from smart_marl import read_scenarios
+
+    path = tmp_path / "sumo.tfrecord"
+    assert write_womd_tfrecord(scenes[:3], path) == 3
+    back = list(read_scenarios(path))
+    assert len(back) == 3
+    for a, b in zip(scenes[:3], back):
+        assert a.equals(b, ignore=("source", "metadata")), a.differences(b)
+
+
+def test_generate_sumo_command_writes_a_cache_that_reads_back(tmp_path):
+    """Two worker processes, read back through read_scenarios and SceneCache, equal to an in-process
+    generation with the same seed (the worker count does not change the scenes)."""
+    from smart_marl import read_scenarios
+    from smart_marl.cache import SceneCache
+    from smart_marl.cli import main
+
+    out = tmp_path / "cache"
+    rc = main(["generate-sumo", "--scenes", "3", "--scenes-per-sim", "2", "--out", str(out), "--workers", "2",
+               "--seed", "7", "--quiet"])
+    assert rc == 0
+    cache = SceneCache(out)
+    assert len(cache) == 3 and cache.manifest["num_scenes"] == 3
+    via_reader = list(read_scenarios(out))
+    expected = list(generate_scenes(3, seed=7, config=SumoConfig(scenes_per_sim=2)))
+    for got, again, want in zip(cache, via_reader, expected):
+        arrays, meta = got.to_arrays()
+        Scenario.from_arrays(arrays, meta, validate=True)  # passes the Scenario's validation
+        assert got.equals(want, ignore=()) and again.equals(want, ignore=())
+    assert [e["scenario_id"] for e in cache.scenes] == ["sumo-7-000000-00", "sumo-7-000000-01", "sumo-7-000001-00"]
+
+
+def test_missing_sumo_names_the_extra(monkeypatch):
+    from smart_marl.sources.sumo_net import SumoUnavailableError, require_sumo
+
+    monkeypatch.setitem(sys.modules, "libsumo", None)
+    with pytest.raises(SumoUnavailableError, match=r"smart-marl\[sumo\]"):
+        require_sumo()
+
+
+def test_plot_scene_writes_a_png(scenes, tmp_path):
+    pytest.importorskip("matplotlib")
+    from smart_marl.sources.sumo_plot import plot_scene
+
+    path = tmp_path / "scene.png"
+    plot_scene(scenes[0], path)
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size < 300_000
