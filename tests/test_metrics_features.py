@@ -148,3 +148,17 @@ def test_wrong_rollouts_raise_errors_naming_scenario_and_object(scenario):
     cat = lambda v: np.concatenate([v, v[:, :1]], axis=1)
     with pytest.raises(RolloutError, match="object 987654 is not a simulated agent"):
         score_rollouts(scene, Rollouts(extra_ids, cat(ro.x), cat(ro.y), cat(ro.z), cat(ro.heading)), where="f.binproto")
+
+
+def test_lane_matching_with_pruning_equals_brute_force_official_distance():
+    from smart_marl.metrics import features as F
+    from smart_marl.metrics.inputs import lane_map
+
+    rng = np.random.default_rng(0)
+    pts = [np.cumsum(rng.normal(0, 1, (int(rng.integers(2, 40)), 2)), 0) + rng.uniform(-50, 50, 2) for _ in range(60)]
+    lanes = lane_map(pts, list(range(60)), np.array([-3000.0, 500.0]))  # far padding point, as in WOMD
+    q = rng.uniform(-60, 60, (3000, 2))
+    start, end = lanes.points[:, :-1].reshape(-1, 2), lanes.points[:, 1:].reshape(-1, 2)
+    d = F._quirky_lane_distance(q[:, None], start[None], end[None])
+    d = np.where(lanes.point_valid[:, :-1].reshape(-1)[None], d, 1e10)
+    np.testing.assert_array_equal(F._nearest_lane(q, lanes), np.argmin(d, 1) // (lanes.points.shape[1] - 1))

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from smart_marl.metrics import aggregate, logged_scene, score_rollouts
-from smart_marl.metrics.baselines import constant_velocity, noisy_log_replay
+from smart_marl.metrics.baselines import constant_speed_along_heading, constant_velocity, noisy_log_replay
 from smart_marl.metrics.submission import rollouts_from_submission
 from smart_marl.readers import read_scenarios
 
@@ -42,6 +42,8 @@ def test_realism_metrics_match_official_package_within_1e_5(case, shared_data):
         rollouts = rollouts_from_submission(womd / ro["file"])[scenario.scenario_id].to_rollouts(scenario.frame)
     elif ro["kind"] == "constant_velocity":
         rollouts = constant_velocity(scenario, ro["num_rollouts"], ro["seed"])
+    elif ro["kind"] == "constant_speed_along_heading":
+        rollouts = constant_speed_along_heading(scenario, ro["num_rollouts"], min_speed_mps=ro["min_speed_mps"])
     else:
         rollouts = noisy_log_replay(scenario, ro["num_rollouts"], ro["seed"])
     ours = aggregate([score_rollouts(scene, rollouts, case["rules"])], case["rules"])

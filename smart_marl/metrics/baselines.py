@@ -44,6 +44,23 @@ def constant_velocity(scenario: Scenario, num_rollouts: int = NUM_ROLLOUTS, seed
     return Rollouts.from_array(ids, traj)
 
 
+def constant_speed_along_heading(scenario: Scenario, num_rollouts: int = NUM_ROLLOUTS, seed: int = 0,
+                                 min_speed_mps: float = 10.0) -> Rollouts:
+    """Every agent drives straight along its current heading at max(logged speed, ``min_speed_mps``)
+    (stopped cars start: a stress test that runs red lights and leaves the road)."""
+    _, ids, pos, vel, heading, _ = _agents(scenario)
+    t = _future_times_s()
+    p = pos[:, CURRENT_STEP].astype(np.float64)
+    v = vel[:, CURRENT_STEP].astype(np.float64)
+    h = heading[:, CURRENT_STEP].astype(np.float64)
+    speed = np.maximum(np.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]), min_speed_mps)
+    x = p[:, None, 0] + (speed * np.cos(h))[:, None] * t
+    y = p[:, None, 1] + (speed * np.sin(h))[:, None] * t
+    z = np.repeat(p[:, None, 2], NUM_SIMULATION_STEPS, axis=1)
+    hh = np.repeat(h[:, None], NUM_SIMULATION_STEPS, axis=1)
+    return Rollouts.from_array(ids, np.stack([x, y, z, hh], -1)[None].repeat(num_rollouts, 0))
+
+
 def _held_log_future(pos, heading, valid) -> np.ndarray:
     """[A, 80, 4] logged future, the last valid pose held where the log is invalid."""
     a, t = valid.shape

@@ -232,38 +232,57 @@ def _quirky_lane_distance_cols(q, cols, idx):
     return np.sqrt(dx * dx + dy * dy)
 
 
-def _nearest_lane(q: np.ndarray, lanes, cell_m: float = 8.0) -> np.ndarray:
-    """Lane index [N] of the nearest lane segment (quirky distance, first on ties) for points [N, 2]."""
+def _nearest_lane(q: np.ndarray, lanes, cell_m: float = 2.0) -> np.ndarray:
+    """Lane index [N] of the nearest lane segment (official distance, first on ties) for points [N, 2].
+
+    Exact with pruning: |sp| <= d <= |sp| + |se| (t > 0 only when sp.se > 0, and then the plus sign
+    only lengthens sp), so per cell of points only segments whose start is close enough are measured."""
     nl, p, _ = lanes.points.shape
     start = lanes.points[:, :-1].reshape(-1, 2)
     end = lanes.points[:, 1:].reshape(-1, 2)
     seg_valid = lanes.point_valid[:, :-1].reshape(-1)
+    keep = np.flatnonzero(seg_valid)  # only segments with a valid start count
+    start, end = start[keep], end[keep]
     seg_len = np.sqrt(((end - start) ** 2).sum(-1))
-    # bounds: |sp| - |se| <= d <= |sp| + |se|; prune per cell of points
-    cells = np.floor(q / cell_m).astype(np.int64)
-    uniq, inv = np.unique(cells[:, 0] * 2_000_003 + cells[:, 1], return_inverse=True)
+    cols = (start[:, 0].copy(), start[:, 1].copy(), (end - start)[:, 0].copy(), (end - start)[:, 1].copy())
+    uq, q_of = np.unique(q, axis=0, return_inverse=True)  # repeated points (identical rollouts) once
+    q_of = q_of.reshape(-1)
+    cells = np.floor(uq / cell_m).astype(np.int64)
+    _, inv = np.unique(cells[:, 0] * 2_000_003 + cells[:, 1], return_inverse=True)
     inv = inv.reshape(-1)
-    nc = len(uniq)
+    nc = int(inv.max()) + 1
     lo = np.full((nc, 2), np.inf)
     hi = np.full((nc, 2), -np.inf)
-    np.minimum.at(lo, inv, q)
-    np.maximum.at(hi, inv, q)
+    np.minimum.at(lo, inv, uq)
+    np.maximum.at(hi, inv, uq)
     ref = 0.5 * (lo + hi)
     rad = 0.5 * np.sqrt(((hi - lo) ** 2).sum(-1))
-    dref = geometry._pairwise_distance(ref, start)  # [C, S]
-    ub = np.where(seg_valid[None], dref + seg_len[None], np.inf).min(axis=1) + rad
-    lb = np.where(seg_valid[None], dref - seg_len[None] - rad[:, None], np.inf)
-    cand_mask = lb <= ub[:, None] + 1e-9
-    counts = cand_mask.sum(1)
-    kmax = max(int(counts.max()), 1)
-    cand = np.argsort(~cand_mask, axis=1, kind="stable")[:, :kmax]
-    cvalid = np.arange(kmax)[None] < counts[:, None]
-    cq, vq = cand[inv], cvalid[inv]
-    d = _quirky_lane_distance_cols(q, (start[:, 0].copy(), start[:, 1].copy(), (end - start)[:, 0].copy(),
-                                       (end - start)[:, 1].copy()), cq)
-    d = np.where(vq, d, np.inf)
-    best = cq[np.arange(len(q)), np.argmin(d, axis=1)]
-    return best // (p - 1)
+    best = np.empty(len(uq), np.int64)
+    order = np.argsort(inv, kind="stable")
+    bounds = np.searchsorted(inv[order], np.arange(nc + 1))
+    chunk = max(1, int(4_000_000 // max(len(start), 1)))
+    for c0 in range(0, nc, chunk):
+        c1 = min(nc, c0 + chunk)
+        dref = geometry._pairwise_distance(ref[c0:c1], start)  # [C, S]
+        ub = (dref + seg_len[None]).min(axis=1) + rad[c0:c1]
+        cand_mask = dref - rad[c0:c1, None] <= ub[:, None] + 1e-9
+        counts = cand_mask.sum(1)
+        by_count = np.argsort(counts, kind="stable")
+        gb = geometry._count_groups(counts[by_count])
+        for g0, g1 in zip(gb[:-1], gb[1:]):
+            cells_g = by_count[g0:g1]
+            kmax = max(int(counts[cells_g].max()), 1)
+            cand = np.argsort(~cand_mask[cells_g], axis=1, kind="stable")[:, :kmax]
+            cvalid = np.arange(kmax)[None] < counts[cells_g][:, None]
+            local = np.full(c1 - c0, -1)
+            local[cells_g] = np.arange(len(cells_g))
+            qi = order[bounds[c0]:bounds[c1]]
+            qi = qi[local[inv[qi] - c0] >= 0]
+            cell_of_q = local[inv[qi] - c0]
+            cq, vq = cand[cell_of_q], cvalid[cell_of_q]
+            d = np.where(vq, _quirky_lane_distance_cols(uq[qi], cols, cq), np.inf)
+            best[qi] = cq[np.arange(len(qi)), np.argmin(d, axis=1)]
+    return keep[best[q_of]] // (p - 1)
 
 
 def traffic_light_violation(xy, valid, evaluated, lanes, signals) -> np.ndarray:
