@@ -289,3 +289,24 @@ def test_plot_scene_writes_a_png(scenes, tmp_path):
     path = tmp_path / "scene.png"
     plot_scene(scenes[0], path)
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size < 300_000
+
+
+def test_all_way_stop_junctions_get_stop_signs_at_lane_ends(tmp_path):
+    import dataclasses
+
+    from smart_marl.sources.sumo_net import build_network, network_map, random_network_spec
+
+    spec = dataclasses.replace(random_network_spec(np.random.default_rng(1)), kind="grid", junction_type="allway_stop",
+                               params={"x-number": 3, "y-number": 3, "x-length": 100, "y-length": 100,
+                                       "attach-length": 50}, tls_guess=False)
+    nmap = network_map(build_network(spec, tmp_path / "net.net.xml"), spec.rotation_rad)
+    assert nmap.stats["traffic_lights"] == 0 and nmap.stats["stop_signs"] > 0
+    center = nmap.stop_sign_points[0, :2]
+    road_map, _ = nmap.crop(center[None], 60.0, np.array([*center, 0.0]))
+    lanes = {
+        int(road_map.ids[i]): road_map.feature_points(i)[:, :2] for i in road_map.indices_of(MapFeatureType.LANE)}
+    links = road_map.links[road_map.link_types == LinkType.STOP_SIGN_LANE]
+    assert len(links) == len(road_map.indices_of(MapFeatureType.STOP_SIGN)) > 0
+    for sign, lane in links:
+        point = road_map.feature_points(int(np.flatnonzero(road_map.ids == sign)[0]))[0, :2]
+        assert np.allclose(point, lanes[int(lane)][-1], atol=1e-3)  # the sign stands where its lane ends
