@@ -162,3 +162,19 @@ def test_lane_matching_with_pruning_equals_brute_force_official_distance():
     d = F._quirky_lane_distance(q[:, None], start[None], end[None])
     d = np.where(lanes.point_valid[:, :-1].reshape(-1)[None], d, 1e10)
     np.testing.assert_array_equal(F._nearest_lane(q, lanes), np.argmin(d, 1) // (lanes.points.shape[1] - 1))
+
+
+def test_nearest_object_distance_with_pruning_equals_all_pairs():
+    from smart_marl.metrics.features import distance_to_nearest_object
+
+    rng = np.random.default_rng(5)
+    b, a, t = 3, 40, 6
+    xy = rng.uniform(-30, 30, (b, a, t, 2)) + 5000.0  # source-frame magnitudes
+    length, width = rng.uniform(0.5, 6, (b, a, t)), rng.uniform(0.5, 2.5, (b, a, t))
+    heading = rng.uniform(-np.pi, np.pi, (b, a, t))
+    valid = rng.random((b, a, t)) > 0.2
+    evaluated = np.array([0, 7, 13])
+    pruned = distance_to_nearest_object(xy, length, width, heading, valid, evaluated, candidates=3)
+    full = distance_to_nearest_object(xy, length, width, heading, valid, evaluated, candidates=a)
+    np.testing.assert_array_equal(pruned, full)
+    assert (full[~valid[:, evaluated]] == 1e10).all()
