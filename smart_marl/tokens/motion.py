@@ -15,7 +15,8 @@ Definitions (SMART sec. 3.1, the reference code rainmaker22/SMART):
   reference code's: vehicle 4.8 x 2.0 m, pedestrian 1.0 x 1.0 m, cyclist 2.0 x 1.0 m (read off
   its published ``cluster_frame_5_2048.pkl``).
 * A vocabulary per type (:class:`TypeVocab`) is built by k-disks (:mod:`.kdisks`) on the 24
-  contour points of the data's snippets, distance = mean corner distance.
+  contour points of the data's snippets (all 6 poses; the reference script clusters on the final
+  pose's 4 corners only), distance = mean corner distance; the tokens are real snippets.
 * The token grid: boundaries at frames ``current_frame % 5 + 5 k`` (k = 0, 1, ...; for WOMD, current
   frame 10: frames 0, 5, ..., 90, so 18 tokens and the current frame is boundary 2). Token k spans
   boundary k to k + 1 and is *valid* when the track is valid at both boundary frames (as in the
@@ -420,7 +421,8 @@ def detokenize(ids: np.ndarray, start_pose: np.ndarray, types: np.ndarray, vocab
     """Token ids [..., S] chained from ``start_pose`` [..., 3] -> 10 Hz poses [..., 5 S + 1, 3].
 
     Batch dimensions ``...`` are free (agents, scenes, rollouts); ``types`` [...] picks each row's
-    vocabulary. Each token starts where the previous one ended.
+    vocabulary. Each token starts where the previous one ended. Token validity is the caller's:
+    every id is placed (for sequences with gaps, use :func:`reconstruct`).
     """
     local = _token_poses(ids, types, vocab).astype(np.float64)  # [..., S, 6, 3]
     s = local.shape[-3]
