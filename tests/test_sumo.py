@@ -310,3 +310,17 @@ def test_all_way_stop_junctions_get_stop_signs_at_lane_ends(tmp_path):
     for sign, lane in links:
         point = road_map.feature_points(int(np.flatnonzero(road_map.ids == sign)[0]))[0, :2]
         assert np.allclose(point, lanes[int(lane)][-1], atol=1e-3)  # the sign stands where its lane ends
+
+
+def test_a_simulation_sumo_refuses_yields_no_scene_with_a_warning(monkeypatch):
+    from smart_marl.sources import sumo_sim
+
+    class TraCIException(Exception):  # the name libsumo's exception has
+        pass
+
+    def refuse(*args, **kwargs):
+        raise TraCIException("The tls '238' is not known")
+
+    monkeypatch.setattr(sumo_sim, "run_simulation", refuse)
+    with pytest.warns(UserWarning, match="simulation 3 .* failed and yields no scene"):
+        assert sumo_sim.simulate_scenes(7, 3) == []

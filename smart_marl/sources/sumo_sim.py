@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import os
 import tempfile
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -424,8 +425,20 @@ def simulate_scenes(seed: int, sim_index: int, config: SumoConfig = SumoConfig()
         duration = config.sim_duration_s()
         counts = write_demand(tmp / "demand.rou.xml", net, types, rng, config, duration)
         lane_change_s = float(rng.uniform(*config.lane_change_duration_s))
-        rec = run_simulation(net_path, tmp / "demand.rou.xml", duration, config.warmup_s, s, config, nmap,
-                             spec.rotation_rad, lane_change_s)
+        try:
+            rec = run_simulation(net_path, tmp / "demand.rou.xml", duration, config.warmup_s, s, config, nmap,
+                                 spec.rotation_rad, lane_change_s)
+        except Exception as exc:
+            # SUMO now and then refuses a network netgenerate made (e.g. "The tls '238' is not known"):
+            # that simulation yields no scene, said out loud, and generation goes on with the next one.
+            if type(exc).__name__ not in ("TraCIException", "FatalTraCIError"):
+                raise
+            try:
+                require_sumo()[2].close()
+            except Exception:
+                pass
+            warnings.warn(f"SUMO simulation {sim_index} (seed {seed}) failed and yields no scene: {exc}")
+            return []
     metadata = {"generator": "smart_marl.sources.sumo", "seed": int(seed), "sim_index": int(sim_index),
                 "sim_seed": s, "network": spec.to_metadata(), "network_stats": nmap.stats, "demand": counts,
                 "sublane": config.sublane, "lane_change_duration_s": None if config.sublane else round(lane_change_s, 2)}
