@@ -63,6 +63,9 @@ def run(args) -> int:
         print("smart-marl eval: error: --policy prior needs the SMART rollout engine, which does not exist yet "
               "(use --policy constant_velocity|log_replay|random, or score a --submission file)", file=sys.stderr)
         return 2
+    if args.checkpoint and args.policy != "prior":
+        print("smart-marl eval: error: --checkpoint only applies to --policy prior", file=sys.stderr)
+        return 2
     if args.write_submission and not args.policy:
         print("smart-marl eval: error: --write-submission needs --policy", file=sys.stderr)
         return 2
