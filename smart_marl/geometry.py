@@ -325,7 +325,6 @@ def nearest_segment_indices(q: np.ndarray, start: np.ndarray, end: np.ndarray, z
     np.maximum.at(hi, inv, qs)
     ref = 0.5 * (lo + hi)
     radius = 0.5 * np.linalg.norm(hi - lo, axis=-1)
-    verts = np.concatenate([ss, es[-1:]], axis=0) if len(ss) else ss
     verts = np.concatenate([ss, es], axis=0)
     out = np.empty(len(q), np.int64)
     cols = tuple(np.ascontiguousarray(a) for a in (*start.T, *(end - start).T))
@@ -336,13 +335,13 @@ def nearest_segment_indices(q: np.ndarray, start: np.ndarray, end: np.ndarray, z
     for c0 in range(0, num_cells, chunk):
         c1 = min(num_cells, c0 + chunk)
         r = ref[c0:c1]
-        ub = _pairwise_distance(r, verts).min(axis=1) + 2 * radius[c0:c1]
-        lb = _pairwise_distance(r, mid) - half[None]
+        ub = pairwise_distance(r, verts).min(axis=1) + 2 * radius[c0:c1]
+        lb = pairwise_distance(r, mid) - half[None]
         cand_mask = lb <= ub[:, None] + 1e-9
         counts = cand_mask.sum(axis=1)
         # cells in groups of similar candidate counts, so that one crowded cell does not pad all
         by_count = np.argsort(counts, kind="stable")
-        group_bounds = _count_groups(counts[by_count])
+        group_bounds = group_by_count(counts[by_count])
         for g0, g1 in zip(group_bounds[:-1], group_bounds[1:]):
             cells_g = by_count[g0:g1]
             kmax = int(counts[cells_g].max())
@@ -362,7 +361,7 @@ def nearest_segment_indices(q: np.ndarray, start: np.ndarray, end: np.ndarray, z
     return out
 
 
-def _pairwise_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def pairwise_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Euclidean distances [n, m] between points a [n, d] and b [m, d] (per component: exact at
     source-frame magnitudes, unlike the |a|^2 + |b|^2 - 2ab expansion)."""
     acc = None
@@ -373,7 +372,7 @@ def _pairwise_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.sqrt(acc, out=acc)
 
 
-def _count_groups(sorted_counts: np.ndarray) -> list[int]:
+def group_by_count(sorted_counts: np.ndarray) -> list[int]:
     """Split points of ascending candidate counts into groups whose counts are within 1.5x."""
     bounds = [0]
     n = len(sorted_counts)

@@ -263,12 +263,12 @@ def _nearest_lane(q: np.ndarray, lanes, cell_m: float = 2.0) -> np.ndarray:
     chunk = max(1, int(4_000_000 // max(len(start), 1)))
     for c0 in range(0, nc, chunk):
         c1 = min(nc, c0 + chunk)
-        dref = geometry._pairwise_distance(ref[c0:c1], start)  # [C, S]
+        dref = geometry.pairwise_distance(ref[c0:c1], start)  # [C, S]
         ub = (dref + seg_len[None]).min(axis=1) + rad[c0:c1]
         cand_mask = dref - rad[c0:c1, None] <= ub[:, None] + 1e-9
         counts = cand_mask.sum(1)
         by_count = np.argsort(counts, kind="stable")
-        gb = geometry._count_groups(counts[by_count])
+        gb = geometry.group_by_count(counts[by_count])
         for g0, g1 in zip(gb[:-1], gb[1:]):
             cells_g = by_count[g0:g1]
             kmax = max(int(counts[cells_g].max()), 1)
