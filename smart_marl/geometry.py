@@ -8,8 +8,9 @@ metrics define it), box overlap (collision), signed distance of points to road-e
 
 Conventions: metres and radians, heading counter-clockwise from +x; a box is a centre ``(x, y)``,
 a ``length`` along the heading and a ``width`` across it. Leading dimensions ``...`` broadcast.
-Everything is computed in float64; callers that need the official float32 behaviour pass float32
-inputs, which are promoted.
+Everything is computed in float64, except :func:`box_corners_float32` and
+:func:`rounded_box_core_float32`, which reproduce the official float32 rounding of box corners (it
+decides histogram bins at source-frame magnitudes; see :mod:`smart_marl.metrics.inputs`).
 
 The formulas follow the Waymo Open Sim Agents Challenge metrics (``waymo-open-dataset`` 1.6.x,
 ``box_utils``, ``geometry_utils``, ``interaction_features``, ``map_metric_features``); the
@@ -300,6 +301,24 @@ def signed_distance_to_road_edges(points_xyz: np.ndarray, segments: RoadEdgeSegm
     _, d2, _, _ = _segment_terms(q, segments.start[nearest], segments.end[nearest], z_stretch)
     sign = _side_sign(q, segments, nearest)
     return (sign * d2).reshape(shape)
+
+
+def box_distance_to_road_edge(x, y, z, length, width, height, heading, segments: RoadEdgeSegments,
+                              float32_corners: bool = True) -> np.ndarray:
+    """Signed distance [...] of boxes to the road edge: the largest over the 4 bottom corners
+    (positive = some part of the box is off road)."""
+    if float32_corners:
+        pts = box_corners_float32(x, y, length, width, heading, z=z, height=height)
+    else:
+        c = box_corners(x, y, length, width, heading)
+        zb = np.broadcast_to((_f64(z) - _f64(height) / 2.0)[..., None, None], c.shape[:-1] + (1,))
+        pts = np.concatenate([c, zb], axis=-1)
+    return signed_distance_to_road_edges(pts, segments).max(axis=-1)
+
+
+def is_offroad(x, y, z, length, width, height, heading, segments: RoadEdgeSegments) -> np.ndarray:
+    """Offroad test [...]: the box's distance to the road edge is > 0."""
+    return box_distance_to_road_edge(x, y, z, length, width, height, heading, segments) > 0.0
 
 
 def nearest_segment_indices(q: np.ndarray, start: np.ndarray, end: np.ndarray, z_stretch: float = 1.0,

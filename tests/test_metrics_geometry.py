@@ -112,3 +112,13 @@ def test_time_to_collision_with_a_slower_leader_and_the_caps():
     assert g.time_to_collision(**args, ego_speed=[np.nan], other_speed=[10.0, 5.0], **other)[0] == 5.0
     other["other_heading"] = [0.0, np.radians(80)]  # not aligned: not followed
     assert g.time_to_collision(**args, ego_speed=[15.0], other_speed=[10.0, 5.0], **other)[0] == 5.0
+
+
+def test_box_is_offroad_when_one_corner_crosses_the_edge():
+    edge = g.RoadEdgeSegments.from_polylines([np.array([[-50.0, 0.0, 0.0], [50.0, 0.0, 0.0]])])  # road: y > 0
+    # a 4 x 2 box at y = 1.5 heading along x: nearest corner 0.5 m inside the road
+    assert g.box_distance_to_road_edge(0.0, 1.5, 0.75, 4.0, 2.0, 1.5, 0.0, edge) == pytest.approx(-0.5, abs=1e-6)
+    assert not g.is_offroad(0.0, 1.5, 0.75, 4.0, 2.0, 1.5, 0.0, edge)
+    # turned 90 degrees the box reaches 0.5 m past the edge
+    assert g.box_distance_to_road_edge(0.0, 1.5, 0.75, 4.0, 2.0, 1.5, np.pi / 2, edge) == pytest.approx(0.5, abs=1e-6)
+    assert g.is_offroad(0.0, 1.5, 0.75, 4.0, 2.0, 1.5, np.pi / 2, edge)

@@ -201,9 +201,9 @@ def distance_to_road_edge(xyz, length, width, height, heading, valid, evaluated,
     big = geometry.EXTREMELY_LARGE_DISTANCE_M
     if segments.num_segments == 0:
         return np.full(valid[:, e].shape, -big)
-    pts = geometry.box_corners_float32(xyz[:, e][..., 0], xyz[:, e][..., 1], length[:, e], width[:, e], heading[:, e],
-                                       z=xyz[:, e][..., 2], height=height[:, e])  # [B, E, T, 4, 3]
-    d = geometry.signed_distance_to_road_edges(pts, segments).max(axis=-1)
+    ex = xyz[:, e]
+    d = geometry.box_distance_to_road_edge(ex[..., 0], ex[..., 1], ex[..., 2], length[:, e], width[:, e], height[:, e],
+                                           heading[:, e], segments)
     return np.where(valid[:, e], d, -big)
 
 
