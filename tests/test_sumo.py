@@ -282,13 +282,13 @@ def test_missing_sumo_names_the_extra(monkeypatch):
         require_sumo()
 
 
-def test_plot_scene_writes_a_png(scenes, tmp_path):
+def test_generated_scenes_render_with_the_project_renderer(scenes):
     pytest.importorskip("matplotlib")
-    from smart_marl.sources.sumo_plot import plot_scene
+    from smart_marl.render import render_scenario_frame
 
-    path = tmp_path / "scene.png"
-    plot_scene(scenes[0], path)
-    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size < 300_000
+    image = render_scenario_frame(scenes[0], scenes[0].current_frame, size_px=200)
+    assert image.shape == (200, 200, 3) and image.dtype == np.uint8
+    assert len(np.unique(image.reshape(-1, 3), axis=0)) > 10  # map and agents, not a blank canvas
 
 
 def test_all_way_stop_junctions_get_stop_signs_at_lane_ends(tmp_path):
