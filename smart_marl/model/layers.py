@@ -111,7 +111,7 @@ class NeighbourAttention(nn.Module):
         inner = num_heads * head_dim
         self.num_heads, self.head_dim, self.bipartite = num_heads, head_dim, bipartite
         self.norm_q = nn.LayerNorm(hidden_dim)
-        self.norm_src = nn.LayerNorm(hidden_dim) if bipartite else self.norm_q
+        self.norm_src = nn.LayerNorm(hidden_dim) if bipartite else None  # self-attention: keys share norm_q
         self.norm_rpe = nn.LayerNorm(hidden_dim)
         self.to_q = nn.Linear(hidden_dim, inner)
         self.to_k = nn.Linear(hidden_dim, inner, bias=False)
@@ -130,7 +130,7 @@ class NeighbourAttention(nn.Module):
 
     def project_source(self, src: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Key and value rows of the source set (what a KV cache keeps): src [M, d] -> 2 x [M, inner]."""
-        s = self.norm_src(src)
+        s = (self.norm_src or self.norm_q)(src)
         return self.to_k(s), self.to_v(s)
 
     def forward(self, x_q: torch.Tensor, src: torch.Tensor | tuple[torch.Tensor, torch.Tensor], index: torch.Tensor,
