@@ -1,0 +1,639 @@
+"""Training stage: SMART next-token training (paper sec. 3.3 and appendix), single process or DDP.
+
+What comes in: scenes (a scene cache, or any path :func:`smart_marl.readers.read_scenarios` reads,
+converted on the fly), motion and road vocabularies (files, or built from the training scenes with
+the tokenizer's k-disks builders) and a :class:`TrainConfig`. What goes out: a run folder with
+checkpoints (:mod:`smart_marl.model.checkpoint`), ``train.csv`` / ``val.csv`` and TensorBoard logs.
+
+The loop: AdamW (weight decay 0.1 on matrices), learning rate 2e-4 with optional linear warm-up and
+cosine annealing to 0 at ``max_steps``, gradient clipping, bf16 autocast on CUDA. Tokenization
+(rolling matching with top-k token noise, road tokens) runs in DataLoader workers
+(:class:`TokenizedScenes`); one training step sees a padded batch of several scenes.
+
+Determinism and resume: the data order is a function of (seed, global sample position) only
+(:class:`EpochBatchSampler`), each sample's token noise is seeded by its position, and the
+checkpoint holds the model, optimizer, scheduler and RNG states and the step. A run killed at any
+moment and started again with the same output folder continues from its last checkpoint, drops
+the log rows written after it, and ends where an uninterrupted run ends.
+
+Distributed: under ``torchrun`` (``WORLD_SIZE`` > 1) the model is wrapped in DDP (NCCL on GPU,
+gloo on CPU), each rank reads its own slice of every global batch, losses are normalised by the
+global token count (so the averaged gradient equals the single-process gradient of the union)
+and rank 0 writes checkpoints and logs.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import os
+import random
+import signal
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Sequence
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch.utils.data import DataLoader, Dataset, Sampler
+
+from .errors import SmartMarlError
+from .model.batch import RoadArrays, SmartBatch, collate_scenes, scene_road, scene_tensors
+from .model.checkpoint import (CheckpointError, VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
+                               save_checkpoint)
+from .model.losses import NextTokenLoss, summarise
+from .model.smart import SMART, SmartConfig, get_config
+from .scenario import Scenario
+from .tokens import MotionVocabulary, build_motion_vocabulary, collect_snippets, tokenize_motion
+from .tokens.road import RoadVocabulary, build_road_vocabulary, road_pieces
+from .tokens.vocab_io import load_motion_vocabulary, load_road_vocabulary, save_motion_vocabulary, save_road_vocabulary
+
+KILL_ENV = "SMART_MARL_KILL_AFTER_STEP"  # tests: SIGKILL this process right after that step (a hard kill)
+
+
+class TrainError(SmartMarlError, ValueError):
+    """A training run that cannot start: bad config, no data, mismatched vocabulary."""
+
+
+@dataclass
+class TrainConfig:
+    """Every knob of a training run (CleanRL style: all in one place)."""
+
+    model: str | dict = "smart-1m"  # a named config or a dict of SmartConfig fields (may name a base)
+    model_overrides: dict = field(default_factory=dict)  # SmartConfig fields, e.g. {"hidden_dim": 32}
+    data: str = ""  # scene cache folder, or files / folder / glob that read_scenarios reads
+    val_data: str | None = None  # None: validate on the first training scenes, without noise
+    out_dir: str = "runs/smart"
+    motion_vocab: str | None = None  # vocabulary file (NAME.npz/.json); None: build from the training scenes
+    road_vocab: str | None = None
+    vocab_scenes: int = 1000  # scenes the vocabularies are built from, when built
+    vocab_seed: int = 0
+    batch_size: int = 4  # scenes per step per rank
+    num_workers: int = 2
+    max_steps: int = 1000
+    lr: float = 2e-4
+    weight_decay: float = 0.1
+    betas: tuple = (0.9, 0.999)
+    warmup_steps: int = 0
+    grad_clip: float = 1.0
+    dropout: float = 0.1
+    label_smoothing: float = 0.1
+    token_noise_topk: int = 5  # top-k noisy rolling matching; 0 or 1: off
+    road_mask_prob: float = 0.15  # share of road pieces hidden for the road next-token task
+    road_keep_radius_m: float | None = -1.0  # crop roads to this distance from agents; -1: lossless radius from the model config
+    log_every: int = 10
+    val_every: int = 500
+    val_scenes: int = 16
+    ckpt_every: int = 500
+    seed: int = 0
+    device: str = "auto"  # auto: cuda when available
+    amp: bool = True  # bf16 autocast on CUDA (never on CPU)
+    init: str | None = None  # checkpoint whose weights start the run (fine-tuning)
+    tensorboard: bool = True
+    progress: bool = True
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+# ------------------------------------------------------------------------------------- config
+def _parse_value(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        low = text.lower()
+        if low in ("none", "null"):
+            return None
+        if low in ("true", "false"):
+            return low == "true"
+        return text
+
+
+def load_train_config(config: str | Mapping[str, Any] | None = None, overrides: Sequence[str] | Mapping[str, Any] = ()) -> TrainConfig:
+    """A :class:`TrainConfig` from a JSON/TOML file, a model config name (``smart-7m``) or a dict,
+    plus ``key=value`` overrides (values parsed as JSON when they parse; ``model.FIELD=...`` sets a
+    model field)."""
+    from .model.smart import NAMED_CONFIGS
+
+    values: dict[str, Any] = {}
+    if isinstance(config, Mapping):
+        values.update(config)
+    elif config:
+        p = Path(config)
+        if p.is_file():
+            text = p.read_text()
+            try:
+                if p.suffix == ".toml":
+                    import tomllib
+
+                    values.update(tomllib.loads(text))
+                else:
+                    values.update(json.loads(text))
+            except Exception as exc:  # noqa: BLE001 - reported with the file name
+                raise TrainError(f"{p}: cannot read the training config: {exc}") from exc
+        elif config in NAMED_CONFIGS:
+            values["model"] = config
+        else:
+            raise TrainError(f"unknown config {config!r}: neither a file nor a model config name ({', '.join(NAMED_CONFIGS)})")
+    items = overrides.items() if isinstance(overrides, Mapping) else (_split_override(o) for o in overrides)
+    model_over = dict(values.pop("model_overrides", {}) or {})
+    for key, val in items:
+        if key.startswith("model."):
+            model_over[key[len("model."):]] = val
+        else:
+            values[key] = val
+    values["model_overrides"] = model_over
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise TrainError(f"unknown training config key(s) {unknown}; known: {sorted(known)}")
+    cfg = TrainConfig(**values)
+    if isinstance(cfg.model, str) and cfg.model not in NAMED_CONFIGS:
+        raise TrainError(f"unknown model config {cfg.model!r}; known: {', '.join(NAMED_CONFIGS)}")
+    return cfg
+
+
+def _split_override(text: str) -> tuple[str, Any]:
+    if "=" not in text:
+        raise TrainError(f"override {text!r} is not key=value")
+    k, v = text.split("=", 1)
+    return k.strip(), _parse_value(v.strip())
+
+
+# --------------------------------------------------------------------------------------- data
+def open_scenes(path: str) -> Sequence[Scenario]:
+    """A map-style sequence of scenes: a :class:`~smart_marl.cache.SceneCache` for a cache folder,
+    else every scene that ``read_scenarios`` yields for the path (read once, kept in memory)."""
+    from .cache import SceneCache, is_cache_dir
+    from .readers import read_scenarios
+
+    if not path:
+        raise TrainError("no training data given (set data=PATH: a scene cache folder, scene files, a folder or a glob)")
+    scenes: Sequence[Scenario] = SceneCache(path) if os.path.isdir(path) and is_cache_dir(path) else list(read_scenarios(path))
+    if len(scenes) == 0:
+        raise TrainError(f"{path}: the dataset is empty (no scene to train on)")
+    return scenes
+
+
+class TokenizedScenes(Dataset):
+    """Scenes -> per-scene token arrays (:func:`scene_tensors`), in DataLoader workers.
+
+    An item key is ``(scene index, sample position)``; the position seeds the token noise and the
+    road mask, so a sample is the same whichever worker makes it. Road arrays (static per scene)
+    and, without noise, motion tokens are cached per worker (bounded)."""
+
+    def __init__(self, scenes: Sequence[Scenario], motion_vocab: MotionVocabulary, road_vocab: RoadVocabulary, seed: int,
+                 noise_topk: int, road_mask_prob: float, road_keep_radius_m: float | None, cache_size: int = 512) -> None:
+        self.scenes, self.motion_vocab, self.road_vocab = scenes, motion_vocab, road_vocab
+        self.seed, self.noise_topk, self.road_mask_prob = seed, noise_topk, road_mask_prob
+        self.road_keep_radius_m, self.cache_size = road_keep_radius_m, cache_size
+        self._roads: dict[int, RoadArrays] = {}
+        self._motion: dict[int, Any] = {}
+
+    def __len__(self) -> int:
+        return len(self.scenes)
+
+    def __getitem__(self, key) -> dict[str, np.ndarray]:
+        index, position = key if isinstance(key, tuple) else (key, 0)
+        scenario = self.scenes[index]
+        road = self._roads.get(index)
+        if road is None:
+            road = scene_road(scenario, self.road_vocab)
+            if len(self._roads) < self.cache_size:
+                self._roads[index] = road
+        rng = np.random.default_rng([self.seed, int(position)])
+        tokens = None
+        if self.noise_topk <= 1:
+            tokens = self._motion.get(index)
+            if tokens is None:
+                tokens = tokenize_motion(scenario, self.motion_vocab)
+                if len(self._motion) < self.cache_size:
+                    self._motion[index] = tokens
+        return scene_tensors(scenario, self.motion_vocab, road, noise_topk=self.noise_topk, road_mask_prob=self.road_mask_prob,
+                             rng=rng, motion_tokens=tokens, road_keep_radius_m=self.road_keep_radius_m)
+
+
+class EpochBatchSampler(Sampler):
+    """Global batch g (g = 0, 1, ...) takes sample positions [g * B * W, (g + 1) * B * W) of an
+    endless stream of per-epoch permutations (seeded by (seed, epoch)); rank r reads its slice of
+    B. Yields lists of (scene index, sample position), starting at ``start_batch``."""
+
+    def __init__(self, num_scenes: int, batch_size: int, seed: int, start_batch: int, num_batches: int, rank: int = 0,
+                 world_size: int = 1, shuffle: bool = True) -> None:
+        self.n, self.b, self.seed, self.start, self.count = num_scenes, batch_size, seed, start_batch, num_batches
+        self.rank, self.world, self.shuffle = rank, world_size, shuffle
+        self._perms: dict[int, np.ndarray] = {}
+
+    def _scene_at(self, position: int) -> int:
+        epoch, within = divmod(position, self.n)
+        if not self.shuffle:
+            return within
+        perm = self._perms.get(epoch)
+        if perm is None:
+            perm = self._perms[epoch] = np.random.default_rng([self.seed, epoch, 7]).permutation(self.n)
+            if len(self._perms) > 4:
+                self._perms.pop(min(self._perms))
+        return int(perm[within])
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
+        for g in range(self.start, self.start + self.count):
+            first = (g * self.world + self.rank) * self.b
+            yield [(self._scene_at(p), p) for p in range(first, first + self.b)]
+
+
+def make_loader(dataset: TokenizedScenes, sampler: EpochBatchSampler, num_workers: int, pin_memory: bool, seed: int) -> DataLoader:
+    return DataLoader(dataset, batch_sampler=sampler, collate_fn=collate_scenes, num_workers=num_workers, pin_memory=pin_memory,
+                      generator=torch.Generator().manual_seed(seed),  # leaves the global RNG alone (exact resume)
+                      persistent_workers=False, prefetch_factor=2 if num_workers else None)
+
+
+def build_vocabularies(scenes: Sequence[Scenario], model_cfg: SmartConfig, num_scenes: int, seed: int,
+                       progress: bool = False) -> tuple[MotionVocabulary, RoadVocabulary]:
+    """Motion (k-disks per type) and road (k-disks) vocabularies of the config's sizes from the
+    first ``num_scenes`` scenes, with the tokenizer's builders."""
+    subset = [scenes[i] for i in range(min(num_scenes, len(scenes)))]
+    snippets, prov = collect_snippets(subset)
+    sizes = dict(zip((0, 1, 2), model_cfg.motion_vocab_sizes))
+    from .scenario import AgentType
+
+    mv = build_motion_vocabulary({AgentType(k): v for k, v in snippets.items()}, {AgentType(k): v for k, v in sizes.items()},
+                                 seed=seed, provenance=prov, progress=progress)
+    local = np.concatenate([road_pieces(s.road_map).local for s in subset])
+    rv = build_road_vocabulary(local, model_cfg.road_vocab_size, seed=seed, progress=progress,
+                               provenance={"scenes": [s.scenario_id for s in subset]})
+    return mv, rv
+
+
+# ------------------------------------------------------------------------------ distributed
+@dataclass
+class DistInfo:
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+
+    @property
+    def enabled(self) -> bool:
+        return self.world_size > 1
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+
+def init_distributed(device: torch.device) -> DistInfo:
+    """Join the process group torchrun describes (WORLD_SIZE, RANK, LOCAL_RANK); single process otherwise."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return DistInfo()
+    if not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
+    return DistInfo(rank=dist.get_rank(), world_size=dist.get_world_size(), local_rank=int(os.environ.get("LOCAL_RANK", "0")))
+
+
+def resolve_device(name: str, info: DistInfo | None = None) -> torch.device:
+    if name == "auto":
+        if torch.cuda.is_available():
+            return torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        return torch.device("cpu")
+    return torch.device(name)
+
+
+# ---------------------------------------------------------------------------------- one step
+def make_optimizer(model: torch.nn.Module, cfg: TrainConfig) -> torch.optim.Optimizer:
+    """AdamW; weight decay on matrices only (not on biases, norms, 1-d embeddings)."""
+    decay = [p for p in model.parameters() if p.requires_grad and p.dim() >= 2]
+    no_decay = [p for p in model.parameters() if p.requires_grad and p.dim() < 2]
+    return torch.optim.AdamW([{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
+                             lr=cfg.lr, betas=tuple(cfg.betas))
+
+
+def make_scheduler(optimizer: torch.optim.Optimizer, cfg: TrainConfig) -> torch.optim.lr_scheduler.LambdaLR:
+    """Linear warm-up over ``warmup_steps``, then cosine annealing to 0 at ``max_steps``."""
+    warm, total = max(int(cfg.warmup_steps), 0), max(int(cfg.max_steps), 1)
+
+    def factor(step: int) -> float:
+        if step < warm:
+            return (step + 1) / warm
+        progress = min((step - warm) / max(total - warm, 1), 1.0)
+        return 0.5 * (1.0 + math.cos(math.pi * progress))
+
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+
+
+def train_step(loss_module: torch.nn.Module, optimizer: torch.optim.Optimizer, scheduler, batch: SmartBatch, grad_clip: float,
+               info: DistInfo, device: torch.device, amp: bool) -> dict[str, float]:
+    """One optimizer step on one (per-rank) batch; returns summed metric counts and losses of this rank.
+
+    Losses are normalised by the global number of target tokens / world size, so the gradient DDP
+    averages is that of the union of the ranks' batches."""
+    batch = batch.to(device, non_blocking=True)
+    counts = torch.tensor([float(batch.target_valid.sum()), float(_road_targets(batch))], device=device)
+    if info.enabled:
+        dist.all_reduce(counts)
+    norms = (counts / info.world_size).clamp(min=1.0 / info.world_size)
+    with torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=amp and device.type == "cuda"):
+        out = loss_module(batch, motion_normaliser=norms[0], road_normaliser=norms[1])
+    optimizer.zero_grad(set_to_none=True)
+    out["loss"].backward()
+    grad_norm = torch.nn.utils.clip_grad_norm_(loss_module.parameters(), grad_clip) if grad_clip and grad_clip > 0 else torch.zeros(())
+    optimizer.step()
+    scheduler.step()
+    res = {k: float(v.detach()) for k, v in out.items()}
+    res["grad_norm"] = float(grad_norm)
+    return res
+
+
+def _road_targets(batch: SmartBatch) -> int:
+    b, r = batch.road_masked.shape
+    flat = batch.road_pairs + (torch.arange(b)[:, None, None] * r).to(batch.road_pairs.device)
+    masked = batch.road_masked.reshape(-1)
+    return int((batch.road_pair_valid & masked[flat[..., 1]] & ~masked[flat[..., 0]]).sum())
+
+
+@torch.no_grad()
+def evaluate_sums(model: SMART, batches, device: torch.device, label_smoothing: float = 0.0, amp: bool = True) -> dict[str, float]:
+    """Summed teacher-forced losses and counts over batches (combine ranks by adding them)."""
+    was = model.training
+    model.eval()
+    module = NextTokenLoss(model, label_smoothing)
+    sums: dict[str, float] = {}
+    for batch in batches:
+        batch = batch.to(device)
+        with torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=amp and device.type == "cuda"):
+            out = module(batch, motion_normaliser=1.0, road_normaliser=1.0)  # sums, not means
+        for k, v in out.items():
+            sums[k] = sums.get(k, 0.0) + float(v)
+    model.train(was)
+    return sums
+
+
+def finish_metrics(sums: Mapping[str, float]) -> dict[str, float]:
+    """Means from :func:`evaluate_sums`: ``motion_loss`` and ``road_loss`` per token, top-1/top-5 accuracies."""
+    res = summarise(dict(sums))
+    m_tok = sum(sums.get(f"{t}_tokens", 0.0) for t in ("vehicle", "pedestrian", "cyclist"))
+    res["motion_loss"] = sums.get("motion_loss", 0.0) / max(m_tok, 1.0)
+    res["road_loss"] = sums.get("road_loss", 0.0) / max(sums.get("road_tokens", 0.0), 1.0)
+    res["motion_tokens"] = m_tok
+    return res
+
+
+def evaluate(model: SMART, batches, device: torch.device, label_smoothing: float = 0.0, amp: bool = True) -> dict[str, float]:
+    """Teacher-forced next-token metrics (see :func:`finish_metrics`) of one process's batches."""
+    return finish_metrics(evaluate_sums(model, batches, device, label_smoothing, amp))
+
+
+# --------------------------------------------------------------------------------------- logs
+TRAIN_COLUMNS = ["step", "loss", "motion_loss", "road_loss", "motion_top1_acc", "motion_top5_acc", "vehicle_top1_acc",
+                 "vehicle_top5_acc", "pedestrian_top1_acc", "pedestrian_top5_acc", "cyclist_top1_acc", "cyclist_top5_acc",
+                 "road_top1_acc", "grad_norm", "tokens_per_s", "scenes_per_s", "lr"]
+VAL_COLUMNS = ["step", "motion_loss", "road_loss", "motion_top1_acc", "motion_top5_acc", "vehicle_top1_acc", "vehicle_top5_acc",
+               "pedestrian_top1_acc", "pedestrian_top5_acc", "cyclist_top1_acc", "cyclist_top5_acc", "road_top1_acc"]
+
+
+class RunLog:
+    """CSV files (always) and TensorBoard (when importable) of rank 0. On resume, rows after the
+    resumed step are dropped so the log reads as one uninterrupted run."""
+
+    def __init__(self, out_dir: Path, resume_step: int, tensorboard: bool) -> None:
+        self.files = {"train": out_dir / "train.csv", "val": out_dir / "val.csv"}
+        self.columns = {"train": TRAIN_COLUMNS, "val": VAL_COLUMNS}
+        for split, path in self.files.items():
+            rows = []
+            if path.is_file():
+                with open(path, newline="") as f:
+                    rows = [r for r in csv.DictReader(f) if int(r["step"]) <= resume_step]
+            with open(path, "w", newline="") as f:
+                w = csv.DictWriter(f, self.columns[split])
+                w.writeheader()
+                w.writerows(rows)
+        self.tb = None
+        self.note = None
+        if tensorboard:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+
+                self.tb = SummaryWriter(str(out_dir / "tensorboard"), purge_step=resume_step + 1 if resume_step else None)
+            except ImportError as exc:
+                self.note = f"TensorBoard is not importable ({exc}); logging to CSV only (pip install 'smart-marl[train]')"
+
+    def write(self, split: str, row: dict[str, float]) -> None:
+        with open(self.files[split], "a", newline="") as f:
+            csv.DictWriter(f, self.columns[split], extrasaction="ignore").writerow(
+                {k: (f"{row[k]:.6g}" if isinstance(row.get(k), float) else row.get(k, "")) for k in self.columns[split]})
+        if self.tb is not None:
+            for k, v in row.items():
+                if k != "step" and isinstance(v, (int, float)) and math.isfinite(v):
+                    self.tb.add_scalar(f"{split}/{k}", v, int(row["step"]))
+
+    def close(self) -> None:
+        if self.tb is not None:
+            self.tb.close()
+
+
+# ------------------------------------------------------------------------------------ the run
+@dataclass
+class TrainResult:
+    out_dir: Path
+    step: int
+    last_train: dict[str, float]
+    last_val: dict[str, float]
+    checkpoint: Path | None
+    resumed_from: int = 0
+
+
+def _rng_state() -> dict[str, Any]:
+    state = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def _set_rng_state(state: dict[str, Any]) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def _vocabularies(cfg: TrainConfig, model_cfg: SmartConfig, scenes, out_dir: Path, info: DistInfo, resuming: bool):
+    """Load the vocabularies (given files, the run folder's when resuming) or build them (rank 0) and save them in the run folder."""
+    run_mv, run_rv = out_dir / "motion_vocab", out_dir / "road_vocab"
+    if cfg.motion_vocab or cfg.road_vocab:
+        if not (cfg.motion_vocab and cfg.road_vocab):
+            raise TrainError("give both motion_vocab and road_vocab, or neither (then both are built from the training scenes)")
+        return load_motion_vocabulary(cfg.motion_vocab), load_road_vocabulary(cfg.road_vocab)
+    if not (resuming and (out_dir / "motion_vocab.json").is_file()):
+        if info.is_main:
+            mv, rv = build_vocabularies(scenes, model_cfg, cfg.vocab_scenes, cfg.vocab_seed, progress=cfg.progress)
+            save_motion_vocabulary(mv, run_mv)
+            save_road_vocabulary(rv, run_rv)
+        if info.enabled:
+            dist.barrier()
+    return load_motion_vocabulary(run_mv), load_road_vocabulary(run_rv)
+
+
+def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None) -> TrainResult:
+    """Run (or resume) a training run in ``cfg.out_dir``; see the module docstring."""
+    device = resolve_device(cfg.device)
+    info = init_distributed(device)
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    out_dir = Path(cfg.out_dir)
+    last = out_dir / "checkpoints" / "last"
+    resuming = checkpoint_paths(last)["meta"].is_file()
+    if info.is_main:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    scenes = scenes if scenes is not None else open_scenes(cfg.data)
+    if len(scenes) == 0:
+        raise TrainError(f"{cfg.data or 'the scenes given'}: the dataset is empty (no scene to train on)")
+
+    base = cfg.model if isinstance(cfg.model, (str, dict)) else str(cfg.model)
+    try:
+        model_cfg = get_config(base, **{"dropout": cfg.dropout, **cfg.model_overrides})
+    except ValueError as exc:
+        raise TrainError(str(exc)) from exc
+    mv, rv = _vocabularies(cfg, model_cfg, scenes, out_dir, info, resuming)
+    sizes = tuple(mv[t].size for t in range(3))
+    if sizes != model_cfg.motion_vocab_sizes or rv.size != model_cfg.road_vocab_size:
+        if cfg.progress and info.is_main:
+            print(f"note: vocabulary sizes {sizes} / road {rv.size} differ from the config's {model_cfg.motion_vocab_sizes} / "
+                  f"{model_cfg.road_vocab_size}; the model takes the vocabulary's sizes", file=sys.stderr)
+        model_cfg = dataclasses.replace(model_cfg, motion_vocab_sizes=sizes, road_vocab_size=rv.size)
+
+    torch.manual_seed(cfg.seed)
+    model = SMART(model_cfg, [torch.from_numpy(mv[t].contour) for t in range(3)])
+    if cfg.init and not resuming:
+        ck = load_checkpoint(cfg.init)
+        if ck.meta["vocabularies"]["motion"]["content_hash"] != mv.content_hash() or \
+                ck.meta["vocabularies"]["road"]["content_hash"] != rv.content_hash():
+            raise VocabularyMismatchError(cfg.init, "its vocabularies are not this run's (pass the checkpoint's vocabulary files "
+                                                    "as motion_vocab=/road_vocab=, or train from scratch)")
+        model.load_state_dict(ck.model.state_dict())
+    model.to(device)
+    loss_module = NextTokenLoss(model, cfg.label_smoothing)
+    optimizer = make_optimizer(model, cfg)
+    scheduler = make_scheduler(optimizer, cfg)
+    step = 0
+    if resuming:
+        ck = load_checkpoint(last, motion_vocab=mv, road_vocab=rv, map_location=device, dropout=cfg.dropout,
+                             **{k: v for k, v in cfg.model_overrides.items() if k not in ("motion_vocab_sizes", "road_vocab_size")})
+        model.load_state_dict(ck.model.state_dict())
+        st = load_train_state(last)
+        optimizer.load_state_dict(st["optimizer"])
+        scheduler.load_state_dict(st["scheduler"])
+        _set_rng_state(st["rng"])
+        step = int(st["step"])
+    resumed_from = step
+    wrapped = loss_module
+    if info.enabled:
+        wrapped = torch.nn.parallel.DistributedDataParallel(loss_module, device_ids=[device.index] if device.type == "cuda" else None)
+
+    keep = cfg.road_keep_radius_m
+    if keep is not None and keep < 0:
+        keep = model_cfg.map_radius_m + model_cfg.num_road_layers * model_cfg.road_radius_m
+    noise = cfg.token_noise_topk if cfg.token_noise_topk and cfg.token_noise_topk > 1 else 0
+    train_set = TokenizedScenes(scenes, mv, rv, cfg.seed, noise, cfg.road_mask_prob, keep)
+    val_scenes = open_scenes(cfg.val_data) if cfg.val_data else scenes
+    val_set = TokenizedScenes(val_scenes, mv, rv, cfg.seed + 1, 0, cfg.road_mask_prob, keep)
+    n_val = min(cfg.val_scenes, len(val_scenes))
+    val_keys = [(i, i) for i in range(info.rank, n_val, info.world_size)]
+    pin = device.type == "cuda"
+
+    log = RunLog(out_dir, step, cfg.tensorboard) if info.is_main else None
+    if log is not None and log.note and cfg.progress:
+        print(f"note: {log.note}", file=sys.stderr)
+    data_info = {"data": cfg.data, "val_data": cfg.val_data, "num_scenes": len(scenes),
+                 "motion_vocab": mv.content_hash(), "road_vocab": rv.content_hash()}
+
+    def save(tag: str, metrics: dict) -> Path | None:
+        if not info.is_main:
+            return None
+        state = {"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "rng": _rng_state(), "step": step}
+        return save_checkpoint(out_dir / "checkpoints" / tag, model, mv, rv, step=step, metrics=metrics, data=data_info,
+                               train_config=cfg.to_dict(), train_state=state)
+
+    def validate() -> dict[str, float]:
+        batches = (collate_scenes([val_set[k] for k in val_keys[i : i + cfg.batch_size]]) for i in range(0, len(val_keys), cfg.batch_size))
+        sums = evaluate_sums(model, batches, device, label_smoothing=cfg.label_smoothing, amp=cfg.amp)
+        if info.enabled:
+            keys = sorted(sums)
+            t = torch.tensor([sums[k] for k in keys], dtype=torch.float64, device=device)
+            dist.all_reduce(t)
+            sums = dict(zip(keys, t.tolist()))
+        return {"step": step, **finish_metrics(sums)}
+
+    sampler = EpochBatchSampler(len(scenes), cfg.batch_size, cfg.seed, step, max(cfg.max_steps - step, 0), info.rank, info.world_size)
+    loader = make_loader(train_set, sampler, cfg.num_workers, pin, cfg.seed + step)
+    kill_at = int(os.environ.get(KILL_ENV, "-1"))
+    bar = None
+    if cfg.progress and info.is_main:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.max_steps, initial=step, desc="train", dynamic_ncols=True)
+    last_train: dict[str, float] = {}
+    last_val: dict[str, float] = {}
+    acc: dict[str, float] = {}
+    t0, n_acc, scenes_acc = time.perf_counter(), 0, 0
+    model.train()
+    ckpt_path = None
+    for batch in loader:
+        lr = scheduler.get_last_lr()[0]
+        res = train_step(wrapped, optimizer, scheduler, batch, cfg.grad_clip, info, device, cfg.amp)
+        step += 1
+        for k, v in res.items():
+            acc[k] = acc.get(k, 0.0) + v
+        n_acc += 1
+        scenes_acc += batch.num_scenes
+        if step % cfg.log_every == 0 or step == cfg.max_steps:
+            keys = sorted(acc)
+            t = torch.tensor([acc[k] for k in keys] + [scenes_acc], dtype=torch.float64, device=device)
+            if info.enabled:
+                dist.all_reduce(t)
+            tot = dict(zip(keys + ["scenes"], t.tolist()))
+            dt = time.perf_counter() - t0
+            world = info.world_size
+            motion_tokens = tot["vehicle_tokens"] + tot["pedestrian_tokens"] + tot["cyclist_tokens"]
+            row = {"step": step, "lr": lr, "tokens_per_s": motion_tokens / dt, "scenes_per_s": tot["scenes"] / dt, **summarise(tot)}
+            for k in ("loss", "motion_loss", "road_loss", "grad_norm"):
+                # per-step means: rank r's loss is (its sum) * world / (global count), so the ranks add up to world * mean
+                row[k] = tot[k] / (n_acc * world)
+            last_train = row
+            if log is not None:
+                log.write("train", row)
+            if bar is not None:
+                bar.set_postfix(loss=f"{row['loss']:.3f}", top1=f"{row['motion_top1_acc']:.3f}", tok_s=f"{row['tokens_per_s']:.0f}")
+            acc, n_acc, scenes_acc, t0 = {}, 0, 0, time.perf_counter()
+        if cfg.val_every and step % cfg.val_every == 0:
+            last_val = validate()
+            if log is not None:
+                log.write("val", last_val)
+        if cfg.ckpt_every and step % cfg.ckpt_every == 0 and step != cfg.max_steps:
+            ckpt_path = save("last", {"train": last_train, "val": last_val})
+        if bar is not None:
+            bar.update(1)
+        if step == kill_at:
+            os.kill(os.getpid(), signal.SIGKILL)
+    if bar is not None:
+        bar.close()
+    if step > resumed_from or not resuming:
+        if cfg.val_every and step % cfg.val_every != 0:
+            last_val = validate()
+            if log is not None:
+                log.write("val", {"step": step, **last_val})
+        ckpt_path = save("last", {"train": last_train, "val": last_val})
+        if info.is_main:
+            save("final", {"train": last_train, "val": last_val})
+    if log is not None:
+        log.close()
+    if info.enabled:
+        dist.barrier()
+    return TrainResult(out_dir=out_dir, step=step, last_train=last_train, last_val=last_val, checkpoint=ckpt_path, resumed_from=resumed_from)

@@ -1,0 +1,166 @@
+"""SMART training: overfitting two real scenes, DDP equivalence, exact resume after a kill, clear errors."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from smart_marl.cli import main as cli_main
+from smart_marl.model.batch import SmartBatch, collate_scenes
+from smart_marl.model.checkpoint import load_checkpoint
+from smart_marl.model.losses import NextTokenLoss
+from smart_marl.model.smart import SMART
+from smart_marl.train import (DistInfo, TokenizedScenes, TrainError, build_vocabularies, evaluate, load_train_config, make_optimizer,
+                              make_scheduler, open_scenes, train, train_step)
+from smart_marl.tokens.vocab_io import save_motion_vocabulary, save_road_vocabulary
+
+from test_model import random_batch, tiny_config
+
+ROOT = Path(__file__).resolve().parents[1]
+GPUDRIVE = "gpudrive_json"
+TWO_SCENES = ("tfrecord-00001-of-01000_307.json", "tfrecord-00002-of-01000_407.json")  # 19 and 14 agents, 175 and 163 tokens
+
+
+def _vocab_files(shared_data: Path, tmp: Path, motion_size: int, road_size: int) -> dict[str, str]:
+    """Small k-disks vocabularies (the tokenizer's builders) from the 11 GPUDrive scenes: the two
+    training scenes alone hold no cyclist, and a vocabulary needs every type."""
+    from smart_marl.readers import read_scenarios
+
+    scenes = list(read_scenarios(shared_data / GPUDRIVE))
+    cfg = tiny_config(motion_vocab_sizes=(motion_size,) * 3, road_vocab_size=road_size)
+    mv, rv = build_vocabularies(scenes, cfg, len(scenes), seed=0)
+    save_motion_vocabulary(mv, tmp / "motion_vocab")
+    save_road_vocabulary(rv, tmp / "road_vocab")
+    return {"motion_vocab": str(tmp / "motion_vocab"), "road_vocab": str(tmp / "road_vocab")}
+
+
+@pytest.mark.slow
+def test_smart_1m_overfits_two_real_scenes_to_90_percent_top1(shared_data, tmp_path):
+    """smart-1m (its parameters; dense neighbourhoods trimmed to K = 4 road / 4 map / 8 agents for
+    CPU speed), 16-token vocabularies per type and 64 road tokens, no token noise, no dropout."""
+    vocab = _vocab_files(shared_data, tmp_path, 16, 64)
+    data = [str(shared_data / GPUDRIVE / f) for f in TWO_SCENES]
+    cfg = load_train_config("smart-1m", {
+        "data": data[0], "out_dir": str(tmp_path / "run"), **vocab, "batch_size": 2, "num_workers": 0, "max_steps": 60, "lr": 5e-3,
+        "warmup_steps": 5, "dropout": 0.0, "label_smoothing": 0.0, "token_noise_topk": 0, "log_every": 10, "val_every": 0,
+        "ckpt_every": 0, "tensorboard": False, "progress": False, "road_keep_radius_m": 30.0,
+        "model.map_neighbours": 4, "model.road_neighbours": 4, "model.agent_neighbours": 8})
+    from smart_marl.readers import read_scenario
+
+    scenes = [read_scenario(p) for p in data]
+    t0 = time.perf_counter()
+    res = train(cfg, scenes=scenes)
+    seconds = time.perf_counter() - t0
+    ck = load_checkpoint(tmp_path / "run" / "checkpoints" / "final")
+    assert 0.9e6 < sum(p.numel() for p in ck.model.parameters()) < 1.1e6 * 1.0  # smart-1m sized (small vocabularies)
+    ds = TokenizedScenes(scenes, ck.motion_vocab, ck.road_vocab, seed=0, noise_topk=0, road_mask_prob=0.0, road_keep_radius_m=30.0)
+    metrics = evaluate(ck.model, [collate_scenes([ds[0], ds[1]])], torch.device("cpu"))
+    print(f"overfit: {res.step} steps in {seconds:.1f} s, teacher-forced top-1 {metrics['motion_top1_acc']:.3f} "
+          f"over {metrics['motion_tokens']:.0f} tokens")
+    assert metrics["motion_tokens"] > 300
+    assert metrics["motion_top1_acc"] >= 0.9
+    assert seconds < 120
+
+
+# ------------------------------------------------------------------------------------- DDP
+def _cat(a: SmartBatch, b: SmartBatch) -> SmartBatch:
+    return SmartBatch(**{k: torch.cat([getattr(a, k), getattr(b, k)]) for k in vars(a)})
+
+
+def _one_step(batch: SmartBatch, info: DistInfo, wrap: bool) -> dict[str, torch.Tensor]:
+    torch.manual_seed(0)
+    model = SMART(tiny_config())
+    cfg = load_train_config("smart-1m", {"lr": 1e-2, "max_steps": 10})
+    module = NextTokenLoss(model, 0.1)
+    wrapped = torch.nn.parallel.DistributedDataParallel(module) if wrap else module
+    opt = make_optimizer(model, cfg)
+    train_step(wrapped, opt, make_scheduler(opt, cfg), batch, 1.0, info, torch.device("cpu"), amp=False)
+    return {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+
+def _ddp_worker(rank: int, world: int, init_file: str, out: str) -> None:
+    import torch.distributed as dist
+
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
+    batch = random_batch(seed=11 + rank)
+    state = _one_step(batch, DistInfo(rank=rank, world_size=world), wrap=True)
+    if rank == 0:
+        torch.save(state, out)
+    dist.barrier()
+    dist.destroy_process_group()
+
+
+def test_ddp_step_on_two_gloo_ranks_equals_one_process_on_the_union(tmp_path):
+    out = tmp_path / "ddp.pt"
+    torch.multiprocessing.spawn(_ddp_worker, args=(2, str(tmp_path / "init"), str(out)), nprocs=2, join=True)
+    ddp = torch.load(out)
+    single = _one_step(_cat(random_batch(seed=11), random_batch(seed=12)), DistInfo(), wrap=False)
+    before = {k: v for k, v in (SMART(tiny_config()).state_dict().items())}
+    changed = 0
+    for k, v in single.items():
+        assert torch.allclose(ddp[k], v, atol=1e-5), k
+        changed += int(not torch.equal(v, before[k]))
+    assert changed > 10  # the step moved the weights
+
+
+# ---------------------------------------------------------------------------------- resume
+def _losses(run: Path) -> list[tuple[str, str, str]]:
+    with open(run / "train.csv", newline="") as f:
+        return [(r["step"], r["loss"], r["motion_top1_acc"]) for r in csv.DictReader(f)]
+
+
+def test_run_killed_and_resumed_matches_an_uninterrupted_run(shared_data, tmp_path):
+    vocab = _vocab_files(shared_data, tmp_path, 8, 16)
+    base = {"data": str(shared_data / GPUDRIVE / TWO_SCENES[0]), **vocab, "batch_size": 1, "num_workers": 0, "max_steps": 6,
+            "lr": 1e-3, "log_every": 1, "val_every": 3, "val_scenes": 1, "ckpt_every": 2, "tensorboard": False, "progress": False,
+            "token_noise_topk": 3, "dropout": 0.1, "road_keep_radius_m": 20.0,
+            "model_overrides": {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
+                                "map_neighbours": 4, "road_neighbours": 4, "agent_neighbours": 4}}
+    full = train(load_train_config(base, {"out_dir": str(tmp_path / "full")}))
+    assert full.step == 6
+    cfg_file = tmp_path / "killed.json"
+    cfg_file.write_text(json.dumps({**base, "out_dir": str(tmp_path / "killed")}))
+    env = {**os.environ, "SMART_MARL_KILL_AFTER_STEP": "5"}
+    proc = subprocess.run([sys.executable, "-m", "smart_marl.cli", "train", "--config", str(cfg_file)], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == -9, proc.stderr[-2000:]  # SIGKILLed after step 5; its last checkpoint is step 4
+    assert len(_losses(tmp_path / "killed")) == 5
+    resumed = train(load_train_config(str(cfg_file)))
+    assert resumed.resumed_from == 4 and resumed.step == 6
+    assert _losses(tmp_path / "killed") == _losses(tmp_path / "full")
+    a = load_checkpoint(tmp_path / "full" / "checkpoints" / "final").model.state_dict()
+    b = load_checkpoint(tmp_path / "killed" / "checkpoints" / "final").model.state_dict()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
+# ---------------------------------------------------------------------------------- errors
+def test_unknown_config_is_a_clear_cli_error(capsys):
+    assert cli_main(["train", "--config", "smart-3m"]) == 1
+    err = capsys.readouterr().err
+    assert "unknown config 'smart-3m'" in err and "smart-1m" in err
+    with pytest.raises(TrainError, match="unknown training config key.*max_step"):
+        load_train_config("smart-1m", ["max_step=3"])
+
+
+def test_empty_dataset_is_a_clear_error(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(TrainError, match="dataset is empty"):
+        open_scenes(str(tmp_path / "empty"))
+
+
+def test_models_command_prints_every_named_config_with_its_parameter_count(capsys):
+    assert cli_main(["models", "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [r["name"] for r in rows] == ["smart-1m", "smart-7m", "smart-26m", "smart-101m"]
+    for r in rows:
+        assert abs(r["parameters"] / r["paper_parameters"] - 1) < 0.1
