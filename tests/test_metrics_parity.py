@@ -29,7 +29,7 @@ def _scene(path: str):
 
 
 def _case_id(case):
-    return f"{case['rules']}-{case['scene'].split('_')[0]}-{case['rollouts']['kind']}"
+    return f"{case['rules']}-{case['scene'].split('.')[0]}-{case['rollouts']['kind']}"
 
 
 @pytest.mark.parametrize("case", GOLDEN["cases"], ids=_case_id)
