@@ -37,7 +37,7 @@ def synthetic_scenario(seed: int = 0, num_frames: int = 91, num_vehicles: int = 
     half = lane_count * lane_width_m / 2
     for i, y in enumerate((-half, half)):
         features.append(dict(id=200 + i, type=MapFeatureType.ROAD_EDGE, subtype=RoadEdgeType.BOUNDARY,
-                             points=np.stack([xs if i else xs[::-1], np.full(41, y), np.zeros(41)], 1)))
+                             points=np.stack([xs[::-1] if i else xs, np.full(41, y), np.zeros(41)], 1)))  # drivable area on the left (CCW)
     features.append(dict(id=300, type=MapFeatureType.CROSSWALK,
                          points=[[20, -half, 0], [24, -half, 0], [24, half, 0], [20, half, 0]]))
     road_map = RoadMap.from_features(features, links)
