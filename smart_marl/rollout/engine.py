@@ -1,0 +1,473 @@
+"""Rollout stage: closed-loop generation with the SMART prior (history -> 8 s of joint futures).
+
+What comes in: scenes (:class:`~smart_marl.scenario.Scenario`, history up to the current frame is
+all that is read) and a SMART model (or a checkpoint). What goes out: a :class:`RolloutResult`
+(10 Hz trajectories of every agent valid at the current frame, in the scene's *source* frame, with
+the sampled tokens and their log-probabilities), or, step by step for the environment, a
+:class:`RolloutState` whose :meth:`RolloutState.step` advances every agent by one 0.5 s token.
+
+How a rollout runs:
+
+1. History: each scene's tracks up to the current frame are tokenized by rolling matching (no
+   noise; the future is never read). Agent *slots* are the vehicle/pedestrian/cyclist tracks with a
+   valid history token or valid at the current frame. The last history step of every agent valid
+   at the current frame is re-anchored at its logged current pose (so rollouts start exactly where
+   the log is); an agent that is valid at the current frame but has no valid last history token
+   (it appeared less than 0.5 s ago) gets a synthetic one: the token whose end best matches its
+   logged velocity, placed so that it ends at the current pose.
+2. Scenes x rollouts form one batch of ``G = scenes * num_rollouts`` groups (rollouts are batch
+   copies; road encodings are computed once per scene and shared by its rollouts).
+3. Every step: each simulated agent's next token is drawn from its type's distribution
+   (:func:`~smart_marl.rollout.sampling.sample_tokens`: top-k with renormalised probabilities and a
+   temperature) or forced; the token's 6 poses (its contour's centre and heading) are placed at the
+   agent's current pose; the 5 new poses are the agent's next 10 Hz frames; the tokens go back in.
+   ``mode="cached"`` runs the new step through :class:`~.incremental.IncrementalMotionNet` (a
+   KV cache); ``mode="full"`` re-runs MotionNet over the whole history and every generated step
+   (road encodings are reused in both modes: they do not change).
+
+Agents: *simulated* = vehicle, pedestrian or cyclist valid at the current frame (WOSAC's rule:
+an agent invalid at the current frame is not simulated). Agents of type OTHER valid at the current
+frame are not driven by the model (it has no vocabulary for them); they get a constant-velocity
+trajectory (their logged velocity at the current frame, heading held), so that every agent valid
+at the current frame has a trajectory. z is carried from each agent's last valid frame.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..model.batch import scene_road
+from ..model.motionnet import NUM_MOTION_TYPES
+from ..scenario import AgentType, Scenario
+from ..tokens import BOX_SIZE_M, FRAMES_PER_TOKEN, MOTION_TYPES, MotionVocabulary, TypeVocab, token_boundaries, tokenize_tracks
+from ..tokens.road import RoadVocabulary
+from .incremental import IncrementalMotionNet
+from .sampling import pad_type_logits, sample_tokens
+
+MODES = ("cached", "full")
+
+
+# ------------------------------------------------------------------------------ model inputs
+def token_poses_from_contours(contour: torch.Tensor) -> torch.Tensor:
+    """Token poses [V, 6, 3] from contours [V, 6, 4, 2] (corners left-front, right-front,
+    right-back, left-back): position = the box centre, heading = from the back edge's middle to
+    the front edge's middle."""
+    centre = contour.mean(-2)  # (V, 6, 2)
+    axis = (contour[..., 0, :] + contour[..., 1, :]) - (contour[..., 2, :] + contour[..., 3, :])  # (V, 6, 2)
+    return torch.cat([centre, torch.atan2(axis[..., 1], axis[..., 0])[..., None]], -1)
+
+
+def motion_vocabulary_from_model(model) -> MotionVocabulary:
+    """The motion vocabulary a model's contour buffers stand for (poses from the contours), for
+    rolling matching of the history when no vocabulary file is at hand."""
+    types = {}
+    for t, c in zip(MOTION_TYPES, model.motion_contours):
+        poses = token_poses_from_contours(c.detach().cpu().float()).numpy()
+        types[t] = TypeVocab.from_poses(poses, *BOX_SIZE_M[t])
+    return MotionVocabulary(types=types, method="from_model")
+
+
+def _dummy_road_vocab() -> RoadVocabulary:
+    """Rollouts do not read road token ids (RoadNet embeds the pieces' points): a 1-token stand-in."""
+    return RoadVocabulary(points=np.zeros((1, 11, 2), np.float32), tolerance_m=0.0, requested_size=1)
+
+
+def resolve_model(model_or_checkpoint, device="cpu"):
+    """(model in eval mode on ``device``, motion vocabulary) from a SMART model, a
+    :class:`~smart_marl.model.checkpoint.Checkpoint` or a checkpoint path."""
+    from ..model.checkpoint import Checkpoint, load_checkpoint
+
+    if isinstance(model_or_checkpoint, (str, os.PathLike)):
+        model_or_checkpoint = load_checkpoint(model_or_checkpoint, map_location=device)
+    if isinstance(model_or_checkpoint, Checkpoint):
+        model, vocab = model_or_checkpoint.model, model_or_checkpoint.motion_vocab
+    else:
+        model, vocab = model_or_checkpoint, None
+    model = model.to(device).eval()
+    return model, vocab if vocab is not None else motion_vocabulary_from_model(model)
+
+
+@dataclass
+class SceneHistory:
+    """One scene's model inputs up to the current frame (numpy), ``N`` slots x ``S`` history steps."""
+
+    track_index: np.ndarray  # [N] int64, the slot's track in the scene
+    tokens: np.ndarray  # [N, S] int64
+    valid: np.ndarray  # [N, S] bool
+    start_pose: np.ndarray  # [N, S, 3] float32
+    end_pose: np.ndarray  # [N, S, 3] float32
+    agent_type: np.ndarray  # [N] int64, 0..2
+    agent_shape: np.ndarray  # [N, 3] float32
+    simulated: np.ndarray  # [N] bool, valid at the current frame
+
+
+def scene_history(scenario: Scenario, vocab: MotionVocabulary) -> SceneHistory:
+    """Tokenize a scene's history (frames up to the current one only; see the module docstring)."""
+    tr = scenario.tracks
+    cf = scenario.current_frame
+    bounds = token_boundaries(cf, cf + 1)  # ends at the current frame
+    mt = tokenize_tracks(tr.position[:, : cf + 1], tr.heading[:, : cf + 1], tr.valid[:, : cf + 1], tr.types, vocab, bounds)
+    s = max(mt.num_steps, 1)
+    ids, valid = np.zeros((tr.num_tracks, s), np.int64), np.zeros((tr.num_tracks, s), bool)
+    start, end = np.zeros((tr.num_tracks, s, 3), np.float32), np.zeros((tr.num_tracks, s, 3), np.float32)
+    if mt.num_steps:
+        ids[:], valid[:], start[:], end[:] = mt.ids, mt.valid, mt.start_pose, mt.reached[:, 1:]
+    is_motion = np.isin(tr.types, [int(t) for t in vocab.types])
+    sim = is_motion & tr.valid[:, cf]
+    keep = np.flatnonzero(is_motion & (valid.any(1) | sim))
+    ids, valid, start, end, sim = ids[keep], valid[keep], start[keep], end[keep], sim[keep]
+    types = tr.types[keep].astype(np.int64)
+    cur = np.concatenate([tr.position[keep, cf, :2], tr.heading[keep, cf, None]], -1).astype(np.float64)  # [N, 3]
+    # agents that appeared less than a token ago: a synthetic last token matching the logged velocity
+    late = sim & ~valid[:, -1]
+    if late.any():
+        c, sn = np.cos(cur[late, 2]), np.sin(cur[late, 2])
+        vel = tr.velocity[keep[late], cf].astype(np.float64)
+        target = np.stack([c * vel[:, 0] + sn * vel[:, 1], -sn * vel[:, 0] + c * vel[:, 1]], -1) * (FRAMES_PER_TOKEN * 0.1)
+        rows = np.flatnonzero(late)
+        for t in np.unique(types[late]):  # per type present (at most 3), vectorised over agents
+            sel = types[late] == t
+            ends = vocab[int(t)].poses[:, -1].astype(np.float64)  # [V, 3]
+            tok = np.linalg.norm(target[sel][:, None] - ends[None, :, :2], axis=-1).argmin(1)
+            le = ends[tok]
+            h0 = cur[late][sel, 2] - le[:, 2]
+            start_xy = cur[late][sel, :2] - np.stack([np.cos(h0) * le[:, 0] - np.sin(h0) * le[:, 1],
+                                                      np.sin(h0) * le[:, 0] + np.cos(h0) * le[:, 1]], -1)
+            r = rows[sel]
+            ids[r, -1] = tok
+            start[r, -1] = np.concatenate([start_xy, h0[:, None]], -1)
+            valid[r, -1] = True
+    end[sim, -1] = cur[sim]  # re-anchor at the logged current pose
+    hist = np.where(tr.valid[keep, : cf + 1, None], tr.size[keep, : cf + 1], np.nan)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            shape = np.nan_to_num(np.nanmedian(hist, axis=1)).astype(np.float32)
+    return SceneHistory(track_index=keep.astype(np.int64), tokens=ids, valid=valid, start_pose=start.astype(np.float32),
+                        end_pose=end.astype(np.float32), agent_type=types, agent_shape=shape.reshape(-1, 3), simulated=sim)
+
+
+def _pad_stack(arrays: list[np.ndarray], size: tuple[int, ...], fill=0) -> np.ndarray:
+    out = np.full((len(arrays), *size), fill, dtype=arrays[0].dtype)
+    for i, a in enumerate(arrays):
+        out[(i, *[slice(0, k) for k in a.shape])] = a
+    return out
+
+
+# ------------------------------------------------------------------------------------ state
+@dataclass
+class StepOutput:
+    """What one token step produced, for ``G`` groups and ``N`` agent slots.
+
+    ``logits`` [G, N, Vmax]: the next-token logits the step's tokens were chosen from (raw, before
+    the temperature), each row over its slot's type vocabulary, ``-inf`` beyond the type's size
+    (``vocab_sizes[agent_type]``) and on rows of slots that are not simulated.
+    """
+
+    logits: torch.Tensor  # [G, N, Vmax]
+    tokens: torch.Tensor  # [G, N] int64, -1 where not simulated
+    log_probs: torch.Tensor  # [G, N] under log_softmax(logits / temperature), 0 where not simulated
+    poses: torch.Tensor  # [G, N, 5, 3] the 5 new 10 Hz poses (local frame), x, y, heading
+    simulated: torch.Tensor  # [G, N] bool
+
+
+class RolloutState:
+    """A batch of running rollouts (the environment's handle on the prior). Make one with
+    :meth:`start`; read :meth:`logits` for the next step's distribution; :meth:`step` to advance.
+
+    Slots: ``G = scenes * num_rollouts`` groups (group ``g`` is rollout ``g % R`` of scene
+    ``g // R``), ``N`` agent slots each (padded); ``agent_ids``, ``agent_type``, ``track_index``
+    say who each slot is (``-1`` ids and track indices on padding).
+    """
+
+    def __init__(self, model, vocab: MotionVocabulary, scenes: Sequence[Scenario], num_rollouts: int, seed: int, top_k: int,
+                 temperature: float, device, mode: str, road_vocab: RoadVocabulary | None = None) -> None:
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        self.model, self.vocab, self.mode = model, vocab, mode
+        self.scenes = list(scenes)
+        self.top_k, self.temperature = int(top_k), float(temperature)
+        self.device = torch.device(device)
+        self.generator = torch.Generator(device=self.device).manual_seed(int(seed))
+        self.num_rollouts = r = int(num_rollouts)
+        cfg = model.config
+        self.vocab_sizes = torch.tensor(cfg.motion_vocab_sizes, dtype=torch.long)
+        dev = self.device
+        # ---- per-scene history, padded to N slots and S steps, repeated R times
+        hists = [scene_history(sc, vocab) for sc in self.scenes]
+        n = max(max(len(h.track_index) for h in hists), 1)
+        s = max(h.tokens.shape[1] for h in hists)
+        # right-align the history steps so that every scene's last step is the current frame
+        def right(a, fill=0):
+            pad = s - a.shape[1]
+            return np.concatenate([np.full((a.shape[0], pad, *a.shape[2:]), fill, a.dtype), a], 1) if pad else a
+        rep = lambda a: torch.from_numpy(np.repeat(a, r, axis=0)).to(dev)  # noqa: E731  (B, ...) -> (G, ...)
+        self.track_index = rep(_pad_stack([h.track_index for h in hists], (n,), -1))
+        self.agent_type = rep(_pad_stack([h.agent_type for h in hists], (n,), 0))
+        self.agent_shape = rep(_pad_stack([h.agent_shape for h in hists], (n, 3)))
+        self.simulated = rep(_pad_stack([h.simulated for h in hists], (n,), False))
+        hist_tokens = rep(_pad_stack([right(h.tokens) for h in hists], (n, s)))
+        hist_valid = rep(_pad_stack([right(h.valid, False) for h in hists], (n, s), False))
+        hist_start = rep(_pad_stack([right(h.start_pose) for h in hists], (n, s, 3)))
+        hist_end = rep(_pad_stack([right(h.end_pose) for h in hists], (n, s, 3)))
+        ids = [np.where(h.track_index >= 0, sc.tracks.ids[h.track_index], -1) for h, sc in zip(hists, self.scenes)]
+        self.agent_ids = rep(_pad_stack(ids, (n,), -1))
+        self.num_groups, self.num_slots, self.num_history_steps = len(self.scenes) * r, n, s
+        self.scene_of_group = torch.arange(len(self.scenes), device=dev).repeat_interleave(r)
+        # ---- road: pieces per scene, encoded once per scene
+        rv = road_vocab or _dummy_road_vocab()
+        roads = [scene_road(sc, rv) for sc in self.scenes]
+        rmax = max(max(len(rd.token) for rd in roads), 1)
+        p = cfg.road_piece_points
+        t = lambda a: torch.from_numpy(a).to(dev)  # noqa: E731
+        self.road_pose = t(_pad_stack([rd.pose.astype(np.float32) for rd in roads], (rmax, 3)))
+        self.road_valid = t(_pad_stack([np.ones(len(rd.token), bool) for rd in roads], (rmax,), False))
+        road_points = t(_pad_stack([rd.local.astype(np.float32).reshape(-1, p, 2) for rd in roads], (rmax, p, 2)))
+        road_type = t(_pad_stack([rd.type_id for rd in roads], (rmax,)))
+        road_light = t(_pad_stack([rd.light for rd in roads], (rmax,)))
+        with torch.no_grad():
+            self.road_x = model.road_net(road_points, self.road_pose, road_type, road_light, self.road_valid)  # (B, R, d)
+        # ---- token poses per type (padded to Vmax) for placing tokens
+        vmax = int(self.vocab_sizes.max())
+        tp = torch.zeros(NUM_MOTION_TYPES, vmax, FRAMES_PER_TOKEN + 1, 3)
+        for k, tt in enumerate(MOTION_TYPES):
+            tp[k, : vocab[tt].size] = torch.from_numpy(vocab[tt].poses)
+        self.token_poses = tp.to(dev)
+        # ---- history through the model
+        self.history = [hist_tokens, hist_valid, hist_start, hist_end]  # grows by one step per token step (full mode)
+        self.pose = hist_end[:, :, -1].clone()  # (G, N, 3) where each slot's next token starts
+        self.step_index = 0
+        self._logits: torch.Tensor | None = None
+        self.engine = None
+        if mode == "cached":
+            self.engine = IncrementalMotionNet(model, self.road_x, self.road_pose, self.road_valid, self.scene_of_group,
+                                               self.agent_type, self.agent_shape)
+            for k in range(s - 1):  # prefill the cache with all history steps but the last
+                self.engine.step(hist_tokens[:, :, k], hist_start[:, :, k], hist_end[:, :, k], hist_valid[:, :, k])
+        self._pending = (hist_tokens[:, :, -1], hist_start[:, :, -1], hist_end[:, :, -1], hist_valid[:, :, -1])
+
+    # ------------------------------------------------------------------------------- creation
+    @classmethod
+    def start(cls, model, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 1, seed: int = 0, top_k: int = 5,
+              temperature: float = 1.0, device="cpu", mode: str = "cached", motion_vocab: MotionVocabulary | None = None) -> "RolloutState":
+        """Tokenize the scenes' histories and run them through the model. ``model``: a SMART model,
+        a Checkpoint or a checkpoint path; ``motion_vocab`` overrides the vocabulary used to
+        tokenize the history and place tokens (by default the checkpoint's, or the model's contours)."""
+        m, vocab = resolve_model(model, device)
+        scenes = [scenes] if isinstance(scenes, Scenario) else list(scenes)
+        if not scenes:
+            raise ValueError("no scenes to roll out")
+        return cls(m, motion_vocab or vocab, scenes, num_rollouts, seed, top_k, temperature, device, mode)
+
+    # ------------------------------------------------------------------------------ accessors
+    @property
+    def current_pose(self) -> torch.Tensor:
+        """[G, N, 3] every slot's pose (x, y, heading, local frame) where its next token starts."""
+        return self.pose
+
+    @property
+    def valid(self) -> torch.Tensor:
+        """[G, N] bool, the slots that are simulated (driven and present) now."""
+        return self.simulated
+
+    def set_agent_valid(self, mask: torch.Tensor) -> None:
+        """Remove agents (``mask`` [G, N] false): they stop being simulated from the next step on
+        and vanish from everyone's neighbourhoods. Only agents simulated now can stay valid."""
+        self.simulated = self.simulated & mask.to(self.device, torch.bool)
+        if self._pending is not None and self._logits is None:  # the step not yet run sees the removal
+            tok, st, en, va = self._pending
+            self._pending = (tok, st, en, va & self.simulated)
+            if self.mode == "full":
+                self.history[1][:, :, -1] &= self.simulated
+
+    def set_agent_pose(self, pose: torch.Tensor, mask: torch.Tensor) -> None:
+        """Override the current pose [G, N, 3] of the slots where ``mask`` [G, N] is true: their next
+        token starts there. When the next step's logits were already computed (:meth:`logits` was
+        called), those logits stay as they were; the new pose is seen from the following step on."""
+        m = mask.to(self.device, torch.bool)
+        self.pose = torch.where(m[..., None], pose.to(self.device, self.pose.dtype), self.pose)
+        if self._pending is not None and self._logits is None:
+            tok, st, en, va = self._pending
+            self._pending = (tok, st, torch.where(m[..., None], self.pose, en), va)
+            if self.mode == "full":
+                self.history[3][:, :, -1] = self._pending[2]
+
+    # ---------------------------------------------------------------------------------- model
+    def logits(self) -> torch.Tensor:
+        """[G, N, Vmax] next-token logits of every slot (see :class:`StepOutput`), computed on demand."""
+        if self._logits is None:
+            tok, st, en, va = self._pending
+            g, n = self.num_groups, self.num_slots
+            if self.mode == "cached":
+                rows, feats = self.engine.step(tok, st, en, va)
+            else:
+                rows, feats = self._full_features()
+            types = self.agent_type.reshape(-1)[rows]
+            with torch.no_grad():
+                per_type = [self.model.motion_heads[t](feats[types == t]) for t in range(NUM_MOTION_TYPES)]
+            sizes = [int(v) for v in self.vocab_sizes]
+            padded = pad_type_logits(per_type, types, sizes)  # (Q, Vmax)
+            out = torch.full((g * n, max(sizes)), float("-inf"), device=self.device)
+            out[rows] = padded
+            self._logits = out.view(g, n, -1)
+            self._pending = None
+        return self._logits
+
+    @torch.no_grad()
+    def _full_features(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Full re-computation: MotionNet over every step so far (history + generated)."""
+        tok, valid, start, end = self.history
+        net = self.model.motion_net
+        x = net.embed_agents(tok, self.agent_type, self.agent_shape, start, end, self.model.motion_contours)
+        road_pose, road_valid = self.road_pose[self.scene_of_group], self.road_valid[self.scene_of_group]
+        nbrs = net.neighbourhoods(end, valid, road_pose, road_valid)
+        feats = net(x, self.road_x[self.scene_of_group], nbrs)[:, :, -1].reshape(-1, self.model.config.hidden_dim)  # (G*N, d)
+        rows = valid[:, :, -1].reshape(-1).nonzero().squeeze(1)
+        return rows, feats[rows]
+
+    def step(self, forced_tokens: torch.Tensor | None = None) -> StepOutput:
+        """Advance every simulated agent by one token (0.5 s). ``forced_tokens`` [G, N] int64: ``-1``
+        where the token is sampled (top-k, temperature, this state's generator), a token id in the
+        slot's type vocabulary where it is imposed. Non-simulated slots are left where they are."""
+        logits = self.logits()
+        g, n = self.num_groups, self.num_slots
+        sim = self.simulated
+        if forced_tokens is not None:
+            forced_tokens = forced_tokens.to(self.device, torch.long)
+            size = self.vocab_sizes.to(self.device)[self.agent_type]
+            bad = sim & (forced_tokens >= size)
+            if bad.any():
+                raise ValueError(f"forced token outside its agent type's vocabulary at slots {bad.nonzero()[:5].tolist()}")
+        rows = sim.reshape(-1).nonzero().squeeze(1)
+        forced_rows = forced_tokens.reshape(-1)[rows] if forced_tokens is not None else None
+        tok_rows, logp_rows = sample_tokens(logits.reshape(g * n, -1)[rows], self.generator, self.top_k, self.temperature, forced_rows)
+        tokens = torch.full((g * n,), -1, dtype=torch.long, device=self.device)
+        tokens[rows] = tok_rows
+        log_probs = torch.zeros(g * n, device=self.device)
+        log_probs[rows] = logp_rows
+        tokens, log_probs = tokens.view(g, n), log_probs.view(g, n)
+        # place each token's poses at the slot's current pose
+        local = self.token_poses[self.agent_type, tokens.clamp(min=0)]  # (G, N, 6, 3)
+        placed = compose_torch(self.pose[:, :, None, :], local[:, :, 1:])  # (G, N, 5, 3)
+        new_pose = torch.where(sim[..., None], placed[:, :, -1], self.pose)
+        placed = torch.where(sim[:, :, None, None], placed, self.pose[:, :, None, :])
+        start = self.pose
+        self._pending = (tokens.clamp(min=0), start, new_pose, sim.clone())
+        if self.mode == "full":
+            h = self.history
+            self.history = [torch.cat([h[0], tokens.clamp(min=0)[..., None]], 2), torch.cat([h[1], sim[..., None]], 2),
+                            torch.cat([h[2], start[:, :, None]], 2), torch.cat([h[3], new_pose[:, :, None]], 2)]
+        self.pose = new_pose
+        self._logits = None
+        self.step_index += 1
+        return StepOutput(logits=logits, tokens=tokens, log_probs=log_probs, poses=placed, simulated=sim.clone())
+
+
+def compose_torch(origin: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
+    """Poses ``local`` [..., 3] in the frame of ``origin`` [..., 3] -> outer frame (heading wrapped)."""
+    c, s = origin[..., 2].cos(), origin[..., 2].sin()
+    x = origin[..., 0] + c * local[..., 0] - s * local[..., 1]
+    y = origin[..., 1] + s * local[..., 0] + c * local[..., 1]
+    h = torch.remainder(origin[..., 2] + local[..., 2] + torch.pi, 2 * torch.pi) - torch.pi
+    return torch.stack([x, y, h], -1)
+
+
+# ----------------------------------------------------------------------------------- result
+@dataclass
+class RolloutResult:
+    """Rollouts of ``B`` scenes x ``R`` rollouts (``G = B * R`` groups, group ``g`` = rollout
+    ``g % R`` of scene ``g // R``), over ``A`` agents (every track of the scene, padded; agent ``a``
+    of group ``g`` is track ``a`` of its scene) and ``T = 5 * num_steps`` future frames at 10 Hz
+    (frames current + 1 .. current + T)."""
+
+    scenario_ids: list[str]  # [B]
+    scene_index: np.ndarray  # [G]
+    rollout_index: np.ndarray  # [G]
+    agent_ids: np.ndarray  # [G, A] int64, -1 on padding
+    agent_types: np.ndarray  # [G, A] int8 AgentType, -1 on padding
+    has_trajectory: np.ndarray  # [G, A] bool: valid at the current frame (simulated or constant velocity)
+    simulated: np.ndarray  # [G, A] bool: driven by the model
+    trajectory: np.ndarray  # [G, A, T, 4] float64 x, y, z, heading in the scene's source frame (0 where no trajectory)
+    tokens: np.ndarray  # [G, A, num_steps] int64 sampled token ids, -1 where not simulated
+    log_probs: np.ndarray  # [G, A, num_steps] float32 under log_softmax(logits / temperature), 0 where not simulated
+
+    @property
+    def num_rollouts(self) -> int:
+        return int(self.rollout_index.max()) + 1 if len(self.rollout_index) else 0
+
+
+def rollout(model_or_checkpoint, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 32, num_steps: int = 16,
+            top_k: int = 5, temperature: float = 1.0, seed: int = 0, device="cpu", mode: str = "cached",
+            motion_vocab: MotionVocabulary | None = None) -> RolloutResult:
+    """Generate ``num_rollouts`` joint futures of ``num_steps`` tokens (0.5 s each) for every scene
+    in one batch (see the module docstring). Same seed, same rollouts (on the CPU)."""
+    state = RolloutState.start(model_or_checkpoint, scenes, num_rollouts=num_rollouts, seed=seed, top_k=top_k,
+                               temperature=temperature, device=device, mode=mode, motion_vocab=motion_vocab)
+    outs = [state.step() for _ in range(num_steps)]
+    return collect_result(state, outs)
+
+
+def collect_result(state: RolloutState, outs: list[StepOutput]) -> RolloutResult:
+    """The :class:`RolloutResult` of a state's steps: slots mapped back to tracks, source frame,
+    OTHER agents at constant velocity, z carried."""
+    scenes = state.scenes
+    r = state.num_rollouts
+    g, n = state.num_groups, state.num_slots
+    k = len(outs)
+    t_frames = FRAMES_PER_TOKEN * k
+    a = max(sc.num_tracks for sc in scenes)
+    poses = torch.cat([o.poses for o in outs], 2).cpu().numpy().astype(np.float64) if k else np.zeros((g, n, 0, 3))  # (G, N, T, 3)
+    tokens = torch.stack([o.tokens for o in outs], -1).cpu().numpy() if k else np.zeros((g, n, 0), np.int64)
+    logps = torch.stack([o.log_probs for o in outs], -1).cpu().numpy() if k else np.zeros((g, n, 0), np.float32)
+    track_index = state.track_index.cpu().numpy()
+    slot_sim = state.simulated.cpu().numpy()
+    out_traj = np.zeros((g, a, t_frames, 4))
+    out_tokens = np.full((g, a, k), -1, np.int64)
+    out_logp = np.zeros((g, a, k), np.float32)
+    agent_ids = np.full((g, a), -1, np.int64)
+    agent_types = np.full((g, a), -1, np.int8)
+    has_traj = np.zeros((g, a), bool)
+    simulated = np.zeros((g, a), bool)
+    dt_s = 0.1 * np.arange(1, t_frames + 1)
+    for b, sc in enumerate(scenes):
+        tr, cf = sc.tracks, sc.current_frame
+        nt = tr.num_tracks
+        groups = np.arange(b * r, (b + 1) * r)
+        agent_ids[groups, :nt] = tr.ids
+        agent_types[groups, :nt] = tr.types
+        has_traj[groups, :nt] = tr.valid[:, cf]
+        # z: each track's last valid z at or before the current frame
+        seen = tr.valid[:, : cf + 1]
+        last = np.where(seen.any(1), cf - np.argmax(seen[:, ::-1], axis=1), 0)
+        z = tr.position[np.arange(nt), last, 2].astype(np.float64)  # [nt]
+        # agents valid at the current frame but not driven by the model: constant velocity, heading held
+        cv = tr.valid[:, cf] & ~np.isin(tr.types, [int(x) for x in MOTION_TYPES])
+        xy_cv = tr.position[cv, cf, None, :2].astype(np.float64) + tr.velocity[cv, cf, None].astype(np.float64) * dt_s[:, None]
+        local = np.zeros((nt, t_frames, 4))
+        local[cv, :, :2] = xy_cv
+        local[cv, :, 3] = tr.heading[cv, cf, None]
+        local[:, :, 2] = z[:, None]
+        for gi in groups:
+            slots = np.flatnonzero((track_index[gi] >= 0) & slot_sim[gi])
+            ti = track_index[gi, slots]
+            loc = local.copy()
+            loc[ti, :, :2] = poses[gi, slots, :, :2]
+            loc[ti, :, 3] = poses[gi, slots, :, 2]
+            traj = np.zeros_like(loc)
+            traj[..., :3] = sc.frame.to_source(loc[..., :3])
+            traj[..., 3] = sc.frame.heading_to_source(loc[..., 3])
+            traj[~tr.valid[:, cf]] = 0.0
+            out_traj[gi, :nt] = traj
+            out_tokens[gi, ti] = tokens[gi, slots]
+            out_logp[gi, ti] = logps[gi, slots]
+            simulated[gi, ti] = True
+    return RolloutResult(scenario_ids=[sc.scenario_id for sc in scenes], scene_index=np.repeat(np.arange(len(scenes)), r),
+                         rollout_index=np.tile(np.arange(r), len(scenes)), agent_ids=agent_ids, agent_types=agent_types,
+                         has_trajectory=has_traj, simulated=simulated, trajectory=out_traj, tokens=out_tokens, log_probs=out_logp)

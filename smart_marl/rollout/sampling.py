@@ -1,0 +1,59 @@
+"""Rollout stage, sampler: next-token logits -> chosen motion tokens (SMART's top-k sampling).
+
+What comes in: padded per-agent logits ``[..., Vmax]`` whose entries beyond an agent type's
+vocabulary are ``-inf`` (see :func:`pad_type_logits`), a temperature, ``k``, a ``torch.Generator``
+and optional forced tokens. What goes out: token ids and their log-probabilities under the
+temperature-scaled, *unclipped* distribution (``log_softmax(logits / temperature)``), which is
+what a policy's KL to the prior and the likelihood of a rollout are measured with.
+
+Sampling draws from the ``k`` most likely tokens with their probabilities renormalised (the
+paper's top-k, k = 5); ``k <= 0`` or ``k >= V`` means the whole distribution. With a seeded
+generator on the CPU the draws are reproducible.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def pad_type_logits(per_type: list[torch.Tensor], agent_type: torch.Tensor, sizes: list[int]) -> torch.Tensor:
+    """Per-agent logits from each type's head outputs: ``per_type[t]`` [Q, V_t] (head t applied to
+    the Q rows of agents of type t, in row order), ``agent_type`` [Q] (0..2) -> [Q, Vmax] with
+    ``-inf`` beyond the agent's type's vocabulary size."""
+    vmax = max(sizes)
+    q = agent_type.shape[0]
+    dtype = per_type[0].dtype if per_type else torch.float32
+    out = torch.full((q, vmax), float("-inf"), dtype=dtype, device=agent_type.device)
+    for t, logits in enumerate(per_type):
+        sel = agent_type == t
+        if logits.shape[0]:
+            out[sel, : sizes[t]] = logits
+    return out
+
+
+def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int = 5, temperature: float = 1.0,
+                  forced: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Top-k sampling with renormalised probabilities.
+
+    logits [..., V] (``-inf`` for tokens outside the agent's vocabulary; a row must have at
+    least one finite entry), forced [...] int64 (``-1``: sample; otherwise that token is taken)
+    -> (tokens [...] int64, log_probs [...] under ``log_softmax(logits / temperature)``).
+    """
+    if temperature <= 0:
+        raise ValueError(f"temperature must be > 0, got {temperature}")
+    lead, v = logits.shape[:-1], logits.shape[-1]
+    flat = logits.reshape(-1, v) / temperature  # (M, V)
+    logp = torch.log_softmax(flat, dim=-1)
+    k = v if top_k is None or top_k <= 0 else min(int(top_k), v)
+    top_val, top_idx = torch.topk(flat, k, dim=-1)  # (M, k), -inf entries (beyond the type's size) get zero probability
+    probs = torch.softmax(top_val, dim=-1)
+    if flat.shape[0]:
+        pick = torch.multinomial(probs, 1, generator=generator)  # (M, 1)
+        tokens = top_idx.gather(1, pick).squeeze(1)
+    else:
+        tokens = torch.zeros(0, dtype=torch.long, device=logits.device)
+    if forced is not None:
+        f = forced.reshape(-1).to(tokens.device)
+        tokens = torch.where(f >= 0, f, tokens)
+    log_probs = logp.gather(1, tokens[:, None]).squeeze(1)
+    return tokens.view(lead), log_probs.view(lead)
