@@ -465,15 +465,27 @@ def _set_rng_state(state: dict[str, Any]) -> None:
 
 
 def _vocabularies(cfg: TrainConfig, model_cfg: SmartConfig, scenes, out_dir: Path, info: DistInfo, resuming: bool):
-    """Load the vocabularies (given files, the run folder's when resuming) or build them (rank 0) and save them in the run folder."""
+    """The run's vocabularies: the given files; else the ``init`` checkpoint's; else the run folder's
+    (resuming); else built from the training scenes (rank 0) and saved in the run folder."""
     run_mv, run_rv = out_dir / "motion_vocab", out_dir / "road_vocab"
     if cfg.motion_vocab or cfg.road_vocab:
         if not (cfg.motion_vocab and cfg.road_vocab):
             raise TrainError("give both motion_vocab and road_vocab, or neither (then both are built from the training scenes)")
         return load_motion_vocabulary(cfg.motion_vocab), load_road_vocabulary(cfg.road_vocab)
+    if cfg.init and not resuming:  # fine-tuning: the checkpoint's own vocabularies
+        ck = load_checkpoint(cfg.init)
+        if info.is_main:
+            save_motion_vocabulary(ck.motion_vocab, run_mv)
+            save_road_vocabulary(ck.road_vocab, run_rv)
+        if info.enabled:
+            dist.barrier()
+        return ck.motion_vocab, ck.road_vocab
     if not (resuming and (out_dir / "motion_vocab.json").is_file()):
         if info.is_main:
-            mv, rv = build_vocabularies(scenes, model_cfg, cfg.vocab_scenes, cfg.vocab_seed, progress=cfg.progress)
+            if cfg.progress:
+                print(f"building vocabularies (k-disks, motion {model_cfg.motion_vocab_sizes}, road {model_cfg.road_vocab_size}) "
+                      f"from {min(cfg.vocab_scenes, len(scenes))} scenes -> {out_dir}", file=sys.stderr)
+            mv, rv = build_vocabularies(scenes, model_cfg, cfg.vocab_scenes, cfg.vocab_seed)
             save_motion_vocabulary(mv, run_mv)
             save_road_vocabulary(rv, run_rv)
         if info.enabled:
