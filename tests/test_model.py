@@ -96,6 +96,11 @@ def test_motion_features_of_a_step_do_not_depend_on_later_steps():
         logits = [torch.stack(model.motion_logits(f, batch.agent_type)) for f in (feats, feats2)]
     valid = batch.agent_valid[:, :, : t + 1]
     assert torch.allclose(logits[0][:, :, :, : t + 1][:, valid], logits[1][:, :, :, : t + 1][:, valid], atol=1e-5)
+    # a batch cut after step t gives the same features: step t needs nothing later (incremental inference)
+    cut = SmartBatch(**{k: (v[:, :, : t + 1] if k.startswith(("agent_", "target_")) and v.dim() >= 3 else v) for k, v in vars(batch).items()})
+    with torch.no_grad():
+        feats_cut, _ = model(cut)
+    assert torch.allclose(feats_cut[valid], feats[:, :, : t + 1][valid], atol=1e-5)
     # and the later steps did change (the test is not vacuous)
     later = batch.agent_valid[:, :, t + 1:] & b2.agent_valid[:, :, t + 1:]
     assert not torch.allclose(feats[:, :, t + 1:][later], feats2[:, :, t + 1:][later])
