@@ -1,0 +1,733 @@
+"""Environment stage: ``smart_traffic_v0``, a PettingZoo ParallelEnv whose agents act in SMART's
+motion-token action space, with the SMART prior driving (or scoring) everyone.
+
+What comes in: scenes (any path :func:`smart_marl.readers.read_scenarios` reads, a list of
+:class:`~smart_marl.scenario.Scenario`, or the package's embedded samples), a prior (a SMART
+checkpoint path, a model or Checkpoint, ``"embedded"``, or ``None``) and the controlled-agent
+selection. What goes out, every step: per controlled agent an observation, a reward, termination
+and truncation flags, and ``infos`` with the prior's logits and events.
+
+One ``step`` = one 0.5 s token step for every agent: controlled agents take their actions (a token
+id of their type's vocabulary: Discrete(V)); every other agent follows the background mode:
+
+* ``"prior"``: one incremental SMART step (:class:`smart_marl.rollout.RolloutState`, KV cache)
+  samples every background agent's token, conditioned on the controlled agents' chosen tokens
+  (they are forced into the same step); agents of type OTHER move at constant velocity;
+* ``"log"``: logged poses are replayed (an agent is present on the frames its log is valid; for the
+  prior it leaves for good at its first gap);
+* ``"constant_velocity"``: the logged velocity at the current frame, heading held.
+
+With a prior and a non-prior background, the prior still runs (for the logits it exposes): the
+background agents' moves are fed to it as the nearest token, re-anchored at their true poses.
+
+Agents: ``possible_agents`` are the controlled tracks of the current scene, named
+``"vehicle_1234"`` (type and track id), in track order. They change when a reset loads another
+scene (TorchRL's PettingZooWrapper fixes its agent set at construction: wrap a one-scene env).
+A controlled agent that terminates (collision / offroad / goal, as ``terminate_on`` says) leaves
+``agents`` and is removed from the scene. Every agent still live at ``horizon_steps`` is truncated.
+Background agents replayed from the log are present on the frames where their log is valid.
+
+``infos[agent]`` (fixed keys and shapes, so TorchRL can stack them): ``prior_logits`` [V] and
+``prior_log_probs`` [V] (``log_softmax(logits / temperature)``) of the agent's *next* token (zeros
+once it is done), ``action_log_prob`` (the prior's log-probability of the token just taken),
+``collision``, ``offroad``, ``goal_reached`` (this step), ``route_progress_m`` and
+``reward_terms`` [6] (see :mod:`envs._reward`). Without a prior the three prior keys are absent.
+
+Errors: an action outside the agent's vocabulary, a name that is not an agent of this episode,
+a missing action for a live agent, a step after every agent is done, a scene with no
+controllable agent, and ``prior="embedded"`` before an embedded checkpoint ships all raise
+clear errors. Actions given for agents that are already done are ignored (TorchRL sends one for
+every agent of its group).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+from pettingzoo.utils import wrappers
+
+from smart_marl.errors import SmartMarlError
+from smart_marl.scenario import AgentType, Scenario
+from smart_marl.tokens import FRAMES_PER_TOKEN, MotionVocabulary
+
+from ._observation import HISTORY_FRAMES, ObservationConfig, build_observations, observation_size
+from ._reward import REWARD_TERMS, TERMINATION_EVENTS, RewardConfig, collisions, goal_reached, mean_jerk, offroad
+from ._scene import SceneStatic, route_progress_m, scene_static
+
+BACKGROUNDS = ("prior", "log", "constant_velocity")
+DT_S = 0.1
+_PACKAGE_DIR = Path(__file__).resolve().parents[1] / "smart_marl"
+EMBEDDED_CHECKPOINT_DIR = _PACKAGE_DIR / "checkpoints" / "embedded"
+EMBEDDED_SCENES_DIR = _PACKAGE_DIR / "samples"
+
+
+class EnvConfigError(SmartMarlError, ValueError):
+    """A bad argument to the environment (scenes, prior, controlled agents, background...)."""
+
+
+class EmbeddedAssetMissing(SmartMarlError, FileNotFoundError):
+    """``prior="embedded"`` or ``scenarios="embedded"`` before the package ships them."""
+
+
+# ----------------------------------------------------------------------------- construction
+def _load_prior(prior, motion_vocab: MotionVocabulary | None):
+    """(model or None, motion vocabulary) from the ``prior`` argument."""
+    from smart_marl.rollout import resolve_model
+
+    if prior is None:
+        if motion_vocab is None:
+            raise EnvConfigError("prior=None needs motion_vocab=...: the action spaces are the vocabulary's tokens")
+        return None, motion_vocab
+    if isinstance(prior, str) and prior == "embedded":
+        from smart_marl.model import checkpoint as ckpt
+
+        loader = getattr(ckpt, "load_embedded", None)
+        if loader is not None:
+            prior = loader()
+        else:
+            found = sorted(EMBEDDED_CHECKPOINT_DIR.glob("*.json")) if EMBEDDED_CHECKPOINT_DIR.is_dir() else []
+            if not found:
+                raise EmbeddedAssetMissing(
+                    f"prior='embedded': this package ships no embedded SMART checkpoint yet (looked for "
+                    f"smart_marl.model.checkpoint.load_embedded() and {EMBEDDED_CHECKPOINT_DIR}/*.json; it comes with "
+                    f"issue 7). Pass prior=PATH (a checkpoint), a SMART model, or prior=None with motion_vocab=...")
+            prior = found[0]
+    if isinstance(prior, (str, os.PathLike)) and not Path(prior).with_suffix(".json").exists() and not Path(prior).exists() \
+            and not Path(str(prior) + ".json").exists():
+        raise EnvConfigError(f"prior: no checkpoint at {prior}")
+    model, vocab = resolve_model(prior, "cpu")
+    return model, motion_vocab if motion_vocab is not None else vocab
+
+
+def _load_scenes(scenarios) -> list[Scenario]:
+    from smart_marl.readers import read_scenarios
+
+    if isinstance(scenarios, Scenario):
+        return [scenarios]
+    if isinstance(scenarios, str) and scenarios == "embedded":
+        files = sorted(p for p in EMBEDDED_SCENES_DIR.glob("*") if p.is_file()) if EMBEDDED_SCENES_DIR.is_dir() else []
+        if not files:
+            raise EmbeddedAssetMissing(f"scenarios='embedded': this package ships no sample scenes yet (looked in "
+                                       f"{EMBEDDED_SCENES_DIR}; they come with issue 7). Pass a path or a list of Scenario objects.")
+        return [s for f in files for s in read_scenarios(f)]
+    if isinstance(scenarios, (str, os.PathLike)):
+        scenes = list(read_scenarios(scenarios))
+    elif isinstance(scenarios, Iterable):
+        scenes = list(scenarios)
+        bad = [type(s).__name__ for s in scenes if not isinstance(s, Scenario)]
+        if bad:
+            raise EnvConfigError(f"scenarios: a list must hold Scenario objects, got {bad[:3]}")
+    else:
+        raise EnvConfigError(f"scenarios must be a path, a Scenario, a list of Scenario or 'embedded', got {type(scenarios).__name__}")
+    if not scenes:
+        raise EnvConfigError(f"scenarios: no scene in {scenarios!r}")
+    return scenes
+
+
+def _controlled_mask(controlled, static: SceneStatic) -> np.ndarray:
+    """[N] bool of the tracks the ``controlled`` selection picks (before max_agents)."""
+    sc = static.scenario
+    n = static.num_tracks
+    if callable(controlled) and not isinstance(controlled, str):
+        mask = np.asarray(controlled(sc), bool)
+        if mask.shape != (n,):
+            raise EnvConfigError(f"controlled: the callable must return a [{n}] bool mask for scene {sc.scenario_id}, got {mask.shape}")
+        return mask & static.controllable
+    mask = np.zeros(n, bool)
+    if controlled == "sdc":
+        if sc.sdc_index >= 0:
+            mask[sc.sdc_index] = True
+        return mask & static.controllable
+    if controlled == "predict":
+        mask[np.asarray(sc.predict_indices, np.int64)] = True
+        return mask & static.controllable
+    if controlled == "vehicles":
+        return static.controllable & (static.types == int(AgentType.VEHICLE))
+    if controlled == "all":
+        return static.controllable.copy()
+    if isinstance(controlled, str):
+        raise EnvConfigError(f"controlled must be 'sdc', 'predict', 'vehicles', 'all', a list of track ids or names, or a "
+                             f"callable(scene) -> mask; got {controlled!r}")
+    ids = {int(i): k for k, i in enumerate(sc.tracks.ids)}
+    for item in controlled:
+        if isinstance(item, str):
+            k = static.name_to_track.get(item)
+        else:
+            k = ids.get(int(item))
+        if k is None:
+            raise EnvConfigError(f"controlled: {item!r} is not a track of scene {sc.scenario_id}")
+        if not static.controllable[k]:
+            raise EnvConfigError(f"controlled: {static.names[k]} of scene {sc.scenario_id} cannot be controlled (only vehicles, "
+                                 f"pedestrians and cyclists present at the current frame can)")
+        mask[k] = True
+    return mask
+
+
+def _has_display() -> bool:
+    if sys.platform in ("darwin", "win32"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+# --------------------------------------------------------------------------------- the env
+class SmartTrafficEnv(ParallelEnv):
+    """The parallel environment (see the module docstring). Build it with :func:`parallel_env`."""
+
+    metadata = {"render_modes": ["rgb_array", "human"], "name": "smart_traffic_v0", "render_fps": 2, "is_parallelizable": True}
+
+    def __init__(self, scenarios="embedded", prior="embedded", controlled="sdc", background: str = "prior",
+                 horizon_steps: int = 16, reward=None, observation="vector", render_mode: str | None = None,
+                 max_agents: int | None = None, terminate_on: Sequence[str] = TERMINATION_EVENTS,
+                 scene_order: str = "sequential", motion_vocab: MotionVocabulary | None = None, top_k: int = 5,
+                 temperature: float = 1.0, render_size_px: int = 400, render_radius_m: float = 50.0) -> None:
+        if background not in BACKGROUNDS:
+            raise EnvConfigError(f"background must be one of {BACKGROUNDS}, got {background!r}")
+        if int(horizon_steps) < 1:
+            raise EnvConfigError(f"horizon_steps must be >= 1, got {horizon_steps}")
+        if scene_order not in ("sequential", "random"):
+            raise EnvConfigError(f"scene_order must be 'sequential' or 'random', got {scene_order!r}")
+        bad = sorted(set(terminate_on) - set(TERMINATION_EVENTS))
+        if bad:
+            raise EnvConfigError(f"terminate_on: unknown event(s) {bad}; known: {TERMINATION_EVENTS}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise EnvConfigError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        if render_mode == "human" and not _has_display():
+            raise EnvConfigError("render_mode='human' opens a matplotlib window, but there is no display (DISPLAY and "
+                                 "WAYLAND_DISPLAY are unset); use render_mode='rgb_array' (and EpisodeRecorder) instead")
+        if max_agents is not None and int(max_agents) < 1:
+            raise EnvConfigError(f"max_agents must be >= 1 or None, got {max_agents}")
+        self.model, self.motion_vocab = _load_prior(prior, motion_vocab)
+        if background == "prior" and self.model is None:
+            raise EnvConfigError("background='prior' needs a prior (prior=PATH, a model or 'embedded'); with prior=None use "
+                                 "background='log' or 'constant_velocity'")
+        self.vocab_sizes = {int(t): v.size for t, v in self.motion_vocab.types.items()}
+        if self.model is not None:
+            model_sizes = tuple(int(v) for v in self.model.config.motion_vocab_sizes)
+            if tuple(self.vocab_sizes.get(t, 0) for t in range(3)) != model_sizes:
+                raise EnvConfigError(f"motion_vocab sizes {self.vocab_sizes} do not match the prior's {model_sizes}")
+        self.scenes = _load_scenes(scenarios)
+        self.controlled = controlled
+        self.background = background
+        self.horizon_steps = int(horizon_steps)
+        self.reward_config = RewardConfig.from_any(reward)
+        self.obs_config = observation if isinstance(observation, ObservationConfig) else ObservationConfig(kind=observation)
+        self.render_mode = render_mode
+        self.max_agents = None if max_agents is None else int(max_agents)
+        self.terminate_on = frozenset(terminate_on)
+        self.scene_order = scene_order
+        self.top_k, self.temperature = int(top_k), float(temperature)
+        self.render_size_px, self.render_radius_m = int(render_size_px), float(render_radius_m)
+        self._statics: dict[int, SceneStatic] = {}
+        self._obs_spaces: dict[str, spaces.Space] = {}
+        self._act_spaces: dict[str, spaces.Space] = {}
+        self._np_random = np.random.default_rng()
+        self._next_scene = 0
+        self._renderer = None
+        self._renderer_scene = None
+        self._recorder = None
+        self._human_fig = None
+        self.rollout_state = None
+        self.scene_index = -1
+        self.agents: list[str] = []
+        # the first scene's agents, so that spaces and possible_agents exist before reset()
+        self._select_scene(0)
+
+    # ------------------------------------------------------------------------------ spaces
+    def observation_space(self, agent: str) -> spaces.Space:
+        space = self._obs_spaces.get(agent)
+        if space is None:
+            t = self._agent_type_of_name(agent)
+            box = spaces.Box(-np.inf, np.inf, (observation_size(self.obs_config),), np.float32)
+            if self.obs_config.kind == "vector":
+                space = box
+            else:
+                v = self.vocab_sizes[t]
+                parts = {"observation": box, "action_mask": spaces.Box(0, 1, (v,), np.int8)}
+                if self.model is not None:
+                    parts["prior_logits"] = spaces.Box(-np.inf, np.inf, (v,), np.float32)
+                space = spaces.Dict(parts)
+            self._obs_spaces[agent] = space
+        return space
+
+    def action_space(self, agent: str) -> spaces.Space:
+        space = self._act_spaces.get(agent)
+        if space is None:
+            space = spaces.Discrete(self.vocab_sizes[self._agent_type_of_name(agent)])
+            self._act_spaces[agent] = space
+        return space
+
+    def _agent_type_of_name(self, agent: str) -> int:
+        if agent not in self._obs_spaces and agent not in self._act_spaces and agent not in self.possible_agents:
+            raise KeyError(f"unknown agent {agent!r}: the agents of this episode are {self.possible_agents[:8]}"
+                           f"{' ...' if len(self.possible_agents) > 8 else ''}")
+        return int(AgentType[agent.rsplit("_", 1)[0].upper()])
+
+    # ------------------------------------------------------------------------------- scenes
+    def _static(self, index: int) -> SceneStatic:
+        st = self._statics.get(index)
+        if st is None:
+            st = self._statics[index] = scene_static(self.scenes[index])
+        return st
+
+    def _select_scene(self, index: int) -> None:
+        st = self._static(index)
+        mask = _controlled_mask(self.controlled, st)
+        ctrl = np.flatnonzero(mask)
+        if len(ctrl) == 0:
+            raise EnvConfigError(f"scene {st.scenario.scenario_id} has no controllable agent for controlled={self.controlled!r} "
+                                 f"(only vehicles, pedestrians and cyclists present at the current frame can be controlled)")
+        if self.max_agents is not None and len(ctrl) > self.max_agents:
+            sc = st.scenario
+            cf = sc.current_frame
+            ref = sc.tracks.position[sc.sdc_index, cf, :2] if sc.sdc_index >= 0 else sc.tracks.position[ctrl, cf, :2].mean(0)
+            d = np.linalg.norm(sc.tracks.position[ctrl, cf, :2] - ref, axis=1)
+            ctrl = np.sort(ctrl[np.argsort(d, kind="stable")[: self.max_agents]])
+        self.scene_index = index
+        self.static = st
+        self.ctrl_tracks = ctrl  # [C] track indices of possible_agents, in order
+        self.possible_agents = [st.names[k] for k in ctrl]
+        self._agent_track = {name: int(k) for name, k in zip(self.possible_agents, ctrl)}
+
+    # -------------------------------------------------------------------------------- reset
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        options = options or {}
+        if seed is not None:
+            self._np_random = np.random.default_rng(seed)
+        if "scene_index" in options:
+            index = int(options["scene_index"])
+            if not 0 <= index < len(self.scenes):
+                raise EnvConfigError(f"options['scene_index'] = {index} is outside 0..{len(self.scenes) - 1}")
+        elif self.scene_order == "random":
+            index = int(self._np_random.integers(len(self.scenes)))
+        else:
+            index = self._next_scene % len(self.scenes)
+        self._next_scene = index + 1
+        self._select_scene(index)
+        prior_seed = int(seed) if seed is not None else int(self._np_random.integers(2**31))
+        st = self.static
+        sc = st.scenario
+        tr, cf = sc.tracks, sc.current_frame
+        n = st.num_tracks
+        self.frame = cf
+        self.step_count = 0
+        self.pose = np.concatenate([tr.position[:, cf, :2], tr.heading[:, cf, None]], -1).astype(np.float64)  # [N, 3]
+        self.velocity = tr.velocity[:, cf].astype(np.float64)
+        self.present = tr.valid[:, cf].copy()
+        self.in_sim = self.present.copy()  # the agents of this episode: valid at the current frame (WOSAC's rule)
+        self.cv_velocity = self.velocity.copy()
+        h0 = cf + 1 - HISTORY_FRAMES
+        lo = max(h0, 0)
+        self.hist_pose = np.zeros((n, HISTORY_FRAMES, 3))
+        self.hist_valid = np.zeros((n, HISTORY_FRAMES), bool)
+        self.hist_pose[:, lo - h0 :, :2] = tr.position[:, lo : cf + 1, :2]
+        self.hist_pose[:, lo - h0 :, 2] = tr.heading[:, lo : cf + 1]
+        self.hist_valid[:, lo - h0 :] = tr.valid[:, lo : cf + 1]
+        self.episode_poses: list[np.ndarray] = []  # per step [N, 5, 3]
+        self.episode_present: list[np.ndarray] = []  # per step [N]
+        self.agents = list(self.possible_agents)
+        self._done_tracks = np.zeros(n, bool)
+        self._goal_done = np.zeros(n, bool)
+        self.progress_m = np.zeros(n)
+        self.progress_m[self.ctrl_tracks] = route_progress_m(st, self.ctrl_tracks, self.pose[self.ctrl_tracks, :2])
+        # the prior
+        self.rollout_state = None
+        self.slot_of_track = np.full(n, -1, np.int64)
+        self._next_logits = None
+        if self.model is not None:
+            from smart_marl.rollout import RolloutState
+
+            self.rollout_state = RolloutState.start(self.model, sc, num_rollouts=1, seed=prior_seed, top_k=self.top_k,
+                                                    temperature=self.temperature, motion_vocab=self.motion_vocab)
+            ti = self.rollout_state.track_index[0].cpu().numpy()
+            ok = ti >= 0
+            self.slot_of_track[ti[ok]] = np.flatnonzero(ok)
+            self._next_logits = self.rollout_state.logits()[0]
+        self._last_events = {k: np.zeros(n, bool) for k in ("collision", "offroad", "goal_reached")}
+        self._last_terms = np.zeros((n, len(REWARD_TERMS)))
+        self._last_action_logp = np.zeros(n)
+        obs = self._observations(self.agents)
+        infos = self._infos(self.agents)
+        if self._recorder is not None:
+            self._recorder.frames.clear()
+            self._recorder.add(self._render_frame())
+        if self.render_mode == "human":
+            self.render()
+        return obs, infos
+
+    # ------------------------------------------------------------------------ observations
+    def _light_state(self) -> tuple[np.ndarray, np.ndarray]:
+        tl = self.static.scenario.traffic_lights
+        f = min(self.frame, tl.num_frames - 1)
+        return tl.states[f].astype(np.int64), tl.present[f]
+
+    def _observations(self, agents: list[str]) -> dict[str, Any]:
+        if not agents:
+            return {}
+        tracks = np.array([self._agent_track[a] for a in agents], np.int64)
+        state, present = self._light_state()
+        vec = build_observations(self.obs_config, self.static, tracks, self.pose, self.velocity, self.present, self.hist_pose,
+                                 self.hist_valid, self.progress_m[tracks], state, present, self.step_count / self.horizon_steps)
+        if self.obs_config.kind == "vector":
+            return {a: vec[i] for i, a in enumerate(agents)}
+        out = {}
+        for i, (a, k) in enumerate(zip(agents, tracks)):
+            v = self.vocab_sizes[int(self.static.types[k])]
+            d = {"observation": vec[i], "action_mask": np.ones(v, np.int8)}
+            if self.model is not None:
+                d["prior_logits"] = self._agent_logits(k, v)
+            out[a] = d
+        return out
+
+    def _agent_logits(self, track: int, v: int) -> np.ndarray:
+        """The prior's logits [V] of a track's next token (zeros when it is done or not simulated)."""
+        if self._next_logits is None or self._done_tracks[track] or self.slot_of_track[track] < 0:
+            return np.zeros(v, np.float32)
+        row = self._next_logits[self.slot_of_track[track], :v]
+        if not torch.isfinite(row).all():
+            return np.zeros(v, np.float32)
+        return row.numpy().astype(np.float32)
+
+    def _infos(self, agents: list[str]) -> dict[str, dict]:
+        out = {}
+        for a in agents:
+            k = self._agent_track[a]
+            info = {
+                "collision": bool(self._last_events["collision"][k]),
+                "offroad": bool(self._last_events["offroad"][k]),
+                "goal_reached": bool(self._last_events["goal_reached"][k]),
+                "route_progress_m": float(self.progress_m[k]),
+                "reward_terms": self._last_terms[k].astype(np.float32),
+            }
+            if self.model is not None:
+                v = self.vocab_sizes[int(self.static.types[k])]
+                logits = self._agent_logits(k, v)
+                info["prior_logits"] = logits
+                if logits.any():
+                    info["prior_log_probs"] = torch.log_softmax(torch.from_numpy(logits) / self.temperature, -1).numpy()
+                else:
+                    info["prior_log_probs"] = np.zeros(v, np.float32)
+                info["action_log_prob"] = float(self._last_action_logp[k])
+            out[a] = info
+        return out
+
+    # --------------------------------------------------------------------------------- step
+    def _check_actions(self, actions: dict) -> np.ndarray:
+        """Validated token ids [C] of the live agents (-1 for done ones)."""
+        if not self.agents:
+            raise RuntimeError("step() after every agent is done: call reset() to start a new episode")
+        if not isinstance(actions, dict):
+            raise TypeError(f"actions must be a dict {{agent name: token id}}, got {type(actions).__name__}")
+        unknown = [a for a in actions if a not in self._agent_track]
+        if unknown:
+            raise KeyError(f"unknown agent(s) {unknown[:5]}: the agents of this episode are {self.possible_agents[:8]}"
+                           f"{' ...' if len(self.possible_agents) > 8 else ''}")
+        missing = [a for a in self.agents if a not in actions]
+        if missing:
+            raise ValueError(f"no action for live agent(s) {missing[:5]}: every agent in env.agents needs a token id")
+        tokens = np.full(len(self.possible_agents), -1, np.int64)
+        live = set(self.agents)
+        for i, a in enumerate(self.possible_agents):
+            if a not in live:
+                continue  # done agents: their actions are ignored
+            act = np.asarray(actions[a])
+            if act.size != 1 or not (np.issubdtype(act.dtype, np.integer) or (np.issubdtype(act.dtype, np.floating) and float(act) == int(act))):
+                raise ValueError(f"action of {a} must be one integer token id, got {actions[a]!r}")
+            tok = int(act.reshape(()))
+            v = self.vocab_sizes[int(self.static.types[self._agent_track[a]])]
+            if not 0 <= tok < v:
+                raise ValueError(f"action {tok} of {a} is outside its vocabulary: token ids are 0..{v - 1}")
+            tokens[i] = tok
+        return tokens
+
+    def _background_frames(self, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(poses [B, 5, 3], present after the step [B]) of background tracks under log or constant velocity."""
+        k = np.arange(1, FRAMES_PER_TOKEN + 1)
+        if self.background == "log" and len(tracks):
+            tr = self.static.scenario.tracks
+            frames = self.frame + k
+            inside = frames < tr.num_frames
+            fi = np.minimum(frames, tr.num_frames - 1)
+            valid = tr.valid[tracks][:, fi] & inside[None]  # [B, 5]
+            pos = np.concatenate([tr.position[tracks][:, fi, :2], tr.heading[tracks][:, fi, None]], -1).astype(np.float64)
+            # frames the log misses keep the last pose
+            out = np.empty_like(pos)
+            last = self.pose[tracks]
+            for j in range(FRAMES_PER_TOKEN):
+                last = np.where(valid[:, j, None], pos[:, j], last)
+                out[:, j] = last
+            return out, valid[:, -1]
+        # constant velocity (also OTHER agents under the prior)
+        t = (self.frame - self.static.scenario.current_frame + k) * DT_S
+        cf = self.static.scenario.current_frame
+        tr = self.static.scenario.tracks
+        start = np.concatenate([tr.position[tracks, cf, :2], tr.heading[tracks, cf, None]], -1).astype(np.float64)
+        out = np.repeat(start[:, None], FRAMES_PER_TOKEN, 1)
+        out[..., :2] += self.cv_velocity[tracks][:, None] * t[None, :, None]
+        return out, np.ones(len(tracks), bool)
+
+    def _nearest_tokens(self, tracks: np.ndarray, end_pose: np.ndarray) -> np.ndarray:
+        """The token whose end pose best matches each track's move from its pose to ``end_pose`` [B, 3]."""
+        out = np.zeros(len(tracks), np.int64)
+        start = self.pose[tracks]
+        c, s = np.cos(start[:, 2]), np.sin(start[:, 2])
+        d = end_pose[:, :2] - start[:, :2]
+        rel = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], end_pose[:, 2] - start[:, 2]], -1)
+        for t in np.unique(self.static.types[tracks]):
+            sel = self.static.types[tracks] == t
+            ends = self.motion_vocab[int(t)].poses[:, -1].astype(np.float64)  # [V, 3]
+            dh = np.angle(np.exp(1j * (rel[sel, None, 2] - ends[None, :, 2])))
+            cost = np.sum((rel[sel, None, :2] - ends[None, :, :2]) ** 2, -1) + dh ** 2
+            out[sel] = cost.argmin(1)
+        return out
+
+    def step(self, actions: dict):
+        tokens = self._check_actions(actions)
+        st = self.static
+        n = st.num_tracks
+        live_names = list(self.agents)
+        live_ctrl_mask = tokens >= 0
+        live_tracks = self.ctrl_tracks[live_ctrl_mask]
+        live_tokens = tokens[live_ctrl_mask]
+        is_ctrl = np.zeros(n, bool)
+        is_ctrl[live_tracks] = True
+        moving = self.present & ~self._done_tracks
+        frames = np.repeat(self.pose[:, None], FRAMES_PER_TOKEN, 1)  # [N, 5, 3]
+        present_after = moving.copy()
+        action_logp = np.zeros(n)
+
+        # background agents outside the prior's control: log or constant velocity
+        if self.background == "prior":
+            outside = np.flatnonzero(moving & ~is_ctrl & ~st.is_motion)  # OTHER agents: constant velocity
+        elif self.background == "log":  # present when the log is valid: an agent may come back after a gap
+            outside = np.flatnonzero(self.in_sim & ~self._done_tracks & ~is_ctrl)
+        else:
+            outside = np.flatnonzero(moving & ~is_ctrl)
+        if len(outside):
+            if self.background == "prior":
+                saved, self.background = self.background, "constant_velocity"
+                bf, bp = self._background_frames(outside)
+                self.background = saved
+            else:
+                bf, bp = self._background_frames(outside)
+            frames[outside] = bf
+            present_after[outside] = bp
+
+        if self.rollout_state is not None:
+            state = self.rollout_state
+            ns = state.num_slots
+            forced = np.full(ns, -1, np.int64)
+            forced[self.slot_of_track[live_tracks]] = live_tokens
+            sim_now = state.valid[0].numpy()
+            follow = outside[(self.slot_of_track[outside] >= 0)] if len(outside) else outside
+            follow = follow[sim_now[self.slot_of_track[follow]]]
+            if len(follow):
+                forced[self.slot_of_track[follow]] = self._nearest_tokens(follow, frames[follow, -1])
+            out = state.step(torch.from_numpy(forced)[None])
+            sim = out.simulated[0].numpy()
+            slot_tracks = state.track_index[0].numpy()
+            by_prior = np.flatnonzero(sim & (slot_tracks >= 0))
+            prior_tracks = slot_tracks[by_prior]
+            keep = ~np.isin(prior_tracks, outside)  # log / cv agents keep their own poses
+            frames[prior_tracks[keep]] = out.poses[0, by_prior[keep]].numpy().astype(np.float64)
+            action_logp[prior_tracks] = out.log_probs[0, by_prior].numpy()
+            # re-anchor log / cv agents at their true poses; remove agents that left
+            if len(follow):
+                pose_t = state.current_pose.clone()
+                m = torch.zeros_like(state.valid)
+                pose_t[0, self.slot_of_track[follow]] = torch.from_numpy(frames[follow, -1]).float()
+                m[0, self.slot_of_track[follow]] = True
+                state.set_agent_pose(pose_t, m)
+        else:
+            from smart_marl.tokens import compose_poses
+
+            for t in np.unique(st.types[live_tracks]):
+                sel = st.types[live_tracks] == t
+                local = self.motion_vocab[int(t)].poses[live_tokens[sel], 1:].astype(np.float64)  # [c, 5, 3]
+                placed = compose_poses(self.pose[live_tracks[sel]][:, None], local)
+                placed[..., 2] = np.angle(np.exp(1j * placed[..., 2]))
+                frames[live_tracks[sel]] = placed
+
+        # events of the controlled agents over the step's frames
+        coll = collisions(live_tracks, frames, present_after, st.box_size)
+        off = offroad(st, live_tracks, frames)
+        new_progress = route_progress_m(st, live_tracks, frames[live_tracks, -1, :2])
+        goal = goal_reached(st, live_tracks, frames[live_tracks, -1, :2], self.reward_config.goal_radius_m) & ~self._goal_done[live_tracks]
+
+        # advance the state
+        self.pose = frames[:, -1].copy()
+        self.velocity = (frames[:, -1, :2] - frames[:, -2, :2]) / DT_S
+        self.hist_pose = np.concatenate([self.hist_pose[:, FRAMES_PER_TOKEN:], frames], 1)
+        self.hist_valid = np.concatenate([self.hist_valid[:, FRAMES_PER_TOKEN:], np.repeat(present_after[:, None], FRAMES_PER_TOKEN, 1)], 1)
+        self.present = present_after
+        self.frame += FRAMES_PER_TOKEN
+        self.step_count += 1
+        self.episode_poses.append(frames.copy())
+        self.episode_present.append(present_after.copy())
+
+        # rewards
+        jerk = mean_jerk(self.hist_pose[live_tracks, :, :2], self.hist_valid[live_tracks], FRAMES_PER_TOKEN)
+        terms = np.stack([new_progress - self.progress_m[live_tracks], goal.astype(float), coll.astype(float), off.astype(float),
+                          jerk, action_logp[live_tracks] if self.model is not None else np.zeros(len(live_tracks))], -1)
+        rewards = terms @ self.reward_config.weights()
+        self.progress_m[live_tracks] = new_progress
+        self._goal_done[live_tracks] |= goal
+        self._last_terms = np.zeros((n, len(REWARD_TERMS)))
+        self._last_terms[live_tracks] = terms
+        self._last_action_logp = np.zeros(n)
+        self._last_action_logp[live_tracks] = action_logp[live_tracks]
+        self._last_events = {k: np.zeros(n, bool) for k in ("collision", "offroad", "goal_reached")}
+        self._last_events["collision"][live_tracks] = coll
+        self._last_events["offroad"][live_tracks] = off
+        self._last_events["goal_reached"][live_tracks] = goal
+
+        term = np.zeros(len(live_tracks), bool)
+        if "collision" in self.terminate_on:
+            term |= coll
+        if "offroad" in self.terminate_on:
+            term |= off
+        if "goal" in self.terminate_on:
+            term |= goal
+        truncated = self.step_count >= self.horizon_steps
+        done = term | truncated
+        self._done_tracks[live_tracks[done]] = True
+
+        # remove done controlled agents and log agents that left from the prior's scene
+        if self.rollout_state is not None:
+            state = self.rollout_state
+            keep_slot = torch.ones_like(state.valid)
+            gone = np.flatnonzero((self._done_tracks | ~self.present) & (self.slot_of_track >= 0))
+            keep_slot[0, self.slot_of_track[gone]] = False
+            state.set_agent_valid(keep_slot)
+            alive = not bool(done.all())
+            self._next_logits = state.logits()[0] if alive else None
+        # a terminated controlled agent leaves the scene (truncation ends the episode: everyone stays drawn)
+        self.present[live_tracks[term]] = False
+
+        rewards_d = {a: float(r) for a, r in zip(live_names, rewards)}
+        terms_d = {a: bool(t) for a, t in zip(live_names, term)}
+        truncs_d = {a: bool(truncated and not t) for a, t in zip(live_names, term)}
+        obs = self._observations(live_names)
+        infos = self._infos(live_names)
+        self.agents = [a for a, d in zip(live_names, done) if not d]
+        if self._recorder is not None:
+            self._recorder.add(self._render_frame())
+        if self.render_mode == "human":
+            self.render()
+        return obs, rewards_d, terms_d, truncs_d, infos
+
+    # ----------------------------------------------------------------------------- results
+    def trajectories(self) -> tuple[np.ndarray, np.ndarray]:
+        """This episode's 10 Hz poses so far: ([N, 5 * steps, 3] x, y, heading in the scene's local
+        frame, [N, 5 * steps] present), every track of the scene (frames current + 1 ...)."""
+        n = self.static.num_tracks
+        if not self.episode_poses:
+            return np.zeros((n, 0, 3)), np.zeros((n, 0), bool)
+        poses = np.concatenate(self.episode_poses, 1)
+        present = np.repeat(np.stack(self.episode_present, 1), FRAMES_PER_TOKEN, 1)
+        return poses, present
+
+    # --------------------------------------------------------------------------- rendering
+    def _render_frame(self) -> np.ndarray:
+        from smart_marl.render import BevRenderer
+
+        st = self.static
+        if self._renderer is None or self._renderer_scene != self.scene_index:
+            if self._renderer is not None:
+                self._renderer.close()
+            self._renderer = BevRenderer(st.scenario, size_px=self.render_size_px, view_radius_m=self.render_radius_m, center="sdc")
+            self._renderer_scene = self.scene_index
+        ctrl = np.zeros(st.num_tracks, bool)
+        ctrl[self.ctrl_tracks] = True
+        ego = int(self.ctrl_tracks[0])
+        state, present = self._light_state()
+        text = f"{st.scenario.scenario_id}  step {self.step_count}/{self.horizon_steps}  t={self.step_count * FRAMES_PER_TOKEN * DT_S:.1f} s"
+        return self._renderer.render(self.pose[:, :2], self.pose[:, 2], st.box_size, self.present, st.types, controlled=ctrl,
+                                     ego_index=ego, trajectories=self.hist_pose[:, :, :2], trajectories_valid=self.hist_valid,
+                                     light_states=state, light_present=present, text=text)
+
+    def render(self):
+        if self.render_mode is None:
+            import gymnasium
+
+            gymnasium.logger.warn("render() without a render_mode: pass render_mode='rgb_array' or 'human' to parallel_env()")
+            return None
+        if not hasattr(self, "pose"):
+            raise RuntimeError("render() before reset()")
+        frame = self._render_frame()
+        if self.render_mode == "rgb_array":
+            return frame
+        import matplotlib.pyplot as plt
+
+        if self._human_fig is None:
+            self._human_fig, ax = plt.subplots(figsize=(6, 6))
+            ax.set_axis_off()
+            self._human_image = ax.imshow(frame)
+        else:
+            self._human_image.set_data(frame)
+        plt.pause(1.0 / self.metadata["render_fps"])
+        return None
+
+    def start_recording(self, path: str | os.PathLike, fps: float | None = None) -> None:
+        """Record one bird's-eye frame per token step (from the next reset or now) to a GIF or MP4."""
+        from smart_marl.render import EpisodeRecorder
+
+        self._recorder = EpisodeRecorder(path, fps=fps or self.metadata["render_fps"])
+        if hasattr(self, "pose"):
+            self._recorder.add(self._render_frame())
+
+    def save_recording(self) -> Path:
+        """Write the recorded frames (see :meth:`start_recording`) and stop recording; returns the path."""
+        if self._recorder is None:
+            raise RuntimeError("save_recording() without start_recording()")
+        path = self._recorder.write()
+        self._recorder = None
+        return path
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+        if self._human_fig is not None:
+            import matplotlib.pyplot as plt
+
+            plt.close(self._human_fig)
+            self._human_fig = None
+
+
+# --------------------------------------------------------------------------- entry points
+def parallel_env(scenarios="embedded", prior="embedded", controlled="sdc", background: str = "prior", horizon_steps: int = 16,
+                 reward=None, observation="vector", render_mode: str | None = None, max_agents: int | None = None,
+                 **kwargs) -> SmartTrafficEnv:
+    """The parallel environment. ``controlled``: "sdc", "predict" (tracks to predict), "vehicles",
+    "all", a list of track ids or names, or a callable(scene) -> [N] bool mask; ``max_agents`` keeps
+    at most that many controlled agents (the nearest to the self-driving car). ``reward``: a
+    :class:`~envs._reward.RewardConfig` or a dict of weights; ``observation``: "vector", "dict"
+    or an :class:`~envs._observation.ObservationConfig`. Other keywords: ``terminate_on``,
+    ``scene_order`` ("sequential" or "random" with the reset seed), ``motion_vocab`` (needed with
+    ``prior=None``), ``top_k``, ``temperature``, ``render_size_px``, ``render_radius_m``."""
+    return SmartTrafficEnv(scenarios=scenarios, prior=prior, controlled=controlled, background=background,
+                           horizon_steps=horizon_steps, reward=reward, observation=observation, render_mode=render_mode,
+                           max_agents=max_agents, **kwargs)
+
+
+def raw_env(**kwargs):
+    """The AEC form without wrappers (agents act in turn; a full step runs when the last one has acted)."""
+    from pettingzoo.utils.conversions import parallel_to_aec_wrapper
+
+    return parallel_to_aec_wrapper(parallel_env(**kwargs))
+
+
+def env(**kwargs):
+    """The AEC form with PettingZoo's standard order-enforcing wrapper."""
+    return wrappers.OrderEnforcingWrapper(raw_env(**kwargs))
+
+
+__all__ = ["BACKGROUNDS", "EmbeddedAssetMissing", "EnvConfigError", "ObservationConfig", "RewardConfig", "SmartTrafficEnv",
+           "env", "parallel_env", "raw_env"]
