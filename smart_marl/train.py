@@ -364,7 +364,9 @@ def evaluate_sums(model: SMART, batches, device: torch.device, label_smoothing: 
     was = model.training
     model.eval()
     module = NextTokenLoss(model, label_smoothing)
-    sums: dict[str, float] = {}
+    names = ("vehicle", "pedestrian", "cyclist")
+    keys = ["loss", "motion_loss", "road_loss", "road_tokens", "road_top1"] + [f"{t}_{k}" for t in names for k in ("tokens", "top1", "top5")]
+    sums: dict[str, float] = dict.fromkeys(keys, 0.0)  # the same keys on every rank, even one without a batch
     for batch in batches:
         batch = batch.to(device)
         with torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=amp and device.type == "cuda"):
