@@ -229,11 +229,11 @@ class RolloutState:
         t = lambda a: torch.from_numpy(a).to(dev)  # noqa: E731
         self.road_pose = t(_pad_stack([rd.pose.astype(np.float32) for rd in roads], (rmax, 3)))
         self.road_valid = t(_pad_stack([np.ones(len(rd.token), bool) for rd in roads], (rmax,), False))
-        road_points = t(_pad_stack([rd.local.astype(np.float32).reshape(-1, p, 2) for rd in roads], (rmax, p, 2)))
-        road_type = t(_pad_stack([rd.type_id for rd in roads], (rmax,)))
-        road_light = t(_pad_stack([rd.light for rd in roads], (rmax,)))
-        with torch.no_grad():
-            self.road_x = model.road_net(road_points, self.road_pose, road_type, road_light, self.road_valid)  # (B, R, d)
+        self.road_points = t(_pad_stack([rd.local.astype(np.float32).reshape(-1, p, 2) for rd in roads], (rmax, p, 2)))
+        self.road_type = t(_pad_stack([rd.type_id for rd in roads], (rmax,)))
+        self.road_light = t(_pad_stack([rd.light for rd in roads], (rmax,)))
+        with torch.no_grad():  # (B, R, d), once per scene
+            self.road_x = model.road_net(self.road_points, self.road_pose, self.road_type, self.road_light, self.road_valid)
         # ---- token poses per type (padded to Vmax) for placing tokens
         vmax = int(self.vocab_sizes.max())
         tp = torch.zeros(NUM_MOTION_TYPES, vmax, FRAMES_PER_TOKEN + 1, 3)

@@ -1,0 +1,234 @@
+"""Closed-loop rollouts (smart_marl.rollout): the KV cache equals a full re-computation, sampling
+respects top-k / temperature / forced tokens, outputs are sane on real scenes and reproducible.
+
+A small randomly initialised smart-1m (vocabularies of 16 tokens per type built from the real
+scenes' snippets) is enough: none of these properties needs a trained model.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from smart_marl.model.batch import SmartBatch
+from smart_marl.model.smart import SMART, get_config
+from smart_marl.readers import read_scenarios
+from smart_marl.rollout import RolloutState, rollout, sample_tokens, token_poses_from_contours
+from smart_marl.scenario import AgentType
+from smart_marl.tokens import collect_snippets, compose_poses, uniform_grid_vocabulary
+
+SCENE_FILES = ("womd_tfrecord/motion_data_one_scenario.tfrecord", "womd_tfrecord/womd_scenario_input.tfrecord",
+               "gpudrive_json/tfrecord-00000-of-01000_4.json")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """These batches are small: one thread avoids oversubscribing a shared CPU (10x slower there)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def scenes(shared_data):
+    return [next(iter(read_scenarios(shared_data / f))) for f in SCENE_FILES]
+
+
+@pytest.fixture(scope="module")
+def vocab(scenes):
+    snippets, _ = collect_snippets(scenes)
+    return uniform_grid_vocabulary(snippets, 16)
+
+
+@pytest.fixture(scope="module")
+def model(vocab):
+    torch.manual_seed(0)
+    cfg = get_config("smart-1m", motion_vocab_sizes=(16, 16, 16), road_vocab_size=8, num_freq_bands=8, dropout=0.1,
+                     agent_neighbours=16, map_neighbours=16)  # fewer than the candidates: the top-k choice is exercised
+    return SMART(cfg, [torch.from_numpy(vocab[t].contour) for t in range(3)]).eval()
+
+
+def _start(model, vocab, scenes, mode="cached", **kw):
+    kw.setdefault("num_rollouts", 1)
+    return RolloutState.start(model, scenes, mode=mode, motion_vocab=vocab, **kw)
+
+
+def test_incremental_logits_equal_full_recomputation_at_every_step(model, vocab, scenes):
+    two = [scenes[0], scenes[2]]  # WOMD (83 tracks) and GPUDrive (81): the full path is slow on the 257-track scene
+    cached = _start(model, vocab, two, num_rollouts=1, seed=3)
+    full = _start(model, vocab, two, mode="full", num_rollouts=1, seed=3)
+    assert cached.num_history_steps == 2  # WOMD: tokens 0-5 and 5-10 before the current frame
+    worst = 0.0
+    for k in range(16):
+        if k == 9:  # removing an agent mid-rollout keeps both paths equal
+            keep = torch.ones_like(cached.valid)
+            keep[0, int(cached.valid[0].nonzero()[0])] = False
+            cached.set_agent_valid(keep)
+            full.set_agent_valid(keep)
+        a = cached.step()
+        b = full.step(a.tokens)  # the same tokens, so the two histories stay identical
+        finite = torch.isfinite(a.logits)
+        assert torch.equal(finite, torch.isfinite(b.logits))
+        assert finite.any(-1).sum() == a.simulated.sum() > 90
+        worst = max(worst, float((a.logits[finite] - b.logits[finite]).abs().max()))
+    print(f"max |incremental - full| logit error over 16 steps: {worst:.3g}")
+    assert worst < 1e-4, worst
+    # and "full" is the model's own forward: one SmartBatch over history + 15 generated steps
+    tok, valid, start, end = full.history
+    g, n, s = tok.shape
+    road_points = full.road_points[full.scene_of_group]
+    zeros = torch.zeros(g, n, s, dtype=torch.long)
+    batch = SmartBatch(agent_tokens=tok, agent_valid=valid, agent_type=full.agent_type, agent_shape=full.agent_shape,
+                       agent_start_pose=start, agent_pose=end, target_tokens=zeros, target_valid=zeros.bool(),
+                       road_points=road_points, road_pose=full.road_pose[full.scene_of_group], road_type=full.road_type[full.scene_of_group],
+                       road_light=full.road_light[full.scene_of_group], road_valid=full.road_valid[full.scene_of_group],
+                       road_token=torch.zeros(g, road_points.shape[1], dtype=torch.long),
+                       road_masked=torch.zeros(g, road_points.shape[1], dtype=torch.bool),
+                       road_pairs=torch.zeros(g, 1, 2, dtype=torch.long), road_pair_valid=torch.zeros(g, 1, dtype=torch.bool))
+    with torch.no_grad():
+        feats, _ = model(batch)
+    last = feats[:, :, -1]
+    rows = valid[:, :, -1]
+    veh = rows & (full.agent_type == 0)
+    ref = model.motion_heads[0](last[veh])
+    assert torch.allclose(ref, full.logits()[veh][:, :16], atol=1e-5)
+    assert torch.allclose(ref, cached.logits()[veh][:, :16], atol=1e-4)
+
+
+def test_rollouts_are_finite_wrapped_in_vocabulary_and_in_the_source_frame(model, vocab, scenes):
+    res = rollout(model, scenes, num_rollouts=3, num_steps=16, seed=0, motion_vocab=vocab)
+    g = len(scenes) * 3
+    assert res.trajectory.shape == (g, 257, 80, 4) and res.tokens.shape == (g, 257, 16)
+    assert np.isfinite(res.trajectory).all() and np.isfinite(res.log_probs).all()
+    heading = res.trajectory[..., 3]
+    assert (heading >= -math.pi).all() and (heading < math.pi).all()
+    sim = res.simulated
+    assert ((res.tokens[sim] >= 0) & (res.tokens[sim] < 16)).all() and (res.tokens[~sim] == -1).all()
+    assert (res.log_probs[sim] <= 0).all()
+    for gi in range(g):
+        sc = scenes[res.scene_index[gi]]
+        tr, cf = sc.tracks, sc.current_frame
+        nt = tr.num_tracks
+        # every agent valid at the current frame has a trajectory; the motion types are simulated
+        assert np.array_equal(res.has_trajectory[gi, :nt], tr.valid[:, cf])
+        assert np.array_equal(res.simulated[gi, :nt], tr.valid[:, cf] & (tr.types != AgentType.OTHER))
+        assert np.array_equal(res.agent_ids[gi, :nt], tr.ids)
+        # the first future frame is 0.1 s from the logged current pose, in the source frame
+        logged = sc.frame.to_source(tr.position[:, cf])
+        step_m = np.linalg.norm(res.trajectory[gi, :nt, 0, :2] - logged[:, :2], axis=-1)[tr.valid[:, cf]]
+        assert step_m.max() < 4.0, step_m.max()
+        # z is carried from the current frame
+        assert np.allclose(res.trajectory[gi, :nt, :, 2][tr.valid[:, cf]], logged[tr.valid[:, cf], 2][:, None], atol=1e-4)
+    # agents that appeared less than a token before the current frame are simulated too (synthetic last token)
+    tr = scenes[1].tracks
+    late = tr.valid[:, 10] & ~tr.valid[:, 5] & (tr.types != AgentType.OTHER)
+    assert late.sum() == 7 and res.simulated[3][: tr.num_tracks][late].all()
+
+
+def test_same_seed_same_rollouts_other_seed_differs(model, vocab, scenes):
+    a = rollout(model, scenes[:1], num_rollouts=4, num_steps=6, seed=11, motion_vocab=vocab)
+    b = rollout(model, scenes[:1], num_rollouts=4, num_steps=6, seed=11, motion_vocab=vocab)
+    c = rollout(model, scenes[:1], num_rollouts=4, num_steps=6, seed=12, motion_vocab=vocab)
+    assert np.array_equal(a.tokens, b.tokens) and np.array_equal(a.trajectory, b.trajectory)
+    assert not np.array_equal(a.tokens, c.tokens)
+    # rollouts of one scene are batch copies with their own draws
+    assert not np.array_equal(a.tokens[0], a.tokens[1])
+
+
+def test_sampled_tokens_are_inside_the_top_k_with_unclipped_log_probs(model, vocab, scenes):
+    state = _start(model, vocab, scenes[:2], num_rollouts=8, seed=5, top_k=3, temperature=0.7)
+    for _ in range(3):
+        out = state.step()
+        sim = out.simulated
+        logits = out.logits[sim]  # (M, Vmax)
+        chosen = out.tokens[sim]
+        third = torch.topk(logits, 3, dim=-1).values[:, -1]
+        assert (logits.gather(1, chosen[:, None])[:, 0] >= third).all()
+        expected = torch.log_softmax(logits / 0.7, -1).gather(1, chosen[:, None])[:, 0]
+        assert torch.allclose(out.log_probs[sim], expected, atol=1e-6)
+        assert (out.tokens[~sim] == -1).all() and torch.isinf(out.logits[~sim]).all()
+    # with 8 copies x ~100 agents x 3 steps, more than one of the top 3 is used
+    assert len(torch.unique(out.tokens[sim])) > 1
+
+
+def test_sampler_top1_is_argmax_and_forced_overrides():
+    gen = torch.Generator().manual_seed(0)
+    logits = torch.randn(50, 9)
+    logits[:, 7:] = float("-inf")  # a type with 7 tokens in a 9-wide table
+    tok, logp = sample_tokens(logits, gen, top_k=1)
+    assert torch.equal(tok, logits.argmax(-1))
+    forced = torch.full((50,), -1)
+    forced[::2] = 6
+    tok, logp = sample_tokens(logits, gen, top_k=0, temperature=2.0, forced=forced)
+    assert (tok[::2] == 6).all() and (tok < 7).all()
+    assert torch.allclose(logp, torch.log_softmax(logits / 2.0, -1).gather(1, tok[:, None])[:, 0])
+
+
+def test_forced_tokens_are_obeyed_and_placed_at_the_agents_pose(model, vocab, scenes):
+    state = _start(model, vocab, scenes[:1], num_rollouts=2, seed=0)
+    sim = state.valid.clone()
+    forced = torch.full(sim.shape, -1, dtype=torch.long)
+    forced[0] = torch.arange(sim.shape[1]) % 16  # group 0 forced, group 1 sampled
+    before = state.current_pose.clone().numpy()
+    out = state.step(forced)
+    assert torch.equal(out.tokens[0][sim[0]], forced[0][sim[0]])
+    # independent placement: the tokenizer's compose_poses with the vocabulary's poses
+    types = state.agent_type[0].numpy()
+    toks = forced[0].numpy()
+    local = np.stack([vocab[int(t)].poses[k, 1:] for t, k in zip(types, toks)])  # (N, 5, 3)
+    expected = compose_poses(before[0][:, None].astype(np.float64), local.astype(np.float64))
+    got = out.poses[0].numpy()
+    assert np.allclose(got[sim[0].numpy()][..., :2], expected[sim[0].numpy()][..., :2], atol=1e-3)
+    dh = (got[..., 2] - expected[..., 2] + np.pi) % (2 * np.pi) - np.pi
+    assert np.abs(dh[sim[0].numpy()]).max() < 1e-4
+    assert torch.equal(state.current_pose[0], out.poses[0, :, -1])
+    with pytest.raises(ValueError, match="outside"):
+        bad = torch.full(sim.shape, 16, dtype=torch.long)
+        state.step(bad)
+
+
+def test_removed_agent_stops_and_overridden_pose_is_used(model, vocab, scenes):
+    state = _start(model, vocab, scenes[:1], seed=0)
+    slots = state.valid[0].nonzero()[:, 0]
+    gone, moved = int(slots[0]), int(slots[1])
+    keep = torch.ones_like(state.valid)
+    keep[0, gone] = False
+    state.set_agent_valid(keep)
+    pose = state.current_pose.clone()
+    pose[0, moved] = torch.tensor([5.0, -3.0, 0.5])
+    mask = torch.zeros_like(keep)
+    mask[0, moved] = True
+    state.set_agent_pose(pose, mask)
+    out = state.step()
+    assert out.tokens[0, gone] == -1 and torch.isinf(out.logits[0, gone]).all()
+    assert torch.equal(out.poses[0, gone], state.current_pose[0, gone][None].expand(5, 3))
+    first = out.poses[0, moved, 0].numpy()
+    assert np.hypot(first[0] - 5.0, first[1] + 3.0) < 4.0
+
+
+def test_other_agents_move_at_constant_velocity(model, vocab, scenes):
+    sc = scenes[0]
+    tr, cf = sc.tracks, sc.current_frame
+    moving = np.flatnonzero(tr.valid[:, cf] & (np.linalg.norm(tr.velocity[:, cf], axis=-1) > 2.0))[:2]
+    types = tr.types.copy()
+    types[moving] = AgentType.OTHER
+    sc2 = dataclasses.replace(sc, tracks=dataclasses.replace(tr, types=types))
+    res = rollout(model, [sc2], num_rollouts=1, num_steps=4, seed=0, motion_vocab=vocab)
+    assert not res.simulated[0, moving].any() and res.has_trajectory[0, moving].all()
+    t_s = 0.1 * np.arange(1, 21)
+    expect = sc.frame.to_source(tr.position[moving, cf, None, :2] + tr.velocity[moving, cf, None] * t_s[:, None])
+    assert np.allclose(res.trajectory[0, moving, :, :2], expect, atol=1e-3)
+    assert np.allclose(res.trajectory[0, moving, :, 3], sc.frame.heading_to_source(tr.heading[moving, cf, None]).repeat(20, 1))
+
+
+def test_token_poses_from_contours_recover_the_vocabulary_poses(vocab):
+    for t in range(3):
+        poses = token_poses_from_contours(torch.from_numpy(vocab[t].contour)).numpy()
+        assert np.allclose(poses[..., :2], vocab[t].poses[..., :2], atol=1e-4)
+        dh = (poses[..., 2] - vocab[t].poses[..., 2] + np.pi) % (2 * np.pi) - np.pi
+        assert np.abs(dh).max() < 1e-4
