@@ -29,6 +29,15 @@ ONE_SCENE = "womd_tfrecord/motion_data_one_scenario.tfrecord"
 OTHER_SCENE = "womd_tfrecord/womd_scenario_input.tfrecord"
 
 
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    """The tiny model's steps are ~10x slower when torch's threads fight other processes for 2 cores."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture(scope="module")
 def scenes(shared_data):
     return list(read_scenarios(shared_data / ONE_SCENE)) + list(read_scenarios(shared_data / OTHER_SCENE))
@@ -303,3 +312,25 @@ def test_bad_inputs_are_clear_errors(scenes, vocab, model):
         smart_traffic_v0.parallel_env(scenarios=scenes[:1], prior="embedded")
     with pytest.raises(smart_traffic_v0.EnvConfigError, match="background"):
         make(scenes, vocab, model, background="replay")
+
+
+def test_cropped_road_edges_give_the_same_offroad_distances_as_all_edges(scenes):
+    from envs._reward import crop_road_edges
+    from envs._scene import scene_static
+    from smart_marl.geometry import box_corners_float32, box_distance_to_road_edge
+
+    st = scene_static(scenes[0])
+    rng = np.random.default_rng(0)
+    tr, cf = scenes[0].tracks, scenes[0].current_frame
+    base = tr.position[tr.valid[:, cf], cf, :2]
+    n = 200
+    x, y = (base[rng.integers(len(base), size=n)] + rng.normal(0, 8, (n, 2))).T
+    h = rng.uniform(-np.pi, np.pi, n)
+    z = np.full(n, float(np.median(tr.position[tr.valid[:, cf], cf, 2])))
+    size = (np.full(n, 4.5), np.full(n, 2.0), np.full(n, 1.6))
+    full = box_distance_to_road_edge(x, y, z, *size, h, st.road_edges)
+    corners = box_corners_float32(x, y, size[0], size[1], h, z=z, height=size[2]).reshape(-1, 3)
+    cropped = crop_road_edges(st.road_edges, corners)
+    assert cropped.num_segments < st.road_edges.num_segments / 2
+    np.testing.assert_array_equal(box_distance_to_road_edge(x, y, z, *size, h, cropped), full)
+    assert (full > 0).sum() > 10 and (full < 0).sum() > 10  # both sides of the edge are exercised
