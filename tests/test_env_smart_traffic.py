@@ -334,3 +334,22 @@ def test_cropped_road_edges_give_the_same_offroad_distances_as_all_edges(scenes)
     assert cropped.num_segments < st.road_edges.num_segments / 2
     np.testing.assert_array_equal(box_distance_to_road_edge(x, y, z, *size, h, cropped), full)
     assert (full > 0).sum() > 10 and (full < 0).sum() > 10  # both sides of the edge are exercised
+
+
+def test_controlled_selection_by_names_ids_predict_and_a_path(shared_data, scenes, vocab):
+    sc = scenes[0]
+    sdc_name = sc.tracks.names()[sc.sdc_index]
+    predict = [sc.tracks.names()[k] for k in sc.predict_indices if sc.tracks.valid[k, sc.current_frame]]
+    path = str(shared_data / ONE_SCENE)
+    kw = dict(prior=None, motion_vocab=vocab, background="log")
+    assert smart_traffic_v0.parallel_env(scenarios=path, controlled=[sdc_name], **kw).possible_agents == [sdc_name]
+    assert smart_traffic_v0.parallel_env(scenarios=path, controlled=[int(sc.tracks.ids[sc.sdc_index])], **kw).possible_agents == [sdc_name]
+    assert smart_traffic_v0.parallel_env(scenarios=path, controlled="sdc", **kw).possible_agents == [sdc_name]
+    assert sorted(smart_traffic_v0.parallel_env(scenarios=path, controlled="predict", **kw).possible_agents) == sorted(predict)
+    veh = smart_traffic_v0.parallel_env(scenarios=path, controlled="vehicles", max_agents=4, **kw)
+    assert len(veh.possible_agents) == 4 and sdc_name in veh.possible_agents  # the nearest to the SDC, itself first
+    cf = sc.current_frame
+    assert len(smart_traffic_v0.parallel_env(scenarios=path, controlled="vehicles", **kw).possible_agents) == int(
+        (sc.tracks.valid[:, cf] & (sc.tracks.types == int(AgentType.VEHICLE))).sum())
+    with pytest.raises(smart_traffic_v0.EmbeddedAssetMissing, match="sample scenes"):
+        smart_traffic_v0.parallel_env(scenarios="embedded", **kw)
