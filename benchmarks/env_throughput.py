@@ -3,8 +3,8 @@
 Prints one JSON line per (background, prior, controlled agents, raw or TorchRL-wrapped) with
 ``env_steps_per_s`` (token steps of 0.5 s), ``agent_steps_per_s`` (every agent present in the
 scene advanced by one token: the scene's simulated agents, not only the controlled ones) and
-``controlled_agent_steps_per_s``. Resets are not timed (a reset tokenizes the history and encodes
-the road). Actions are uniform random tokens; ``terminate_on=()`` so that every episode runs its
+``controlled_agent_steps_per_s``. Resets are timed apart (``raw_reset_ms``, the resets after the
+first: the env keeps each scene's freshly started prior state). Actions are uniform random tokens; ``terminate_on=()`` so that every episode runs its
 full horizon. The TorchRL rate wraps the same env in ``PettingZooWrapper(use_mask=True,
 done_on_any=False)`` and steps it with random actions from its spec.
 
@@ -51,13 +51,17 @@ def build_prior(args, scenes):
 
 
 def time_raw(env, steps: int, seed: int) -> tuple[float, int, int, int]:
-    """(seconds stepping, env steps, agent steps, controlled agent steps) over ``steps`` env steps."""
+    """(seconds stepping, env steps, agent steps, controlled agent steps) over ``steps`` env steps;
+    ``env.reset_times_s`` gets the resets after the first (which starts the scene's prior)."""
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
+    env.reset_times_s = []
     elapsed, done_steps, agent_steps, ctrl_steps = 0.0, 0, 0, 0
     while done_steps < steps:
         if not env.agents:
+            t0 = time.perf_counter()
             env.reset()
+            env.reset_times_s.append(time.perf_counter() - t0)
         actions = {a: int(rng.integers(env.action_space(a).n)) for a in env.agents}
         moving = int(env.present.sum())
         t0 = time.perf_counter()
@@ -130,6 +134,8 @@ def main() -> int:
                     secs, steps, agent_steps, ctrl_steps = timer(env, args.steps, seed=0)
                     rates[kind] = dict(env_steps_per_s=round(steps / secs, 2), agent_steps_per_s=round(agent_steps / secs, 1),
                                        controlled_agent_steps_per_s=round(ctrl_steps / secs, 1))
+                    if kind == "raw" and env.reset_times_s:
+                        rates[kind]["reset_ms"] = round(1000 * float(np.mean(env.reset_times_s)), 1)
                     env.close()
                 line = dict(benchmark="env_throughput", background=background, prior=prior_name if use_prior else None,
                             controlled_agents=n_ctrl, **{f"{k}_{m}": v for k, r in rates.items() for m, v in r.items()}, **common)
