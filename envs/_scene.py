@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from smart_marl.geometry import RoadEdgeSegments
-from smart_marl.scenario import AgentType, MapFeatureType, Scenario
+from smart_marl.scenario import MapFeatureType, Scenario
 from smart_marl.tokens import MOTION_TYPES
 
 ROAD_POINT_SPACING_M = 2.0  # road points kept for observations: about one every 2 m along each polyline
@@ -116,4 +116,4 @@ def route_progress_m(static: SceneStatic, tracks: np.ndarray, xy: np.ndarray) ->
     return static.route_arc_m[tracks, k]
 
 
-__all__ = ["SceneStatic", "scene_static", "route_progress_m", "AgentType"]
+__all__ = ["SceneStatic", "scene_static", "route_progress_m"]

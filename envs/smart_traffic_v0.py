@@ -475,10 +475,11 @@ class SmartTrafficEnv(ParallelEnv):
             tokens[i] = tok
         return tokens
 
-    def _background_frames(self, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(poses [B, 5, 3], present after the step [B]) of background tracks under log or constant velocity."""
+    def _background_frames(self, tracks: np.ndarray, mode: str) -> tuple[np.ndarray, np.ndarray]:
+        """(poses [B, 5, 3], present after the step [B]) of background tracks under ``mode``: "log"
+        or "constant_velocity"."""
         k = np.arange(1, FRAMES_PER_TOKEN + 1)
-        if self.background == "log" and len(tracks):
+        if mode == "log":
             tr = self.static.scenario.tracks
             frames = self.frame + k
             inside = frames < tr.num_frames
@@ -539,12 +540,7 @@ class SmartTrafficEnv(ParallelEnv):
         else:
             outside = np.flatnonzero(moving & ~is_ctrl)
         if len(outside):
-            if self.background == "prior":
-                saved, self.background = self.background, "constant_velocity"
-                bf, bp = self._background_frames(outside)
-                self.background = saved
-            else:
-                bf, bp = self._background_frames(outside)
+            bf, bp = self._background_frames(outside, "log" if self.background == "log" else "constant_velocity")
             frames[outside] = bf
             present_after[outside] = bp
 
