@@ -134,17 +134,27 @@ def test_human_render_without_a_display_is_a_clear_error(scenes, vocab, model, m
 
 
 # ---------------------------------------------------------------------------------- TorchRL
-def test_torchrl_wrapper_passes_check_env_specs(scenes, vocab, model):
+@pytest.mark.parametrize("with_prior", [True, False])
+def test_torchrl_wrapper_passes_check_env_specs(scenes, vocab, model, with_prior):
     pytest.importorskip("torchrl", reason="the rl extra (torchrl) is not installed")
     from torchrl.envs import PettingZooWrapper
     from torchrl.envs.utils import check_env_specs
 
-    env = make(scenes, vocab, model, observation="dict", horizon_steps=4)
-    wrapped = PettingZooWrapper(env, use_mask=True, done_on_any=False, categorical_actions=True)
+    if with_prior:
+        env = make(scenes, vocab, model, observation="dict", horizon_steps=4)
+    else:
+        env = make(scenes, vocab, None, background="log", horizon_steps=4)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="PettingZoo in TorchRL is tested")
+        wrapped = PettingZooWrapper(env, use_mask=True, done_on_any=False, categorical_actions=True)
     check_env_specs(wrapped, seed=0)
     td = wrapped.rollout(3)
     assert td["vehicle", "action"].shape == (3, 3)
-    assert td["vehicle", "info", "prior_logits"].shape == (3, 3, VOCAB)
+    assert td["vehicle", "info", "reward_terms"].shape == (3, 3, len(REWARD_TERMS))
+    if with_prior:
+        assert td["vehicle", "info", "prior_logits"].shape == (3, 3, VOCAB)
+        # the logits TorchRL carries are the env's, for the step each action was taken from
+        assert torch.isfinite(td["vehicle", "info", "prior_logits"]).all() and td["vehicle", "info", "prior_logits"].abs().sum() > 0
 
 
 # ------------------------------------------------------------------------- prior equalities
