@@ -232,3 +232,14 @@ def test_token_poses_from_contours_recover_the_vocabulary_poses(vocab):
         assert np.allclose(poses[..., :2], vocab[t].poses[..., :2], atol=1e-4)
         dh = (poses[..., 2] - vocab[t].poses[..., 2] + np.pi) % (2 * np.pi) - np.pi
         assert np.abs(dh).max() < 1e-4
+
+
+def test_rollout_from_a_checkpoint_path_equals_rollout_from_its_model(model, vocab, scenes, tmp_path):
+    from smart_marl.model.checkpoint import save_checkpoint
+    from smart_marl.tokens.road import RoadVocabulary
+
+    road_vocab = RoadVocabulary(points=np.zeros((8, 11, 2), np.float32), tolerance_m=0.0, requested_size=8)
+    path = save_checkpoint(tmp_path / "prior", model, vocab, road_vocab)
+    a = rollout(path, scenes[:1], num_rollouts=2, num_steps=3, seed=4)
+    b = rollout(model, scenes[:1], num_rollouts=2, num_steps=3, seed=4, motion_vocab=vocab)
+    assert np.array_equal(a.tokens, b.tokens) and np.allclose(a.trajectory, b.trajectory)
