@@ -243,3 +243,25 @@ def test_rollout_from_a_checkpoint_path_equals_rollout_from_its_model(model, voc
     a = rollout(path, scenes[:1], num_rollouts=2, num_steps=3, seed=4)
     b = rollout(model, scenes[:1], num_rollouts=2, num_steps=3, seed=4, motion_vocab=vocab)
     assert np.array_equal(a.tokens, b.tokens) and np.allclose(a.trajectory, b.trajectory)
+
+
+def test_scenes_with_different_history_lengths_batch_together_and_stay_exact(model, vocab, scenes):
+    # GPUDrive scene cut to start at frame 4: current frame 6, one history token (frames 1-6), next to
+    # the WOMD scene's two; histories are right-aligned so both end at their current frame
+    short = scenes[2].window(4, 91)
+    assert short.current_frame == 6
+    pair = [scenes[0], short]
+    cached = _start(model, vocab, pair, seed=1)
+    full = _start(model, vocab, pair, mode="full", seed=1)
+    assert cached.num_history_steps == 2 and not cached.history[1][1, :, 0].any()
+    for _ in range(4):
+        a = cached.step()
+        b = full.step(a.tokens)
+        finite = torch.isfinite(a.logits)
+        assert torch.equal(finite, torch.isfinite(b.logits)) and finite[1].any()
+        assert float((a.logits[finite] - b.logits[finite]).abs().max()) < 1e-4
+    res = rollout(model, pair, num_rollouts=1, num_steps=2, seed=0, motion_vocab=vocab)
+    tr = short.tracks
+    logged = short.frame.to_source(tr.position[:, 6])
+    first = res.trajectory[1, : tr.num_tracks, 0, :2][tr.valid[:, 6]]
+    assert np.linalg.norm(first - logged[tr.valid[:, 6], :2], axis=-1).max() < 4.0
