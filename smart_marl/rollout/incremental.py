@@ -31,6 +31,12 @@ from ..model.layers import knn_within, relative_pose_features, wrap_angle
 from ..model.motionnet import NUM_MOTION_TYPES, TOKEN_SECONDS
 
 
+def _trim(index: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Neighbour lists [Q, K] cut to the largest number of real neighbours (slots are nearest first)."""
+    k = int(mask.sum(-1).max()) if mask.numel() else 0
+    return index[:, :k], mask[:, :k]
+
+
 class IncrementalMotionNet:
     """MotionNet one token step at a time, with a per-block temporal KV cache.
 
@@ -126,6 +132,7 @@ class IncrementalMotionNet:
                                    cfg.map_neighbours, valid_flat.view(g, n), self.road_valid_g)  # (G, N, Km)
         m_idx = (m_idx + (self.scene_of_group * self.num_road)[:, None, None]).reshape(g * n, -1)[rows]  # (Q, Km)
         m_mask = m_mask.reshape(g * n, -1)[rows]
+        m_idx, m_mask = _trim(m_idx, m_mask)
         m_rpe = net.rpe_map(relative_pose_features(q_pose[:, None], self.road_pose_flat[m_idx]))  # (Q, Km, d)
 
         # 3. agent -> agent at this step, rebuilt from the new poses
@@ -133,6 +140,7 @@ class IncrementalMotionNet:
                                    cfg.agent_neighbours, valid_flat.view(g, n), valid_flat.view(g, n))  # (G, N, Ka)
         a_full = (a_idx + (torch.arange(g, device=dev) * n)[:, None, None]).reshape(g * n, -1)[rows]  # (Q, Ka) flat slots
         a_mask = a_mask.reshape(g * n, -1)[rows]
+        a_full, a_mask = _trim(a_full, a_mask)
         compact = torch.zeros(g * n, dtype=torch.long, device=dev)
         compact[rows] = torch.arange(nq, device=dev)
         a_rows = compact[a_full]  # (Q, Ka) query rows (masked slots point anywhere valid)
