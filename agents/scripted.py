@@ -31,6 +31,8 @@ DT_S = 0.1
 FRAMES_PER_TOKEN = 5
 HEADING_WEIGHT_M_PER_RAD = 2.0
 """How much a heading error counts against a position error when matching a token (m per rad)."""
+PEDESTRIAN_HEADING_WEIGHT_M_PER_RAD = 1.0
+"""Pedestrians turn on the spot and their headings are noisy in the data: heading counts half as much."""
 
 
 def _wrap(a):
@@ -111,16 +113,31 @@ def nearest_tokens(token_poses: torch.Tensor, vocab_size: int, current_pose: tor
 
     token_poses [V, 6, 3] (one type's token poses in the token's start frame; rows beyond
     ``vocab_size`` are ignored), current_pose [M, 3] (where the token starts), targets [M, 5, 3]
-    (the next 5 target poses, same frame as ``current_pose``) -> token ids [M] minimising the mean
-    position error over the 5 frames plus ``heading_weight`` x the mean heading error.
+    or [M, 10, 3] (the next 5 or 10 target poses, same frame as ``current_pose``) -> token ids [M]
+    minimising the mean position error plus ``heading_weight`` x the mean heading error. With 10
+    targets it looks one token ahead: the first token of the best *pair* of tokens (V^2 pairs), so
+    that a token which is good now but leaves the agent badly oriented for the next one loses.
     """
     poses = token_poses[:vocab_size, 1:].to(torch.float64)  # (V, 5, 3)
     cur = current_pose.to(torch.float64)
     tgt = targets.to(torch.float64)
     c, s = cur[:, 2].cos()[:, None], cur[:, 2].sin()[:, None]
     dx, dy = tgt[..., 0] - cur[:, None, 0], tgt[..., 1] - cur[:, None, 1]
-    local = torch.stack([c * dx + s * dy, -s * dx + c * dy, tgt[..., 2] - cur[:, None, 2]], -1)  # (M, 5, 3)
-    pos_err = (local[:, None, :, :2] - poses[None, :, :, :2]).norm(dim=-1).mean(-1)  # (M, V)
-    dh = local[:, None, :, 2] - poses[None, :, :, 2]
-    head_err = torch.atan2(dh.sin(), dh.cos()).abs().mean(-1)
-    return (pos_err + heading_weight * head_err).argmin(1)
+    local = torch.stack([c * dx + s * dy, -s * dx + c * dy, tgt[..., 2] - cur[:, None, 2]], -1)  # (M, F, 3)
+
+    def error(candidate: torch.Tensor, target: torch.Tensor) -> torch.Tensor:  # (..., F, 3) vs (M, 1.., F, 3)
+        pos = (candidate[..., :2] - target[..., :2]).norm(dim=-1).mean(-1)
+        dh = candidate[..., 2] - target[..., 2]
+        return pos + heading_weight * torch.atan2(dh.sin(), dh.cos()).abs().mean(-1)
+
+    if local.shape[1] < 2 * FRAMES_PER_TOKEN:
+        return error(poses[None], local[:, None, :FRAMES_PER_TOKEN]).argmin(1)
+    # pairs: token b placed at the end of token a -> (V, V, 5, 3)
+    end = poses[:, -1]  # (V, 3)
+    ce, se = end[:, 2].cos()[:, None, None], end[:, 2].sin()[:, None, None]
+    bx, by = poses[None, :, :, 0], poses[None, :, :, 1]
+    second = torch.stack([end[:, None, None, 0] + ce * bx - se * by, end[:, None, None, 1] + se * bx + ce * by,
+                          end[:, None, None, 2] + poses[None, :, :, 2]], -1)
+    pair = torch.cat([poses[:, None].expand(-1, poses.shape[0], -1, -1), second], 2)  # (V, V, 10, 3)
+    err = error(pair[None], local[:, None, None, : 2 * FRAMES_PER_TOKEN])  # (M, V, V)
+    return err.amin(2).argmin(1)

@@ -20,8 +20,8 @@ Two kinds of edits:
 * **forced tokens** during the rollout (:meth:`RolloutState.step`'s ``forced_tokens``): ``brake``,
   ``stop``, ``cut_in``, ``follow``, ``stalled_vehicle`` and the motion of inserted agents. Each
   0.5 s step the scripted agent takes the token of its type's vocabulary closest to the next 5
-  frames of its target path (:func:`agents.scripted.nearest_tokens`), from the pose it actually
-  reached; given ``tokens`` are forced as they are. ``remove`` with ``at_s > 0`` takes the agents
+  frames of its target path, looking one token ahead (:func:`agents.scripted.nearest_tokens`), from
+  the pose it actually reached; given ``tokens`` are forced as they are. ``remove`` with ``at_s > 0`` takes the agents
   out of the running rollout (:meth:`RolloutState.set_agent_valid`): gone from every later frame
   and from everyone's neighbourhoods.
 
@@ -512,12 +512,17 @@ def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
             if len(np.asarray(size).reshape(-1)) != 3:
                 raise WhatIfError(path, f"size_m must be [length, width, height], got {size}", i)
             scene = _add_track(scene, tid, atype, future, size, hist_speed)
-            fut = future[1:] if len(future) > 1 else future
             if tokens is not None:
                 scripts.append(_Script(tid, 0, tokens=tokens, then=then))
             else:
-                scripts.append(_Script(tid, 0, then=then, make_path=lambda pose, v, fut=fut, n=horizon - 1:
-                                       np.repeat(_pad_hold(fut, n)[None], len(pose), 0)))
+                fut = future[1:] if len(future) > 1 else future
+                end_step = None
+                if then == "release":  # released when its motion ends; the target runs on past the end (no sudden stop)
+                    moving = _moving_frames(future)
+                    end_step = int(math.ceil(moving / FRAMES_PER_TOKEN))
+                    fut = _extrapolate(future[: moving + 1], horizon + 2 * FRAMES_PER_TOKEN)[1:]
+                scripts.append(_Script(tid, 0, then=then, end_step=end_step, make_path=lambda pose, v, fut=fut, n=horizon - 1:
+                                       np.repeat(_pad_hold(fut, n + 2 * FRAMES_PER_TOKEN)[None], len(pose), 0)))
             affected[tid], onset[tid] = {"insert": "inserted", "jaywalker": "jaywalker", "stalled_vehicle": "stalled"}[kind], 0
             if kind == "stalled_vehicle":
                 followers[tid] = _followers(scene, scene.num_tracks - 1)
@@ -560,6 +565,16 @@ def _then(value: str, path, i) -> str:
 
 def _pad_hold(poses: np.ndarray, n: int) -> np.ndarray:
     return poses[:n] if len(poses) >= n else np.concatenate([poses, np.repeat(poses[-1:], n - len(poses), 0)], 0)
+
+
+def _extrapolate(poses: np.ndarray, n: int) -> np.ndarray:
+    """``poses`` [K, 3] continued at their last velocity to ``n`` poses."""
+    if len(poses) >= n:
+        return poses[:n]
+    step = poses[-1] - poses[-2] if len(poses) > 1 else np.zeros(3)
+    step[2] = 0.0
+    extra = poses[-1] + step * np.arange(1, n - len(poses) + 1)[:, None]
+    return np.concatenate([poses, extra], 0)
 
 
 def _moving_frames(future: np.ndarray) -> int:
@@ -674,7 +689,7 @@ def simulate(model, vocab, prepared: Prepared, num_rollouts: int, seed: int, num
                 if j < len(s.tokens):
                     forced[:, slot] = s.tokens[j]
                 elif s.then == "hold":
-                    forced[:, slot] = _nearest(state, atype, slot, scripted.hold_path(state.current_pose[:, slot].cpu().numpy(), FRAMES_PER_TOKEN))
+                    forced[:, slot] = _nearest(state, atype, slot, scripted.hold_path(state.current_pose[:, slot].cpu().numpy(), 2 * FRAMES_PER_TOKEN))
                 continue
             if s.path is None:
                 onset_pose = state.current_pose[:, slot].cpu().numpy().astype(np.float64)
@@ -687,9 +702,9 @@ def simulate(model, vocab, prepared: Prepared, num_rollouts: int, seed: int, num
                 if s.then != "hold":
                     continue
                 s.path = np.concatenate([s.path, np.repeat(s.path[:, -1:], lo + FRAMES_PER_TOKEN - s.path.shape[1], 1)], 1)
-            seg = s.path[:, lo: lo + FRAMES_PER_TOKEN]
-            if seg.shape[1] < FRAMES_PER_TOKEN:
-                seg = np.concatenate([seg, np.repeat(seg[:, -1:], FRAMES_PER_TOKEN - seg.shape[1], 1)], 1)
+            seg = s.path[:, lo: lo + 2 * FRAMES_PER_TOKEN]  # this token's 5 frames and the next one's (look-ahead)
+            if seg.shape[1] < 2 * FRAMES_PER_TOKEN:
+                seg = np.concatenate([seg, np.repeat(seg[:, -1:], 2 * FRAMES_PER_TOKEN - seg.shape[1], 1)], 1)
             forced[:, slot] = _nearest(state, atype, slot, seg)
         out = state.step(forced)
         p = out.poses.cpu().numpy().astype(np.float64)  # (G, N, 5, 3)
@@ -714,8 +729,9 @@ def simulate(model, vocab, prepared: Prepared, num_rollouts: int, seed: int, num
 
 def _nearest(state, atype: int, slot: int, targets: np.ndarray) -> torch.Tensor:
     size = int(state.vocab_sizes[atype])
+    weight = scripted.HEADING_WEIGHT_M_PER_RAD if atype != int(AgentType.PEDESTRIAN) else scripted.PEDESTRIAN_HEADING_WEIGHT_M_PER_RAD
     return scripted.nearest_tokens(state.token_poses[atype].cpu(), size, state.current_pose[:, slot].cpu(),
-                                   torch.from_numpy(np.asarray(targets, np.float64))).to(torch.long)
+                                   torch.from_numpy(np.asarray(targets, np.float64)), weight).to(torch.long)
 
 
 # ------------------------------------------------------------------------------- comparison
