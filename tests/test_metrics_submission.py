@@ -88,9 +88,32 @@ def test_eval_command_table_and_errors(tmp_path, capsys, shared_data):
                  "--submission", str(womd / "sim_agents_test_submission.binproto"), "--rules", "2025"]) == 0
     out = capsys.readouterr().out
     assert "traffic_light_violation" in out and "realism meta-metric" in out and "minADE" in out
-    assert main(["eval", "--scenes", str(womd / "motion_data_one_scenario.tfrecord"), "--policy", "prior"]) == 2
-    assert "rollout engine" in capsys.readouterr().err
     # the submission has no rollouts for the other scene: a named error, exit code 1
     assert main(["eval", "--scenes", str(womd / "womd_scenario_input.tfrecord"),
                  "--submission", str(womd / "sim_agents_test_submission.binproto")]) == 1
     assert "no rollouts for scenario ee519cf571686d19" in capsys.readouterr().err
+
+
+def test_eval_policy_prior_scores_the_rollout_engines_rollouts(shared_data, tiny_prior, capsys):
+    import json
+
+    from smart_marl.cli import main
+    from smart_marl.commands.eval import prior_rollouts
+    from smart_marl.metrics import logged_scene
+    from smart_marl.model.checkpoint import load_checkpoint
+    from smart_marl.readers import read_scenario
+
+    path = shared_data / "womd_tfrecord" / "motion_data_one_scenario.tfrecord"
+    assert main(["eval", "--scenes", str(path), "--policy", "prior", "--checkpoint", str(tiny_prior),
+                 "--rollouts", "4", "--rules", "2024", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["rules"] == "2024" and out["num_scenarios"] == 1 and 0.0 < out["meta_metric"] < 1.0
+    # the rollouts cover exactly the agents valid at the current frame, in the scene's local frame
+    scenario = read_scenario(path)
+    rollouts = prior_rollouts(load_checkpoint(tiny_prior), scenario, 2, seed=0)
+    scene = logged_scene(scenario)
+    valid_now = scenario.tracks.ids[scenario.tracks.valid[:, scenario.current_frame]]
+    assert sorted(rollouts.object_ids.tolist()) == sorted(valid_now.tolist())
+    assert rollouts.x.shape == (2, len(valid_now), 80) and scene.scenario_id == scenario.scenario_id
+    first = np.hypot(rollouts.x[:, :, 0], rollouts.y[:, :, 0])
+    assert np.all(np.isfinite(first)) and first.max() < 5e3

@@ -2,7 +2,8 @@
 
 Stage: metrics (the end of the data flow). ``--submission FILE`` scores the rollouts a
 ``SimAgentsChallengeSubmission`` file holds; ``--policy NAME`` first generates them
-(constant_velocity, log_replay, random; ``prior`` needs the SMART rollout engine). Prints a table
+(constant_velocity, log_replay, random, or ``prior``: closed-loop rollouts of the SMART prior, the
+package's embedded checkpoint unless ``--checkpoint`` names another). Prints a table
 per feature and category plus the meta-metric and minADE, or one JSON object with ``--json``;
 ``--write-submission OUT`` saves policy rollouts as an uploadable submission file.
 """
@@ -25,7 +26,8 @@ def register(subparsers) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--submission", metavar="FILE", help="a SimAgentsChallengeSubmission file (.binproto)")
     src.add_argument("--policy", choices=POLICY_CHOICES, help="generate rollouts with a baseline policy")
-    p.add_argument("--checkpoint", metavar="C", help="model checkpoint (for --policy prior)")
+    p.add_argument("--checkpoint", metavar="C", help="model checkpoint for --policy prior (default: the embedded prior)")
+    p.add_argument("--device", default="cpu", help="torch device for --policy prior (default cpu)")
     p.add_argument("--rollouts", type=int, default=32, help="rollouts per scene for --policy (default 32)")
     p.add_argument("--seed", type=int, default=0, help="random seed for --policy (default 0)")
     p.add_argument("--rules", choices=("2024", "2025"), default="2025", help="challenge rules (default 2025)")
@@ -59,10 +61,6 @@ def run(args) -> int:
     from ..metrics.submission import ScenarioRolloutArrays, check_against_scene, rollouts_from_submission, write_rollouts
     from ..readers import read_scenarios
 
-    if args.policy == "prior":
-        print("smart-marl eval: error: --policy prior needs the SMART rollout engine, which does not exist yet "
-              "(use --policy constant_velocity|log_replay|random, or score a --submission file)", file=sys.stderr)
-        return 2
     if args.checkpoint and args.policy != "prior":
         print("smart-marl eval: error: --checkpoint only applies to --policy prior", file=sys.stderr)
         return 2
@@ -75,6 +73,7 @@ def run(args) -> int:
     submitted = rollouts_from_submission(args.submission) if args.submission else None
     results, written = [], []
     seen = set()
+    prior = None
     scenes = read_scenarios(args.scenes, format=args.format) if args.format else read_scenarios(args.scenes)
     for scenario in tqdm(scenes, desc="eval", unit="scene", file=sys.stderr, disable=None):
         scene = logged_scene(scenario)
@@ -86,11 +85,16 @@ def run(args) -> int:
             check_against_scene(arrays, scene, args.submission)
             rollouts = arrays.to_rollouts(scenario.frame)
             where = args.submission
+        elif args.policy == "prior":
+            if prior is None:
+                prior = _load_prior(args.checkpoint, args.device)
+            rollouts = prior_rollouts(prior, scenario, args.rollouts, args.seed, args.device)
+            where = f"--policy prior ({args.checkpoint or 'embedded'})"
         else:
             rollouts = policy_rollouts(args.policy, scenario, args.rollouts, args.seed)
             where = f"--policy {args.policy}"
-            if args.write_submission:
-                written.append(ScenarioRolloutArrays(scenario.scenario_id, rollouts.object_ids,
+        if args.policy and args.write_submission:
+            written.append(ScenarioRolloutArrays(scenario.scenario_id, rollouts.object_ids,
                                                      rollouts.to_source(scenario.frame).astype("float32")))
         seen.add(scenario.scenario_id)
         results.append(score_rollouts(scene, rollouts, args.rules, where=where))
@@ -98,7 +102,7 @@ def run(args) -> int:
         print(f"smart-marl eval: error: no scenes in {args.scenes}", file=sys.stderr)
         return 1
     if args.write_submission:
-        write_rollouts(args.write_submission, written, description=f"smart-marl baseline policy {args.policy}")
+        write_rollouts(args.write_submission, written, description=f"smart-marl policy {args.policy}")
     out = aggregate(results, args.rules)
     if args.json:
         keys = ("meta_metric", "kinematic", "interactive", "map_based", "min_ade", "likelihoods", "num_scenarios", "rules")
@@ -106,3 +110,24 @@ def run(args) -> int:
     else:
         print(format_table(out))
     return 0
+
+
+def _load_prior(checkpoint, device):
+    """The SMART prior for ``--policy prior``: a checkpoint path, or the package's embedded one."""
+    from ..model.checkpoint import load_checkpoint, load_embedded
+
+    return load_checkpoint(checkpoint, map_location=device) if checkpoint else load_embedded(map_location=device)
+
+
+def prior_rollouts(prior, scenario, num_rollouts: int, seed: int, device: str = "cpu"):
+    """WOSAC rollouts of one scene by the SMART prior: 16 token steps (80 frames) of every agent valid
+    at the current frame (the engine simulates vehicles, pedestrians and cyclists and moves agents of
+    type OTHER at constant velocity), as :class:`~smart_marl.metrics.inputs.Rollouts`."""
+    import numpy as np
+
+    from ..metrics.inputs import Rollouts
+    from ..rollout import rollout
+
+    result = rollout(prior, scenario, num_rollouts=num_rollouts, num_steps=16, seed=seed, device=device)
+    agents = np.flatnonzero(result.has_trajectory[0])
+    return Rollouts.from_source(result.agent_ids[0, agents], result.trajectory[:, agents], scenario.frame)

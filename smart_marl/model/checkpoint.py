@@ -167,3 +167,21 @@ def load_train_state(path: str | os.PathLike) -> dict[str, Any]:
     if not p.is_file():
         raise CheckpointError(p, "no training state next to this checkpoint (it cannot be resumed, only used with --init)")
     return torch.load(p, map_location="cpu", weights_only=False)  # our own file, written by save_checkpoint
+
+
+EMBEDDED_DIR = Path(__file__).resolve().parents[1] / "checkpoints" / "embedded"
+"""Where the package ships its pretrained prior (``prior="embedded"``)."""
+
+
+def embedded_checkpoint_path() -> Path:
+    """The embedded prior's checkpoint (its ``.json``); a clear error when the package has none."""
+    found = sorted(EMBEDDED_DIR.glob("*.json")) if EMBEDDED_DIR.is_dir() else []
+    metas = [p for p in found if not p.name.endswith((".motion_vocab.json", ".road_vocab.json"))]
+    if not metas:
+        raise CheckpointError(EMBEDDED_DIR, "this installation ships no embedded SMART checkpoint; pass a checkpoint path")
+    return metas[0]
+
+
+def load_embedded(map_location: str | torch.device = "cpu", **config_overrides: Any) -> Checkpoint:
+    """The package's pretrained SMART prior (see the model card in the README)."""
+    return load_checkpoint(embedded_checkpoint_path(), map_location=map_location, **config_overrides)
