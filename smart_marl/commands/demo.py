@@ -17,7 +17,7 @@ def register(subparsers) -> None:
                               description=__doc__.split("\n\n")[1])
     p.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
     p.add_argument("--scenes", type=int, default=8, help="how many synthetic scenes")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.set_defaults(func=run)
 
 

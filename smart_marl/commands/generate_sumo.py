@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import sys
 
 
 def register(subparsers) -> None:
@@ -16,13 +17,13 @@ def register(subparsers) -> None:
     p.add_argument("--out", required=True, help="output folder (created if missing)")
     p.add_argument("--workers", type=int, default=max(1, min(4, os.cpu_count() or 1)),
                    help="parallel processes, one SUMO simulation each")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="random seed of the networks and traffic (default 0)")
     p.add_argument("--format", choices=("cache", "womd"), default="cache",
                    help="cache: scene-cache shards + manifest.json; womd: WOMD scenario TFRecords")
     p.add_argument("--scenes-per-sim", type=int, default=8, help="scenes cut from each simulation")
     p.add_argument("--radius", type=float, default=80.0, help="agents within this many metres of the SDC are kept")
-    p.add_argument("--no-pedestrians", action="store_true")
-    p.add_argument("--no-bicycles", action="store_true")
+    p.add_argument("--no-pedestrians", action="store_true", help="no pedestrians in the simulations")
+    p.add_argument("--no-bicycles", action="store_true", help="no bicycles in the simulations")
     p.add_argument("--sublane", action="store_true",
                    help="SUMO's sub-lane model for lateral motion (about 2.5x slower)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -34,7 +35,7 @@ def run(args) -> int:
     from ..sources.sumo import SumoConfig, SumoUnavailableError, generate_to_dir
 
     if args.scenes < 1 or args.workers < 1 or args.scenes_per_sim < 1:
-        print("smart-marl generate-sumo: --scenes, --workers and --scenes-per-sim must be at least 1")
+        print("smart-marl generate-sumo: error: --scenes, --workers and --scenes-per-sim must be at least 1", file=sys.stderr)
         return 2
     config = SumoConfig(scenes_per_sim=args.scenes_per_sim, radius_m=args.radius, pedestrians=not args.no_pedestrians,
                         bicycles=not args.no_bicycles, sublane=args.sublane)

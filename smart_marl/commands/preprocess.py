@@ -13,7 +13,7 @@ def register(subparsers) -> None:
     p.add_argument("sources", nargs="+", metavar="SRC", help="scene files, folders or globs")
     p.add_argument("--out", required=True, help="the cache folder (created if missing)")
     p.add_argument("--workers", type=int, default=max(1, min(4, os.cpu_count() or 1)), help="parallel processes")
-    p.add_argument("--scenes-per-shard", type=int, default=64)
+    p.add_argument("--scenes-per-shard", type=int, default=64, help="scenes per shard file (default 64)")
     p.add_argument("--skip-bad", action="store_true",
                    help="report bad input files, record them in the manifest and go on (default: stop)")
     p.add_argument("--format", default=None, help="force a reader instead of detecting the format per file")

@@ -19,6 +19,9 @@ def register(subparsers) -> None:
     p.add_argument("--config", required=True, help="training config file (.json/.toml) or a model config name")
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides, values parsed as JSON when they parse")
     p.add_argument("--init", default=None, metavar="CHECKPOINT", help="start from these weights (fine-tuning)")
+    p.add_argument("--out", default=None, metavar="DIR", help="run folder (the config's out_dir; default runs/smart)")
+    p.add_argument("--seed", type=int, default=None, help="random seed (the config's seed; default 0)")
+    p.add_argument("--device", default=None, help="torch device (the config's device; default auto: cuda when available)")
     p.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
     p.set_defaults(func=run)
 
@@ -29,6 +32,13 @@ def run(args) -> int:
     cfg = load_train_config(args.config, args.overrides)
     if args.init:
         cfg.init = args.init
+    # the flags every command shares win over the config file and key=value overrides
+    if args.out is not None:
+        cfg.out_dir = args.out
+    if args.seed is not None:
+        cfg.seed = args.seed
+    if args.device is not None:
+        cfg.device = args.device
     if args.print_config:
         print(json.dumps(cfg.to_dict(), indent=1))
         return 0

@@ -23,9 +23,9 @@ def register(subparsers) -> None:
     b.add_argument("--sizes", default="512,1024,2048", help="motion vocabulary sizes per type, comma-separated")
     b.add_argument("--road-size", type=int, default=1024, help="road vocabulary size (0: no road vocabulary)")
     b.add_argument("--out", required=True, type=Path, help="output folder")
-    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--seed", type=int, default=0, help="random seed of k-disks (default 0)")
     b.add_argument("--stride", type=int, default=1, help="frames between the starts of collected snippets")
-    b.add_argument("--no-progress", action="store_true")
+    b.add_argument("--no-progress", action="store_true", help="no progress bars")
     b.set_defaults(func=run_build)
 
 
@@ -40,7 +40,10 @@ def run_build(args) -> int:
     try:
         sizes = [int(s) for s in str(args.sizes).split(",") if s.strip()]
     except ValueError:
-        print(f"smart-marl vocab build: --sizes must be integers, got {args.sizes!r}", file=sys.stderr)
+        sizes = []
+    if not sizes or min(sizes) < 1 or args.road_size < 0 or args.stride < 1:
+        print(f"smart-marl vocab build: error: --sizes must be positive integers (got {args.sizes!r}), --road-size >= 0, "
+              f"--stride >= 1", file=sys.stderr)
         return 2
     files = expand_paths(args.sources)
     parts = {t: [] for t in MOTION_TYPES}
