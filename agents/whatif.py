@@ -73,7 +73,6 @@ DT_S = 0.1
 FRAMES_PER_TOKEN = 5
 TOKEN_S = DT_S * FRAMES_PER_TOKEN
 AgentRef = Union[int, str]
-EMBEDDED_CHECKPOINT_DIR = Path(__file__).resolve().parents[1] / "smart_marl" / "checkpoints" / "embedded"
 
 DEFAULT_SIZE_M = {"vehicle": (4.6, 2.0, 1.6), "pedestrian": (0.8, 0.8, 1.8), "cyclist": (1.8, 0.7, 1.7)}
 FOLLOWER_REACH_M = 60.0
@@ -746,16 +745,11 @@ class WhatIfResult:
 
 def resolve_prior(checkpoint=None, device="cpu"):
     """(model, motion vocabulary) from a checkpoint path, a model or Checkpoint, or — when None —
-    the package's embedded prior (``smart_marl/checkpoints/embedded/*.json``)."""
+    the package's embedded prior (:func:`smart_marl.model.checkpoint.embedded_checkpoint_path`)."""
+    from smart_marl.model.checkpoint import embedded_checkpoint_path
     from smart_marl.rollout import resolve_model
 
-    if checkpoint is None:
-        found = sorted(EMBEDDED_CHECKPOINT_DIR.glob("*.json")) if EMBEDDED_CHECKPOINT_DIR.is_dir() else []
-        found = [f for f in found if not f.name.endswith((".motion_vocab.json", ".road_vocab.json"))]
-        if not found:
-            raise WhatIfError(EMBEDDED_CHECKPOINT_DIR, "this package ships no embedded SMART checkpoint yet; pass --checkpoint PATH")
-        checkpoint = found[0]
-    return resolve_model(checkpoint, device)
+    return resolve_model(embedded_checkpoint_path() if checkpoint is None else checkpoint, device)
 
 
 def run_whatif(prior, scene: Scenario, whatif: WhatIf, num_rollouts: int = 8, seed: int = 0, num_steps: int = 16,

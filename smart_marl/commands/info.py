@@ -37,7 +37,7 @@ def run(args) -> int:
         try:
             files = expand_paths(root)
         except ScenarioReadError as exc:
-            print(f"error: {exc}", file=sys.stderr)
+            print(f"smart-marl info: error: {exc}", file=sys.stderr)
             failures += 1
             continue
         for path in files:
@@ -50,6 +50,6 @@ def run(args) -> int:
                     else:
                         print(format_line(summary, path), flush=True)
             except ScenarioReadError as exc:
-                print(f"error: {exc}", file=sys.stderr)
+                print(f"smart-marl info: error: {exc}", file=sys.stderr)
                 failures += 1
     return 1 if failures else 0
