@@ -57,7 +57,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence, Union
 
@@ -315,8 +315,9 @@ def _current_pose(scene: Scenario, index: int) -> np.ndarray:
     return np.array([tr.position[index, cf, 0], tr.position[index, cf, 1], tr.heading[index, cf]], np.float64)
 
 
-def _to_local(scene: Scenario, edit: Placement, points, path, i, with_heading: bool = False) -> np.ndarray:
-    """Points [K, 2] or poses [K, 3] of an edit -> the scene's local frame."""
+def _to_local(scene: Scenario, edit: Placement, points, path, i) -> np.ndarray:
+    """Points [K, 2] or poses [K, 3] of an edit -> poses [K, 3] in the scene's local frame (heading 0
+    in the edit's frame when only points are given)."""
     a = np.asarray(points, np.float64)
     if a.ndim == 1:
         a = a[None]
@@ -338,7 +339,7 @@ def _to_local(scene: Scenario, edit: Placement, points, path, i, with_heading: b
     else:
         raise WhatIfError(path, f"frame must be 'source' or 'local', got {edit.frame!r}", i)
     out[:, 2] = wrap_angle(out[:, 2])
-    return out if (with_heading or a.shape[1] == 3) else out
+    return out
 
 
 def _agent_type(name: str, path, i) -> AgentType:

@@ -19,7 +19,7 @@ import torch
 
 from agents import scripted
 from agents.whatif import (
-    Brake, CutIn, Insert, Jaywalker, Prepared, Remove, StalledVehicle, TrafficLightOverride, WhatIf,
+    Brake, CutIn, Follow, Insert, Jaywalker, Prepared, Remove, StalledVehicle, Stop, TrafficLightOverride, WhatIf,
     WhatIfError, load_script, override_road_lights, prepare, run_whatif, simulate,
 )
 from smart_marl.model.checkpoint import EMBEDDED_DIR
@@ -90,9 +90,9 @@ def test_removed_agents_are_gone_from_every_later_frame_and_the_past_is_unchange
     assert not np.allclose(np.nan_to_num(sim.poses[:, others, 20:]), np.nan_to_num(base.poses[:, others, 20:]))
 
 
-def test_braking_car_speed_reaches_zero_within_the_stated_time(model, vocab, scene):
-    decel = 8.0
-    _, sim = run(model, vocab, scene, Brake(agent=1609, at_s=1.0, decel_mps2=decel), rollouts=3)
+@pytest.mark.parametrize("kind,decel", [(Brake, 8.0), (Stop, 3.0)])
+def test_braking_car_speed_reaches_zero_within_the_stated_time(model, vocab, scene, kind, decel):
+    _, sim = run(model, vocab, scene, kind(agent=1609, at_s=1.0, decel_mps2=decel), rollouts=3)
     k = column(sim, 1609)
     speed = sim.speed_mps()[:, k]  # (R, T), frame j ends at (j + 1) * 0.1 s
     onset = 10  # frames: brake from 1.0 s
@@ -142,6 +142,20 @@ def test_inserted_agent_with_tokens_moves_by_exactly_those_tokens(model, vocab, 
         pose = placed[-1]
     expected = np.concatenate(out)
     np.testing.assert_allclose(sim.poses[:, k], np.broadcast_to(expected, sim.poses[:, k].shape), atol=2e-3)
+
+
+def test_follow_tokens_forces_exactly_those_tokens_from_the_onset(model, vocab, scene):
+    tokens = [3, 7, 7, 1]
+    _, sim = run(model, vocab, scene, Follow(agent=1645, at_s=1.0, tokens=tokens), steps=8)
+    k = column(sim, 1645)
+    from smart_marl.tokens import compose_poses
+
+    pose = sim.poses[:, k, 9]  # where the agent is at 1.0 s, per rollout
+    for j, tok in enumerate(tokens):
+        placed = compose_poses(pose, np.broadcast_to(vocab[0].poses[tok, 1:].astype(np.float64), (len(pose), 5, 3)).transpose(1, 0, 2))
+        np.testing.assert_allclose(sim.poses[:, k, 10 + 5 * j: 15 + 5 * j], placed.transpose(1, 0, 2), atol=2e-3)
+        pose = placed[-1]
+    assert sim.scripted[:, k, 10:30].all() and not sim.scripted[:, k, 30:].any()  # released after the last token
 
 
 def test_inserted_vehicle_on_a_path_follows_it_then_the_prior_takes_over(model, vocab, scene):
