@@ -23,6 +23,7 @@ _COMMAND_MODULES = (
     "smart_marl.commands.generate_sumo",
     "smart_marl.commands.vocab",
     "smart_marl.commands.eval",
+    "smart_marl.commands.finetune",
     "smart_marl.commands.whatif",
 )
 

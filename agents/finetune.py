@@ -1,0 +1,593 @@
+"""Fine-tuning stage: KL-regularised multi-agent PPO (MAPPO / IPPO) of controlled agents against
+the SMART prior, with TorchRL. One entry point, :func:`finetune`, read from top to bottom
+(CleanRL style); every knob is a field of :class:`FinetuneConfig`.
+
+What comes in: scenes (any path ``read_scenarios`` reads), a SMART checkpoint (the prior, which
+also drives the background agents) and the config. What goes out, in ``out_dir``:
+``finetune.csv`` (one row per iteration), ``tensorboard/``, ``config.json``, and policy
+checkpoints ``checkpoints/policy_NNNN.{safetensors,json}`` (+ ``policy_last``), which
+:func:`load_policy` and :mod:`agents.evaluate` read.
+
+The pipeline:
+
+1. env: one ``envs.smart_traffic_v0`` per scene (``observation="dict"``, so the prior's logits
+   ride in the observation), each wrapped by TorchRL's ``PettingZooWrapper`` with every agent in
+   one group ``"agents"`` (keys ``("agents", "action")``, ``("agents", "observation",
+   "observation")``, ``("agents", "observation", "prior_logits")``, ``("agents", "mask")``...);
+   a wrapper fixes its agent set, so there is one per scene, all with ``max_agents`` controlled
+   agents, run side by side by a ``SerialEnv``;
+2. actor: logits over the motion vocabulary, ``prior_logits / T + f(obs)`` (``residual=True``,
+   ``f`` a shared-parameter ``MultiAgentMLP`` whose last layer starts at 0, so training starts
+   exactly at the prior) or ``f(obs)`` alone; a ``ProbabilisticActor`` with a Categorical;
+3. critic: a ``MultiAgentMLP`` value, centralised (``critic="mappo"``: each agent's value sees
+   every agent's observation) or decentralised (``"ippo"``);
+4. loss: :class:`agents.kl_ppo.PriorKLPPOLoss` = TorchRL's ``ClipPPOLoss`` + ``beta *
+   KL(pi || prior)``, agents that are done masked out of every term; GAE advantages;
+5. a TorchRL ``Collector``; PPO epochs over shuffled minibatches; logging; checkpoints.
+
+Logged per iteration (CSV and TensorBoard, names say what they are): ``return_per_agent_episode``,
+``goal_rate``, ``collision_rate``, ``offroad_rate`` (per agent-episode that ended in the batch),
+``kl_to_prior`` (mean per agent-step of the batch, exact categorical KL), the PPO losses,
+``entropy`` and ``frames``. The realism of the controlled agents (sim-agents metrics) is not
+computed during training: it needs many rollouts per scene and is left to evaluation.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from smart_marl.errors import SmartMarlError
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "finetune"
+GROUP = "agents"
+OBS_KEY = (GROUP, "observation", "observation")
+PRIOR_KEY = (GROUP, "observation", "prior_logits")
+
+
+class FinetuneError(SmartMarlError, ValueError):
+    """A fine-tuning run that cannot start: bad config, no usable scene, no prior."""
+
+
+@dataclass
+class FinetuneConfig:
+    """Every knob of a fine-tuning run."""
+
+    # data and prior
+    scenes: str = "embedded"  # scene file / folder / glob (read_scenarios), or "embedded": the package's sample scenes
+    num_scenes: int = 4  # the first N scenes with max_agents controllable agents
+    prior: str = "embedded"  # SMART checkpoint (NAME or NAME.json) or "embedded": the prior, and the background's driver
+    # environment (envs.smart_traffic_v0)
+    controlled: str = "moving_vehicles"  # which agents the policy drives: "moving_vehicles" (vehicles whose logged route
+    # from the current frame is longer than moving_min_route_m: parked cars are left to the background) or the env's
+    # "vehicles", "all", "predict", "sdc"
+    moving_min_route_m: float = 10.0
+    max_agents: int = 4  # controlled agents per scene (the nearest to the SDC); scenes with fewer are skipped
+    background: str = "prior"  # how the others move: "prior", "log", "constant_velocity"
+    horizon_steps: int = 16  # token steps (0.5 s each) per episode
+    reward: dict = field(default_factory=dict)  # RewardConfig weights, e.g. {"collision": -1.0}
+    terminate_on: tuple = ("collision", "offroad", "goal")
+    top_k: int = 5  # the background's top-k sampling
+    temperature: float = 1.0  # the prior's temperature T (the reference is softmax(prior_logits / T))
+    # policy and critic
+    residual: bool = True  # logits = prior_logits / T + f(obs), f starting at 0
+    hidden: int = 128
+    depth: int = 2
+    obs_scale: float = 0.1  # the observation (metres, m/s) times this before the MLPs
+    critic: str = "mappo"  # "mappo" (centralised) or "ippo" (decentralised)
+    # PPO and the prior KL
+    beta: float = 0.1  # KL(pi || prior) coefficient
+    gamma: float = 0.99
+    lmbda: float = 0.95
+    clip_epsilon: float = 0.2
+    entropy_coeff: float = 0.0
+    critic_coeff: float = 0.5
+    normalize_advantage: bool = True
+    lr: float = 3e-4
+    max_grad_norm: float = 1.0
+    frames_per_batch: int = 256  # env steps per iteration, all scenes together
+    iterations: int = 50
+    ppo_epochs: int = 4
+    minibatch_size: int = 64  # env steps per minibatch (x max_agents agent-steps)
+    # evaluation and bookkeeping
+    eval_episodes: int = 8  # seeds per scene in the final prior-vs-fine-tuned comparison (0: none)
+    eval_seed: int = 1000  # evaluation seeds are eval_seed, eval_seed + 1, ...
+    out_dir: str = "runs/finetune"
+    checkpoint_every: int = 10  # iterations (the last one is always saved)
+    seed: int = 0
+    device: str = "cpu"
+    tensorboard: bool = True
+    torch_threads: int = 0  # 0: leave torch's default
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["terminate_on"] = list(self.terminate_on)
+        return d
+
+
+# ------------------------------------------------------------------------------------- config
+def _parse_value(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        low = text.lower()
+        if low in ("none", "null"):
+            return None
+        if low in ("true", "false"):
+            return low == "true"
+        return text
+
+
+def named_configs() -> list[str]:
+    return sorted(p.stem for p in CONFIG_DIR.glob("*.json")) if CONFIG_DIR.is_dir() else []
+
+
+def load_finetune_config(config: str | Mapping[str, Any] | None = None, overrides: Sequence[str] | Mapping[str, Any] = ()) -> FinetuneConfig:
+    """A :class:`FinetuneConfig` from a JSON/TOML file, a named config (``configs/finetune/NAME.json``:
+    ``tiny``, ``default``; keys starting with ``_`` are comments) or a dict, plus ``key=value`` overrides (values parsed as JSON when
+    they parse; ``reward.NAME=W`` sets one reward weight)."""
+    values: dict[str, Any] = {}
+    if isinstance(config, Mapping):
+        values.update(config)
+    elif config:
+        p = Path(config)
+        if not p.is_file() and (CONFIG_DIR / f"{config}.json").is_file():
+            p = CONFIG_DIR / f"{config}.json"
+        if not p.is_file():
+            raise FinetuneError(f"unknown fine-tuning config {config!r}: neither a file nor a named config ({', '.join(named_configs())})")
+        try:
+            if p.suffix == ".toml":
+                import tomllib
+
+                values.update(tomllib.loads(p.read_text()))
+            else:
+                values.update(json.loads(p.read_text()))
+        except Exception as exc:  # noqa: BLE001 - reported with the file name
+            raise FinetuneError(f"{p}: cannot read the fine-tuning config: {exc}") from exc
+    values = {k: v for k, v in values.items() if not k.startswith("_")}  # "_comment" and the like
+    items = overrides.items() if isinstance(overrides, Mapping) else (_split_override(o) for o in overrides)
+    reward = dict(values.pop("reward", {}) or {})
+    for key, val in items:
+        if key.startswith("reward."):
+            reward[key[len("reward."):]] = val
+        else:
+            values[key] = val
+    values["reward"] = reward
+    known = {f.name for f in dataclasses.fields(FinetuneConfig)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise FinetuneError(f"unknown fine-tuning config key(s) {unknown}; known: {sorted(known)}")
+    if "terminate_on" in values:
+        values["terminate_on"] = tuple(values["terminate_on"])
+    cfg = FinetuneConfig(**values)
+    if cfg.critic not in ("mappo", "ippo"):
+        raise FinetuneError(f"critic must be 'mappo' or 'ippo', got {cfg.critic!r}")
+    if cfg.frames_per_batch < cfg.minibatch_size or cfg.minibatch_size < 1:
+        raise FinetuneError(f"minibatch_size ({cfg.minibatch_size}) must be in 1..frames_per_batch ({cfg.frames_per_batch})")
+    return cfg
+
+
+def _split_override(text: str) -> tuple[str, Any]:
+    if "=" not in text:
+        raise FinetuneError(f"override {text!r} is not key=value")
+    k, v = text.split("=", 1)
+    return k.strip(), _parse_value(v.strip())
+
+
+# ---------------------------------------------------------------------------------- the env
+def load_prior(path: str):
+    """(SMART model in eval mode, motion vocabulary) of a checkpoint, or of the package's embedded
+    prior for ``"embedded"``."""
+    if not path:
+        raise FinetuneError("prior: no SMART checkpoint given (prior=PATH)")
+    from smart_marl.model.checkpoint import checkpoint_paths, embedded_checkpoint_path
+    from smart_marl.rollout import resolve_model
+
+    if path == "embedded":
+        path = str(embedded_checkpoint_path())  # a clear CheckpointError when the package ships none
+
+    if not checkpoint_paths(path)["meta"].is_file():
+        raise FinetuneError(f"prior: no checkpoint at {path} (expected {checkpoint_paths(path)['meta']})")
+    model, vocab = resolve_model(str(path), "cpu")
+    return model.eval(), vocab
+
+
+def moving_vehicles(min_route_m: float):
+    """A ``controlled`` selection for the env: vehicles present at the current frame whose logged
+    position moves more than ``min_route_m`` between the current frame and their last valid frame."""
+    from smart_marl.scenario import AgentType
+
+    def select(sc) -> np.ndarray:
+        tr, cf = sc.tracks, sc.current_frame
+        last = tr.valid.shape[1] - 1 - np.argmax(tr.valid[:, ::-1], axis=1)  # [N] last valid frame
+        route_m = np.linalg.norm(tr.position[np.arange(tr.num_tracks), last, :2] - tr.position[:, cf, :2], axis=1)
+        return tr.valid[:, cf] & (tr.types == int(AgentType.VEHICLE)) & (route_m > min_route_m)
+
+    return select
+
+
+def scene_env(cfg: FinetuneConfig, scenes, model, vocab, render_mode: str | None = None):
+    """The PettingZoo env of the run's settings over ``scenes`` (a list of Scenario)."""
+    from envs import smart_traffic_v0
+
+    controlled = moving_vehicles(cfg.moving_min_route_m) if cfg.controlled == "moving_vehicles" else cfg.controlled
+    return smart_traffic_v0.parallel_env(
+        scenarios=list(scenes), prior=model, motion_vocab=vocab, controlled=controlled, max_agents=cfg.max_agents,
+        background=cfg.background, horizon_steps=cfg.horizon_steps, reward=dict(cfg.reward) or None, observation="dict",
+        terminate_on=tuple(cfg.terminate_on), top_k=cfg.top_k, temperature=cfg.temperature, render_mode=render_mode)
+
+
+def select_scenes(cfg: FinetuneConfig, model, vocab) -> list:
+    """The first ``num_scenes`` scenes of ``cfg.scenes`` with exactly ``max_agents`` controlled
+    agents of one vocabulary size (TorchRL stacks the group's agents)."""
+    from smart_marl.readers import read_scenarios
+
+    if not cfg.scenes:
+        raise FinetuneError("scenes: no scenes given (scenes=PATH)")
+    source = cfg.scenes
+    if source == "embedded":
+        from envs.smart_traffic_v0 import EMBEDDED_SCENES_DIR
+
+        files = sorted(p for p in EMBEDDED_SCENES_DIR.glob("*") if p.is_file()) if EMBEDDED_SCENES_DIR.is_dir() else []
+        if not files:
+            raise FinetuneError(f"scenes='embedded': the package ships no sample scenes ({EMBEDDED_SCENES_DIR}); give scenes=PATH")
+        source = str(files[0])
+    chosen, skipped = [], []
+    for sc in read_scenarios(source):
+        try:
+            env = scene_env(cfg, [sc], None if cfg.background != "prior" else model, vocab)
+        except SmartMarlError as exc:
+            skipped.append(f"{sc.scenario_id} ({exc})")
+            continue
+        sizes = {env.action_space(a).n for a in env.possible_agents}
+        if len(env.possible_agents) == cfg.max_agents and len(sizes) == 1:
+            chosen.append(sc)
+        else:
+            skipped.append(f"{sc.scenario_id} ({len(env.possible_agents)} controlled agents)")
+        if len(chosen) == cfg.num_scenes:
+            break
+    if not chosen:
+        raise FinetuneError(f"scenes: no scene of {cfg.scenes} has {cfg.max_agents} controllable agents "
+                            f"(controlled={cfg.controlled!r}); skipped: {skipped[:5]}")
+    return chosen
+
+
+def torchrl_env(cfg: FinetuneConfig, scenes, model, vocab):
+    """One PettingZooWrapper per scene (group "agents"), side by side in a SerialEnv."""
+    from torchrl.envs import PettingZooWrapper, SerialEnv
+    from torchrl.envs.utils import MarlGroupMapType
+
+    def make(sc):
+        def fn():
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message="PettingZoo in TorchRL is tested")
+                return PettingZooWrapper(scene_env(cfg, [sc], model, vocab), use_mask=True, done_on_any=False,
+                                         categorical_actions=True, group_map=MarlGroupMapType.ALL_IN_ONE_GROUP)
+        return fn
+
+    return SerialEnv(len(scenes), [make(sc) for sc in scenes])
+
+
+# ------------------------------------------------------------------------- actor and critic
+class PolicyLogits(nn.Module):
+    """Logits over the motion vocabulary for every agent of the group: ``prior_logits / T + f(obs)``
+    (residual) or ``f(obs)``. observation [..., A, O], prior_logits [..., A, V] -> [..., A, V]."""
+
+    def __init__(self, obs_dim: int, vocab_size: int, n_agents: int, hidden: int, depth: int, residual: bool = True,
+                 obs_scale: float = 0.1, temperature: float = 1.0) -> None:
+        super().__init__()
+        from torchrl.modules import MultiAgentMLP
+
+        self.residual, self.obs_scale, self.temperature = bool(residual), float(obs_scale), float(temperature)
+        self.f = MultiAgentMLP(obs_dim, vocab_size, n_agents, centralized=False, share_params=True, depth=depth,
+                               num_cells=hidden, activation_class=nn.Tanh)
+        if self.residual:  # start exactly at the prior
+            last = max(int(name.split(".")[1]) for name, _ in self.f.named_parameters())
+            with torch.no_grad():
+                for name, p in self.f.named_parameters():
+                    if int(name.split(".")[1]) == last:
+                        p.zero_()
+
+    def forward(self, observation: torch.Tensor, prior_logits: torch.Tensor) -> torch.Tensor:
+        delta = self.f(observation * self.obs_scale)
+        return prior_logits / self.temperature + delta if self.residual else delta
+
+
+class Critic(nn.Module):
+    """State value per agent [..., A, 1]: centralised (MAPPO) or per agent (IPPO)."""
+
+    def __init__(self, obs_dim: int, n_agents: int, hidden: int, depth: int, centralized: bool, obs_scale: float = 0.1) -> None:
+        super().__init__()
+        from torchrl.modules import MultiAgentMLP
+
+        self.obs_scale = float(obs_scale)
+        self.v = MultiAgentMLP(obs_dim, 1, n_agents, centralized=centralized, share_params=True, depth=depth, num_cells=hidden,
+                               activation_class=nn.Tanh)
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        return self.v(observation * self.obs_scale)
+
+
+def build_modules(cfg: FinetuneConfig, obs_dim: int, vocab_size: int, n_agents: int):
+    """(logits net, TorchRL ProbabilisticActor, TorchRL critic module)."""
+    from tensordict.nn import TensorDictModule
+    from torchrl.modules import ProbabilisticActor
+
+    net = PolicyLogits(obs_dim, vocab_size, n_agents, cfg.hidden, cfg.depth, cfg.residual, cfg.obs_scale, cfg.temperature)
+    actor = ProbabilisticActor(
+        TensorDictModule(net, in_keys=[OBS_KEY, PRIOR_KEY], out_keys=[(GROUP, "logits")]),
+        in_keys={"logits": (GROUP, "logits")}, out_keys=[(GROUP, "action")], distribution_class=torch.distributions.Categorical,
+        return_log_prob=True, log_prob_key=(GROUP, "action_log_prob"))
+    critic_net = Critic(obs_dim, n_agents, cfg.hidden, cfg.depth, centralized=cfg.critic == "mappo", obs_scale=cfg.obs_scale)
+    critic = TensorDictModule(critic_net, in_keys=[OBS_KEY], out_keys=[(GROUP, "state_value")])
+    return net, actor, critic
+
+
+# ------------------------------------------------------------------------------ checkpoints
+def save_policy(path: Path, cfg: FinetuneConfig, net: PolicyLogits, critic: nn.Module, dims: dict, iteration: int,
+                metrics: dict) -> Path:
+    """``path.safetensors`` (actor and critic weights) + ``path.json`` (config, sizes, step, metrics)."""
+    from safetensors.torch import save_file
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tensors = {f"actor.{k}": v.detach().contiguous() for k, v in net.state_dict().items()}
+    tensors.update({f"critic.{k}": v.detach().contiguous() for k, v in critic.state_dict().items()})
+    tmp = path.with_name(path.name + ".safetensors.tmp")
+    save_file(tensors, str(tmp))
+    tmp.replace(path.with_name(path.name + ".safetensors"))
+    meta = {"format": "smart-marl-policy", "version": 1, "config": cfg.to_dict(), **dims, "iteration": iteration,
+            "metrics": metrics}
+    jtmp = path.with_name(path.name + ".json.tmp")
+    jtmp.write_text(json.dumps(meta, indent=1, default=float))
+    jtmp.replace(path.with_name(path.name + ".json"))
+    return path.with_name(path.name + ".json")
+
+
+def load_policy(path: str | Path) -> tuple[FinetuneConfig, PolicyLogits, dict]:
+    """(config, actor logits net with its weights, meta) of a policy checkpoint (NAME or NAME.json)."""
+    from safetensors.torch import load_file
+
+    p = Path(path)
+    stem = p.with_suffix("") if p.suffix in (".json", ".safetensors") else p
+    jpath, wpath = stem.with_name(stem.name + ".json"), stem.with_name(stem.name + ".safetensors")
+    if not jpath.is_file() or not wpath.is_file():
+        raise FinetuneError(f"{path}: not a policy checkpoint (needs {jpath.name} and {wpath.name})")
+    meta = json.loads(jpath.read_text())
+    if meta.get("format") != "smart-marl-policy":
+        raise FinetuneError(f"{jpath}: not a smart-marl policy checkpoint (format {meta.get('format')!r})")
+    cfg = load_finetune_config(meta["config"])
+    net = PolicyLogits(meta["obs_dim"], meta["vocab_size"], meta["n_agents"], cfg.hidden, cfg.depth, cfg.residual, cfg.obs_scale,
+                       cfg.temperature)
+    weights = load_file(str(wpath))
+    net.load_state_dict({k[len("actor."):]: v for k, v in weights.items() if k.startswith("actor.")})
+    return cfg, net.eval(), meta
+
+
+class FinetunedPolicy:
+    """A fine-tuned actor acting directly on the PettingZoo env (dict observations), with the same
+    calling convention and sampler as :class:`agents.prior_policy.PriorPolicy`."""
+
+    name = "fine-tuned"
+    top_k = None
+    temperature = 1.0
+
+    def __init__(self, net: PolicyLogits, seed: int = 0) -> None:
+        self.net = net.eval()
+        self.generator = torch.Generator().manual_seed(int(seed))
+
+    def reset(self, seed: int) -> None:
+        self.generator = torch.Generator().manual_seed(int(seed))
+
+    @torch.no_grad()
+    def logits(self, agents: list[str], observations: Mapping, infos: Mapping) -> torch.Tensor:
+        """[A, V] logits of the live ``agents``. The group's network has one slot per agent it was
+        trained with; its parameters are shared and each agent's output depends on its own
+        observation only, so the live agents fill the first slots and the rest are zeros."""
+        n = self.net.f.n_agents
+        if len(agents) > n:
+            raise FinetuneError(f"the policy was trained for {n} agents per scene, got {len(agents)}")
+        obs = np.zeros((n, observations[agents[0]]["observation"].shape[-1]), np.float32)
+        prior = np.zeros((n, observations[agents[0]]["prior_logits"].shape[-1]), np.float32)
+        for i, a in enumerate(agents):
+            obs[i] = observations[a]["observation"]
+            prior[i] = observations[a]["prior_logits"]
+        return self.net(torch.from_numpy(obs), torch.from_numpy(prior))[: len(agents)]
+
+    def __call__(self, observations: Mapping, infos: Mapping, agents: list[str] | None = None) -> dict[str, int]:
+        from smart_marl.rollout import sample_tokens
+
+        agents = list(observations) if agents is None else list(agents)
+        if not agents:
+            return {}
+        tokens, _ = sample_tokens(self.logits(agents, observations, infos), self.generator, top_k=None)
+        return {a: int(t) for a, t in zip(agents, tokens.tolist())}
+
+
+# ---------------------------------------------------------------------------------- logging
+COLUMNS = ["iteration", "frames", "seconds", "return_per_agent_episode", "goal_rate", "collision_rate", "offroad_rate",
+           "kl_to_prior", "agent_episodes", "loss_objective", "loss_critic", "loss_entropy", "loss_prior_kl", "entropy",
+           "clip_fraction"]
+
+
+class RunLog:
+    """``finetune.csv`` (always) and TensorBoard (when importable)."""
+
+    def __init__(self, out_dir: Path, tensorboard: bool) -> None:
+        self.path = out_dir / "finetune.csv"
+        with open(self.path, "w", newline="") as f:
+            csv.DictWriter(f, COLUMNS).writeheader()
+        self.tb = None
+        if tensorboard:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+
+                self.tb = SummaryWriter(str(out_dir / "tensorboard"))
+            except ImportError:
+                self.tb = None
+
+    def write(self, row: dict[str, float]) -> None:
+        with open(self.path, "a", newline="") as f:
+            csv.DictWriter(f, COLUMNS, extrasaction="ignore").writerow(
+                {k: (f"{row[k]:.6g}" if isinstance(row.get(k), float) else row.get(k, "")) for k in COLUMNS})
+        if self.tb is not None:
+            for k, v in row.items():
+                if k != "iteration" and isinstance(v, (int, float)) and math.isfinite(v):
+                    self.tb.add_scalar(f"finetune/{k}", v, int(row["iteration"]))
+
+    def close(self) -> None:
+        if self.tb is not None:
+            self.tb.close()
+
+
+def batch_stats(batch, temperature: float = 1.0) -> dict[str, float]:
+    """Episode statistics of one collected batch [envs, T] (group [envs, T, A]): per agent-episode
+    that ended in the batch, its return (the part of it inside the batch), goal / collision /
+    offroad rates; and the mean KL(pi || prior) per agent-step that acted."""
+    acted = batch[GROUP, "mask"]  # [E, T, A] agents that took this step's action
+    nxt = batch["next", GROUP]
+    ended = acted & nxt["done"].squeeze(-1)
+    n = int(ended.sum())
+    reward = torch.where(acted, nxt["reward"].squeeze(-1), torch.zeros(()))
+    info = nxt["info"]
+    logp = torch.log_softmax(batch[GROUP, "logits"], -1)
+    prior = batch[PRIOR_KEY]
+    prior_logp = torch.log_softmax(prior / temperature, -1)
+    kl = (logp.exp() * (logp - prior_logp)).sum(-1)
+    valid = acted & prior.ne(0).any(-1)
+    den = max(n, 1)
+    return {
+        "agent_episodes": n,
+        "return_per_agent_episode": float(reward.sum()) / den,
+        "goal_rate": float((info["goal_reached"].bool() & acted).sum()) / den,
+        "collision_rate": float((info["collision"].bool() & acted).sum()) / den,
+        "offroad_rate": float((info["offroad"].bool() & acted).sum()) / den,
+        "kl_to_prior": float(torch.where(valid, kl, torch.zeros(())).sum() / valid.sum().clamp_min(1)),
+    }
+
+
+# ---------------------------------------------------------------------------------- the run
+@dataclass
+class FinetuneResult:
+    out_dir: Path
+    checkpoint: Path
+    history: list[dict]
+    evaluation: dict | None
+    scene_ids: list[str]
+
+
+def finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
+    """Run the whole pipeline (module docstring); ``on_iteration(row)`` is called after each
+    iteration's log row. With ``eval_episodes > 0`` the fine-tuned policy is compared with the prior
+    on the same scenes and seeds at the end (:func:`agents.evaluate.compare_policies`)."""
+    with warnings.catch_warnings():
+        # the advantage is normalised over agents and steps together, on purpose
+        warnings.filterwarnings("ignore", message="You requested advantage normalization")
+        warnings.filterwarnings("ignore", message="PettingZoo in TorchRL is tested")
+        return _finetune(cfg, on_iteration)
+
+
+def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
+    from torchrl.collectors import Collector
+    from torchrl.objectives import ValueEstimators
+
+    from .kl_ppo import PriorKLPPOLoss
+
+    if cfg.torch_threads > 0:
+        torch.set_num_threads(cfg.torch_threads)
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    device = torch.device(cfg.device)
+    out_dir = Path(cfg.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
+
+    # 1. env
+    model, vocab = load_prior(cfg.prior)
+    scenes = select_scenes(cfg, model, vocab)
+    env = torchrl_env(cfg, scenes, model, vocab)
+    env.set_seed(cfg.seed)
+    obs_dim = int(env.observation_spec[OBS_KEY].shape[-1])
+    vocab_size = int(env.observation_spec[PRIOR_KEY].shape[-1])
+    n_agents = int(env.observation_spec[OBS_KEY].shape[-2])
+    dims = {"obs_dim": obs_dim, "vocab_size": vocab_size, "n_agents": n_agents}
+
+    # 2-3. actor and critic
+    net, actor, critic = build_modules(cfg, obs_dim, vocab_size, n_agents)
+    actor, critic = actor.to(device), critic.to(device)
+
+    # 4. loss: clipped PPO + beta * KL(pi || prior), GAE
+    loss = PriorKLPPOLoss(actor, critic, beta=cfg.beta, prior_logits_key=PRIOR_KEY, agent_mask_key=(GROUP, "mask"),
+                          prior_temperature=cfg.temperature, clip_epsilon=cfg.clip_epsilon, entropy_bonus=cfg.entropy_coeff > 0,
+                          entropy_coeff=cfg.entropy_coeff, critic_coeff=cfg.critic_coeff, normalize_advantage=cfg.normalize_advantage)
+    loss.set_keys(reward=(GROUP, "reward"), action=(GROUP, "action"), sample_log_prob=(GROUP, "action_log_prob"),
+                  value=(GROUP, "state_value"), done=(GROUP, "done"), terminated=(GROUP, "terminated"),
+                  advantage=(GROUP, "advantage"), value_target=(GROUP, "value_target"))
+    loss.make_value_estimator(ValueEstimators.GAE, gamma=cfg.gamma, lmbda=cfg.lmbda)
+    optimizer = torch.optim.Adam(loss.parameters(), lr=cfg.lr)
+
+    # 5. collector, PPO epochs, logging, checkpoints
+    frames_per_batch = max(len(scenes), cfg.frames_per_batch // len(scenes) * len(scenes))
+    collector = Collector(env, actor, frames_per_batch=frames_per_batch, total_frames=frames_per_batch * cfg.iterations,
+                          device=device)
+    log = RunLog(out_dir, cfg.tensorboard)
+    history: list[dict] = []
+    ckpt_dir = out_dir / "checkpoints"
+    start = time.perf_counter()
+    frames = 0
+    last_ckpt = None
+    mb_size = max(1, cfg.minibatch_size)
+    for it, batch in enumerate(collector, start=1):
+        frames += batch.numel()
+        stats = batch_stats(batch, cfg.temperature)
+        with torch.no_grad():
+            loss.value_estimator(batch, params=loss.critic_network_params, target_params=loss.target_critic_network_params)
+        data = batch.reshape(-1)
+        sums: dict[str, float] = {}
+        steps = 0
+        for _ in range(cfg.ppo_epochs):
+            perm = torch.randperm(data.shape[0])
+            for i in range(0, data.shape[0], mb_size):
+                out = loss(data[perm[i : i + mb_size]].to(device))
+                total = out["loss_objective"] + out["loss_critic"] + out["loss_prior_kl"]
+                if "loss_entropy" in out.keys():
+                    total = total + out["loss_entropy"]
+                optimizer.zero_grad()
+                total.backward()
+                torch.nn.utils.clip_grad_norm_(loss.parameters(), cfg.max_grad_norm)
+                optimizer.step()
+                steps += 1
+                for k in ("loss_objective", "loss_critic", "loss_entropy", "loss_prior_kl", "entropy", "clip_fraction"):
+                    if k in out.keys():
+                        sums[k] = sums.get(k, 0.0) + float(out[k].detach())
+        collector.update_policy_weights_()
+        row = {"iteration": it, "frames": frames, "seconds": time.perf_counter() - start, **stats,
+               **{k: v / max(steps, 1) for k, v in sums.items()}}
+        log.write(row)
+        history.append(row)
+        if on_iteration is not None:
+            on_iteration(row)
+        if it % max(cfg.checkpoint_every, 1) == 0 or it == cfg.iterations:
+            last_ckpt = save_policy(ckpt_dir / f"policy_{it:04d}", cfg, net, critic.module, dims, it, stats)
+    collector.shutdown()
+    log.close()
+    if last_ckpt is None:
+        raise FinetuneError("the run collected no batch (iterations=0?)")
+    final = save_policy(ckpt_dir / "policy_last", cfg, net, critic.module, dims, len(history), history[-1])
+    evaluation = None
+    if cfg.eval_episodes > 0:
+        from .evaluate import compare_policies
+
+        evaluation = compare_policies(cfg, net, scenes=scenes, model=model, vocab=vocab)
+        (out_dir / "evaluation.json").write_text(json.dumps(evaluation, indent=1, default=float))
+    return FinetuneResult(out_dir, final, history, evaluation, [sc.scenario_id for sc in scenes])

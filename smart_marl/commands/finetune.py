@@ -1,0 +1,84 @@
+"""``smart-marl finetune --config FILE|NAME [key=value ...]``: KL-regularised PPO of controlled
+agents against the SMART prior (TorchRL); ``--evaluate CHECKPOINT`` compares a fine-tuned policy
+with the prior on the same scenes and seeds and prints a table.
+
+Stage: fine-tuning. The pipeline lives in ``agents`` (:mod:`agents.finetune`,
+:mod:`agents.evaluate`), which sits *above* smart_marl (imports go smart_marl <- envs <- agents).
+This module is the command line's thin front: it imports ``agents`` lazily, inside :func:`run`,
+so nothing in smart_marl imports envs or agents when smart_marl is imported; ``agents`` and
+``envs`` ship in the same distribution, and the command needs the ``env`` and ``rl`` extras.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "finetune", help="fine-tune controlled agents with PPO + KL to the SMART prior (TorchRL); --evaluate compares with the prior",
+        description="Fine-tune the agents a policy controls in the smart_traffic_v0 env with multi-agent PPO (MAPPO or IPPO, "
+                    "TorchRL) plus beta * KL(policy || SMART prior). The config is a JSON/TOML file of FinetuneConfig fields or a "
+                    "named config (configs/finetune/: tiny, default); key=value overrides follow, e.g. scenes=DIR prior=CKPT "
+                    "beta=0.1 iterations=50 out_dir=runs/ft. Writes finetune.csv, TensorBoard logs, policy checkpoints and, "
+                    "with eval_episodes > 0, evaluation.json. With --evaluate CHECKPOINT, compares that policy with the prior on "
+                    "the same scenes and seeds instead (overrides apply to the checkpoint's config).")
+    p.add_argument("--config", default=None, help="fine-tuning config file (.json/.toml) or a named config (tiny, default)")
+    p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides, values parsed as JSON when they parse")
+    p.add_argument("--out", default=None, metavar="DIR", help="the run's folder (default: the config's out_dir)")
+    p.add_argument("--device", default=None, help="torch device for the policy and its updates (default: the config's, cpu)")
+    p.add_argument("--seed", type=int, default=None, help="random seed (default: the config's); with --evaluate, the first evaluation seed")
+    p.add_argument("--evaluate", default=None, metavar="CHECKPOINT", help="compare this policy checkpoint with the prior and exit")
+    p.add_argument("--episodes", type=int, default=None, help="with --evaluate: seeds per scene (default: the config's eval_episodes)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    p.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    try:
+        from agents.evaluate import evaluate_checkpoint, format_table
+        from agents.finetune import finetune, load_finetune_config
+    except ImportError as exc:
+        print(f"smart-marl finetune: error: needs the env and rl extras (pip install 'smart-marl[env,rl]'): {exc}", file=sys.stderr)
+        return 2
+    if args.evaluate:
+        if args.out:
+            print("smart-marl finetune: error: --out does not apply to --evaluate (it prints its table)", file=sys.stderr)
+            return 2
+        overrides = list(args.overrides)
+        if args.device:
+            overrides.append(f"device={args.device}")
+        result = evaluate_checkpoint(args.evaluate, overrides, episodes=args.episodes, seed=args.seed)
+        print(json.dumps(result, default=float) if args.json else format_table(result))
+        return 0
+    if not args.config:
+        print("smart-marl finetune: error: --config FILE|NAME is required (or --evaluate CHECKPOINT)", file=sys.stderr)
+        return 2
+    cfg = load_finetune_config(args.config, args.overrides)
+    if args.device:
+        cfg.device = args.device
+    if args.out:
+        cfg.out_dir = args.out
+    if args.seed is not None:
+        cfg.seed = args.seed
+    if args.print_config:
+        print(json.dumps(cfg.to_dict(), indent=1))
+        return 0
+
+    def show(row: dict) -> None:
+        print(f"iter {row['iteration']:>4}  frames {row['frames']:>7}  return {row['return_per_agent_episode']:+.3f}  "
+              f"goal {row['goal_rate']:.3f}  collision {row['collision_rate']:.3f}  offroad {row['offroad_rate']:.3f}  "
+              f"KL {row['kl_to_prior']:.4f}", file=sys.stderr, flush=True)
+
+    result = finetune(cfg, on_iteration=show)
+    summary = {"out_dir": str(result.out_dir), "checkpoint": str(result.checkpoint), "scenes": result.scene_ids,
+               "last": result.history[-1]}
+    if result.evaluation is not None:
+        if args.json:
+            summary["evaluation"] = result.evaluation
+        else:
+            print(format_table(result.evaluation))
+    print(json.dumps(summary, default=float))
+    return 0
