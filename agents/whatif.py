@@ -6,8 +6,15 @@ checkpoint path) and a :class:`WhatIf` (a list of edits, built in Python or read
 file with :func:`load_script`). What goes out: a :class:`WhatIfResult` holding the baseline and
 the perturbed rollouts (10 Hz poses of every track, local frame), the comparison table
 (:func:`compare`: collisions, minimum distances and speeds of the affected agents, speeds of the
-vehicles behind a braking or stalled one, sim-agents realism) and, with :func:`render_comparison`,
-a side-by-side animation.
+vehicles behind a braking or stalled one and of those approaching an overridden light, sim-agents
+realism) and, with :func:`render_comparison`, a side-by-side animation.
+
+In Python::
+
+    from agents.whatif import Brake, Jaywalker, WhatIf, run_whatif
+    result = run_whatif("runs/smart/last.json", scene, WhatIf([Brake(agent=1609, at_s=1.0),
+                        Jaywalker(relative_to=1630, start=(25, -8), end=(25, 8))]), num_rollouts=8, seed=0)
+    print(format_table(result.table)); render_comparison(result, "out/whatif.gif")
 
 Two kinds of edits:
 
@@ -285,6 +292,7 @@ class Prepared:
     affected: dict[int, str]  # track id -> what happened to it ("brake", "inserted", "removed", ...)
     followers: dict[int, list[int]]  # braking/stopping/stalled track id -> track ids of the vehicles behind it
     onset_step: dict[int, int]  # affected track id -> step its edit starts
+    approaching: list[tuple[int, list[int]]] = dataclasses.field(default_factory=list)  # (step, vehicles heading for an overridden light)
 
 
 def _step_of(at_s: float, path, i) -> int:
@@ -396,7 +404,7 @@ def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
     ``motion_vocab`` is needed only for inserted agents driven by ``tokens``."""
     path = whatif.path
     scripts, removals, lights = [], [], []
-    affected, followers, onset = {}, {}, {}
+    affected, followers, onset, approaching = {}, {}, {}, []
     next_id = int(scene.tracks.ids.max()) + 1 if scene.num_tracks else 1
     horizon = scene.num_frames - scene.current_frame  # frames of script a new track stores
     for i, e in enumerate(whatif.edits):
@@ -551,10 +559,11 @@ def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
             scene = dataclasses.replace(scene, traffic_lights=TrafficLights(tl.lane_ids, states, present, tl.stop_points))
             if step > 0:
                 lights.append((step, lanes, code))
+            approaching.append((step, _approaching(scene, tl.stop_points[lanes, :2].astype(np.float64))))
         else:  # pragma: no cover
             raise WhatIfError(path, f"kind {kind} not handled", i)
     return Prepared(scene=scene, scripts=scripts, removals=removals, lights=lights, affected=affected, followers=followers,
-                    onset_step=onset)
+                    onset_step=onset, approaching=approaching)
 
 
 def _then(value: str, path, i) -> str:
@@ -582,6 +591,23 @@ def _moving_frames(future: np.ndarray) -> int:
     d = np.linalg.norm(np.diff(future[:, :2], axis=0), axis=1)
     moving = np.flatnonzero(d > 1e-6)
     return int(moving[-1] + 1) if len(moving) else 0
+
+
+APPROACH_REACH_M = 40.0
+"""Vehicles with an overridden light's stop point up to this far ahead (|lateral| < 3 m) approach it."""
+
+
+def _approaching(scene: Scenario, stop_points: np.ndarray) -> list[int]:
+    """Vehicles at the current frame with one of ``stop_points`` [L, 2] ahead of them, in their lane."""
+    tr, cf = scene.tracks, scene.current_frame
+    xy = tr.position[:, cf, :2].astype(np.float64)
+    h = tr.heading[:, cf].astype(np.float64)
+    d = stop_points[None] - xy[:, None]  # (N, L, 2)
+    c, s = np.cos(h)[:, None], np.sin(h)[:, None]
+    lon, lat = c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]
+    ahead = ((lon > 0) & (lon < APPROACH_REACH_M) & (np.abs(lat) < 3.0)).any(1)
+    sel = ahead & tr.valid[:, cf] & (tr.types == AgentType.VEHICLE)
+    return [int(t) for t in tr.ids[sel]]
 
 
 def _followers(scene: Scenario, index: int) -> list[int]:
@@ -892,6 +918,13 @@ def compare(baseline: SimRollouts, perturbed: SimRollouts, prepared: Prepared, r
         add("followers_mean_speed_after_onset_mps", f"{len(fp)} behind {tid}", np.nanmean(sb[:, fb, onset:]), np.nanmean(sp[:, fp, onset:]))
         add("followers_min_speed_mps", f"{len(fp)} behind {tid}", np.nanmean(np.nanmin(sb[:, fb, onset:], axis=-1)),
             np.nanmean(np.nanmin(sp[:, fp, onset:], axis=-1)))
+    for step, ids in prepared.approaching:
+        onset = FRAMES_PER_TOKEN * step
+        fb = [col_b[t] for t in ids if t in col_b]
+        fp = [col_p[t] for t in ids if t in col_p]
+        if fb and fp:
+            add("approaching_mean_speed_after_onset_mps", f"{len(fp)} vehicles at the lights", np.nanmean(sb[:, fb, onset:]),
+                np.nanmean(sp[:, fp, onset:]))
     if realism:
         gone = {t for t, w in prepared.affected.items() if w == "removed"}
         common = np.array([t for t in baseline.track_ids if int(t) not in gone and int(t) in col_p], np.int64)

@@ -216,6 +216,7 @@ def test_traffic_light_override_reaches_the_models_road_encodings(model, vocab, 
     torch.testing.assert_close(running.engine.road_kv[0][0], state.engine.road_kv[0][0])
     assert not torch.allclose(before, running.engine.road_kv[0][0])
     torch.testing.assert_close(running.logits(), state.logits())
+    assert len(prepared.approaching[0][1]) >= 3  # vehicles in front of the scene's stop lines, whose speeds the table reports
     # the scene's signal states (what the animation and the realism metric read) change from the onset frame
     later = prepare(scene, WhatIf([TrafficLightOverride(lanes=[int(tl.lane_ids[0])], state="go", at_s=1.0)]), vocab)
     assert later.lights[0][0] == 2 and (later.scene.traffic_lights.states[20:, 0] == int(SignalState.GO)).all()
