@@ -20,9 +20,16 @@ Paths (all vectorised over the ``G`` rows):
 * :func:`hold_path`: stay at the pose (a stalled vehicle, a stopped car);
 * :func:`polyline_path`: along waypoints at a constant speed, optionally after standing still
   for a while (an inserted agent, a jaywalking pedestrian).
+
+:mod:`agents.whatif` uses these inside the rollout engine (any agent, every rollout at once);
+:class:`ScriptedPolicy` uses them as a policy for the controlled agents of the PettingZoo env
+``envs.smart_traffic_v0`` (a :class:`Manoeuvre` per agent name).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -141,3 +148,102 @@ def nearest_tokens(token_poses: torch.Tensor, vocab_size: int, current_pose: tor
     pair = torch.cat([poses[:, None].expand(-1, poses.shape[0], -1, -1), second], 2)  # (V, V, 10, 3)
     err = error(pair[None], local[:, None, None, : 2 * FRAMES_PER_TOKEN])  # (M, V, V)
     return err.amin(2).argmin(1)
+
+
+# ------------------------------------------------------------------------ as an env policy
+MANOEUVRES = ("brake", "stop", "cut_in", "hold", "path", "tokens")
+
+
+@dataclass
+class Manoeuvre:
+    """One controlled agent's scripted manoeuvre from ``at_s`` (seconds after the episode's start)
+    on: ``brake``/``stop`` (at ``decel_mps2``; stop defaults to 3), ``cut_in`` (``lateral_m``, left
+    positive, over ``duration_s`` at ``speed_mps`` or the current speed), ``hold`` (stand still),
+    ``path`` (``waypoints`` [[x, y], ...] in the scene's local frame at ``speed_mps``), ``tokens``
+    (given token ids, one per step). After a cut-in, a path or the tokens, the fallback acts again."""
+
+    kind: str
+    at_s: float = 0.0
+    decel_mps2: float | None = None
+    lateral_m: float = 3.5
+    duration_s: float = 2.0
+    speed_mps: float | None = None
+    waypoints: Any = None
+    tokens: Sequence[int] | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind not in MANOEUVRES:
+            raise ValueError(f"Manoeuvre kind must be one of {MANOEUVRES}, got {self.kind!r}")
+
+    def path(self, pose: np.ndarray, speed_mps: float, num_frames: int) -> np.ndarray:
+        """Target poses [num_frames, 3] after the onset, from ``pose`` [3] at ``speed_mps``."""
+        p = np.asarray(pose, np.float64)[None]
+        v = np.array([speed_mps if self.speed_mps is None else self.speed_mps], np.float64)
+        if self.kind in ("brake", "stop"):
+            decel = self.decel_mps2 or (8.0 if self.kind == "brake" else 3.0)
+            return brake_path(p, v, decel, num_frames)[0]
+        if self.kind == "cut_in":
+            n = FRAMES_PER_TOKEN * int(np.ceil(self.duration_s / DT_S / FRAMES_PER_TOKEN))
+            return cut_in_path(p, v, self.lateral_m, self.duration_s, n)[0]
+        if self.kind == "hold":
+            return hold_path(p, num_frames)[0]
+        return polyline_path(self.waypoints, float(v[0]), num_frames, first_frame=1)
+
+
+class ScriptedPolicy:
+    """Scripted controlled agents for ``envs.smart_traffic_v0``: ``policy(observations, infos)`` ->
+    ``{agent: token}``, like :class:`agents.prior_policy.PriorPolicy`. The agents named in
+    ``manoeuvres`` take, once their manoeuvre has started, the token closest to its target path
+    (:func:`nearest_tokens`, one token of look-ahead, from the pose the env reports); every other
+    agent, and those agents before and after their manoeuvre, act by ``fallback`` (any policy with
+    that call signature; default: the prior's most likely token from ``infos``).
+    """
+
+    def __init__(self, env, manoeuvres: Mapping[str, Manoeuvre], fallback=None) -> None:
+        self.env = env.unwrapped if hasattr(env, "unwrapped") else env
+        self.manoeuvres = dict(manoeuvres)
+        self.fallback = fallback
+        self._paths: dict[str, np.ndarray] = {}
+
+    def reset(self, seed: int | None = None) -> None:
+        self._paths.clear()
+        if self.fallback is not None and hasattr(self.fallback, "reset") and seed is not None:
+            self.fallback.reset(seed)
+
+    def __call__(self, observations: Mapping, infos: Mapping, agents: list[str] | None = None) -> dict[str, int]:
+        env = self.env
+        agents = list(agents if agents is not None else env.agents)
+        if self.fallback is not None:
+            actions = dict(self.fallback(observations, infos, agents))
+        else:
+            actions = {a: int(np.argmax(infos[a]["prior_logits"])) for a in agents}
+        step = int(env.step_count)
+        for name in agents:
+            m = self.manoeuvres.get(name)
+            if m is None:
+                continue
+            j = step - int(round(m.at_s / (DT_S * FRAMES_PER_TOKEN)))
+            if j < 0:
+                continue
+            track = env.static.name_to_track[name]
+            atype = int(env.static.types[track])
+            if m.kind == "tokens":
+                if j < len(m.tokens):
+                    actions[name] = int(m.tokens[j])
+                continue
+            if name not in self._paths:
+                horizon = FRAMES_PER_TOKEN * (int(env.horizon_steps) - step) + 2 * FRAMES_PER_TOKEN
+                self._paths[name] = m.path(env.pose[track], float(np.linalg.norm(env.velocity[track])), horizon)
+            path = self._paths[name]
+            lo = FRAMES_PER_TOKEN * j
+            if lo >= len(path) and m.kind in ("cut_in", "path"):
+                continue  # done: the fallback drives again
+            seg = path[lo: lo + 2 * FRAMES_PER_TOKEN]
+            if len(seg) < 2 * FRAMES_PER_TOKEN:
+                seg = np.concatenate([seg, np.repeat(path[-1:], 2 * FRAMES_PER_TOKEN - len(seg), 0)])
+            vocab = env.motion_vocab[atype]
+            weight = PEDESTRIAN_HEADING_WEIGHT_M_PER_RAD if atype == 1 else HEADING_WEIGHT_M_PER_RAD
+            tok = nearest_tokens(torch.from_numpy(vocab.poses.astype(np.float64)), vocab.size,
+                                 torch.from_numpy(env.pose[track][None]), torch.from_numpy(seg[None]), weight)
+            actions[name] = int(tok[0])
+        return actions

@@ -1,0 +1,86 @@
+"""Scripted policies (agents.scripted.ScriptedPolicy) driving controlled agents of the PettingZoo env
+on the real WOMD scene 637f20cafde22ff8, with a small random SMART prior as background (the
+mechanics need no trained prior)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("pettingzoo", reason="the env extra (pettingzoo) is not installed")
+
+from agents.scripted import Manoeuvre, ScriptedPolicy, stop_time_s  # noqa: E402
+from envs import smart_traffic_v0  # noqa: E402
+from smart_marl.model.smart import SMART, get_config  # noqa: E402
+from smart_marl.readers import read_scenarios  # noqa: E402
+from smart_marl.tokens import build_motion_vocabulary, collect_snippets  # noqa: E402
+
+VOCAB = 32
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def scenes(shared_data):
+    return list(read_scenarios(shared_data / "womd_tfrecord/motion_data_one_scenario.tfrecord"))
+
+
+@pytest.fixture(scope="module")
+def vocab(scenes):
+    snippets, _ = collect_snippets(scenes, stride=1)
+    return build_motion_vocabulary(snippets, VOCAB, seed=0, progress=False)
+
+
+@pytest.fixture(scope="module")
+def model(vocab):
+    cfg = get_config(dict(hidden_dim=16, num_heads=2, head_dim=8, num_road_layers=1, num_agent_blocks=1,
+                          motion_vocab_sizes=(VOCAB,) * 3, road_vocab_size=8, num_freq_bands=4, dropout=0.0,
+                          agent_neighbours=8, map_neighbours=8, road_neighbours=4))
+    torch.manual_seed(0)
+    return SMART(cfg, motion_contours=[vocab[t].contour for t in range(3)]).eval()
+
+
+def test_scripted_policy_brakes_a_controlled_car_to_a_standstill_and_holds_another(scenes, vocab, model):
+    env = smart_traffic_v0.parallel_env(scenarios=scenes, prior=model, motion_vocab=vocab, controlled=[1609, 1630],
+                                        horizon_steps=12, terminate_on=())
+    policy = ScriptedPolicy(env, {"vehicle_1609": Manoeuvre("brake", at_s=1.0, decel_mps2=8.0),
+                                  "vehicle_1630": Manoeuvre("hold")})
+    obs, infos = env.reset(seed=0)
+    track = {n: env.unwrapped.static.name_to_track[n] for n in ("vehicle_1609", "vehicle_1630")}
+    start_1630 = env.unwrapped.pose[track["vehicle_1630"], :2].copy()
+    poses = []
+    while env.agents:
+        obs, _, _, _, infos = env.step(policy(obs, infos))
+        poses.append(env.unwrapped.pose[track["vehicle_1609"], :2].copy())
+        assert np.linalg.norm(env.unwrapped.pose[track["vehicle_1630"], :2] - start_1630) < 0.05
+    poses = np.array(poses)  # pose at the end of each 0.5 s step
+    token_speed = np.linalg.norm(np.diff(poses, axis=0), axis=1) / 0.5
+    v0 = np.linalg.norm(poses[1] - poses[0]) / 0.5  # the step before the brake (1.0 s = step 2)
+    stop_step = 2 + int(np.ceil(stop_time_s(v0, 8.0) / 0.5)) + 1
+    assert v0 > 3.0 and token_speed[stop_step:].max() < 0.3, token_speed.round(2)
+
+
+def test_scripted_policy_forces_given_tokens_then_hands_back_to_the_fallback(scenes, vocab, model):
+    env = smart_traffic_v0.parallel_env(scenarios=scenes, prior=model, motion_vocab=vocab, controlled=[1645],
+                                        horizon_steps=5, terminate_on=())
+    seen = []
+
+    def fallback(observations, infos, agents):
+        seen.append(env.unwrapped.step_count)
+        return {a: 0 for a in agents}
+
+    policy = ScriptedPolicy(env, {"vehicle_1645": Manoeuvre("tokens", at_s=0.5, tokens=[5, 6])}, fallback=fallback)
+    obs, infos = env.reset(seed=0)
+    taken = []
+    while env.agents:
+        actions = policy(obs, infos)
+        taken.append(actions["vehicle_1645"])
+        obs, _, _, _, infos = env.step(actions)
+    assert taken == [0, 5, 6, 0, 0] and seen == [0, 1, 2, 3, 4]
