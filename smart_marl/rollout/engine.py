@@ -185,6 +185,14 @@ class RolloutState:
     Slots: ``G = scenes * num_rollouts`` groups (group ``g`` is rollout ``g % R`` of scene
     ``g // R``), ``N`` agent slots each (padded); ``agent_ids``, ``agent_type``, ``track_index``
     say who each slot is (``-1`` ids and track indices on padding).
+
+    Public attributes: ``agent_ids`` [G, N], ``track_index`` [G, N], ``agent_type`` [G, N] (0..2),
+    ``vocab_sizes`` [3] (so slot ``(g, n)``'s vocabulary has ``vocab_sizes[agent_type[g, n]]``
+    tokens), ``valid`` / ``simulated`` [G, N], ``current_pose`` [G, N, 3] (local frame),
+    ``generator`` (the sampler's ``torch.Generator``; replace it to reseed), ``num_groups``,
+    ``num_slots``, ``step_index`` (token steps taken), ``scenes``, ``mode``.
+    Slots that are never simulated (agents seen in the history but gone at the current frame) are
+    kept as context: the history's features of the others depend on them.
     """
 
     def __init__(self, model, vocab: MotionVocabulary, scenes: Sequence[Scenario], num_rollouts: int, seed: int, top_k: int,
