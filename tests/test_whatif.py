@@ -307,14 +307,20 @@ def _has_embedded_prior() -> bool:
     return EMBEDDED_DIR.is_dir() and any(not p.name.endswith(("vocab.json",)) for p in EMBEDDED_DIR.glob("*.json"))
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not _has_embedded_prior(), reason=f"no embedded trained prior yet ({EMBEDDED_DIR}): the slow-down behind a "
                                                       "braking car needs a trained SMART model, a random one does not react")
 def test_vehicles_behind_a_braking_car_slow_down_under_the_prior(scene):
-    result = run_whatif(None, scene, WhatIf([Brake(agent=1609, at_s=1.0, decel_mps2=8.0)]), num_rollouts=16, seed=0, realism=False)
+    # 1609 leads its lane at 12 m/s with 1630 (27 m behind) and 1645 behind it; it brakes hard at 1 s
+    result = run_whatif(None, scene, WhatIf([Brake(agent=1609, at_s=1.0, decel_mps2=8.0)]), num_rollouts=8, seed=0,
+                        num_steps=12, realism=False)
+    sb, sp = result.baseline.speed_mps(), result.perturbed.speed_mps()
+    lead = column(result.baseline, 1609)
+    assert np.nanmean(sb[:, lead, :10]) > 5.0  # under the prior it was driving on, so the brake is a real change
     rows = {(r["quantity"], r["agent"]): r for r in result.table}
     follow = [r for (q, _), r in rows.items() if q == "followers_mean_speed_after_onset_mps"]
     assert follow and follow[0]["whatif"] < follow[0]["baseline"] - 0.5
-    # the nearest follower (1630) ends slower than without the brake
-    sb, sp = result.baseline.speed_mps(), result.perturbed.speed_mps()
+    # the nearest follower (1630) is slower over the last 2 s than without the brake, and does not run into it
     kb, kp = column(result.baseline, 1630), column(result.perturbed, 1630)
-    assert np.nanmean(sp[:, kp, 30:]) < np.nanmean(sb[:, kb, 30:])
+    assert np.nanmean(sp[:, kp, -20:]) < np.nanmean(sb[:, kb, -20:])
+    assert rows[("collided_rate", "1609 (brake)")]["whatif"] <= 0.25
