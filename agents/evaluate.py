@@ -22,8 +22,6 @@ from __future__ import annotations
 
 from typing import Sequence
 
-import numpy as np
-
 from .prior_policy import PriorPolicy, run_episode
 
 METRICS = ("goal_rate", "collision_rate", "offroad_rate", "return", "kl_to_prior")

@@ -29,7 +29,9 @@ Logged per iteration (CSV and TensorBoard, names say what they are): ``return_pe
 ``goal_rate``, ``collision_rate``, ``offroad_rate`` (per agent-episode that ended in the batch),
 ``kl_to_prior`` (mean per agent-step of the batch, exact categorical KL), the PPO losses,
 ``entropy`` and ``frames``. The realism of the controlled agents (sim-agents metrics) is not
-computed during training: it needs many rollouts per scene and is left to evaluation.
+computed, neither here nor in :mod:`agents.evaluate`: it needs many full-length rollouts per scene,
+and these episodes remove an agent at its first collision, offroad or goal, so its trajectory is
+not the 8 s the metrics score. The KL to the prior is the realism proxy reported.
 """
 
 from __future__ import annotations
@@ -65,7 +67,8 @@ class FinetuneConfig:
     """Every knob of a fine-tuning run."""
 
     # data and prior
-    scenes: str = "embedded"  # scene file / folder / glob (read_scenarios), or "embedded": the package's sample scenes
+    scenes: str | list = "embedded"  # scene file / folder / glob (read_scenarios), a list of them, or "embedded" (the
+    # package's sample scenes)
     num_scenes: int = 4  # the first N scenes with max_agents controllable agents
     prior: str = "embedded"  # SMART checkpoint (NAME or NAME.json) or "embedded": the prior, and the background's driver
     # environment (envs.smart_traffic_v0)
@@ -235,16 +238,17 @@ def select_scenes(cfg: FinetuneConfig, model, vocab) -> list:
 
     if not cfg.scenes:
         raise FinetuneError("scenes: no scenes given (scenes=PATH)")
-    source = cfg.scenes
-    if source == "embedded":
+    sources = [cfg.scenes] if isinstance(cfg.scenes, str) else list(cfg.scenes)
+    if "embedded" in sources:
         from envs.smart_traffic_v0 import EMBEDDED_SCENES_DIR
 
-        files = sorted(p for p in EMBEDDED_SCENES_DIR.glob("*") if p.is_file()) if EMBEDDED_SCENES_DIR.is_dir() else []
+        files = sorted(str(p) for p in EMBEDDED_SCENES_DIR.glob("*") if p.is_file()) if EMBEDDED_SCENES_DIR.is_dir() else []
         if not files:
             raise FinetuneError(f"scenes='embedded': the package ships no sample scenes ({EMBEDDED_SCENES_DIR}); give scenes=PATH")
-        source = str(files[0])
+        i = sources.index("embedded")
+        sources[i : i + 1] = files
     chosen, skipped = [], []
-    for sc in read_scenarios(source):
+    for sc in (sc for src in sources for sc in read_scenarios(src)):
         try:
             env = scene_env(cfg, [sc], None if cfg.background != "prior" else model, vocab)
         except SmartMarlError as exc:
@@ -539,7 +543,7 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     # 5. collector, PPO epochs, logging, checkpoints
     frames_per_batch = max(len(scenes), cfg.frames_per_batch // len(scenes) * len(scenes))
     collector = Collector(env, actor, frames_per_batch=frames_per_batch, total_frames=frames_per_batch * cfg.iterations,
-                          device=device)
+                          device=device, auto_register_policy_transforms=False)  # a feed-forward policy: no InitTracker
     log = RunLog(out_dir, cfg.tensorboard)
     history: list[dict] = []
     ckpt_dir = out_dir / "checkpoints"

@@ -64,7 +64,8 @@ def tiny(shared_data, prior_path, out_dir, **over) -> dict:
 
 @pytest.fixture(scope="module")
 def tiny_run(shared_data, prior_path, tmp_path_factory):
-    """The named ``tiny`` config on the two real scenes: ~1 minute on one CPU thread."""
+    """The named ``tiny`` config on the two real scenes: ~1 minute on one free CPU thread (4 on a
+    loaded shared machine), hence the slow mark on the tests that use it."""
     cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, tmp_path_factory.mktemp("tiny")))
     return cfg, finetune(cfg)
 
@@ -121,7 +122,8 @@ def test_prior_kl_loss_adds_beta_times_the_exact_kl_of_agents_that_acted():
         loss = PriorKLPPOLoss(actor, critic, beta=beta, entropy_bonus=False, normalize_advantage=False)
         loss.set_keys(action=("agents", "action"), sample_log_prob=("agents", "action_log_prob"), value=("agents", "state_value"),
                       advantage=("agents", "advantage"), value_target=("agents", "value_target"))
-        losses[beta] = loss(td.clone())
+        with torch.no_grad():
+            losses[beta] = loss(td.clone())
     logp = torch.log_softmax(net(td["agents", "observation", "observation"], prior), -1)
     kl = (logp.exp() * (logp - torch.log_softmax(prior, -1))).sum(-1)
     valid = mask & prior.ne(0).any(-1)
@@ -134,10 +136,11 @@ def test_prior_kl_loss_adds_beta_times_the_exact_kl_of_agents_that_acted():
 
 
 # ------------------------------------------------------------------------------- the runs
+@pytest.mark.slow
 def test_tiny_finetuning_reaches_logged_goals_more_often_than_the_prior(tiny_run):
     """Same two real scenes, same 8 seeds (background sampler and policy sampler), 64
-    agent-episodes per policy: the fine-tuned agents reach their logged goals more often, with
-    the KL to the prior reported and non-zero."""
+    agent-episodes per policy: the fine-tuned agents reach their logged goals more often (or
+    collide less), by at least 3 agent-episodes in 64, with the KL to the prior reported."""
     cfg, result = tiny_run
     rows = result.evaluation["rows"]
     prior, tuned = rows["prior"], rows["fine-tuned"]
@@ -145,7 +148,7 @@ def test_tiny_finetuning_reaches_logged_goals_more_often_than_the_prior(tiny_run
     assert result.evaluation["seeds"] == list(range(cfg.eval_seed, cfg.eval_seed + cfg.eval_episodes))
     assert prior["agent_episodes"] == tuned["agent_episodes"] == 2 * 4 * cfg.eval_episodes
     assert prior["kl_to_prior"] < 1e-5 < tuned["kl_to_prior"]
-    assert tuned["goal_rate"] > prior["goal_rate"] or tuned["collision_rate"] < prior["collision_rate"]
+    assert tuned["goal_rate"] >= prior["goal_rate"] + 0.05 or tuned["collision_rate"] <= prior["collision_rate"] - 0.05
     assert tuned["return"] > prior["return"]
     # the training log: every iteration, KL to the prior grows from 0 as the policy leaves it
     hist = result.history
@@ -154,6 +157,7 @@ def test_tiny_finetuning_reaches_logged_goals_more_often_than_the_prior(tiny_run
     assert len(csv_rows) == 1 + cfg.iterations and csv_rows[0].startswith("iteration,frames")
 
 
+@pytest.mark.slow
 def test_policy_checkpoint_round_trips_and_evaluate_command_prints_the_table(tiny_run, capsys):
     from smart_marl.cli import main
 
@@ -170,6 +174,22 @@ def test_policy_checkpoint_round_trips_and_evaluate_command_prints_the_table(tin
     assert "goal rate" in table and "fine-tuned" in table and "KL/step" in table
 
 
+def test_a_short_run_collects_its_first_batch_at_the_prior_and_writes_its_files(shared_data, prior_path, tmp_path):
+    """Two small iterations: the first batch is collected by the zero-initialised residual actor,
+    so its KL to the prior is 0; the update moves it; CSV, config and checkpoints are written."""
+    cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, tmp_path, iterations=2, frames_per_batch=32,
+                                            minibatch_size=32, ppo_epochs=1, eval_episodes=0, checkpoint_every=1, critic="ippo"))
+    result = finetune(cfg)
+    assert result.evaluation is None and len(result.history) == 2
+    assert result.history[0]["kl_to_prior"] < 1e-6 < result.history[1]["kl_to_prior"]
+    assert result.history[1]["frames"] == 64
+    names = sorted(p.name for p in (tmp_path / "checkpoints").iterdir())
+    assert names == [f"{n}.{ext}" for n in ("policy_0001", "policy_0002", "policy_last") for ext in ("json", "safetensors")]
+    assert json.loads((tmp_path / "config.json").read_text())["critic"] == "ippo"
+    assert len((tmp_path / "finetune.csv").read_text().splitlines()) == 3
+
+
+@pytest.mark.slow
 def test_with_a_large_beta_the_kl_stays_near_zero_and_behaviour_matches_the_prior(shared_data, prior_path, tmp_path):
     cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, tmp_path, beta=100.0, iterations=4, eval_episodes=4))
     result = finetune(cfg)
@@ -177,8 +197,10 @@ def test_with_a_large_beta_the_kl_stays_near_zero_and_behaviour_matches_the_prio
     rows = result.evaluation["rows"]
     prior, tuned = rows["prior"], rows["fine-tuned"]
     assert tuned["kl_to_prior"] < 1e-3
+    # episode rates agree up to sampling noise: 32 agent-episodes per policy whose trajectories part
+    # after the first token drawn differently (binomial standard error ~0.07 at these rates)
     for key in ("goal_rate", "collision_rate", "offroad_rate"):
-        assert abs(tuned[key] - prior[key]) <= 0.1, (key, prior, tuned)
+        assert abs(tuned[key] - prior[key]) <= 0.15, (key, prior, tuned)
     # state by state: the fine-tuned action distribution is the prior's (total variation, Pinsker: <= sqrt(KL / 2))
     model, vocab = load_prior(cfg.prior)
     env = scene_env(cfg, select_scenes(cfg, model, vocab), model, vocab)
@@ -205,6 +227,9 @@ def test_config_names_overrides_and_errors(shared_data, prior_path):
         load_finetune_config("tiny", ["critic=central"])
     with pytest.raises(FinetuneError, match="no checkpoint"):
         load_prior(str(prior_path.parent / "missing"))
+    # the named configs' default scenes: the package's SUMO samples (its prior is not shipped yet, so give one)
+    cfg = load_finetune_config("tiny", {"prior": str(prior_path)})
+    assert [sc.scenario_id[:4] for sc in select_scenes(cfg, *load_prior(cfg.prior))] == ["sumo", "sumo"]
     cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, "unused", max_agents=40))
     with pytest.raises(FinetuneError, match="40 controllable agents"):
         select_scenes(cfg, *load_prior(cfg.prior))
