@@ -140,7 +140,9 @@ def test_prior_kl_loss_adds_beta_times_the_exact_kl_of_agents_that_acted():
 def test_tiny_finetuning_reaches_logged_goals_more_often_than_the_prior(tiny_run):
     """Same two real scenes, same 8 seeds (background sampler and policy sampler), 64
     agent-episodes per policy: the fine-tuned agents reach their logged goals more often (or
-    collide less), by at least 3 agent-episodes in 64, with the KL to the prior reported."""
+    collide less), by at least 3 agent-episodes in 64, with the KL to the prior reported.
+    Measured: goal rate 0.016 -> 0.234, collision 0.250 -> 0.250, offroad 0.812 -> 0.375, return
+    1.38 -> 3.75 per agent-episode, KL 0.76 per step (deterministic on one thread)."""
     cfg, result = tiny_run
     rows = result.evaluation["rows"]
     prior, tuned = rows["prior"], rows["fine-tuned"]
@@ -178,7 +180,8 @@ def test_a_short_run_collects_its_first_batch_at_the_prior_and_writes_its_files(
     """Two small iterations: the first batch is collected by the zero-initialised residual actor,
     so its KL to the prior is 0; the update moves it; CSV, config and checkpoints are written."""
     cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, tmp_path, iterations=2, frames_per_batch=32,
-                                            minibatch_size=32, ppo_epochs=1, eval_episodes=0, checkpoint_every=1, critic="ippo"))
+                                            minibatch_size=32, ppo_epochs=1, eval_episodes=0, checkpoint_every=1, critic="ippo",
+                                            tensorboard=True))
     result = finetune(cfg)
     assert result.evaluation is None and len(result.history) == 2
     assert result.history[0]["kl_to_prior"] < 1e-6 < result.history[1]["kl_to_prior"]
@@ -187,6 +190,11 @@ def test_a_short_run_collects_its_first_batch_at_the_prior_and_writes_its_files(
     assert names == [f"{n}.{ext}" for n in ("policy_0001", "policy_0002", "policy_last") for ext in ("json", "safetensors")]
     assert json.loads((tmp_path / "config.json").read_text())["critic"] == "ippo"
     assert len((tmp_path / "finetune.csv").read_text().splitlines()) == 3
+    try:
+        import torch.utils.tensorboard  # noqa: F401
+    except ImportError:
+        return
+    assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
 
 
 @pytest.mark.slow
