@@ -406,7 +406,8 @@ class FinetunedPolicy:
         for i, a in enumerate(agents):
             obs[i] = observations[a]["observation"]
             prior[i] = observations[a]["prior_logits"]
-        return self.net(torch.from_numpy(obs), torch.from_numpy(prior))[: len(agents)]
+        dev = next(self.net.parameters()).device
+        return self.net(torch.from_numpy(obs).to(dev), torch.from_numpy(prior).to(dev))[: len(agents)].cpu()
 
     def __call__(self, observations: Mapping, infos: Mapping, agents: list[str] | None = None) -> dict[str, int]:
         from smart_marl.rollout import sample_tokens
@@ -543,7 +544,8 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     # 5. collector, PPO epochs, logging, checkpoints
     frames_per_batch = max(len(scenes), cfg.frames_per_batch // len(scenes) * len(scenes))
     collector = Collector(env, actor, frames_per_batch=frames_per_batch, total_frames=frames_per_batch * cfg.iterations,
-                          device=device, auto_register_policy_transforms=False)  # a feed-forward policy: no InitTracker
+                          policy_device=device, env_device="cpu", storing_device=device,  # the env steps numpy on the CPU
+                          auto_register_policy_transforms=False)  # a feed-forward policy: no InitTracker
     log = RunLog(out_dir, cfg.tensorboard)
     history: list[dict] = []
     ckpt_dir = out_dir / "checkpoints"
