@@ -8,6 +8,9 @@ built from). Methods: "kdisks" (ours) and "uniform_grid" (the MotionLM-style bas
 grid over the end pose (dx, dy, dheading) with the same number of tokens). As a labelled yardstick
 only, the SMART authors' published vocabulary (built from all of WOMD) is evaluated on all scenes
 (vocab_source "reference_smart_womd"). With --noise-topk K, k-disks is also run with top-K noise.
+With --generated PATH (scenes made by ``smart-marl generate-sumo``), k-disks and the grid are also
+built from those generated scenes and evaluated on every real scene (vocab_source "sumo...": the
+cross-domain case).
 
 Prints one JSON line per (vocab_source, method, vocab_size, agent_type): mean_pos_err_m (over every
 valid 10 Hz frame a valid token covers, anchors excluded), p95_pos_err_m, final_pos_err_m (per
@@ -111,6 +114,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--noise-topk", type=int, default=5, help="also evaluate k-disks with top-K noise (0: skip)")
     ap.add_argument("--no-reference", action="store_true")
+    ap.add_argument("--generated", type=Path, default=None,
+                    help="generated scenes (e.g. a generate-sumo cache) to build cross-domain vocabularies from")
+    ap.add_argument("--generated-scenes", type=int, default=500, help="how many generated scenes to build from")
     args = ap.parse_args(argv)
     sizes = [int(s) for s in args.sizes.split(",")]
     t0 = time.time()
@@ -135,6 +141,20 @@ def main(argv=None) -> int:
             if args.noise_topk > 1:
                 report(reconstruction_errors(halves[other], kd, noise_topk=args.noise_topk, rng=args.seed), kd, "kdisks", label,
                        {"noise_topk": args.noise_topk})
+    if args.generated is not None:
+        generated = []
+        for sc in read_scenarios(args.generated):
+            generated.append(sc)
+            if len(generated) >= args.generated_scenes:
+                break
+        snippets, prov = collect_snippets(generated)
+        print(f"# generated: {len(generated)} scenes, snippets {prov['snippets']}", file=sys.stderr)
+        for size in sizes:
+            kd = build_motion_vocabulary(snippets, size, seed=args.seed, provenance=prov, progress=False)
+            grid = uniform_grid_vocabulary(snippets, size, provenance=prov)
+            label = f"sumo (built from {len(generated)} generated scenes of {args.generated}, evaluated on all {len(scenes)} real scenes)"
+            report(reconstruction_errors(scenes, kd), kd, "kdisks", label)
+            report(reconstruction_errors(scenes, grid), grid, "uniform_grid", label)
     ref_path = args.data / "smart_tokens" / "cluster_frame_5_2048.pkl"
     if not args.no_reference and ref_path.is_file():
         ref = load_reference_motion_vocabulary(ref_path)

@@ -185,3 +185,13 @@ def embedded_checkpoint_path() -> Path:
 def load_embedded(map_location: str | torch.device = "cpu", **config_overrides: Any) -> Checkpoint:
     """The package's pretrained SMART prior (see the model card in the README)."""
     return load_checkpoint(embedded_checkpoint_path(), map_location=map_location, **config_overrides)
+
+
+def export_checkpoint(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
+    """Copy a training checkpoint to ``dst`` for inference: weights, vocabularies, config and
+    provenance under the new name, without the optimizer/RNG training state. Returns the JSON path."""
+    ck = load_checkpoint(src)
+    meta = ck.meta
+    return save_checkpoint(dst, ck.model, ck.motion_vocab, ck.road_vocab, step=ck.step, metrics=meta.get("metrics"),
+                           data={**meta.get("data", {}), "exported_from": str(checkpoint_paths(src)["meta"])},
+                           train_config=meta.get("train_config"))
