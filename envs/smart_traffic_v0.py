@@ -63,17 +63,10 @@ from ._scene import SceneStatic, route_progress_m, scene_static
 
 BACKGROUNDS = ("prior", "log", "constant_velocity")
 DT_S = 0.1
-_PACKAGE_DIR = Path(__file__).resolve().parents[1] / "smart_marl"
-EMBEDDED_CHECKPOINT_DIR = _PACKAGE_DIR / "checkpoints" / "embedded"
-EMBEDDED_SCENES_DIR = _PACKAGE_DIR / "samples"
 
 
 class EnvConfigError(SmartMarlError, ValueError):
     """A bad argument to the environment (scenes, prior, controlled agents, background...)."""
-
-
-class EmbeddedAssetMissing(SmartMarlError, FileNotFoundError):
-    """``prior="embedded"`` or ``scenarios="embedded"`` before the package ships them."""
 
 
 # ----------------------------------------------------------------------------- construction
@@ -86,19 +79,9 @@ def _load_prior(prior, motion_vocab: MotionVocabulary | None):
             raise EnvConfigError("prior=None needs motion_vocab=...: the action spaces are the vocabulary's tokens")
         return None, motion_vocab
     if isinstance(prior, str) and prior == "embedded":
-        from smart_marl.model import checkpoint as ckpt
+        from smart_marl.model.checkpoint import load_embedded
 
-        loader = getattr(ckpt, "load_embedded", None)
-        if loader is not None:
-            prior = loader()
-        else:
-            found = sorted(EMBEDDED_CHECKPOINT_DIR.glob("*.json")) if EMBEDDED_CHECKPOINT_DIR.is_dir() else []
-            if not found:
-                raise EmbeddedAssetMissing(
-                    f"prior='embedded': this package ships no embedded SMART checkpoint yet (looked for "
-                    f"smart_marl.model.checkpoint.load_embedded() and {EMBEDDED_CHECKPOINT_DIR}/*.json; it comes with "
-                    f"issue 7). Pass prior=PATH (a checkpoint), a SMART model, or prior=None with motion_vocab=...")
-            prior = found[0]
+        prior = load_embedded()
     if isinstance(prior, (str, os.PathLike)) and not Path(prior).with_suffix(".json").exists() and not Path(prior).exists() \
             and not Path(str(prior) + ".json").exists():
         raise EnvConfigError(f"prior: no checkpoint at {prior}")
@@ -112,11 +95,9 @@ def _load_scenes(scenarios) -> list[Scenario]:
     if isinstance(scenarios, Scenario):
         return [scenarios]
     if isinstance(scenarios, str) and scenarios == "embedded":
-        files = sorted(p for p in EMBEDDED_SCENES_DIR.glob("*") if p.is_file()) if EMBEDDED_SCENES_DIR.is_dir() else []
-        if not files:
-            raise EmbeddedAssetMissing(f"scenarios='embedded': this package ships no sample scenes yet (looked in "
-                                       f"{EMBEDDED_SCENES_DIR}; they come with issue 7). Pass a path or a list of Scenario objects.")
-        return [s for f in files for s in read_scenarios(f)]
+        from smart_marl.embedded import sample_scenarios
+
+        return sample_scenarios()
     if isinstance(scenarios, (str, os.PathLike)):
         scenes = list(read_scenarios(scenarios))
     elif isinstance(scenarios, Iterable):
@@ -754,5 +735,5 @@ def env(**kwargs):
     return wrappers.OrderEnforcingWrapper(raw_env(**kwargs))
 
 
-__all__ = ["BACKGROUNDS", "EmbeddedAssetMissing", "EnvConfigError", "ObservationConfig", "RewardConfig", "SmartTrafficEnv",
+__all__ = ["BACKGROUNDS", "EnvConfigError", "ObservationConfig", "RewardConfig", "SmartTrafficEnv",
            "env", "parallel_env", "raw_env"]

@@ -320,8 +320,6 @@ def test_bad_inputs_are_clear_errors(scenes, vocab, model):
         make(scenes, vocab, model, controlled=[123456789])
     with pytest.raises(smart_traffic_v0.EnvConfigError, match="needs a prior"):
         make(scenes, vocab, None, background="prior")
-    with pytest.raises(smart_traffic_v0.EmbeddedAssetMissing, match="embedded"):
-        smart_traffic_v0.parallel_env(scenarios=scenes[:1], prior="embedded")
     with pytest.raises(smart_traffic_v0.EnvConfigError, match="background"):
         make(scenes, vocab, model, background="replay")
 
@@ -363,5 +361,21 @@ def test_controlled_selection_by_names_ids_predict_and_a_path(shared_data, scene
     cf = sc.current_frame
     assert len(smart_traffic_v0.parallel_env(scenarios=path, controlled="vehicles", **kw).possible_agents) == int(
         (sc.tracks.valid[:, cf] & (sc.tracks.types == int(AgentType.VEHICLE))).sum())
-    with pytest.raises(smart_traffic_v0.EmbeddedAssetMissing, match="sample scenes"):
-        smart_traffic_v0.parallel_env(scenarios="embedded", **kw)
+
+
+def test_embedded_prior_and_sample_scenes_run_an_episode():
+    """The defaults need no data on disk: the package's sample scenes driven by its embedded prior."""
+    from smart_marl.embedded import sample_scenarios
+
+    env = smart_traffic_v0.parallel_env(scenarios="embedded", prior="embedded", controlled="sdc", horizon_steps=3)
+    obs, infos = env.reset(seed=0)
+    first = sample_scenarios()[0]
+    assert env.agents == [first.tracks.names()[first.sdc_index]]
+    agent = env.agents[0]
+    logits = infos[agent]["prior_logits"]
+    assert env.action_space(agent).n == 512 == len(logits) and np.isfinite(logits).all()
+    steps = 0
+    while env.agents:
+        obs, rewards, terms, truncs, infos = env.step({a: int(np.argmax(infos[a]["prior_logits"])) for a in env.agents})
+        steps += 1
+    assert steps <= 3 and (truncs[agent] or terms[agent])
