@@ -240,11 +240,11 @@ def select_scenes(cfg: FinetuneConfig, model, vocab) -> list:
         raise FinetuneError("scenes: no scenes given (scenes=PATH)")
     sources = [cfg.scenes] if isinstance(cfg.scenes, str) else list(cfg.scenes)
     if "embedded" in sources:
-        from envs.smart_traffic_v0 import EMBEDDED_SCENES_DIR
+        from smart_marl.embedded import SAMPLES_DIR
 
-        files = sorted(str(p) for p in EMBEDDED_SCENES_DIR.glob("*") if p.is_file()) if EMBEDDED_SCENES_DIR.is_dir() else []
+        files = sorted(str(p) for p in SAMPLES_DIR.glob("*.smsc"))
         if not files:
-            raise FinetuneError(f"scenes='embedded': the package ships no sample scenes ({EMBEDDED_SCENES_DIR}); give scenes=PATH")
+            raise FinetuneError(f"scenes='embedded': the package ships no sample scenes ({SAMPLES_DIR}); give scenes=PATH")
         i = sources.index("embedded")
         sources[i : i + 1] = files
     chosen, skipped = [], []

@@ -238,7 +238,7 @@ def test_config_names_overrides_and_errors(shared_data, prior_path):
         load_finetune_config("tiny", ["critic=central"])
     with pytest.raises(FinetuneError, match="no checkpoint"):
         load_prior(str(prior_path.parent / "missing"))
-    # the named configs' default scenes: the package's SUMO samples (its prior is not shipped yet, so give one)
+    # the named configs' default scenes: the package's SUMO samples
     cfg = load_finetune_config("tiny", {"prior": str(prior_path)})
     assert [sc.scenario_id[:4] for sc in select_scenes(cfg, *load_prior(cfg.prior))] == ["sumo", "sumo"]
     cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, "unused", max_agents=40))
