@@ -9,11 +9,11 @@ Output (stdout, one JSON object per line):
   {"kind": "summary", ...}                  first vs last 3 iterations, evaluation deltas
 
 The prior: ``--prior PATH`` (a SMART checkpoint), else the package's embedded checkpoint, else
-``--fallback-prior random``: a small randomly initialised SMART whose k-disks vocabulary is built
+``--fallback-prior random`` (or ``--prior random``): a small randomly initialised SMART whose k-disks vocabulary is built
 from the scenes (what the tests use; its behaviour is near-random, so the curve then shows how
 fast PPO + KL corrects a bad prior, not how a trained prior is refined). The setup line says which.
 
-    .venv/bin/python benchmarks/finetune_curve.py --iterations 60 --beta 0.01
+    .venv/bin/python benchmarks/finetune_curve.py --prior random --iterations 40 --beta 0.01
     .venv/bin/python benchmarks/finetune_curve.py --prior runs/prior/checkpoints/last.json --beta 0.05
 
 Measured 2026-11-22 (shared 2-core CPU under a load of ~8, one torch thread; the random 32-token
@@ -73,7 +73,7 @@ def random_prior(scene_paths: list[str], out: Path, vocab_size: int = 32) -> Pat
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--prior", default=None, help="SMART checkpoint (default: embedded, else --fallback-prior)")
+    ap.add_argument("--prior", default=None, help="SMART checkpoint, or 'random' (default: embedded, else --fallback-prior)")
     ap.add_argument("--fallback-prior", choices=("random", "none"), default="random")
     ap.add_argument("--scenes", nargs="*", default=DEFAULT_SCENES, help="scene paths / globs")
     ap.add_argument("--num-scenes", type=int, default=6)
@@ -93,7 +93,9 @@ def main() -> int:
 
     tmp = Path(tempfile.mkdtemp(prefix="finetune_curve_"))
     prior, prior_kind = args.prior, "checkpoint"
-    if prior is None:
+    if prior == "random":
+        prior, prior_kind = str(random_prior(args.scenes, tmp)), "random (tests' tiny SMART, k-disks vocabulary of 32)"
+    elif prior is None:
         from smart_marl.model.checkpoint import CheckpointError, embedded_checkpoint_path
 
         try:
