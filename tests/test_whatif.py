@@ -308,7 +308,7 @@ def _has_embedded_prior() -> bool:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="the embedded prior (smart-1m, 150 CPU training steps) is too weak: with it the "
+@pytest.mark.xfail(strict=False, reason="the embedded prior (smart-1m, 250 CPU training steps) is too weak: with it the "
                    "followers' speeds do not change behind the braking car (README, limits); passes once a trained prior ships")
 @pytest.mark.skipif(not _has_embedded_prior(), reason=f"no embedded trained prior yet ({EMBEDDED_DIR}): the slow-down behind a "
                                                       "braking car needs a trained SMART model, a random one does not react")
