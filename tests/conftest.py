@@ -18,6 +18,18 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """One torch thread for a module of small-model tests: on a shared 2-core machine, torch's threads
+    fighting other processes make these small steps about 10x slower."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture(scope="session")
 def tiny_prior(shared_data, tmp_path_factory):
     """A small randomly initialised SMART checkpoint whose motion vocabulary (16 tokens per type,

@@ -29,13 +29,7 @@ ONE_SCENE = "womd_tfrecord/motion_data_one_scenario.tfrecord"
 OTHER_SCENE = "womd_tfrecord/womd_scenario_input.tfrecord"
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_torch_thread():
-    """The tiny model's steps are ~10x slower when torch's threads fight other processes for 2 cores."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 
 
 @pytest.fixture(scope="module")

@@ -30,12 +30,7 @@ VOCAB = 32
 WOMD = "womd_tfrecord/*.tfrecord"  # the two real WOMD scenes (17 and 4 moving vehicles)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_torch_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 
 
 @pytest.fixture(scope="module")

@@ -25,13 +25,7 @@ SCENE_FILES = ("womd_tfrecord/motion_data_one_scenario.tfrecord", "womd_tfrecord
                "gpudrive_json/tfrecord-00000-of-01000_4.json")
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """These batches are small: one thread avoids oversubscribing a shared CPU (10x slower there)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 
 
 @pytest.fixture(scope="module")

@@ -35,12 +35,7 @@ OTHER_SCENE = "womd_tfrecord/womd_scenario_input.tfrecord"
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "whatif"
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_torch_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 
 
 @pytest.fixture(scope="module")
