@@ -50,6 +50,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from smart_marl.config_files import read_config_file, split_override
 from smart_marl.errors import SmartMarlError
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "finetune"
@@ -120,18 +121,6 @@ class FinetuneConfig:
 
 
 # ------------------------------------------------------------------------------------- config
-def _parse_value(text: str) -> Any:
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        low = text.lower()
-        if low in ("none", "null"):
-            return None
-        if low in ("true", "false"):
-            return low == "true"
-        return text
-
-
 def named_configs() -> list[str]:
     return sorted(p.stem for p in CONFIG_DIR.glob("*.json")) if CONFIG_DIR.is_dir() else []
 
@@ -149,17 +138,9 @@ def load_finetune_config(config: str | Mapping[str, Any] | None = None, override
             p = CONFIG_DIR / f"{config}.json"
         if not p.is_file():
             raise FinetuneError(f"unknown fine-tuning config {config!r}: neither a file nor a named config ({', '.join(named_configs())})")
-        try:
-            if p.suffix == ".toml":
-                import tomllib
-
-                values.update(tomllib.loads(p.read_text()))
-            else:
-                values.update(json.loads(p.read_text()))
-        except Exception as exc:  # noqa: BLE001 - reported with the file name
-            raise FinetuneError(f"{p}: cannot read the fine-tuning config: {exc}") from exc
+        values.update(read_config_file(p, "fine-tuning", FinetuneError))
     values = {k: v for k, v in values.items() if not k.startswith("_")}  # "_comment" and the like
-    items = overrides.items() if isinstance(overrides, Mapping) else (_split_override(o) for o in overrides)
+    items = overrides.items() if isinstance(overrides, Mapping) else (split_override(o, FinetuneError) for o in overrides)
     reward = dict(values.pop("reward", {}) or {})
     for key, val in items:
         if key.startswith("reward."):
@@ -179,13 +160,6 @@ def load_finetune_config(config: str | Mapping[str, Any] | None = None, override
     if cfg.frames_per_batch < cfg.minibatch_size or cfg.minibatch_size < 1:
         raise FinetuneError(f"minibatch_size ({cfg.minibatch_size}) must be in 1..frames_per_batch ({cfg.frames_per_batch})")
     return cfg
-
-
-def _split_override(text: str) -> tuple[str, Any]:
-    if "=" not in text:
-        raise FinetuneError(f"override {text!r} is not key=value")
-    k, v = text.split("=", 1)
-    return k.strip(), _parse_value(v.strip())
 
 
 # ---------------------------------------------------------------------------------- the env

@@ -42,6 +42,7 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, Sampler
 
+from .config_files import read_config_file, split_override
 from .errors import SmartMarlError
 from .model.batch import RoadArrays, SmartBatch, collate_scenes, scene_road, scene_tensors
 from .model.checkpoint import (CheckpointError, VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
@@ -102,18 +103,6 @@ class TrainConfig:
 
 
 # ------------------------------------------------------------------------------------- config
-def _parse_value(text: str) -> Any:
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        low = text.lower()
-        if low in ("none", "null"):
-            return None
-        if low in ("true", "false"):
-            return low == "true"
-        return text
-
-
 def load_train_config(config: str | Mapping[str, Any] | None = None, overrides: Sequence[str] | Mapping[str, Any] = ()) -> TrainConfig:
     """A :class:`TrainConfig` from a JSON/TOML file, a model config name (``smart-7m``) or a dict,
     plus ``key=value`` overrides (values parsed as JSON when they parse; ``model.FIELD=...`` sets a
@@ -126,21 +115,12 @@ def load_train_config(config: str | Mapping[str, Any] | None = None, overrides: 
     elif config:
         p = Path(config)
         if p.is_file():
-            text = p.read_text()
-            try:
-                if p.suffix == ".toml":
-                    import tomllib
-
-                    values.update(tomllib.loads(text))
-                else:
-                    values.update(json.loads(text))
-            except Exception as exc:  # noqa: BLE001 - reported with the file name
-                raise TrainError(f"{p}: cannot read the training config: {exc}") from exc
+            values.update(read_config_file(p, "training", TrainError))
         elif config in NAMED_CONFIGS:
             values["model"] = config
         else:
             raise TrainError(f"unknown config {config!r}: neither a file nor a model config name ({', '.join(NAMED_CONFIGS)})")
-    items = overrides.items() if isinstance(overrides, Mapping) else (_split_override(o) for o in overrides)
+    items = overrides.items() if isinstance(overrides, Mapping) else (split_override(o, TrainError) for o in overrides)
     model_over = dict(values.pop("model_overrides", {}) or {})
     for key, val in items:
         if key.startswith("model."):
@@ -156,13 +136,6 @@ def load_train_config(config: str | Mapping[str, Any] | None = None, overrides: 
     if isinstance(cfg.model, str) and cfg.model not in NAMED_CONFIGS:
         raise TrainError(f"unknown model config {cfg.model!r}; known: {', '.join(NAMED_CONFIGS)}")
     return cfg
-
-
-def _split_override(text: str) -> tuple[str, Any]:
-    if "=" not in text:
-        raise TrainError(f"override {text!r} is not key=value")
-    k, v = text.split("=", 1)
-    return k.strip(), _parse_value(v.strip())
 
 
 # --------------------------------------------------------------------------------------- data

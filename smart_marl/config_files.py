@@ -1,0 +1,42 @@
+"""Config files and ``key=value`` overrides, the one reader that ``smart-marl train`` and
+``smart-marl finetune`` share."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+
+def parse_value(text: str) -> Any:
+    """An override's value: JSON when it parses, else none/null/true/false, else the text itself."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        low = text.lower()
+        if low in ("none", "null"):
+            return None
+        if low in ("true", "false"):
+            return low == "true"
+        return text
+
+
+def split_override(text: str, error: type[Exception]) -> tuple[str, Any]:
+    """``"key=value"`` -> (key, parsed value); ``error`` when there is no ``=``."""
+    if "=" not in text:
+        raise error(f"override {text!r} is not key=value")
+    k, v = text.split("=", 1)
+    return k.strip(), parse_value(v.strip())
+
+
+def read_config_file(path: Path, what: str, error: type[Exception]) -> dict[str, Any]:
+    """The dict in a JSON or TOML (by suffix) config file; ``error`` naming the file when it cannot be read."""
+    try:
+        text = path.read_text()
+        if path.suffix == ".toml":
+            import tomllib
+
+            return dict(tomllib.loads(text))
+        return dict(json.loads(text))
+    except Exception as exc:  # noqa: BLE001 - reported with the file name
+        raise error(f"{path}: cannot read the {what} config: {exc}") from exc
