@@ -30,27 +30,50 @@ def one_torch_thread():
     torch.set_num_threads(before)
 
 
-@pytest.fixture(scope="session")
-def tiny_prior(shared_data, tmp_path_factory):
-    """A small randomly initialised SMART checkpoint whose motion vocabulary (16 tokens per type,
-    uniform grid) comes from the two real WOMD scenes: for tests of mechanics (shapes, equalities,
-    commands), never of behaviour. Returns the checkpoint's JSON path."""
-    import numpy as np
+def _tiny_smart(vocab):
+    """A small randomly initialised SMART model (eval mode, seed 0) over ``vocab``'s motion tokens."""
     import torch
 
-    from smart_marl.model.checkpoint import save_checkpoint
     from smart_marl.model.smart import SMART, get_config
+
+    sizes = tuple(int(vocab[t].contour.shape[0]) for t in range(3))
+    cfg = get_config(dict(hidden_dim=16, num_heads=2, head_dim=8, num_road_layers=1, num_agent_blocks=1,
+                          motion_vocab_sizes=sizes, road_vocab_size=8, num_freq_bands=4, dropout=0.0,
+                          agent_neighbours=8, map_neighbours=8, road_neighbours=4))
+    torch.manual_seed(0)
+    return SMART(cfg, motion_contours=[vocab[t].contour for t in range(3)]).eval()
+
+
+@pytest.fixture(scope="session")
+def tiny_smart():
+    """Factory ``tiny_smart(vocab) -> SMART``: a small random model for tests of mechanics (shapes,
+    equalities, commands), never of behaviour."""
+    return _tiny_smart
+
+
+@pytest.fixture(scope="session")
+def save_tiny_prior(tmp_path_factory):
+    """Factory ``save_tiny_prior(vocab) -> Path``: the tiny random model over ``vocab`` saved as a
+    checkpoint (with a placeholder road vocabulary) in a fresh temporary folder; returns its JSON path."""
+    import numpy as np
+
+    from smart_marl.model.checkpoint import save_checkpoint
+    from smart_marl.tokens.road import RoadVocabulary
+
+    def save(vocab):
+        road_vocab = RoadVocabulary(points=np.zeros((8, 11, 2), np.float32), tolerance_m=0.0, requested_size=8)
+        return save_checkpoint(tmp_path_factory.mktemp("tiny_prior") / "prior", _tiny_smart(vocab), vocab, road_vocab)
+
+    return save
+
+
+@pytest.fixture(scope="session")
+def tiny_prior(shared_data, save_tiny_prior):
+    """The tiny random checkpoint over a 16-token uniform-grid vocabulary from the two real WOMD
+    scenes. Returns the checkpoint's JSON path."""
     from smart_marl.readers import read_scenarios
     from smart_marl.tokens import collect_snippets, uniform_grid_vocabulary
-    from smart_marl.tokens.road import RoadVocabulary
 
     scenes = list(read_scenarios(shared_data / "womd_tfrecord" / "*.tfrecord"))
     snippets, _ = collect_snippets(scenes)
-    vocab = uniform_grid_vocabulary(snippets, 16)
-    cfg = get_config(dict(hidden_dim=16, num_heads=2, head_dim=8, num_road_layers=1, num_agent_blocks=1,
-                          motion_vocab_sizes=(16,) * 3, road_vocab_size=8, num_freq_bands=4, dropout=0.0,
-                          agent_neighbours=8, map_neighbours=8, road_neighbours=4))
-    torch.manual_seed(0)
-    model = SMART(cfg, motion_contours=[vocab[t].contour for t in range(3)]).eval()
-    road_vocab = RoadVocabulary(points=np.zeros((8, 11, 2), np.float32), tolerance_m=0.0, requested_size=8)
-    return save_checkpoint(tmp_path_factory.mktemp("tiny_prior") / "prior", model, vocab, road_vocab)
+    return save_tiny_prior(uniform_grid_vocabulary(snippets, 16))

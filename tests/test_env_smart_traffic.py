@@ -18,7 +18,6 @@ pytest.importorskip("pettingzoo", reason="the env extra (pettingzoo) is not inst
 from envs import smart_traffic_v0  # noqa: E402
 from envs._observation import observation_layout  # noqa: E402
 from envs._reward import REWARD_TERMS, collisions  # noqa: E402
-from smart_marl.model.smart import SMART, get_config  # noqa: E402
 from smart_marl.readers import read_scenarios  # noqa: E402
 from smart_marl.rollout import RolloutState, rollout, sample_tokens  # noqa: E402
 from smart_marl.scenario import AgentType  # noqa: E402
@@ -44,12 +43,8 @@ def vocab(scenes):
 
 
 @pytest.fixture(scope="module")
-def model(vocab):
-    cfg = get_config(dict(hidden_dim=16, num_heads=2, head_dim=8, num_road_layers=1, num_agent_blocks=1,
-                          motion_vocab_sizes=(VOCAB,) * 3, road_vocab_size=8, num_freq_bands=4, dropout=0.0,
-                          agent_neighbours=8, map_neighbours=8, road_neighbours=4))
-    torch.manual_seed(0)
-    return SMART(cfg, motion_contours=[vocab[t].contour for t in range(3)]).eval()
+def model(vocab, tiny_smart):
+    return tiny_smart(vocab)
 
 
 def make(scenes, vocab, model, **kw):

@@ -34,23 +34,12 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.p
 
 
 @pytest.fixture(scope="module")
-def prior_path(shared_data, tmp_path_factory):
-    from smart_marl.model.checkpoint import save_checkpoint
-    from smart_marl.model.smart import SMART, get_config
+def prior_path(shared_data, save_tiny_prior):
     from smart_marl.readers import read_scenarios
     from smart_marl.tokens import build_motion_vocabulary, collect_snippets
-    from smart_marl.tokens.road import RoadVocabulary
 
-    scenes = list(read_scenarios(shared_data / WOMD))
-    snippets, _ = collect_snippets(scenes, stride=1)
-    vocab = build_motion_vocabulary(snippets, VOCAB, seed=0, progress=False)
-    cfg = get_config(dict(hidden_dim=16, num_heads=2, head_dim=8, num_road_layers=1, num_agent_blocks=1,
-                          motion_vocab_sizes=(VOCAB,) * 3, road_vocab_size=8, num_freq_bands=4, dropout=0.0,
-                          agent_neighbours=8, map_neighbours=8, road_neighbours=4))
-    torch.manual_seed(0)
-    model = SMART(cfg, motion_contours=[vocab[t].contour for t in range(3)]).eval()
-    road_vocab = RoadVocabulary(points=np.zeros((8, 11, 2), np.float32), tolerance_m=0.0, requested_size=8)
-    return save_checkpoint(tmp_path_factory.mktemp("prior") / "prior", model, vocab, road_vocab)
+    snippets, _ = collect_snippets(list(read_scenarios(shared_data / WOMD)), stride=1)
+    return save_tiny_prior(build_motion_vocabulary(snippets, VOCAB, seed=0, progress=False))
 
 
 def tiny(shared_data, prior_path, out_dir, **over) -> dict:

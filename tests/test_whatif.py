@@ -23,7 +23,6 @@ from agents.whatif import (
     WhatIfError, load_script, override_road_lights, prepare, run_whatif, simulate,
 )
 from smart_marl.model.checkpoint import EMBEDDED_DIR
-from smart_marl.model.smart import SMART, get_config
 from smart_marl.readers import read_scenarios
 from smart_marl.rollout import RolloutState
 from smart_marl.scenario import SignalState
@@ -55,12 +54,8 @@ def vocab(scenes):
 
 
 @pytest.fixture(scope="module")
-def model(vocab):
-    cfg = get_config(dict(hidden_dim=16, num_heads=2, head_dim=8, num_road_layers=1, num_agent_blocks=1,
-                          motion_vocab_sizes=(VOCAB,) * 3, road_vocab_size=8, num_freq_bands=4, dropout=0.0,
-                          agent_neighbours=8, map_neighbours=8, road_neighbours=4))
-    torch.manual_seed(0)
-    return SMART(cfg, motion_contours=[vocab[t].contour for t in range(3)]).eval()
+def model(vocab, tiny_smart):
+    return tiny_smart(vocab)
 
 
 def run(model, vocab, scene, *edits, rollouts=2, steps=16, seed=0):

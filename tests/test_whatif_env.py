@@ -6,13 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 pytest.importorskip("pettingzoo", reason="the env extra (pettingzoo) is not installed")
 
 from agents.scripted import Manoeuvre, ScriptedPolicy, stop_time_s  # noqa: E402
 from envs import smart_traffic_v0  # noqa: E402
-from smart_marl.model.smart import SMART, get_config  # noqa: E402
 from smart_marl.readers import read_scenarios  # noqa: E402
 from smart_marl.tokens import build_motion_vocabulary, collect_snippets  # noqa: E402
 
@@ -34,12 +32,8 @@ def vocab(scenes):
 
 
 @pytest.fixture(scope="module")
-def model(vocab):
-    cfg = get_config(dict(hidden_dim=16, num_heads=2, head_dim=8, num_road_layers=1, num_agent_blocks=1,
-                          motion_vocab_sizes=(VOCAB,) * 3, road_vocab_size=8, num_freq_bands=4, dropout=0.0,
-                          agent_neighbours=8, map_neighbours=8, road_neighbours=4))
-    torch.manual_seed(0)
-    return SMART(cfg, motion_contours=[vocab[t].contour for t in range(3)]).eval()
+def model(vocab, tiny_smart):
+    return tiny_smart(vocab)
 
 
 def test_scripted_policy_brakes_a_controlled_car_to_a_standstill_and_holds_another(scenes, vocab, model):
