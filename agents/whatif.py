@@ -36,9 +36,9 @@ Traffic lights: the SMART model sees a signal only through the light embedding o
 pieces of the controlled lane (``smart_marl.model.batch.scene_road`` reads the state at the
 scene's *current frame* into ``road_light``; RoadNet embeds it once per scene). An override at
 ``at_s = 0`` is a scene edit, so RoadNet sees it from the start. An override at a later time
-rewrites ``RolloutState.road_light`` for the lane's pieces at that step, re-runs RoadNet and
-re-projects the map-attention keys and values of the KV cache (:func:`override_road_lights`), so
-every later step's map attention reads the new light; the steps already taken keep the old one.
+sets the lane's pieces' light codes with ``RolloutState.set_road_light`` at that step (RoadNet
+re-runs, the KV cache's map-attention keys and values are re-projected; :func:`override_road_lights`),
+so every later step's map attention reads the new light; the steps already taken keep the old one.
 
 Times: ``at_s`` counts seconds after the current frame; an edit takes effect at token step
 ``round(at_s / 0.5)`` (token steps are 0.5 s). Agents are named by their track id or ``"sdc"``.
@@ -652,19 +652,14 @@ class SimRollouts:
 def override_road_lights(state, piece_light_index: np.ndarray, lane_indices: np.ndarray, code: int) -> None:
     """Force the light state of the road pieces of ``lane_indices`` (indices into the scene's
     ``traffic_lights``) to ``code`` in a running :class:`~smart_marl.rollout.RolloutState` of one
-    scene: rewrites ``road_light``, re-runs RoadNet and re-projects the KV cache's road keys and
-    values, so that every later step's map attention sees the new light.
+    scene (:meth:`~smart_marl.rollout.RolloutState.set_road_light`: RoadNet re-runs and the KV
+    cache's road keys and values are re-projected), so every later step's map attention sees it.
     ``piece_light_index`` [R]: each road piece's traffic-light lane index (``road_pieces(...).traffic_light_index``,
     the same pieces in the same order as the state's road tokens)."""
     sel = torch.from_numpy(np.isin(piece_light_index, lane_indices) & (piece_light_index >= 0)).to(state.device)
     light = state.road_light.clone()
     light[:, : len(sel)][:, sel] = int(code)
-    state.road_light = light
-    with torch.no_grad():
-        state.road_x = state.model.road_net(state.road_points, state.road_pose, state.road_type, state.road_light, state.road_valid)
-        if state.engine is not None:
-            flat = state.road_x.reshape(-1, state.road_x.shape[-1])
-            state.engine.road_kv = [m.project_source(flat) for m in state.model.motion_net.map_attn]
+    state.set_road_light(light)
 
 
 def simulate(model, vocab, prepared: Prepared, num_rollouts: int, seed: int, num_steps: int = 16, top_k: int = 5,

@@ -18,7 +18,7 @@ from smart_marl.model.batch import SmartBatch
 from smart_marl.model.smart import SMART, get_config
 from smart_marl.readers import read_scenarios
 from smart_marl.rollout import RolloutState, rollout, sample_tokens, token_poses_from_contours
-from smart_marl.scenario import AgentType
+from smart_marl.scenario import AgentType, SignalState
 from smart_marl.tokens import collect_snippets, compose_poses, uniform_grid_vocabulary
 
 SCENE_FILES = ("womd_tfrecord/motion_data_one_scenario.tfrecord", "womd_tfrecord/womd_scenario_input.tfrecord",
@@ -259,3 +259,22 @@ def test_scenes_with_different_history_lengths_batch_together_and_stay_exact(mod
     logged = short.frame.to_source(tr.position[:, 6])
     first = res.trajectory[1, : tr.num_tracks, 0, :2][tr.valid[:, 6]]
     assert np.linalg.norm(first - logged[tr.valid[:, 6], :2], axis=-1).max() < 4.0
+
+
+def test_set_road_light_re_encodes_the_road_and_reaches_the_next_logits(model, vocab, scenes):
+    cached, full = _start(model, vocab, scenes[:1], seed=0), _start(model, vocab, scenes[:1], mode="full", seed=0)
+    light = torch.where(cached.road_valid, torch.tensor(int(SignalState.STOP)), cached.road_light)
+    assert not torch.equal(light, cached.road_light)
+    before = cached.road_x.clone()
+    for state in (cached, full):
+        state.set_road_light(light)
+    fresh = model.road_net(cached.road_points, cached.road_pose, cached.road_type, light, cached.road_valid)
+    torch.testing.assert_close(cached.road_x, fresh)
+    assert not torch.allclose(before, fresh)
+    # the next step's logits see it (the KV cache keeps the history steps as they were computed,
+    # under the old lights; the full path re-computes them, so the two paths differ from here on)
+    unchanged = _start(model, vocab, scenes[:1], seed=0)
+    for state in (cached, full):
+        assert not torch.allclose(state.logits(), unchanged.logits())
+    with pytest.raises(ValueError, match="road_light must have shape"):
+        cached.set_road_light(light[:, :-1])

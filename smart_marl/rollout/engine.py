@@ -295,6 +295,19 @@ class RolloutState:
             if self.mode == "full":
                 self.history[1][:, :, -1] &= self.simulated
 
+    def set_road_light(self, road_light: torch.Tensor) -> None:
+        """Replace the road pieces' light codes [B, R] (``SignalState``; B scenes, the pieces in the
+        order of the state's road tokens) and re-encode the road: every later step's map attention
+        sees the new lights (the KV cache's road keys and values are re-projected)."""
+        light = road_light.to(self.device, self.road_light.dtype)
+        if light.shape != self.road_light.shape:
+            raise ValueError(f"road_light must have shape {tuple(self.road_light.shape)}, got {tuple(light.shape)}")
+        self.road_light = light
+        with torch.no_grad():
+            self.road_x = self.model.road_net(self.road_points, self.road_pose, self.road_type, self.road_light, self.road_valid)
+        if self.engine is not None:
+            self.engine.set_road(self.road_x)
+
     def set_agent_pose(self, pose: torch.Tensor, mask: torch.Tensor) -> None:
         """Override the current pose [G, N, 3] of the slots where ``mask`` [G, N] is true: their next
         token starts there. When the next step's logits were already computed (:meth:`logits` was

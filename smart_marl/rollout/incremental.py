@@ -68,8 +68,8 @@ class IncrementalMotionNet:
             self.road_pose_g = road_pose[self.scene_of_group]  # (G, R, 3)
             self.road_valid_g = road_valid[self.scene_of_group]  # (G, R)
             self.road_pose_flat = road_pose.reshape(-1, 3)  # (B*R, 3)
-            road_flat = road_x.reshape(-1, d)
-            self.road_kv = [m.project_source(road_flat) for m in net.map_attn]  # per block 2 x (B*R, inner)
+        self.set_road(road_x)
+        with torch.no_grad():
             # token embedding tables (as MotionNet.embed_tokens builds them) and the per-agent
             # categorical part of the motion features (type + shape)
             tables = [mlp(c.flatten(1)) for mlp, c in zip(net.token_mlp, model.motion_contours)]
@@ -99,6 +99,13 @@ class IncrementalMotionNet:
 
     # ----------------------------------------------------------------------------------- step
     @torch.no_grad()
+    def set_road(self, road_x: torch.Tensor) -> None:
+        """Use new road encodings [B, R, d] (same pieces) from the next step on: re-projects the
+        map-attention keys and values of every block (e.g. after a traffic-light change)."""
+        with torch.no_grad():
+            flat = road_x.reshape(-1, road_x.shape[-1])
+            self.road_kv = [m.project_source(flat) for m in self.net.map_attn]  # per block 2 x (B*R, inner)
+
     def step(self, tokens: torch.Tensor, start_pose: torch.Tensor, end_pose: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Run one token step: tokens [G, N] (ids in each slot's type vocabulary), start_pose and
         end_pose [G, N, 3] (where each token starts and the pose it reaches), valid [G, N].
