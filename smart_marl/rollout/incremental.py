@@ -98,7 +98,6 @@ class IncrementalMotionNet:
         return net.fusion(torch.cat([tok, feat], -1))
 
     # ----------------------------------------------------------------------------------- step
-    @torch.no_grad()
     def set_road(self, road_x: torch.Tensor) -> None:
         """Use new road encodings [B, R, d] (same pieces) from the next step on: re-projects the
         map-attention keys and values of every block (e.g. after a traffic-light change)."""
@@ -106,6 +105,7 @@ class IncrementalMotionNet:
             flat = road_x.reshape(-1, road_x.shape[-1])
             self.road_kv = [m.project_source(flat) for m in self.net.map_attn]  # per block 2 x (B*R, inner)
 
+    @torch.no_grad()
     def step(self, tokens: torch.Tensor, start_pose: torch.Tensor, end_pose: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Run one token step: tokens [G, N] (ids in each slot's type vocabulary), start_pose and
         end_pose [G, N, 3] (where each token starts and the pose it reaches), valid [G, N].
