@@ -3,7 +3,7 @@ the YAML scripts in examples/whatif, and the ``smart-marl whatif`` command.
 
 The mechanics use a small randomly initialised SMART model whose motion vocabulary is built from
 the real scenes (a trained prior is not needed for them); the behavioural claim (vehicles behind a
-braking car slow down) uses the embedded trained prior and is skipped while the package has none.
+braking car slow down) uses the embedded trained prior.
 
 Scene facts used below (current frame 10): a lane of vehicles driving towards -x at y = -20 m,
 1670, 1645, 1630, 1609 from the back (1609 at 12 m/s), and 1644 in the lane beside it."""
@@ -22,7 +22,6 @@ from agents.whatif import (
     Brake, CutIn, Follow, Insert, Jaywalker, Prepared, Remove, StalledVehicle, Stop, TrafficLightOverride, WhatIf,
     WhatIfError, load_script, override_road_lights, prepare, run_whatif, simulate,
 )
-from smart_marl.model.checkpoint import EMBEDDED_DIR
 from smart_marl.readers import read_scenarios
 from smart_marl.rollout import RolloutState
 from smart_marl.scenario import SignalState
@@ -293,16 +292,10 @@ def test_whatif_command_writes_the_table_and_the_animation(model, vocab, scenes,
 
 
 # ------------------------------------------------------------------------ the trained prior
-def _has_embedded_prior() -> bool:
-    return EMBEDDED_DIR.is_dir() and any(not p.name.endswith(("vocab.json",)) for p in EMBEDDED_DIR.glob("*.json"))
-
-
-@pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="the embedded prior (smart-1m, 250 CPU training steps) is too weak: with it the "
-                   "followers' speeds do not change behind the braking car (README, limits); passes once a trained prior ships")
-@pytest.mark.skipif(not _has_embedded_prior(), reason=f"no embedded trained prior yet ({EMBEDDED_DIR}): the slow-down behind a "
-                                                      "braking car needs a trained SMART model, a random one does not react")
 def test_vehicles_behind_a_braking_car_slow_down_under_the_prior(scene):
+    """With the embedded prior (smart-1m, 800 steps on SUMO scenes), 8 rollouts, seed 0, one torch
+    thread. Measured: followers' mean speed after the onset 6.28 m/s without the brake -> 5.33 with
+    it; 1630 over the last 2 s 6.07 -> 2.04 m/s; the braking car collides in 0 of 8 rollouts."""
     # 1609 leads its lane at 12 m/s with 1630 (27 m behind) and 1645 behind it; it brakes hard at 1 s
     result = run_whatif(None, scene, WhatIf([Brake(agent=1609, at_s=1.0, decel_mps2=8.0)]), num_rollouts=8, seed=0,
                         num_steps=12, realism=False)
