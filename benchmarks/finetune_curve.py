@@ -44,6 +44,20 @@ agent-episodes per policy:
 
 Here the return rises (progress along the route) and offroad falls, but goals and collisions do
 not improve: a negative result for this prior, beta and budget, reported as measured.
+
+The same command with the embedded prior trained to its end (smart-1m, 800 steps on SUMO scenes;
+``--beta 0.1``, 881 s with a few-shot training run beside it): training batches goal 0.078 ->
+0.151, collision 0.531 -> 0.468, offroad 0.209 -> 0.167, return 1.97 -> 2.58, KL 0.026 -> 0.358.
+Evaluation, 384 agent-episodes per policy:
+
+    policy         goal rate collision   offroad    return   KL/step
+    prior              0.099     0.523     0.232     2.122    0.0000
+    prior top-5        0.122     0.294     0.036     2.983    0.0000
+    fine-tuned         0.156     0.484     0.125     2.888    0.3673
+
+With this prior the fine-tuned agents reach their goals more often, collide less and leave the
+road less than under the prior they are regularised to (sampled from its full distribution);
+the prior sampled top-5 still collides less.
 """
 
 from __future__ import annotations
