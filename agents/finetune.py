@@ -50,7 +50,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from smart_marl.config_files import read_config_file, split_override
+from smart_marl.config_files import apply_overrides, read_config_file
 from smart_marl.errors import SmartMarlError
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "finetune"
@@ -140,18 +140,7 @@ def load_finetune_config(config: str | Mapping[str, Any] | None = None, override
             raise FinetuneError(f"unknown fine-tuning config {config!r}: neither a file nor a named config ({', '.join(named_configs())})")
         values.update(read_config_file(p, "fine-tuning", FinetuneError))
     values = {k: v for k, v in values.items() if not k.startswith("_")}  # "_comment" and the like
-    items = overrides.items() if isinstance(overrides, Mapping) else (split_override(o, FinetuneError) for o in overrides)
-    reward = dict(values.pop("reward", {}) or {})
-    for key, val in items:
-        if key.startswith("reward."):
-            reward[key[len("reward."):]] = val
-        else:
-            values[key] = val
-    values["reward"] = reward
-    known = {f.name for f in dataclasses.fields(FinetuneConfig)}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise FinetuneError(f"unknown fine-tuning config key(s) {unknown}; known: {sorted(known)}")
+    values = apply_overrides(values, overrides, FinetuneConfig, "reward", "reward", "fine-tuning", FinetuneError)
     if "terminate_on" in values:
         values["terminate_on"] = tuple(values["terminate_on"])
     cfg = FinetuneConfig(**values)

@@ -40,3 +40,27 @@ def read_config_file(path: Path, what: str, error: type[Exception]) -> dict[str,
         return dict(json.loads(text))
     except Exception as exc:  # noqa: BLE001 - reported with the file name
         raise error(f"{path}: cannot read the {what} config: {exc}") from exc
+
+
+def apply_overrides(values: dict[str, Any], overrides, fields_of: type, nested: str, prefix: str, what: str,
+                    error: type[Exception]) -> dict[str, Any]:
+    """``values`` (a config file's dict) with ``overrides`` applied: a mapping or ``"key=value"``
+    strings; ``"{prefix}.k=v"`` sets key ``k`` of the nested dict ``values[nested]``. Keys that are
+    not fields of the dataclass ``fields_of`` raise ``error`` listing the known ones."""
+    import dataclasses
+    from collections.abc import Mapping
+
+    values = dict(values)
+    items = overrides.items() if isinstance(overrides, Mapping) else (split_override(o, error) for o in overrides)
+    group = dict(values.pop(nested, {}) or {})
+    for key, val in items:
+        if key.startswith(prefix + "."):
+            group[key[len(prefix) + 1:]] = val
+        else:
+            values[key] = val
+    values[nested] = group
+    known = {f.name for f in dataclasses.fields(fields_of)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise error(f"unknown {what} config key(s) {unknown}; known: {sorted(known)}")
+    return values

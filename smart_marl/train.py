@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import json
 import math
 import os
 import random
@@ -42,10 +41,10 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from .config_files import read_config_file, split_override
+from .config_files import apply_overrides, read_config_file
 from .errors import SmartMarlError
 from .model.batch import RoadArrays, SmartBatch, collate_scenes, scene_road, scene_tensors
-from .model.checkpoint import (CheckpointError, VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
+from .model.checkpoint import (VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
                                save_checkpoint)
 from .model.losses import NextTokenLoss, summarise
 from .model.smart import SMART, SmartConfig, get_config
@@ -120,18 +119,7 @@ def load_train_config(config: str | Mapping[str, Any] | None = None, overrides: 
             values["model"] = config
         else:
             raise TrainError(f"unknown config {config!r}: neither a file nor a model config name ({', '.join(NAMED_CONFIGS)})")
-    items = overrides.items() if isinstance(overrides, Mapping) else (split_override(o, TrainError) for o in overrides)
-    model_over = dict(values.pop("model_overrides", {}) or {})
-    for key, val in items:
-        if key.startswith("model."):
-            model_over[key[len("model."):]] = val
-        else:
-            values[key] = val
-    values["model_overrides"] = model_over
-    known = {f.name for f in dataclasses.fields(TrainConfig)}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise TrainError(f"unknown training config key(s) {unknown}; known: {sorted(known)}")
+    values = apply_overrides(values, overrides, TrainConfig, "model_overrides", "model", "training", TrainError)
     cfg = TrainConfig(**values)
     if isinstance(cfg.model, str) and cfg.model not in NAMED_CONFIGS:
         raise TrainError(f"unknown model config {cfg.model!r}; known: {', '.join(NAMED_CONFIGS)}")
