@@ -64,3 +64,12 @@ def apply_overrides(values: dict[str, Any], overrides, fields_of: type, nested: 
     if unknown:
         raise error(f"unknown {what} config key(s) {unknown}; known: {sorted(known)}")
     return values
+
+
+def apply_command_flags(cfg, args) -> None:
+    """The flags every config-driven command shares (``--out``, ``--seed``, ``--device``) win over
+    the config file and the ``key=value`` overrides."""
+    for flag, field in (("out", "out_dir"), ("seed", "seed"), ("device", "device")):
+        value = getattr(args, flag, None)
+        if value is not None:
+            setattr(cfg, field, value)

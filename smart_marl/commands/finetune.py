@@ -14,6 +14,8 @@ from __future__ import annotations
 import json
 import sys
 
+from ..config_files import apply_command_flags
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -57,12 +59,7 @@ def run(args) -> int:
         print("smart-marl finetune: error: --config FILE|NAME is required (or --evaluate CHECKPOINT)", file=sys.stderr)
         return 2
     cfg = load_finetune_config(args.config, args.overrides)
-    if args.device:
-        cfg.device = args.device
-    if args.out:
-        cfg.out_dir = args.out
-    if args.seed is not None:
-        cfg.seed = args.seed
+    apply_command_flags(cfg, args)
     if args.print_config:
         print(json.dumps(cfg.to_dict(), indent=1))
         return 0

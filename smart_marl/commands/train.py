@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 
+from ..config_files import apply_command_flags
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -32,13 +34,7 @@ def run(args) -> int:
     cfg = load_train_config(args.config, args.overrides)
     if args.init:
         cfg.init = args.init
-    # the flags every command shares win over the config file and key=value overrides
-    if args.out is not None:
-        cfg.out_dir = args.out
-    if args.seed is not None:
-        cfg.seed = args.seed
-    if args.device is not None:
-        cfg.device = args.device
+    apply_command_flags(cfg, args)
     if args.print_config:
         print(json.dumps(cfg.to_dict(), indent=1))
         return 0
