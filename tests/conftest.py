@@ -30,6 +30,35 @@ def one_torch_thread():
     torch.set_num_threads(before)
 
 
+WOMD_RECORDS = ("womd_tfrecord/motion_data_one_scenario.tfrecord", "womd_tfrecord/womd_scenario_input.tfrecord")
+
+
+@pytest.fixture(scope="session")
+def womd_scenes(shared_data):
+    """The two real WOMD records' scenes, in this order: 637f20cafde22ff8 (83 tracks), ee519cf571686d19 (257)."""
+    from smart_marl.readers import read_scenarios
+
+    return [sc for record in WOMD_RECORDS for sc in read_scenarios(shared_data / record)]
+
+
+@pytest.fixture(scope="session")
+def kdisks_vocab():
+    """Factory ``kdisks_vocab(scenes, size=32)``: k-disks motion vocabulary (seed 0) from the scenes' snippets (stride 1)."""
+    from smart_marl.tokens import build_motion_vocabulary, collect_snippets
+
+    def build(scenes, size=32):
+        snippets, _ = collect_snippets(scenes, stride=1)
+        return build_motion_vocabulary(snippets, size, seed=0, progress=False)
+
+    return build
+
+
+@pytest.fixture(scope="session")
+def womd_vocab(womd_scenes, kdisks_vocab):
+    """32 k-disks tokens per type from both WOMD scenes (what the env, what-if and fine-tuning tests use)."""
+    return kdisks_vocab(womd_scenes)
+
+
 def _tiny_smart(vocab):
     """A small randomly initialised SMART model (eval mode, seed 0) over ``vocab``'s motion tokens."""
     import torch
@@ -68,12 +97,10 @@ def save_tiny_prior(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def tiny_prior(shared_data, save_tiny_prior):
+def tiny_prior(womd_scenes, save_tiny_prior):
     """The tiny random checkpoint over a 16-token uniform-grid vocabulary from the two real WOMD
     scenes. Returns the checkpoint's JSON path."""
-    from smart_marl.readers import read_scenarios
     from smart_marl.tokens import collect_snippets, uniform_grid_vocabulary
 
-    scenes = list(read_scenarios(shared_data / "womd_tfrecord" / "*.tfrecord"))
-    snippets, _ = collect_snippets(scenes)
+    snippets, _ = collect_snippets(womd_scenes)
     return save_tiny_prior(uniform_grid_vocabulary(snippets, 16))

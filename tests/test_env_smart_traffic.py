@@ -18,28 +18,24 @@ pytest.importorskip("pettingzoo", reason="the env extra (pettingzoo) is not inst
 from envs import smart_traffic_v0  # noqa: E402
 from envs._observation import observation_layout  # noqa: E402
 from envs._reward import REWARD_TERMS, collisions  # noqa: E402
-from smart_marl.readers import read_scenarios  # noqa: E402
 from smart_marl.rollout import RolloutState, rollout, sample_tokens  # noqa: E402
 from smart_marl.scenario import AgentType  # noqa: E402
-from smart_marl.tokens import build_motion_vocabulary, collect_snippets  # noqa: E402
 
-VOCAB = 32
+VOCAB = 32  # tokens per type of conftest's womd_vocab
 ONE_SCENE = "womd_tfrecord/motion_data_one_scenario.tfrecord"
-OTHER_SCENE = "womd_tfrecord/womd_scenario_input.tfrecord"
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 
 
 @pytest.fixture(scope="module")
-def scenes(shared_data):
-    return list(read_scenarios(shared_data / ONE_SCENE)) + list(read_scenarios(shared_data / OTHER_SCENE))
+def scenes(womd_scenes):
+    return womd_scenes
 
 
 @pytest.fixture(scope="module")
-def vocab(scenes):
-    snippets, _ = collect_snippets(scenes, stride=1)
-    return build_motion_vocabulary(snippets, VOCAB, seed=0, progress=False)
+def vocab(womd_vocab):
+    return womd_vocab
 
 
 @pytest.fixture(scope="module")

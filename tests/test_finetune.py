@@ -26,7 +26,7 @@ from agents.finetune import (  # noqa: E402
 from agents.kl_ppo import PriorKLPPOLoss  # noqa: E402
 from smart_marl.rollout import sample_tokens  # noqa: E402
 
-VOCAB = 32
+VOCAB = 32  # tokens per type of conftest's womd_vocab
 WOMD = "womd_tfrecord/*.tfrecord"  # the two real WOMD scenes (17 and 4 moving vehicles)
 
 
@@ -34,12 +34,8 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.p
 
 
 @pytest.fixture(scope="module")
-def prior_path(shared_data, save_tiny_prior):
-    from smart_marl.readers import read_scenarios
-    from smart_marl.tokens import build_motion_vocabulary, collect_snippets
-
-    snippets, _ = collect_snippets(list(read_scenarios(shared_data / WOMD)), stride=1)
-    return save_tiny_prior(build_motion_vocabulary(snippets, VOCAB, seed=0, progress=False))
+def prior_path(womd_vocab, save_tiny_prior):
+    return save_tiny_prior(womd_vocab)
 
 
 def tiny(shared_data, prior_path, out_dir, **over) -> dict:

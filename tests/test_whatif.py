@@ -22,14 +22,12 @@ from agents.whatif import (
     Brake, CutIn, Follow, Insert, Jaywalker, Prepared, Remove, StalledVehicle, Stop, TrafficLightOverride, WhatIf,
     WhatIfError, load_script, override_road_lights, prepare, run_whatif, simulate,
 )
-from smart_marl.readers import read_scenarios
 from smart_marl.rollout import RolloutState
 from smart_marl.scenario import SignalState
-from smart_marl.tokens import build_motion_vocabulary, collect_snippets, road_pieces
+from smart_marl.tokens import road_pieces
 
-VOCAB = 32
+VOCAB = 32  # tokens per type of conftest's womd_vocab
 ONE_SCENE = "womd_tfrecord/motion_data_one_scenario.tfrecord"
-OTHER_SCENE = "womd_tfrecord/womd_scenario_input.tfrecord"
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "whatif"
 
 
@@ -37,8 +35,8 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.p
 
 
 @pytest.fixture(scope="module")
-def scenes(shared_data):
-    return list(read_scenarios(shared_data / ONE_SCENE)) + list(read_scenarios(shared_data / OTHER_SCENE))
+def scenes(womd_scenes):
+    return womd_scenes
 
 
 @pytest.fixture(scope="module")
@@ -47,9 +45,8 @@ def scene(scenes):
 
 
 @pytest.fixture(scope="module")
-def vocab(scenes):
-    snippets, _ = collect_snippets(scenes, stride=1)
-    return build_motion_vocabulary(snippets, VOCAB, seed=0, progress=False)
+def vocab(womd_vocab):
+    return womd_vocab
 
 
 @pytest.fixture(scope="module")

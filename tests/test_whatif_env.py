@@ -11,24 +11,19 @@ pytest.importorskip("pettingzoo", reason="the env extra (pettingzoo) is not inst
 
 from agents.scripted import Manoeuvre, ScriptedPolicy, stop_time_s  # noqa: E402
 from envs import smart_traffic_v0  # noqa: E402
-from smart_marl.readers import read_scenarios  # noqa: E402
-from smart_marl.tokens import build_motion_vocabulary, collect_snippets  # noqa: E402
-
-VOCAB = 32
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 
 
 @pytest.fixture(scope="module")
-def scenes(shared_data):
-    return list(read_scenarios(shared_data / "womd_tfrecord/motion_data_one_scenario.tfrecord"))
+def scenes(womd_scenes):
+    return womd_scenes[:1]
 
 
 @pytest.fixture(scope="module")
-def vocab(scenes):
-    snippets, _ = collect_snippets(scenes, stride=1)
-    return build_motion_vocabulary(snippets, VOCAB, seed=0, progress=False)
+def vocab(scenes, kdisks_vocab):
+    return kdisks_vocab(scenes)
 
 
 @pytest.fixture(scope="module")
