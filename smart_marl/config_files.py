@@ -3,7 +3,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -47,9 +49,6 @@ def apply_overrides(values: dict[str, Any], overrides, fields_of: type, nested: 
     """``values`` (a config file's dict) with ``overrides`` applied: a mapping or ``"key=value"``
     strings; ``"{prefix}.k=v"`` sets key ``k`` of the nested dict ``values[nested]``. Keys that are
     not fields of the dataclass ``fields_of`` raise ``error`` listing the known ones."""
-    import dataclasses
-    from collections.abc import Mapping
-
     values = dict(values)
     items = overrides.items() if isinstance(overrides, Mapping) else (split_override(o, error) for o in overrides)
     group = dict(values.pop(nested, {}) or {})
