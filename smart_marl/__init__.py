@@ -22,12 +22,11 @@ from .scenario import (
     TrafficLights,
     Tracks,
 )
-
-__version__ = "0.1.0"
+from .version import __version__
 
 __all__ = [
     "DT_S", "AgentType", "LaneType", "LinkType", "MapFeatureType", "RoadEdgeType", "RoadLineType",
     "RoadMap", "SceneFrame", "Scenario", "SignalState", "TrafficLights", "Tracks",
     "ScenarioReadError", "ScenarioValidationError", "SmartMarlError", "UnknownFormatError",
-    "detect_format", "read_scenario", "read_scenarios",
+    "detect_format", "read_scenario", "read_scenarios", "__version__",
 ]

@@ -9,10 +9,10 @@ files (:mod:`.vocab_io`) that checkpoints refer to by content hash.
 
 from .kdisks import KDisksResult, kdisks, mean_point_distance
 from .motion import (
-    BOX_SIZE_M, FRAMES_PER_TOKEN, MOTION_TYPES, POSES_PER_TOKEN, TYPE_KEYS, MotionTokens, MotionVocabulary, TypeVocab,
+    BOX_SIZE_M, FRAMES_PER_TOKEN, MOTION_TYPES, POSES_PER_TOKEN, TOKEN_S, TYPE_KEYS, MotionTokens, MotionVocabulary, TypeVocab,
     augment_snippets, box_contour, build_motion_vocabulary, collect_snippets, compose_poses, detokenize, place_tokens,
-    reconstruct, relative_poses, snippets_from_tracks, token_boundaries, tokenize_motion, tokenize_tracks,
-    uniform_grid_vocabulary,
+    reconstruct, relative_poses, snippets_from_tracks, token_boundaries, token_poses_from_contours, tokenize_motion,
+    tokenize_tracks, uniform_grid_vocabulary,
 )
 from .road import (
     MAX_PIECE_LENGTH_M, PIECE_POINTS, RoadPieces, RoadVocabulary, build_road_vocabulary, match_road_pieces, road_pieces,

@@ -37,6 +37,7 @@ Definitions (SMART sec. 3.1, the reference code rainmaker22/SMART):
 
 from __future__ import annotations
 
+import hashlib
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -45,18 +46,20 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 import torch
 
-from ..scenario import AgentType, Scenario, wrap_angle
+from ..scenario import DT_S, AgentType, Scenario, wrap_angle
 from .kdisks import kdisks
 
 __all__ = [
-    "BOX_SIZE_M", "FRAMES_PER_TOKEN", "MOTION_TYPES", "POSES_PER_TOKEN", "TYPE_KEYS",
+    "BOX_SIZE_M", "FRAMES_PER_TOKEN", "MOTION_TYPES", "POSES_PER_TOKEN", "TOKEN_S", "TYPE_KEYS", "VOCABULARY_VERSION",
     "MotionTokens", "MotionVocabulary", "TypeVocab",
     "augment_snippets", "box_contour", "build_motion_vocabulary", "collect_snippets", "compose_poses",
-    "detokenize", "place_tokens", "relative_poses", "reconstruct", "snippets_from_tracks", "token_boundaries",
-    "tokenize_motion", "tokenize_tracks", "uniform_grid_vocabulary",
+    "detokenize", "hash_arrays", "motion_vocabulary_hash", "place_tokens", "relative_poses", "reconstruct",
+    "snippets_from_tracks", "token_boundaries", "token_poses_from_contours", "tokenize_motion", "tokenize_tracks",
+    "uniform_grid_vocabulary",
 ]
 
 FRAMES_PER_TOKEN = 5
+TOKEN_S = FRAMES_PER_TOKEN * DT_S  # 0.5 s: one token step
 POSES_PER_TOKEN = FRAMES_PER_TOKEN + 1
 MOTION_TYPES = (AgentType.VEHICLE, AgentType.PEDESTRIAN, AgentType.CYCLIST)
 TYPE_KEYS = {AgentType.VEHICLE: "veh", AgentType.PEDESTRIAN: "ped", AgentType.CYCLIST: "cyc"}
@@ -74,6 +77,14 @@ def box_contour(poses: np.ndarray, length_m: float, width_m: float) -> np.ndarra
     x = poses[..., None, 0] + c[..., None] * local[:, 0] - s[..., None] * local[:, 1]
     y = poses[..., None, 1] + s[..., None] * local[:, 0] + c[..., None] * local[:, 1]
     return np.stack([x, y], axis=-1)
+
+
+def token_poses_from_contours(contour: torch.Tensor) -> torch.Tensor:
+    """Token poses [V, 6, 3] from contours [V, 6, 4, 2] (the inverse of :func:`box_contour`):
+    position = the box centre, heading = from the back edge's middle to the front edge's middle."""
+    centre = contour.mean(-2)  # (V, 6, 2)
+    axis = (contour[..., 0, :] + contour[..., 1, :]) - (contour[..., 2, :] + contour[..., 3, :])  # (V, 6, 2)
+    return torch.cat([centre, torch.atan2(axis[..., 1], axis[..., 0])[..., None]], -1)
 
 
 def relative_poses(poses: np.ndarray, origin: np.ndarray) -> np.ndarray:
@@ -144,8 +155,6 @@ class MotionVocabulary:
         return {AgentType(t).name.lower(): v.size for t, v in self.types.items()}
 
     def content_hash(self) -> str:
-        from .vocab_io import motion_vocabulary_hash
-
         return motion_vocabulary_hash(self)
 
     def stacked(self) -> tuple[np.ndarray, np.ndarray]:
@@ -158,6 +167,31 @@ class MotionVocabulary:
             poses[int(t), : v.size] = v.poses
             sizes[int(t)] = v.size
         return poses, sizes
+
+
+VOCABULARY_VERSION = 1
+"""Version of the vocabulary format (files in :mod:`.vocab_io`); part of every content hash."""
+
+
+def hash_arrays(header: str, arrays: list[tuple[str, np.ndarray]]) -> str:
+    """SHA-256 (hex) of a header and named arrays (their dtype, shape and bytes)."""
+    h = hashlib.sha256(header.encode())
+    for name, a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(f"{name}:{a.dtype.str}:{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def motion_vocabulary_hash(vocab: MotionVocabulary) -> str:
+    """SHA-256 (hex) of the token poses and contours and the box sizes, per type in AgentType order
+    (what checkpoints refer to a vocabulary by)."""
+    arrays, boxes = [], []
+    for t in sorted(vocab.types, key=int):
+        v = vocab.types[t]
+        arrays += [(f"{TYPE_KEYS[t]}.poses", v.poses.astype(np.float32)), (f"{TYPE_KEYS[t]}.contour", v.contour.astype(np.float32))]
+        boxes.append(f"{TYPE_KEYS[t]}={v.length_m:.6f}x{v.width_m:.6f}")
+    return hash_arrays(f"motion/v{VOCABULARY_VERSION}/" + ",".join(boxes), arrays)
 
 
 # ------------------------------------------------------------------------------------ snippets

@@ -37,10 +37,11 @@ import torch
 
 from ..scenario import POLYGON_FEATURES, LinkType, MapFeatureType, RoadMap, TrafficLights
 from .kdisks import kdisks
+from .motion import VOCABULARY_VERSION, hash_arrays
 
 __all__ = [
     "MAX_PIECE_LENGTH_M", "PIECE_POINTS", "RoadPieces", "RoadVocabulary", "build_road_vocabulary",
-    "match_road_pieces", "road_pieces", "road_successor_pairs", "sample_road_walks",
+    "match_road_pieces", "road_pieces", "road_successor_pairs", "road_vocabulary_hash", "sample_road_walks",
 ]
 
 PIECE_POINTS = 11
@@ -145,9 +146,12 @@ class RoadVocabulary:
         return int(self.points.shape[0])
 
     def content_hash(self) -> str:
-        from .vocab_io import road_vocabulary_hash
-
         return road_vocabulary_hash(self)
+
+
+def road_vocabulary_hash(vocab: RoadVocabulary) -> str:
+    """SHA-256 (hex) of a road vocabulary's token points."""
+    return hash_arrays(f"road/v{VOCABULARY_VERSION}/", [("points", vocab.points.astype(np.float32))])
 
 
 def build_road_vocabulary(local_points: np.ndarray, size: int = 1024, seed: int = 0, provenance: Mapping[str, Any] | None = None,

@@ -15,7 +15,6 @@ vocabularies, never a substitute for building them.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from pathlib import Path
@@ -24,8 +23,14 @@ from typing import Any
 import numpy as np
 
 from ..errors import ScenarioReadError
+from ..readers.safe_pickle import NUMPY_GLOBALS, load_restricted
 from ..scenario import AgentType
-from .motion import BOX_SIZE_M, MOTION_TYPES, POSES_PER_TOKEN, TYPE_KEYS, MotionVocabulary, TypeVocab, box_contour
+from ..version import __version__
+from .motion import (
+    BOX_SIZE_M, MOTION_TYPES, POSES_PER_TOKEN, TYPE_KEYS, VOCABULARY_VERSION, MotionVocabulary, TypeVocab, box_contour,
+    motion_vocabulary_hash,
+)
+from .road import RoadVocabulary, road_vocabulary_hash
 
 __all__ = [
     "FORMAT", "VERSION", "VocabularyFileError", "load_motion_vocabulary", "load_reference_motion_vocabulary",
@@ -34,7 +39,7 @@ __all__ = [
 ]
 
 FORMAT = "smart-marl-vocabulary"
-VERSION = 1
+VERSION = VOCABULARY_VERSION
 _KEY_TYPES = {v: k for k, v in TYPE_KEYS.items()}
 
 
@@ -51,30 +56,6 @@ def vocabulary_paths(path: str | os.PathLike) -> tuple[Path, Path]:
     p = Path(path)
     stem = p.with_suffix("") if p.suffix in (".npz", ".json") else p
     return stem.with_name(stem.name + ".npz"), stem.with_name(stem.name + ".json")
-
-
-def _hash_arrays(header: str, arrays: list[tuple[str, np.ndarray]]) -> str:
-    h = hashlib.sha256(header.encode())
-    for name, a in arrays:
-        a = np.ascontiguousarray(a)
-        h.update(f"{name}:{a.dtype.str}:{a.shape}".encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
-
-
-def motion_vocabulary_hash(vocab: MotionVocabulary) -> str:
-    """SHA-256 (hex) of the token poses and contours and the box sizes, per type in AgentType order."""
-    arrays, boxes = [], []
-    for t in sorted(vocab.types, key=int):
-        v = vocab.types[t]
-        arrays += [(f"{TYPE_KEYS[t]}.poses", v.poses.astype(np.float32)), (f"{TYPE_KEYS[t]}.contour", v.contour.astype(np.float32))]
-        boxes.append(f"{TYPE_KEYS[t]}={v.length_m:.6f}x{v.width_m:.6f}")
-    return _hash_arrays(f"motion/v{VERSION}/" + ",".join(boxes), arrays)
-
-
-def road_vocabulary_hash(vocab) -> str:
-    """SHA-256 (hex) of a road vocabulary's token points."""
-    return _hash_arrays(f"road/v{VERSION}/", [("points", vocab.points.astype(np.float32))])
 
 
 def _write(path, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> tuple[Path, Path]:
@@ -121,8 +102,6 @@ def save_motion_vocabulary(vocab: MotionVocabulary, path: str | os.PathLike) -> 
             "box_length_m": float(v.length_m), "box_width_m": float(v.width_m),
             "num_samples": int(v.num_samples), "num_real_samples": int(v.num_real_samples),
         }
-    from .. import __version__
-
     meta = {
         "format": FORMAT, "version": VERSION, "kind": "motion", "method": vocab.method, "seed": vocab.seed,
         "frames_per_token": POSES_PER_TOKEN - 1, "poses": "x_m, y_m, heading_rad in the token's start frame",
@@ -166,9 +145,8 @@ def load_motion_vocabulary(path: str | os.PathLike, expected_hash: str | None = 
     return vocab
 
 
-def save_road_vocabulary(vocab, path: str | os.PathLike) -> tuple[Path, Path]:
-    from .. import __version__
-
+def save_road_vocabulary(vocab: RoadVocabulary, path: str | os.PathLike) -> tuple[Path, Path]:
+    """Write NAME.npz and NAME.json; returns both paths."""
     meta = {
         "format": FORMAT, "version": VERSION, "kind": "road", "method": "kdisks", "seed": vocab.seed,
         "size": vocab.size, "requested_size": int(vocab.requested_size), "tolerance_m": float(vocab.tolerance_m),
@@ -180,9 +158,8 @@ def save_road_vocabulary(vocab, path: str | os.PathLike) -> tuple[Path, Path]:
     return _write(path, {"points": vocab.points.astype(np.float32)}, meta)
 
 
-def load_road_vocabulary(path: str | os.PathLike, expected_hash: str | None = None):
-    from .road import RoadVocabulary
-
+def load_road_vocabulary(path: str | os.PathLike, expected_hash: str | None = None) -> RoadVocabulary:
+    """Read and validate a road vocabulary; ``expected_hash`` (from a checkpoint) must match if given."""
     arrays, meta, js = _read(path, "road")
     points = arrays.get("points")
     if points is None or points.ndim != 3 or points.shape[0] != meta.get("size") or points.shape[2] != 2:
@@ -199,8 +176,6 @@ def load_road_vocabulary(path: str | os.PathLike, expected_hash: str | None = No
 # ------------------------------------------------------------------------ the reference file
 def _load_pickle(path: Path) -> Any:
     """Unpickle through the project's restricted unpickler, numpy arrays and plain containers only."""
-    from ..readers.safe_pickle import NUMPY_GLOBALS, load_restricted
-
     return load_restricted(path, NUMPY_GLOBALS)
 
 
