@@ -52,6 +52,8 @@ from torch import nn
 
 from smart_marl.config_files import apply_overrides, read_config_file
 from smart_marl.errors import SmartMarlError
+from smart_marl.model.checkpoint import CheckpointError
+from smart_marl.model.checkpoint import load_prior as load_smart_prior
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "finetune"
 GROUP = "agents"
@@ -153,20 +155,14 @@ def load_finetune_config(config: str | Mapping[str, Any] | None = None, override
 
 # ---------------------------------------------------------------------------------- the env
 def load_prior(path: str):
-    """(SMART model in eval mode, motion vocabulary) of a checkpoint, or of the package's embedded
-    prior for ``"embedded"``."""
+    """(SMART model in eval mode, motion vocabulary) of the run's prior: a checkpoint or
+    ``"embedded"`` (:func:`smart_marl.model.checkpoint.load_prior`), its errors as FinetuneError."""
     if not path:
         raise FinetuneError("prior: no SMART checkpoint given (prior=PATH)")
-    from smart_marl.model.checkpoint import checkpoint_paths, embedded_checkpoint_path
-    from smart_marl.rollout import resolve_model
-
-    if path == "embedded":
-        path = str(embedded_checkpoint_path())  # a clear CheckpointError when the package ships none
-
-    if not checkpoint_paths(path)["meta"].is_file():
-        raise FinetuneError(f"prior: no checkpoint at {path} (expected {checkpoint_paths(path)['meta']})")
-    model, vocab = resolve_model(str(path), "cpu")
-    return model.eval(), vocab
+    try:
+        return load_smart_prior(path, "cpu")
+    except CheckpointError as exc:
+        raise FinetuneError(f"prior: {exc}") from exc
 
 
 def moving_vehicles(min_route_m: float):

@@ -72,6 +72,7 @@ import numpy as np
 import torch
 
 from smart_marl.errors import SmartMarlError
+from smart_marl.model.checkpoint import EMBEDDED, load_prior
 from smart_marl.scenario import AgentType, Scenario, SignalState, TrafficLights, Tracks, wrap_angle
 
 from . import scripted
@@ -765,21 +766,12 @@ class WhatIfResult:
     table: list[dict]
 
 
-def resolve_prior(checkpoint=None, device="cpu"):
-    """(model, motion vocabulary) from a checkpoint path, a model or Checkpoint, or — when None —
-    the package's embedded prior (:func:`smart_marl.model.checkpoint.embedded_checkpoint_path`)."""
-    from smart_marl.model.checkpoint import embedded_checkpoint_path
-    from smart_marl.rollout import resolve_model
-
-    return resolve_model(embedded_checkpoint_path() if checkpoint is None else checkpoint, device)
-
-
 def run_whatif(prior, scene: Scenario, whatif: WhatIf, num_rollouts: int = 8, seed: int = 0, num_steps: int = 16,
                top_k: int = 5, temperature: float = 1.0, device="cpu", realism: bool = True) -> WhatIfResult:
     """The what-if and its unperturbed baseline (same seed, same number of rollouts) on one scene,
     and the comparison table (:func:`compare`). ``prior``: a SMART model, Checkpoint, checkpoint
     path, or None for the embedded prior."""
-    model, vocab = resolve_prior(prior, device)
+    model, vocab = load_prior(EMBEDDED if prior is None else prior, device)
     prepared = prepare(scene, whatif, vocab)
     base_prep = Prepared(scene=scene, scripts=[], removals=[], lights=[], affected={}, followers={}, onset_step={})
     baseline = simulate(model, vocab, base_prep, num_rollouts, seed, num_steps, top_k, temperature, device, scripted_on=False)

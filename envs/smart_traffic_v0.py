@@ -53,7 +53,11 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 from pettingzoo.utils import wrappers
 
+from smart_marl.embedded import sample_scenarios
 from smart_marl.errors import SmartMarlError
+from smart_marl.model.checkpoint import CheckpointError, load_prior
+from smart_marl.readers import read_scenarios
+from smart_marl.rollout import RolloutState
 from smart_marl.scenario import AgentType, Scenario
 from smart_marl.tokens import FRAMES_PER_TOKEN, MotionVocabulary
 
@@ -71,32 +75,22 @@ class EnvConfigError(SmartMarlError, ValueError):
 
 # ----------------------------------------------------------------------------- construction
 def _load_prior(prior, motion_vocab: MotionVocabulary | None):
-    """(model or None, motion vocabulary) from the ``prior`` argument."""
-    from smart_marl.rollout import resolve_model
-
+    """(model or None, motion vocabulary) from the ``prior`` argument (:func:`load_prior`)."""
     if prior is None:
         if motion_vocab is None:
             raise EnvConfigError("prior=None needs motion_vocab=...: the action spaces are the vocabulary's tokens")
         return None, motion_vocab
-    if isinstance(prior, str) and prior == "embedded":
-        from smart_marl.model.checkpoint import load_embedded
-
-        prior = load_embedded()
-    if isinstance(prior, (str, os.PathLike)) and not Path(prior).with_suffix(".json").exists() and not Path(prior).exists() \
-            and not Path(str(prior) + ".json").exists():
-        raise EnvConfigError(f"prior: no checkpoint at {prior}")
-    model, vocab = resolve_model(prior, "cpu")
+    try:
+        model, vocab = load_prior(prior, "cpu")
+    except CheckpointError as exc:
+        raise EnvConfigError(f"prior: {exc}") from exc
     return model, motion_vocab if motion_vocab is not None else vocab
 
 
 def _load_scenes(scenarios) -> list[Scenario]:
-    from smart_marl.readers import read_scenarios
-
     if isinstance(scenarios, Scenario):
         return [scenarios]
     if isinstance(scenarios, str) and scenarios == "embedded":
-        from smart_marl.embedded import sample_scenarios
-
         return sample_scenarios()
     if isinstance(scenarios, (str, os.PathLike)):
         scenes = list(read_scenarios(scenarios))
@@ -207,8 +201,7 @@ class SmartTrafficEnv(ParallelEnv):
         self.top_k, self.temperature = int(top_k), float(temperature)
         self.render_size_px, self.render_radius_m = int(render_size_px), float(render_radius_m)
         self._statics: dict[int, SceneStatic] = {}
-        self._prior_states: dict[int, Any] = {}
-        self._shared_memo: dict[int, Any] | None = None
+        self._prior_states: dict[int, RolloutState] = {}
         self._obs_spaces: dict[str, spaces.Space] = {}
         self._act_spaces: dict[str, spaces.Space] = {}
         self._np_random = np.random.default_rng()
@@ -342,18 +335,13 @@ class SmartTrafficEnv(ParallelEnv):
             self.render()
         return obs, infos
 
-    def _start_prior(self, index: int, seed: int):
+    def _start_prior(self, index: int, seed: int) -> RolloutState:
         """A fresh :class:`RolloutState` of scene ``index`` whose sampler is seeded with ``seed``.
 
         Starting one tokenizes the history and encodes the road (~0.4 s for smart-1m on an
         80-agent scene); a state is deterministic up to its generator, which is not used before the
         first step, so the env keeps each scene's freshly started state (up to
-        ``PRIOR_STATE_CACHE`` scenes) and hands out deep copies (~2 ms) with a new generator. The
-        model, vocabulary and scene are shared, not copied."""
-        import copy
-
-        from smart_marl.rollout import RolloutState
-
+        ``PRIOR_STATE_CACHE`` scenes) and hands out forks of it (:meth:`RolloutState.fork`)."""
         pristine = self._prior_states.pop(index, None)
         if pristine is None:
             pristine = RolloutState.start(self.model, self.scenes[index], num_rollouts=1, seed=0, top_k=self.top_k,
@@ -361,15 +349,7 @@ class SmartTrafficEnv(ParallelEnv):
         self._prior_states[index] = pristine  # most recent last
         while len(self._prior_states) > self.PRIOR_STATE_CACHE:
             self._prior_states.pop(next(iter(self._prior_states)))
-        if self._shared_memo is None:
-            m = self.model
-            shared = [m, m.config, self.motion_vocab, *m.modules(), *m.parameters(), *m.buffers()]
-            self._shared_memo = {id(o): o for o in shared}
-        memo = dict(self._shared_memo)
-        memo.update({id(sc): sc for sc in pristine.scenes})
-        state = copy.deepcopy(pristine, memo)
-        state.generator = torch.Generator(device=state.device).manual_seed(int(seed))
-        return state
+        return pristine.fork(seed)
 
     # ------------------------------------------------------------------------ observations
     def _light_state(self) -> tuple[np.ndarray, np.ndarray]:

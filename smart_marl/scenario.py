@@ -115,8 +115,9 @@ class SignalState(IntEnum):
     FLASHING_CAUTION = 8
 
 
-def wrap_angle(angle: np.ndarray) -> np.ndarray:
-    """Wrap radians to [-pi, pi)."""
+def wrap_angle(angle):
+    """Radians wrapped to [-pi, pi): the one angle wrap of the project, for numpy arrays, scalars
+    and torch tensors alike (``%`` is ``torch.remainder`` on tensors)."""
     return (angle + np.pi) % (2 * np.pi) - np.pi
 
 

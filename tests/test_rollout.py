@@ -17,7 +17,8 @@ import torch
 from smart_marl.model.batch import SmartBatch
 from smart_marl.model.smart import SMART, get_config
 from smart_marl.readers import read_scenarios
-from smart_marl.rollout import RolloutState, rollout, sample_tokens, token_poses_from_contours
+from smart_marl.rollout import RolloutState, rollout, sample_tokens
+from smart_marl.tokens import token_poses_from_contours
 from smart_marl.scenario import AgentType, SignalState
 from smart_marl.tokens import collect_snippets, compose_poses, uniform_grid_vocabulary
 

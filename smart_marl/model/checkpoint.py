@@ -26,9 +26,10 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from ..errors import SmartMarlError
-from ..tokens import MotionVocabulary
+from ..tokens import BOX_SIZE_M, MOTION_TYPES, MotionVocabulary, TypeVocab, token_poses_from_contours
 from ..tokens.road import RoadVocabulary
 from ..tokens.vocab_io import load_motion_vocabulary, load_road_vocabulary, save_motion_vocabulary, save_road_vocabulary
+from ..version import __version__
 from .smart import SMART, get_config
 
 FORMAT = "smart-marl-checkpoint"
@@ -89,8 +90,6 @@ def save_checkpoint(path: str | os.PathLike, model: SMART, motion_vocab: MotionV
     if train_state is not None:
         torch.save(train_state, tmp(paths["train_state"]))
         os.replace(tmp(paths["train_state"]), paths["train_state"])
-    from .. import __version__
-
     meta = {
         "format": FORMAT, "version": VERSION, "step": int(step), "model_config": model.config.to_dict(),
         "num_parameters": sum(p.numel() for p in model.parameters()),
@@ -185,6 +184,40 @@ def embedded_checkpoint_path() -> Path:
 def load_embedded(map_location: str | torch.device = "cpu", **config_overrides: Any) -> Checkpoint:
     """The package's pretrained SMART prior (see the model card in the README)."""
     return load_checkpoint(embedded_checkpoint_path(), map_location=map_location, **config_overrides)
+
+
+EMBEDDED = "embedded"
+"""The name that stands for the package's embedded prior wherever a prior is given."""
+
+
+def motion_vocabulary_from_model(model: SMART) -> MotionVocabulary:
+    """The motion vocabulary a model's contour buffers stand for (poses from the contours), for
+    rolling matching of the history when no vocabulary file is at hand."""
+    types = {}
+    for t, c in zip(MOTION_TYPES, model.motion_contours):
+        poses = token_poses_from_contours(c.detach().cpu().float()).numpy()
+        types[t] = TypeVocab.from_poses(poses, *BOX_SIZE_M[t])
+    return MotionVocabulary(types=types, method="from_model")
+
+
+def load_prior(prior, map_location: str | torch.device = "cpu") -> tuple[SMART, MotionVocabulary]:
+    """The one way to get a SMART prior: (model in eval mode on ``map_location``, its motion
+    vocabulary) from ``"embedded"`` (the package's prior, :func:`load_embedded`), a checkpoint path
+    (``NAME`` or ``NAME.json``), a :class:`Checkpoint`, or a SMART model (its vocabulary rebuilt
+    from its contour buffers). A path with no checkpoint raises :class:`CheckpointError`."""
+    if isinstance(prior, str) and prior == EMBEDDED:
+        prior = embedded_checkpoint_path()
+    if isinstance(prior, (str, os.PathLike)):
+        meta = checkpoint_paths(prior)["meta"]
+        if not meta.is_file():
+            raise CheckpointError(prior, f"no checkpoint at this path (expected {meta.name} next to its .safetensors)")
+        prior = load_checkpoint(prior, map_location=map_location)
+    if isinstance(prior, Checkpoint):
+        model, vocab = prior.model, prior.motion_vocab
+    else:
+        model, vocab = prior, None
+    model = model.to(map_location).eval()
+    return model, vocab if vocab is not None else motion_vocabulary_from_model(model)
 
 
 def export_checkpoint(src: str | os.PathLike, dst: str | os.PathLike) -> Path:

@@ -15,10 +15,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-
-def wrap_angle(angle: torch.Tensor) -> torch.Tensor:
-    """Radians wrapped to [-pi, pi)."""
-    return torch.remainder(angle + math.pi, 2 * math.pi) - math.pi
+from ..scenario import wrap_angle
 
 
 def relative_pose_features(query_pose: torch.Tensor, key_pose: torch.Tensor) -> torch.Tensor:
@@ -95,6 +92,13 @@ def knn_within(query_xy: torch.Tensor, key_xy: torch.Tensor, radius_m: float, k:
     d_sel, idx = torch.topk(dist, kk, dim=-1, largest=False)  # (G, Q, K)
     mask = torch.isfinite(d_sel)
     return idx.masked_fill(~mask, 0), mask
+
+
+def trim_neighbours(index: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Neighbour lists index, mask [Q, K] (nearest first, as :func:`knn_within` gives them) cut to
+    the largest number of real neighbours of any query -> [Q, K'], K' <= K."""
+    k = int(mask.sum(-1).max()) if mask.numel() else 0
+    return index[:, :k], mask[:, :k]
 
 
 # ---------------------------------------------------------------------------------- attention

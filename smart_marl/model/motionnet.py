@@ -17,13 +17,18 @@ every attention projects its key rows with :meth:`NeighbourAttention.project_sou
 
 from __future__ import annotations
 
+import copy
+from dataclasses import dataclass
+
 import torch
 import torch.nn as nn
 
-from .layers import FourierEmbedding, NeighbourAttention, knn_within, mlp, relative_pose_features, wrap_angle
+from ..scenario import wrap_angle
+from ..tokens.motion import TOKEN_S
+from .layers import FourierEmbedding, NeighbourAttention, knn_within, mlp, relative_pose_features, trim_neighbours
 
 NUM_MOTION_TYPES = 3  # vehicle, pedestrian, cyclist (AgentType 0..2)
-TOKEN_SECONDS = 0.5
+STILL_SPEED_MPS = 0.1  # below this speed over a token the heading-vs-motion angle is set to 0
 
 
 class MotionNet(nn.Module):
@@ -45,23 +50,39 @@ class MotionNet(nn.Module):
         self.agent_attn = nn.ModuleList(att(False) for _ in range(cfg.num_agent_blocks))
 
     # ------------------------------------------------------------------------------ inputs
+    def token_table(self, contours: list[torch.Tensor]) -> torch.Tensor:
+        """The token embeddings of every type's vocabulary: contours per type [V_t, 6, 4, 2] ->
+        (3, Vmax, d), rows beyond a type's size zero."""
+        tables = [m(c.flatten(1)) for m, c in zip(self.token_mlp, contours)]  # each (V_t, d)
+        vmax = max(t.shape[0] for t in tables)
+        return torch.stack([nn.functional.pad(t, (0, 0, 0, vmax - t.shape[0])) for t in tables])  # (3, Vmax, d)
+
     def embed_tokens(self, tokens: torch.Tensor, agent_type: torch.Tensor, contours: list[torch.Tensor]) -> torch.Tensor:
         """tokens [B, N, S] (ids in the agent's type vocabulary), agent_type [B, N] (0..2),
         contours: per type [V_t, 6, 4, 2] -> [B, N, S, d]."""
-        tables = [m(c.flatten(1)) for m, c in zip(self.token_mlp, contours)]  # each (V_t, d)
-        vmax = max(t.shape[0] for t in tables)
-        table = torch.stack([nn.functional.pad(t, (0, 0, 0, vmax - t.shape[0])) for t in tables])  # (3, Vmax, d)
+        table = self.token_table(contours)  # (3, Vmax, d)
         return table[agent_type[:, :, None].expand_as(tokens), tokens]  # (B, N, S, d)
+
+    def agent_categorical(self, agent_type: torch.Tensor, agent_shape: torch.Tensor) -> torch.Tensor:
+        """The per-agent part of the motion features: type and shape embeddings, [..., d]."""
+        return self.type_emb(agent_type) + self.shape_mlp(agent_shape)
+
+    def fuse(self, token_emb: torch.Tensor, start_pose: torch.Tensor, end_pose: torch.Tensor,
+             categorical: torch.Tensor) -> torch.Tensor:
+        """The fused input of (agent, step) rows: the token embedding [..., d] with the motion features
+        (speed and the angle between heading and motion over the token, from start_pose and
+        end_pose [..., 3], Fourier-embedded with ``categorical`` [..., d]) -> [..., d]."""
+        motion = end_pose[..., :2] - start_pose[..., :2]  # (..., 2)
+        speed = motion.norm(dim=-1) / TOKEN_S
+        angle = wrap_angle(torch.atan2(motion[..., 1], motion[..., 0]) - end_pose[..., 2])
+        angle = torch.where(speed > STILL_SPEED_MPS, angle, torch.zeros_like(angle))  # undefined when (nearly) still
+        feat = self.motion_feat(torch.stack([speed, angle], -1), categorical=categorical)  # (..., d)
+        return self.fusion(torch.cat([token_emb, feat], -1))
 
     def embed_agents(self, tokens, agent_type, agent_shape, start_pose, end_pose, contours) -> torch.Tensor:
         """The fused input features [B, N, S, d] of every (agent, step)."""
-        motion = end_pose[..., :2] - start_pose[..., :2]  # (B, N, S, 2)
-        speed = motion.norm(dim=-1) / TOKEN_SECONDS
-        angle = wrap_angle(torch.atan2(motion[..., 1], motion[..., 0]) - end_pose[..., 2])
-        angle = torch.where(speed > 0.1, angle, torch.zeros_like(angle))  # undefined when (nearly) still
-        cat = (self.type_emb(agent_type) + self.shape_mlp(agent_shape))[:, :, None].expand(-1, -1, tokens.shape[2], -1)
-        feat = self.motion_feat(torch.stack([speed, angle], -1), categorical=cat)  # (B, N, S, d)
-        return self.fusion(torch.cat([self.embed_tokens(tokens, agent_type, contours), feat], -1))
+        cat = self.agent_categorical(agent_type, agent_shape)[:, :, None].expand(-1, -1, tokens.shape[2], -1)  # (B, N, S, d)
+        return self.fuse(self.embed_tokens(tokens, agent_type, contours), start_pose, end_pose, cat)
 
     # ----------------------------------------------------------------------- neighbourhoods
     def neighbourhoods(self, pose: torch.Tensor, valid: torch.Tensor, road_pose: torch.Tensor, road_valid: torch.Tensor):
@@ -85,10 +106,6 @@ class MotionNet(nn.Module):
         q_pose = pose_flat[rows]  # (Q, 3)
         q_step = rows % s
 
-        def trim(idx, mask):
-            k = int(mask.sum(-1).max()) if mask.numel() else 0
-            return idx[:, :k], mask[:, :k]
-
         # 1. temporal: own tokens s - dt, dt = 0 .. w (causal)
         dts = torch.arange(cfg.temporal_window_tokens + 1, device=dev)  # (W,)
         ok = (q_step[:, None] - dts) >= 0  # (Q, W)
@@ -101,7 +118,7 @@ class MotionNet(nn.Module):
         m_idx, m_mask = knn_within(pose.reshape(b, n * s, 3)[..., :2], road_pose[..., :2], cfg.map_radius_m,
                                    cfg.map_neighbours, valid.reshape(b, n * s), road_valid)  # (B, N*S, Km)
         m_idx = (m_idx + (torch.arange(b, device=dev) * r)[:, None, None]).reshape(b * n * s, -1)[rows]
-        m_idx, m_mask = trim(m_idx, m_mask.reshape(b * n * s, -1)[rows])  # (Q, Km)
+        m_idx, m_mask = trim_neighbours(m_idx, m_mask.reshape(b * n * s, -1)[rows])  # (Q, Km)
         m_rpe = self.rpe_map(relative_pose_features(q_pose[:, None], road_pose.reshape(-1, 3)[m_idx]))  # (Q, Km, d)
         mapa = (m_idx, m_mask, m_rpe)
         # 3. agent -> agent at the same step: K nearest within agent_radius_m
@@ -113,7 +130,7 @@ class MotionNet(nn.Module):
         ss = torch.arange(s, device=dev).repeat(b)[:, None, None]
         a_full = (bb * n + a_idx) * s + ss  # (B*S, N, Ka)
         unperm = lambda t: t.view(b, s, n, -1).transpose(1, 2).reshape(b * n * s, -1)[rows]  # noqa: E731
-        a_full, a_mask = trim(unperm(a_full), unperm(a_mask))  # (Q, Ka)
+        a_full, a_mask = trim_neighbours(unperm(a_full), unperm(a_mask))  # (Q, Ka)
         a_rpe = self.rpe_agent(relative_pose_features(q_pose[:, None], pose_flat[a_full]))  # (Q, Ka, d)
         agents = (compact[a_full].clamp(min=0), a_mask, a_rpe)
         return rows, temporal, mapa, agents
@@ -132,3 +149,151 @@ class MotionNet(nn.Module):
             h = a_attn(h, h, *agents)
         out = h.new_zeros(shape[0] * shape[1] * shape[2], shape[3])
         return out.index_copy(0, rows, h).view(shape)
+
+    # ------------------------------------------------------------------ the cached step (inference)
+    @torch.no_grad()
+    def start_cache(self, road_x: torch.Tensor, road_pose: torch.Tensor, road_valid: torch.Tensor, scene_of_group: torch.Tensor,
+                    agent_type: torch.Tensor, agent_shape: torch.Tensor, contours: list[torch.Tensor]) -> "MotionCache":
+        """An empty KV cache for ``G`` groups of ``N`` agent slots over ``B`` scenes.
+
+        road_x [B, R, d] (RoadNet encodings), road_pose [B, R, 3], road_valid [B, R]; scene_of_group
+        [G] (long): the scene of each group (a rollout copy of a scene); agent_type [G, N] (0..2 for
+        every slot; padding slots are never valid), agent_shape [G, N, 3]; contours per type.
+        """
+        cfg = self.cfg
+        g, n = agent_type.shape
+        dev = road_x.device
+        scene_of_group, agent_type = scene_of_group.to(dev), agent_type.to(dev)
+        w, inner = int(cfg.temporal_window_tokens), cfg.num_heads * cfg.head_dim
+        cache = MotionCache(
+            num_groups=g, num_slots=n, scene_of_group=scene_of_group, agent_type=agent_type.reshape(-1),
+            agent_categorical=self.agent_categorical(agent_type, agent_shape.to(dev)).reshape(g * n, -1),  # (G*N, d)
+            token_table=self.token_table(contours),  # (3, Vmax, d)
+            road_pose=road_pose[scene_of_group], road_valid=road_valid[scene_of_group], road_pose_flat=road_pose.reshape(-1, 3),
+            road_kv=[],
+            k=[torch.zeros(g * n, w, inner, device=dev) for _ in range(cfg.num_agent_blocks)],
+            v=[torch.zeros(g * n, w, inner, device=dev) for _ in range(cfg.num_agent_blocks)],
+            pose=torch.zeros(g * n, w, 3, device=dev), valid=torch.zeros(g * n, w, dtype=torch.bool, device=dev),
+        )
+        self.cache_road(cache, road_x)
+        return cache
+
+    @torch.no_grad()
+    def cache_road(self, cache: "MotionCache", road_x: torch.Tensor) -> None:
+        """Use new road encodings [B, R, d] (same pieces) from the next step on: re-projects the
+        map-attention keys and values of every block (e.g. after a traffic-light change)."""
+        flat = road_x.reshape(-1, road_x.shape[-1])
+        cache.road_kv = [m.project_source(flat) for m in self.map_attn]  # per block 2 x (B*R, inner)
+
+    @torch.no_grad()
+    def step(self, cache: "MotionCache", tokens: torch.Tensor, start_pose: torch.Tensor, end_pose: torch.Tensor,
+             valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """One new token step of every agent against the cache: the same numbers as :meth:`forward`
+        over every step so far (``tests/test_rollout.py``), at the cost of one step.
+
+        tokens [G, N] (ids in each slot's type vocabulary), start_pose and end_pose [G, N, 3] (where
+        each token starts and the pose it reaches), valid [G, N]. Returns (rows [Q] (flat slot
+        index g * N + n of the valid slots), features [Q, d]) and pushes this step into the cache.
+
+        Why this is exact: step s depends only on steps <= s. Per block it runs temporal attention
+        over the agent's own steps s - W .. s (the cached key/value rows of the block's input at the
+        last W steps, with the poses they ended at), map-agent attention to the road encodings'
+        key/value rows (projected once per scene) and agent-agent attention among the agents at
+        step s (rebuilt from the new poses).
+        """
+        cfg = self.cfg
+        g, n = cache.num_groups, cache.num_slots
+        dev = cache.agent_type.device
+        w = int(cfg.temporal_window_tokens)
+        inner = cfg.num_heads * cfg.head_dim
+        valid_flat = valid.reshape(-1).to(dev)
+        rows = valid_flat.nonzero().squeeze(1)  # (Q,)
+        nq = rows.numel()
+        tokens_flat = tokens.reshape(-1).to(dev)
+        start_flat = start_pose.reshape(-1, 3).to(dev, torch.float32)
+        end_flat = end_pose.reshape(-1, 3).to(dev, torch.float32)
+        q_pose = end_flat[rows]  # (Q, 3)
+        token_emb = cache.token_table[cache.agent_type[rows], tokens_flat[rows]]  # (Q, d)
+        h = self.fuse(token_emb, start_flat[rows], q_pose, cache.agent_categorical[rows])  # (Q, d)
+
+        # 1. temporal neighbours: the step itself (dt = 0) then the cached steps dt = 1 .. w
+        key_pose = torch.cat([q_pose[:, None], cache.pose[rows]], 1)  # (Q, W+1, 3)
+        t_mask = torch.cat([torch.ones(nq, 1, dtype=torch.bool, device=dev), cache.valid[rows]], 1)  # (Q, W+1)
+        dts = torch.arange(w + 1, device=dev, dtype=torch.float32)
+        t_feat = torch.cat([relative_pose_features(q_pose[:, None], key_pose), dts.expand(nq, -1)[..., None]], -1)  # (Q, W+1, 4)
+        t_rpe = self.rpe_temporal(t_feat)  # (Q, W+1, d)
+        t_index = torch.arange(nq * (w + 1), device=dev).view(nq, w + 1)  # rows of the per-block key table
+
+        # 2. map -> agent: the K nearest road tokens of each new pose (rows of the B*R road table)
+        m_idx, m_mask = knn_within(end_flat.view(g, n, 3)[..., :2], cache.road_pose[..., :2], cfg.map_radius_m,
+                                   cfg.map_neighbours, valid_flat.view(g, n), cache.road_valid)  # (G, N, Km)
+        m_idx = (m_idx + (cache.scene_of_group * cache.road_pose.shape[1])[:, None, None]).reshape(g * n, -1)[rows]  # (Q, Km)
+        m_idx, m_mask = trim_neighbours(m_idx, m_mask.reshape(g * n, -1)[rows])
+        m_rpe = self.rpe_map(relative_pose_features(q_pose[:, None], cache.road_pose_flat[m_idx]))  # (Q, Km, d)
+
+        # 3. agent -> agent at this step, rebuilt from the new poses
+        a_idx, a_mask = knn_within(end_flat.view(g, n, 3)[..., :2], end_flat.view(g, n, 3)[..., :2], cfg.agent_radius_m,
+                                   cfg.agent_neighbours, valid_flat.view(g, n), valid_flat.view(g, n))  # (G, N, Ka)
+        a_full = (a_idx + (torch.arange(g, device=dev) * n)[:, None, None]).reshape(g * n, -1)[rows]  # (Q, Ka) flat slots
+        a_full, a_mask = trim_neighbours(a_full, a_mask.reshape(g * n, -1)[rows])
+        compact = torch.zeros(g * n, dtype=torch.long, device=dev)
+        compact[rows] = torch.arange(nq, device=dev)
+        a_rows = compact[a_full]  # (Q, Ka) query rows (masked slots point anywhere valid)
+        a_rpe = self.rpe_agent(relative_pose_features(q_pose[:, None], end_flat[a_full]))  # (Q, Ka, d)
+
+        new_kv = []
+        for blk, (t_attn, m_attn, a_attn) in enumerate(zip(self.temporal_attn, self.map_attn, self.agent_attn)):
+            k_self, v_self = t_attn.project_source(h)  # (Q, inner)
+            new_kv.append((k_self, v_self))
+            k_tab = torch.cat([k_self[:, None], cache.k[blk][rows]], 1).reshape(-1, inner)  # (Q*(W+1), inner)
+            v_tab = torch.cat([v_self[:, None], cache.v[blk][rows]], 1).reshape(-1, inner)
+            h = t_attn(h, (k_tab, v_tab), t_index, t_mask, t_rpe)
+            h = m_attn(h, cache.road_kv[blk], m_idx, m_mask, m_rpe)
+            h = a_attn(h, h, a_rows, a_mask, a_rpe)
+
+        # push this step into the cache (newest first; the oldest step falls out of the window)
+        for blk, (k_self, v_self) in enumerate(new_kv):
+            k_new = torch.zeros(g * n, 1, inner, device=dev).index_copy_(0, rows, k_self[:, None])
+            v_new = torch.zeros(g * n, 1, inner, device=dev).index_copy_(0, rows, v_self[:, None])
+            cache.k[blk] = torch.cat([k_new, cache.k[blk][:, : w - 1]], 1)
+            cache.v[blk] = torch.cat([v_new, cache.v[blk][:, : w - 1]], 1)
+        cache.pose = torch.cat([end_flat[:, None], cache.pose[:, : w - 1]], 1)
+        cache.valid = torch.cat([valid_flat[:, None], cache.valid[:, : w - 1]], 1)
+        cache.steps_done += 1
+        return rows, h
+
+
+# -------------------------------------------------------------------------- the cached step
+@dataclass
+class MotionCache:
+    """What :meth:`MotionNet.step` keeps between token steps of ``G`` groups (scene x rollout
+    copies) of ``N`` agent slots: per-scene and per-agent constants, and the KV cache.
+
+    The cache (newest step first, the oldest falls out of the window of ``W`` =
+    ``temporal_window_tokens`` steps): per block the projected key/value rows of the block's
+    temporal input, ``k``/``v`` [G * N, W, inner], and the pose each cached step ended at and its
+    validity, ``pose`` [G * N, W, 3], ``valid`` [G * N, W]. A step replaces these tensors (it never
+    writes into them), so :meth:`fork` shares them until either copy steps.
+    """
+
+    num_groups: int
+    num_slots: int
+    scene_of_group: torch.Tensor  # [G] long, the scene (row of the road tensors) of each group
+    agent_type: torch.Tensor  # [G * N] long, 0..2
+    agent_categorical: torch.Tensor  # [G * N, d] type + shape embeddings
+    token_table: torch.Tensor  # [3, Vmax, d] token embeddings
+    road_pose: torch.Tensor  # [G, R, 3] each group's scene's road pieces (for the neighbour search)
+    road_valid: torch.Tensor  # [G, R]
+    road_pose_flat: torch.Tensor  # [B * R, 3] rows of the road table
+    road_kv: list  # per block, (keys, values) [B * R, inner] of the map attention
+    k: list  # per block [G * N, W, inner]
+    v: list  # per block [G * N, W, inner]
+    pose: torch.Tensor  # [G * N, W, 3]
+    valid: torch.Tensor  # [G * N, W] bool
+    steps_done: int = 0
+
+    def fork(self) -> "MotionCache":
+        """An independent copy that shares every tensor (none is written in place)."""
+        out = copy.copy(self)
+        out.k, out.v, out.road_kv = list(self.k), list(self.v), list(self.road_kv)
+        return out

@@ -19,7 +19,7 @@ import torch.nn as nn
 
 from ..errors import SmartMarlError
 from .layers import mlp
-from .motionnet import NUM_MOTION_TYPES, MotionNet
+from .motionnet import NUM_MOTION_TYPES, MotionCache, MotionNet
 from .roadnet import RoadNet
 
 
@@ -117,22 +117,58 @@ class SMART(nn.Module):
         return [getattr(self, f"motion_contour_{t}") for t in range(NUM_MOTION_TYPES)]
 
     def encode_road(self, batch, masked: torch.Tensor | None = None) -> torch.Tensor:
-        """Road encodings [B, R, d] (computed once per scene at inference)."""
+        """Road encodings [B, R, d] (computed once per scene at inference). ``batch``: anything with
+        ``road_points``, ``road_pose``, ``road_type``, ``road_light``, ``road_valid`` (a
+        :class:`~smart_marl.model.batch.SmartBatch`, a :class:`~smart_marl.rollout.RolloutState`)."""
         return self.road_net(batch.road_points, batch.road_pose, batch.road_type, batch.road_light, batch.road_valid, masked)
+
+    def agent_features(self, tokens: torch.Tensor, agent_type: torch.Tensor, agent_shape: torch.Tensor, start_pose: torch.Tensor,
+                       end_pose: torch.Tensor, valid: torch.Tensor, road_x: torch.Tensor, road_pose: torch.Tensor,
+                       road_valid: torch.Tensor) -> torch.Tensor:
+        """MotionNet over every step: tokens [B, N, S], agent_type [B, N], agent_shape [B, N, 3],
+        start_pose / end_pose [B, N, S, 3], valid [B, N, S], road encodings road_x [B, R, d] with
+        road_pose [B, R, 3], road_valid [B, R] -> features [B, N, S, d]."""
+        x = self.motion_net.embed_agents(tokens, agent_type, agent_shape, start_pose, end_pose, self.motion_contours)
+        nbrs = self.motion_net.neighbourhoods(end_pose, valid, road_pose, road_valid)
+        return self.motion_net(x, road_x, nbrs)
 
     def forward(self, batch, road_masked: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """batch (SmartBatch) -> (agent features [B, N, S, d], road encodings [B, R, d])."""
         road_x = self.encode_road(batch, road_masked)
-        x = self.motion_net.embed_agents(batch.agent_tokens, batch.agent_type, batch.agent_shape, batch.agent_start_pose,
-                                         batch.agent_pose, self.motion_contours)
-        nbrs = self.motion_net.neighbourhoods(batch.agent_pose, batch.agent_valid, batch.road_pose, batch.road_valid)
-        return self.motion_net(x, road_x, nbrs), road_x
+        return self.agent_features(batch.agent_tokens, batch.agent_type, batch.agent_shape, batch.agent_start_pose,
+                                   batch.agent_pose, batch.agent_valid, road_x, batch.road_pose, batch.road_valid), road_x
 
     def motion_logits(self, features: torch.Tensor, agent_type: torch.Tensor) -> list[torch.Tensor]:
         """Logits of every (agent, step) under each type's head: features [..., d] -> per type
         [..., V_t] (pick the row's own type with ``agent_type``). For training use :mod:`.losses`,
-        which runs each head only on its type's rows."""
+        which runs each head only on its type's rows; for sampling :meth:`next_token_logits`."""
         return [head(features) for head in self.motion_heads]
+
+    # ------------------------------------------------------------------------------ inference
+    def start_cache(self, road_x: torch.Tensor, road_pose: torch.Tensor, road_valid: torch.Tensor, scene_of_group: torch.Tensor,
+                    agent_type: torch.Tensor, agent_shape: torch.Tensor) -> MotionCache:
+        """An empty KV cache for incremental decoding (:meth:`MotionNet.start_cache`)."""
+        return self.motion_net.start_cache(road_x, road_pose, road_valid, scene_of_group, agent_type, agent_shape,
+                                           self.motion_contours)
+
+    def step(self, cache: MotionCache, tokens: torch.Tensor, start_pose: torch.Tensor, end_pose: torch.Tensor,
+             valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """One token step of every agent against the KV cache -> (rows [Q], features [Q, d])
+        (:meth:`MotionNet.step`); :meth:`next_token_logits` turns the features into logits."""
+        return self.motion_net.step(cache, tokens, start_pose, end_pose, valid)
+
+    @torch.no_grad()
+    def next_token_logits(self, features: torch.Tensor, agent_type: torch.Tensor) -> torch.Tensor:
+        """Each row's next-token logits under its own type's head: features [Q, d], agent_type [Q]
+        (0..2) -> [Q, Vmax], ``-inf`` beyond the row's type's vocabulary size."""
+        sizes = [int(v) for v in self.config.motion_vocab_sizes]
+        out = torch.full((agent_type.shape[0], max(sizes)), float("-inf"), device=agent_type.device)
+        for t, head in enumerate(self.motion_heads):
+            sel = agent_type == t
+            logits = head(features[sel])  # (Q_t, V_t)
+            if logits.shape[0]:
+                out[sel, : sizes[t]] = logits
+        return out
 
 
 def count_parameters(model: nn.Module) -> int:

@@ -21,9 +21,11 @@ How a rollout runs:
    (:func:`~smart_marl.rollout.sampling.sample_tokens`: top-k with renormalised probabilities and a
    temperature) or forced; the token's 6 poses (its contour's centre and heading) are placed at the
    agent's current pose; the 5 new poses are the agent's next 10 Hz frames; the tokens go back in.
-   ``mode="cached"`` runs the new step through :class:`~.incremental.IncrementalMotionNet` (a
-   KV cache); ``mode="full"`` re-runs MotionNet over the whole history and every generated step
-   (road encodings are reused in both modes: they do not change).
+   ``mode="cached"`` runs the new step through the model's KV-cached step
+   (:meth:`SMART.step <smart_marl.model.SMART.step>`); ``mode="full"`` re-runs MotionNet over the
+   whole history and every generated step (road encodings are reused in both modes: they do not
+   change). The engine never reaches into the model: it calls ``encode_road``, ``start_cache``,
+   ``step``, ``agent_features`` and ``next_token_logits``.
 
 Agents: *simulated* = vehicle, pedestrian or cyclist valid at the current frame (WOSAC's rule:
 an agent invalid at the current frame is not simulated). Agents of type OTHER valid at the current
@@ -34,7 +36,8 @@ at the current frame has a trajectory. z is carried from each agent's last valid
 
 from __future__ import annotations
 
-import os
+import copy
+import warnings
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -42,54 +45,20 @@ import numpy as np
 import torch
 
 from ..model.batch import scene_road
+from ..model.checkpoint import load_prior
 from ..model.motionnet import NUM_MOTION_TYPES
-from ..scenario import AgentType, Scenario
-from ..tokens import BOX_SIZE_M, FRAMES_PER_TOKEN, MOTION_TYPES, MotionVocabulary, TypeVocab, token_boundaries, tokenize_tracks
+from ..scenario import Scenario, wrap_angle
+from ..tokens import FRAMES_PER_TOKEN, MOTION_TYPES, MotionVocabulary, token_boundaries, tokenize_tracks
 from ..tokens.road import RoadVocabulary
-from .incremental import IncrementalMotionNet
-from .sampling import pad_type_logits, sample_tokens
+from .sampling import sample_tokens
 
 MODES = ("cached", "full")
 
 
 # ------------------------------------------------------------------------------ model inputs
-def token_poses_from_contours(contour: torch.Tensor) -> torch.Tensor:
-    """Token poses [V, 6, 3] from contours [V, 6, 4, 2] (corners left-front, right-front,
-    right-back, left-back): position = the box centre, heading = from the back edge's middle to
-    the front edge's middle."""
-    centre = contour.mean(-2)  # (V, 6, 2)
-    axis = (contour[..., 0, :] + contour[..., 1, :]) - (contour[..., 2, :] + contour[..., 3, :])  # (V, 6, 2)
-    return torch.cat([centre, torch.atan2(axis[..., 1], axis[..., 0])[..., None]], -1)
-
-
-def motion_vocabulary_from_model(model) -> MotionVocabulary:
-    """The motion vocabulary a model's contour buffers stand for (poses from the contours), for
-    rolling matching of the history when no vocabulary file is at hand."""
-    types = {}
-    for t, c in zip(MOTION_TYPES, model.motion_contours):
-        poses = token_poses_from_contours(c.detach().cpu().float()).numpy()
-        types[t] = TypeVocab.from_poses(poses, *BOX_SIZE_M[t])
-    return MotionVocabulary(types=types, method="from_model")
-
-
 def _dummy_road_vocab() -> RoadVocabulary:
     """Rollouts do not read road token ids (RoadNet embeds the pieces' points): a 1-token stand-in."""
     return RoadVocabulary(points=np.zeros((1, 11, 2), np.float32), tolerance_m=0.0, requested_size=1)
-
-
-def resolve_model(model_or_checkpoint, device="cpu"):
-    """(model in eval mode on ``device``, motion vocabulary) from a SMART model, a
-    :class:`~smart_marl.model.checkpoint.Checkpoint` or a checkpoint path."""
-    from ..model.checkpoint import Checkpoint, load_checkpoint
-
-    if isinstance(model_or_checkpoint, (str, os.PathLike)):
-        model_or_checkpoint = load_checkpoint(model_or_checkpoint, map_location=device)
-    if isinstance(model_or_checkpoint, Checkpoint):
-        model, vocab = model_or_checkpoint.model, model_or_checkpoint.motion_vocab
-    else:
-        model, vocab = model_or_checkpoint, None
-    model = model.to(device).eval()
-    return model, vocab if vocab is not None else motion_vocabulary_from_model(model)
 
 
 @dataclass
@@ -145,8 +114,6 @@ def scene_history(scenario: Scenario, vocab: MotionVocabulary) -> SceneHistory:
     end[sim, -1] = cur[sim]  # re-anchor at the logged current pose
     hist = np.where(tr.valid[keep, : cf + 1, None], tr.size[keep, : cf + 1], np.nan)
     with np.errstate(all="ignore"):
-        import warnings
-
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             shape = np.nan_to_num(np.nanmedian(hist, axis=1)).astype(np.float32)
@@ -241,7 +208,7 @@ class RolloutState:
         self.road_type = t(_pad_stack([rd.type_id for rd in roads], (rmax,)))
         self.road_light = t(_pad_stack([rd.light for rd in roads], (rmax,)))
         with torch.no_grad():  # (B, R, d), once per scene
-            self.road_x = model.road_net(self.road_points, self.road_pose, self.road_type, self.road_light, self.road_valid)
+            self.road_x = model.encode_road(self)
         # ---- token poses per type (padded to Vmax) for placing tokens
         vmax = int(self.vocab_sizes.max())
         tp = torch.zeros(NUM_MOTION_TYPES, vmax, FRAMES_PER_TOKEN + 1, 3)
@@ -253,12 +220,12 @@ class RolloutState:
         self.pose = hist_end[:, :, -1].clone()  # (G, N, 3) where each slot's next token starts
         self.step_index = 0
         self._logits: torch.Tensor | None = None
-        self.engine = None
+        self.cache = None  # the model's KV cache (mode "cached")
         if mode == "cached":
-            self.engine = IncrementalMotionNet(model, self.road_x, self.road_pose, self.road_valid, self.scene_of_group,
-                                               self.agent_type, self.agent_shape)
+            self.cache = model.start_cache(self.road_x, self.road_pose, self.road_valid, self.scene_of_group, self.agent_type,
+                                           self.agent_shape)
             for k in range(s - 1):  # prefill the cache with all history steps but the last
-                self.engine.step(hist_tokens[:, :, k], hist_start[:, :, k], hist_end[:, :, k], hist_valid[:, :, k])
+                model.step(self.cache, hist_tokens[:, :, k], hist_start[:, :, k], hist_end[:, :, k], hist_valid[:, :, k])
         self._pending = (hist_tokens[:, :, -1], hist_start[:, :, -1], hist_end[:, :, -1], hist_valid[:, :, -1])
 
     # ------------------------------------------------------------------------------- creation
@@ -268,7 +235,7 @@ class RolloutState:
         """Tokenize the scenes' histories and run them through the model. ``model``: a SMART model,
         a Checkpoint or a checkpoint path; ``motion_vocab`` overrides the vocabulary used to
         tokenize the history and place tokens (by default the checkpoint's, or the model's contours)."""
-        m, vocab = resolve_model(model, device)
+        m, vocab = load_prior(model, device)
         scenes = [scenes] if isinstance(scenes, Scenario) else list(scenes)
         if not scenes:
             raise ValueError("no scenes to roll out")
@@ -304,9 +271,9 @@ class RolloutState:
             raise ValueError(f"road_light must have shape {tuple(self.road_light.shape)}, got {tuple(light.shape)}")
         self.road_light = light
         with torch.no_grad():
-            self.road_x = self.model.road_net(self.road_points, self.road_pose, self.road_type, self.road_light, self.road_valid)
-        if self.engine is not None:
-            self.engine.set_road(self.road_x)
+            self.road_x = self.model.encode_road(self)
+        if self.cache is not None:
+            self.model.motion_net.cache_road(self.cache, self.road_x)
 
     def set_agent_pose(self, pose: torch.Tensor, mask: torch.Tensor) -> None:
         """Override the current pose [G, N, 3] of the slots where ``mask`` [G, N] is true: their next
@@ -327,16 +294,11 @@ class RolloutState:
             tok, st, en, va = self._pending
             g, n = self.num_groups, self.num_slots
             if self.mode == "cached":
-                rows, feats = self.engine.step(tok, st, en, va)
+                rows, feats = self.model.step(self.cache, tok, st, en, va)
             else:
                 rows, feats = self._full_features()
-            types = self.agent_type.reshape(-1)[rows]
-            with torch.no_grad():
-                per_type = [self.model.motion_heads[t](feats[types == t]) for t in range(NUM_MOTION_TYPES)]
-            sizes = [int(v) for v in self.vocab_sizes]
-            padded = pad_type_logits(per_type, types, sizes)  # (Q, Vmax)
-            out = torch.full((g * n, max(sizes)), float("-inf"), device=self.device)
-            out[rows] = padded
+            out = torch.full((g * n, int(self.vocab_sizes.max())), float("-inf"), device=self.device)
+            out[rows] = self.model.next_token_logits(feats, self.agent_type.reshape(-1)[rows])  # (Q, Vmax)
             self._logits = out.view(g, n, -1)
             self._pending = None
         return self._logits
@@ -345,13 +307,23 @@ class RolloutState:
     def _full_features(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Full re-computation: MotionNet over every step so far (history + generated)."""
         tok, valid, start, end = self.history
-        net = self.model.motion_net
-        x = net.embed_agents(tok, self.agent_type, self.agent_shape, start, end, self.model.motion_contours)
-        road_pose, road_valid = self.road_pose[self.scene_of_group], self.road_valid[self.scene_of_group]
-        nbrs = net.neighbourhoods(end, valid, road_pose, road_valid)
-        feats = net(x, self.road_x[self.scene_of_group], nbrs)[:, :, -1].reshape(-1, self.model.config.hidden_dim)  # (G*N, d)
+        sog = self.scene_of_group
+        feats = self.model.agent_features(tok, self.agent_type, self.agent_shape, start, end, valid, self.road_x[sog],
+                                          self.road_pose[sog], self.road_valid[sog])  # (G, N, S, d)
+        feats = feats[:, :, -1].reshape(-1, feats.shape[-1])  # (G*N, d)
         rows = valid[:, :, -1].reshape(-1).nonzero().squeeze(1)
         return rows, feats[rows]
+
+    def fork(self, seed: int) -> "RolloutState":
+        """An independent copy of this state whose sampler is seeded with ``seed`` (e.g. a fresh
+        episode from a state started once). The model, vocabulary, scenes and constant tensors are
+        shared; what steps and edits change (the KV cache, the history of mode "full", the poses,
+        the pending step) is the copy's own."""
+        out = copy.copy(self)
+        out.generator = torch.Generator(device=self.device).manual_seed(int(seed))
+        out.history = [t.clone() for t in self.history]  # mode "full" writes into its last step
+        out.cache = self.cache.fork() if self.cache is not None else None
+        return out
 
     def step(self, forced_tokens: torch.Tensor | None = None) -> StepOutput:
         """Advance every simulated agent by one token (0.5 s). ``forced_tokens`` [G, N] int64: ``-1``
@@ -396,7 +368,7 @@ def compose_torch(origin: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
     c, s = origin[..., 2].cos(), origin[..., 2].sin()
     x = origin[..., 0] + c * local[..., 0] - s * local[..., 1]
     y = origin[..., 1] + s * local[..., 0] + c * local[..., 1]
-    h = torch.remainder(origin[..., 2] + local[..., 2] + torch.pi, 2 * torch.pi) - torch.pi
+    h = wrap_angle(origin[..., 2] + local[..., 2])
     return torch.stack([x, y, h], -1)
 
 

@@ -1,7 +1,7 @@
 """Rollout stage, sampler: next-token logits -> chosen motion tokens (SMART's top-k sampling).
 
 What comes in: padded per-agent logits ``[..., Vmax]`` whose entries beyond an agent type's
-vocabulary are ``-inf`` (see :func:`pad_type_logits`), a temperature, ``k``, a ``torch.Generator``
+vocabulary are ``-inf`` (see :meth:`smart_marl.model.SMART.next_token_logits`), a temperature, ``k``, a ``torch.Generator``
 and optional forced tokens. What goes out: token ids and their log-probabilities under the
 temperature-scaled, *unclipped* distribution (``log_softmax(logits / temperature)``), which is
 what a policy's KL to the prior and the likelihood of a rollout are measured with.
@@ -14,21 +14,6 @@ generator on the CPU the draws are reproducible.
 from __future__ import annotations
 
 import torch
-
-
-def pad_type_logits(per_type: list[torch.Tensor], agent_type: torch.Tensor, sizes: list[int]) -> torch.Tensor:
-    """Per-agent logits from each type's head outputs: ``per_type[t]`` [Q, V_t] (head t applied to
-    the Q rows of agents of type t, in row order), ``agent_type`` [Q] (0..2) -> [Q, Vmax] with
-    ``-inf`` beyond the agent's type's vocabulary size."""
-    vmax = max(sizes)
-    q = agent_type.shape[0]
-    dtype = per_type[0].dtype if per_type else torch.float32
-    out = torch.full((q, vmax), float("-inf"), dtype=dtype, device=agent_type.device)
-    for t, logits in enumerate(per_type):
-        sel = agent_type == t
-        if logits.shape[0]:
-            out[sel, : sizes[t]] = logits
-    return out
 
 
 def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int = 5, temperature: float = 1.0,
