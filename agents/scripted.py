@@ -4,7 +4,7 @@ What comes in: an agent's pose and speed when a manoeuvre starts (one row per ro
 manoeuvre's parameters, and the motion vocabulary's token poses. What goes out: target paths
 ``[G, T, 3]`` (x, y, heading in the scene's local frame, frames 1..T after the onset) and, each
 0.5 s token step, the token of the agent's type vocabulary whose 5 placed poses come closest to the
-next 5 target poses (:func:`nearest_tokens`). The rollout engine takes those tokens as forced
+next 5 target poses (:func:`smart_marl.tokens.motion.match_token_path`, also :func:`nearest_tokens` here). The rollout engine takes those tokens as forced
 tokens (``RolloutState.step(forced_tokens)``), so a scripted agent moves only by real vocabulary
 tokens, as every other agent does.
 
@@ -34,16 +34,11 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import torch
 
-DT_S = 0.1
-FRAMES_PER_TOKEN = 5
-HEADING_WEIGHT_M_PER_RAD = 2.0
-"""How much a heading error counts against a position error when matching a token (m per rad)."""
-PEDESTRIAN_HEADING_WEIGHT_M_PER_RAD = 1.0
-"""Pedestrians turn on the spot and their headings are noisy in the data: heading counts half as much."""
+from smart_marl.scenario import DT_S, wrap_angle
+from smart_marl.tokens import FRAMES_PER_TOKEN, TOKEN_S
+from smart_marl.tokens.motion import match_token_path, path_heading_weight
 
-
-def _wrap(a):
-    return (a + np.pi) % (2 * np.pi) - np.pi
+nearest_tokens = match_token_path  # the scripted agents' token choice (smart_marl.tokens.motion.match_token_path)
 
 
 def _along(pose: np.ndarray, forward_m: np.ndarray, left_m: np.ndarray, heading_rel: np.ndarray) -> np.ndarray:
@@ -51,7 +46,7 @@ def _along(pose: np.ndarray, forward_m: np.ndarray, left_m: np.ndarray, heading_
     c, s = np.cos(pose[:, None, 2]), np.sin(pose[:, None, 2])
     x = pose[:, None, 0] + c * forward_m - s * left_m
     y = pose[:, None, 1] + s * forward_m + c * left_m
-    return np.stack([x, y, _wrap(pose[:, None, 2] + heading_rel)], -1)
+    return np.stack([x, y, wrap_angle(pose[:, None, 2] + heading_rel)], -1)
 
 
 def brake_path(pose: np.ndarray, speed_mps: np.ndarray, decel_mps2: float, num_frames: int) -> np.ndarray:
@@ -112,42 +107,6 @@ def polyline_path(waypoints: np.ndarray, speed_mps: float, num_frames: int, wait
     first_heading = np.arctan2(*seg[moving_seg[0]][::-1]) if len(moving_seg) else 0.0
     heading = np.where(seg_len[i] > 1e-6, np.arctan2(seg[i, 1], seg[i, 0]), first_heading)
     return np.concatenate([xy, heading[:, None]], 1)
-
-
-def nearest_tokens(token_poses: torch.Tensor, vocab_size: int, current_pose: torch.Tensor, targets: torch.Tensor,
-                   heading_weight: float = HEADING_WEIGHT_M_PER_RAD) -> torch.Tensor:
-    """The token closest to a scripted motion, per row.
-
-    token_poses [V, 6, 3] (one type's token poses in the token's start frame; rows beyond
-    ``vocab_size`` are ignored), current_pose [M, 3] (where the token starts), targets [M, 5, 3]
-    or [M, 10, 3] (the next 5 or 10 target poses, same frame as ``current_pose``) -> token ids [M]
-    minimising the mean position error plus ``heading_weight`` x the mean heading error. With 10
-    targets it looks one token ahead: the first token of the best *pair* of tokens (V^2 pairs), so
-    that a token which is good now but leaves the agent badly oriented for the next one loses.
-    """
-    poses = token_poses[:vocab_size, 1:].to(torch.float64)  # (V, 5, 3)
-    cur = current_pose.to(torch.float64)
-    tgt = targets.to(torch.float64)
-    c, s = cur[:, 2].cos()[:, None], cur[:, 2].sin()[:, None]
-    dx, dy = tgt[..., 0] - cur[:, None, 0], tgt[..., 1] - cur[:, None, 1]
-    local = torch.stack([c * dx + s * dy, -s * dx + c * dy, tgt[..., 2] - cur[:, None, 2]], -1)  # (M, F, 3)
-
-    def error(candidate: torch.Tensor, target: torch.Tensor) -> torch.Tensor:  # (..., F, 3) vs (M, 1.., F, 3)
-        pos = (candidate[..., :2] - target[..., :2]).norm(dim=-1).mean(-1)
-        dh = candidate[..., 2] - target[..., 2]
-        return pos + heading_weight * torch.atan2(dh.sin(), dh.cos()).abs().mean(-1)
-
-    if local.shape[1] < 2 * FRAMES_PER_TOKEN:
-        return error(poses[None], local[:, None, :FRAMES_PER_TOKEN]).argmin(1)
-    # pairs: token b placed at the end of token a -> (V, V, 5, 3)
-    end = poses[:, -1]  # (V, 3)
-    ce, se = end[:, 2].cos()[:, None, None], end[:, 2].sin()[:, None, None]
-    bx, by = poses[None, :, :, 0], poses[None, :, :, 1]
-    second = torch.stack([end[:, None, None, 0] + ce * bx - se * by, end[:, None, None, 1] + se * bx + ce * by,
-                          end[:, None, None, 2] + poses[None, :, :, 2]], -1)
-    pair = torch.cat([poses[:, None].expand(-1, poses.shape[0], -1, -1), second], 2)  # (V, V, 10, 3)
-    err = error(pair[None], local[:, None, None, : 2 * FRAMES_PER_TOKEN])  # (M, V, V)
-    return err.amin(2).argmin(1)
 
 
 # ------------------------------------------------------------------------ as an env policy
@@ -222,7 +181,7 @@ class ScriptedPolicy:
             m = self.manoeuvres.get(name)
             if m is None:
                 continue
-            j = step - int(round(m.at_s / (DT_S * FRAMES_PER_TOKEN)))
+            j = step - int(round(m.at_s / TOKEN_S))
             if j < 0:
                 continue
             track = env.static.name_to_track[name]
@@ -242,8 +201,7 @@ class ScriptedPolicy:
             if len(seg) < 2 * FRAMES_PER_TOKEN:
                 seg = np.concatenate([seg, np.repeat(path[-1:], 2 * FRAMES_PER_TOKEN - len(seg), 0)])
             vocab = env.motion_vocab[atype]
-            weight = PEDESTRIAN_HEADING_WEIGHT_M_PER_RAD if atype == 1 else HEADING_WEIGHT_M_PER_RAD
-            tok = nearest_tokens(torch.from_numpy(vocab.poses.astype(np.float64)), vocab.size,
-                                 torch.from_numpy(env.pose[track][None]), torch.from_numpy(seg[None]), weight)
+            tok = match_token_path(torch.from_numpy(vocab.poses.astype(np.float64)), vocab.size,
+                                   torch.from_numpy(env.pose[track][None]), torch.from_numpy(seg[None]), path_heading_weight(atype))
             actions[name] = int(tok[0])
         return actions

@@ -3,8 +3,10 @@
 Stage: a utility under the last stages of the data flow (environment, metrics); pure, vectorised
 numpy functions of arrays, no Scenario or model needed. The one copy of: oriented-box corners,
 signed distance between oriented boxes (plain and with rounded corners, as the sim-agents
-metrics define it), box overlap (collision), signed distance of points to road-edge polylines
-(positive = off road), offroad, and time to collision with the object in front.
+metrics define it), box overlap (collision), which agents of a scene collide over some frames
+(:func:`colliding`) and an agent's smallest distance to the others (:func:`min_box_distance`),
+signed distance of points to road-edge polylines (positive = off road), offroad, and time to
+collision with the object in front.
 
 Conventions: metres and radians, heading counter-clockwise from +x; a box is a centre ``(x, y)``,
 a ``length`` along the heading and a ``width`` across it. Leading dimensions ``...`` broadcast.
@@ -19,6 +21,7 @@ quirks that change numbers are kept and named where they occur (see docs/wosac_m
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -180,6 +183,63 @@ def box_distance_bounds(dist_centres, length_a, width_a, length_b, width_b):
     circ = 0.5 * np.hypot(la, wa) + 0.5 * np.hypot(lb, wb)
     insc = 0.5 * np.minimum(la, wa) + 0.5 * np.minimum(lb, wb)
     return dist_centres - circ, dist_centres - insc
+
+
+def colliding(poses: np.ndarray, present: np.ndarray, length: np.ndarray, width: np.ndarray,
+              query: np.ndarray | None = None) -> np.ndarray:
+    """Which agents collide: [..., Q] bool, true when agent ``query[q]``'s rounded box overlaps
+    (:func:`boxes_overlap`, query first) another agent's on some frame where both are present.
+
+    poses [..., A, F, 3] (x, y, heading of A agents over F frames), present [..., A, F] bool,
+    length / width [A]; query [Q] agent indices (default: every agent). Only the pairs whose
+    centre distance allows an overlap (:func:`box_distance_bounds`) are tested box against box.
+    """
+    poses, present = _f64(poses), np.asarray(present, bool)
+    length, width = _f64(length), _f64(width)
+    a = poses.shape[-3]
+    q = np.arange(a) if query is None else np.asarray(query, np.int64)
+    out = np.zeros(poses.shape[:-3] + (len(q),), bool)
+    if len(q) == 0 or a == 0:
+        return out
+    mine = poses[..., q, :, :]  # [..., Q, F, 3]
+    dist = np.linalg.norm(mine[..., :, None, :, :2] - poses[..., None, :, :, :2], axis=-1)  # [..., Q, A, F]
+    lo, _ = box_distance_bounds(dist, length[q, None, None], width[q, None, None], length[None, :, None], width[None, :, None])
+    other = q[:, None, None] != np.arange(a)[None, :, None]  # [Q, A, 1]
+    cand = (lo < 0) & other & present[..., q, None, :] & present[..., None, :, :]
+    *lead, qi, ai, fi = np.nonzero(cand)
+    if len(qi) == 0:
+        return out
+    pa, pb = mine[(*lead, qi, fi)], poses[(*lead, ai, fi)]  # [M, 3]
+    hit = boxes_overlap(pa[:, 0], pa[:, 1], length[q[qi]], width[q[qi]], pa[:, 2], pb[:, 0], pb[:, 1], length[ai], width[ai], pb[:, 2])
+    out[(*[i[hit] for i in lead], qi[hit])] = True
+    return out
+
+
+def min_box_distance(poses: np.ndarray, present: np.ndarray, length: np.ndarray, width: np.ndarray, index: int,
+                     near_m: float = 30.0) -> np.ndarray:
+    """[...] the smallest rounded-box signed distance (m, negative = overlap) between agent ``index``
+    and any other agent over the frames where both are present (NaN when there is none). Pairs
+    farther apart than ``near_m`` (centre distance) count with their centre distance, an upper bound.
+
+    poses [..., A, F, 3], present [..., A, F] bool, length / width [A].
+    """
+    poses, present = _f64(poses), np.asarray(present, bool)
+    length, width = _f64(length), _f64(width)
+    me = poses[..., index, :, :]  # [..., F, 3]
+    both = present[..., index, None, :] & present  # [..., A, F]
+    both[..., index, :] = False
+    centre = np.linalg.norm(poses[..., :2] - me[..., None, :, :2], axis=-1)  # [..., A, F]
+    near = np.where(both, centre, np.inf) < near_m  # box distance only for the near pairs
+    d = np.where(both, centre, np.nan)
+    *lead, ai, fi = np.nonzero(near)
+    if len(ai):
+        pa, pb = me[(*lead, fi)], poses[(*lead, ai, fi)]
+        d[(*lead, ai, fi)] = rounded_box_signed_distance(pa[:, 0], pa[:, 1], length[index], width[index], pa[:, 2],
+                                                        pb[:, 0], pb[:, 1], length[ai], width[ai], pb[:, 2])
+    flat = d.reshape(d.shape[:-2] + (-1,))
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: never present together
+        return np.nanmin(flat, axis=-1)
 
 
 # ------------------------------------------------------------------------------ road edges

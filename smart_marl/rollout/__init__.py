@@ -5,10 +5,13 @@ sampling, scenes x rollouts in one batch) and the stepping API the environment d
 ``RolloutState.start(...)`` / ``state.step(forced_tokens)`` for one token step at a time.
 """
 
-from .engine import MODES, RolloutResult, RolloutState, SceneHistory, StepOutput, collect_result, rollout, scene_history
+from .engine import (
+    MODES, RolloutResult, RolloutState, SceneHistory, StepOutput, TrackFrames, collect_result, rollout, scene_history,
+    track_frames,
+)
 from .sampling import sample_tokens
 
 __all__ = [
-    "MODES", "RolloutResult", "RolloutState", "SceneHistory", "StepOutput", "collect_result", "rollout", "sample_tokens",
-    "scene_history",
+    "MODES", "RolloutResult", "RolloutState", "SceneHistory", "StepOutput", "TrackFrames", "collect_result", "rollout",
+    "sample_tokens", "scene_history", "track_frames",
 ]

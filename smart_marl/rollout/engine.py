@@ -47,8 +47,9 @@ import torch
 from ..model.batch import scene_road
 from ..model.checkpoint import load_prior
 from ..model.motionnet import NUM_MOTION_TYPES
-from ..scenario import Scenario, wrap_angle
-from ..tokens import FRAMES_PER_TOKEN, MOTION_TYPES, MotionVocabulary, token_boundaries, tokenize_tracks
+from ..scenario import DT_S, Scenario, wrap_angle
+from ..tokens import FRAMES_PER_TOKEN, MOTION_TYPES, TOKEN_S, MotionVocabulary, token_boundaries, tokenize_tracks
+from ..tokens.motion import match_token_ends
 from ..tokens.road import RoadVocabulary
 from .sampling import sample_tokens
 
@@ -97,12 +98,12 @@ def scene_history(scenario: Scenario, vocab: MotionVocabulary) -> SceneHistory:
     if late.any():
         c, sn = np.cos(cur[late, 2]), np.sin(cur[late, 2])
         vel = tr.velocity[keep[late], cf].astype(np.float64)
-        target = np.stack([c * vel[:, 0] + sn * vel[:, 1], -sn * vel[:, 0] + c * vel[:, 1]], -1) * (FRAMES_PER_TOKEN * 0.1)
+        target = np.stack([c * vel[:, 0] + sn * vel[:, 1], -sn * vel[:, 0] + c * vel[:, 1]], -1) * TOKEN_S
         rows = np.flatnonzero(late)
         for t in np.unique(types[late]):  # per type present (at most 3), vectorised over agents
             sel = types[late] == t
             ends = vocab[int(t)].poses[:, -1].astype(np.float64)  # [V, 3]
-            tok = np.linalg.norm(target[sel][:, None] - ends[None, :, :2], axis=-1).argmin(1)
+            tok = match_token_ends(ends, target[sel])
             le = ends[tok]
             h0 = cur[late][sel, 2] - le[:, 2]
             start_xy = cur[late][sel, :2] - np.stack([np.cos(h0) * le[:, 0] - np.sin(h0) * le[:, 1],
@@ -143,6 +144,7 @@ class StepOutput:
     log_probs: torch.Tensor  # [G, N] under log_softmax(logits / temperature), 0 where not simulated
     poses: torch.Tensor  # [G, N, 5, 3] the 5 new 10 Hz poses (local frame), x, y, heading
     simulated: torch.Tensor  # [G, N] bool
+    forced: torch.Tensor  # [G, N] bool, simulated slots whose token was given, not sampled
 
 
 class RolloutState:
@@ -360,7 +362,19 @@ class RolloutState:
         self.pose = new_pose
         self._logits = None
         self.step_index += 1
-        return StepOutput(logits=logits, tokens=tokens, log_probs=log_probs, poses=placed, simulated=sim.clone())
+        forced = sim & (forced_tokens >= 0) if forced_tokens is not None else torch.zeros_like(sim)
+        return StepOutput(logits=logits, tokens=tokens, log_probs=log_probs, poses=placed, simulated=sim.clone(), forced=forced)
+
+    def run(self, num_steps: int, before_step=None) -> list[StepOutput]:
+        """``num_steps`` token steps (the rollout loop). ``before_step(state, k, last)``, when given,
+        is called before step ``k`` with the previous step's :class:`StepOutput` (None before the
+        first): it may edit the state (:meth:`set_agent_valid`, :meth:`set_road_light`, ...) and
+        returns the step's forced tokens [G, N] (``-1``: sample) or None."""
+        outs: list[StepOutput] = []
+        for k in range(num_steps):
+            forced = before_step(self, k, outs[-1] if outs else None) if before_step is not None else None
+            outs.append(self.step(forced))
+        return outs
 
 
 def compose_torch(origin: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
@@ -403,20 +417,49 @@ def rollout(model_or_checkpoint, scenes: Scenario | Sequence[Scenario], num_roll
     in one batch (see the module docstring). Same seed, same rollouts (on the CPU)."""
     state = RolloutState.start(model_or_checkpoint, scenes, num_rollouts=num_rollouts, seed=seed, top_k=top_k,
                                temperature=temperature, device=device, mode=mode, motion_vocab=motion_vocab)
-    outs = [state.step() for _ in range(num_steps)]
+    outs = state.run(num_steps)
     return collect_result(state, outs)
 
 
+@dataclass
+class TrackFrames:
+    """A state's steps per *track* of each group's scene (``A`` = the most tracks of any scene),
+    10 Hz frames current + 1 .. current + T, local frame."""
+
+    poses: np.ndarray  # [G, A, T, 3] float64 x, y, heading; NaN where the track's slot was not simulated
+    present: np.ndarray  # [G, A, T] bool, simulated on that frame
+    forced: np.ndarray  # [G, A, T] bool, moved by a given (forced) token on that frame
+
+
+def track_frames(state: RolloutState, outs: list[StepOutput]) -> TrackFrames:
+    """The slots of ``outs`` (a state's :class:`StepOutput` s in order) mapped back to tracks."""
+    g = state.num_groups
+    a = max(sc.num_tracks for sc in state.scenes)
+    t_frames = FRAMES_PER_TOKEN * len(outs)
+    poses = np.full((g, a, t_frames, 3), np.nan)
+    present = np.zeros((g, a, t_frames), bool)
+    forced = np.zeros((g, a, t_frames), bool)
+    track_index = state.track_index.cpu().numpy()  # [G, N]
+    for k, out in enumerate(outs):
+        frames = slice(FRAMES_PER_TOKEN * k, FRAMES_PER_TOKEN * (k + 1))
+        gi, slot = np.nonzero(out.simulated.cpu().numpy() & (track_index >= 0))
+        ti = track_index[gi, slot]
+        poses[gi, ti, frames] = out.poses.cpu().numpy().astype(np.float64)[gi, slot]
+        present[gi, ti, frames] = True
+        forced[gi, ti, frames] = out.forced.cpu().numpy()[gi, slot, None]
+    return TrackFrames(poses=poses, present=present, forced=forced)
+
+
 def collect_result(state: RolloutState, outs: list[StepOutput]) -> RolloutResult:
-    """The :class:`RolloutResult` of a state's steps: slots mapped back to tracks, source frame,
-    OTHER agents at constant velocity, z carried."""
+    """The :class:`RolloutResult` of a state's steps: slots mapped back to tracks
+    (:func:`track_frames`), source frame, OTHER agents at constant velocity, z carried."""
     scenes = state.scenes
     r = state.num_rollouts
     g, n = state.num_groups, state.num_slots
     k = len(outs)
     t_frames = FRAMES_PER_TOKEN * k
     a = max(sc.num_tracks for sc in scenes)
-    poses = torch.cat([o.poses for o in outs], 2).cpu().numpy().astype(np.float64) if k else np.zeros((g, n, 0, 3))  # (G, N, T, 3)
+    poses = track_frames(state, outs).poses  # (G, A, T, 3)
     tokens = torch.stack([o.tokens for o in outs], -1).cpu().numpy() if k else np.zeros((g, n, 0), np.int64)
     logps = torch.stack([o.log_probs for o in outs], -1).cpu().numpy() if k else np.zeros((g, n, 0), np.float32)
     track_index = state.track_index.cpu().numpy()
@@ -428,7 +471,7 @@ def collect_result(state: RolloutState, outs: list[StepOutput]) -> RolloutResult
     agent_types = np.full((g, a), -1, np.int8)
     has_traj = np.zeros((g, a), bool)
     simulated = np.zeros((g, a), bool)
-    dt_s = 0.1 * np.arange(1, t_frames + 1)
+    dt_s = DT_S * np.arange(1, t_frames + 1)
     for b, sc in enumerate(scenes):
         tr, cf = sc.tracks, sc.current_frame
         nt = tr.num_tracks
@@ -451,8 +494,8 @@ def collect_result(state: RolloutState, outs: list[StepOutput]) -> RolloutResult
             slots = np.flatnonzero((track_index[gi] >= 0) & slot_sim[gi])
             ti = track_index[gi, slots]
             loc = local.copy()
-            loc[ti, :, :2] = poses[gi, slots, :, :2]
-            loc[ti, :, 3] = poses[gi, slots, :, 2]
+            loc[ti, :, :2] = poses[gi, ti, :, :2]
+            loc[ti, :, 3] = poses[gi, ti, :, 2]
             traj = np.zeros_like(loc)
             traj[..., :3] = sc.frame.to_source(loc[..., :3])
             traj[..., 3] = sc.frame.heading_to_source(loc[..., 3])

@@ -30,6 +30,9 @@ Definitions (SMART sec. 3.1, the reference code rainmaker22/SMART):
   boundary (re-anchoring). Frames of a late agent before its first valid boundary are not
   tokenized. Parked cars take a (near) zero-motion token; reversing vehicles a token moving
   backwards in the agent frame, when the data the vocabulary was built from has them.
+* Matching one move to one token (:func:`match_token_ends`: the token whose end is nearest a
+  displacement, e.g. an agent that appears late or one replayed from the log; :func:`match_token_path`:
+  the token whose 5 poses follow a target path best, looking one token ahead, for scripted agents).
 * Training noise: with ``noise_topk = k > 1`` the token is drawn uniformly among the k nearest
   (with probability ``noise_prob``, default 1 like the reference), from a seeded generator; the
   rolling continues from the noised token's pose.
@@ -53,7 +56,8 @@ __all__ = [
     "BOX_SIZE_M", "FRAMES_PER_TOKEN", "MOTION_TYPES", "POSES_PER_TOKEN", "TOKEN_S", "TYPE_KEYS", "VOCABULARY_VERSION",
     "MotionTokens", "MotionVocabulary", "TypeVocab",
     "augment_snippets", "box_contour", "build_motion_vocabulary", "collect_snippets", "compose_poses",
-    "detokenize", "hash_arrays", "motion_vocabulary_hash", "place_tokens", "relative_poses", "reconstruct",
+    "detokenize", "hash_arrays", "match_token_ends", "match_token_path", "motion_vocabulary_hash", "path_heading_weight",
+    "place_tokens", "relative_poses", "reconstruct",
     "snippets_from_tracks", "token_boundaries", "token_poses_from_contours", "tokenize_motion", "tokenize_tracks",
     "uniform_grid_vocabulary",
 ]
@@ -487,3 +491,66 @@ def reconstruct(tokens: MotionTokens, vocab: MotionVocabulary, num_frames: int |
         poses[np.ix_(np.flatnonzero(sel), frames)] = placed[sel, k]
         out_valid[np.ix_(np.flatnonzero(sel), frames)] = True
     return poses, out_valid
+
+
+# ------------------------------------------------------------------------- matching one move
+PATH_HEADING_WEIGHT_M_PER_RAD = 2.0
+"""How much a heading error counts against a position error when matching a path (m per rad)."""
+PEDESTRIAN_PATH_HEADING_WEIGHT_M_PER_RAD = 1.0
+"""Pedestrians turn on the spot and their headings are noisy in the data: heading counts half as much."""
+
+
+def path_heading_weight(agent_type) -> float:
+    """The heading weight :func:`match_token_path` uses for an agent type (m per rad)."""
+    if int(agent_type) == int(AgentType.PEDESTRIAN):
+        return PEDESTRIAN_PATH_HEADING_WEIGHT_M_PER_RAD
+    return PATH_HEADING_WEIGHT_M_PER_RAD
+
+
+def match_token_ends(end_poses: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """The token whose end is nearest each target, per row: end_poses [V, 3] (one type's tokens'
+    last poses, token start frame), target [M, 2] (a displacement in the agent's frame: the
+    Euclidean distance decides) or [M, 3] (a displacement and a heading change: squared distance
+    plus the squared wrapped heading difference, radians counted as metres) -> token ids [M]."""
+    ends = np.asarray(end_poses, np.float64)
+    target = np.asarray(target, np.float64)
+    if target.shape[-1] == 2:
+        return np.linalg.norm(target[:, None] - ends[None, :, :2], axis=-1).argmin(1)
+    dh = wrap_angle(target[:, None, 2] - ends[None, :, 2])
+    return (np.sum((target[:, None, :2] - ends[None, :, :2]) ** 2, -1) + dh ** 2).argmin(1)
+
+
+def match_token_path(token_poses: torch.Tensor, vocab_size: int, current_pose: torch.Tensor, targets: torch.Tensor,
+                     heading_weight: float = PATH_HEADING_WEIGHT_M_PER_RAD) -> torch.Tensor:
+    """The token closest to a scripted motion, per row.
+
+    token_poses [V, 6, 3] (one type's token poses in the token's start frame; rows beyond
+    ``vocab_size`` are ignored), current_pose [M, 3] (where the token starts), targets [M, 5, 3]
+    or [M, 10, 3] (the next 5 or 10 target poses, same frame as ``current_pose``) -> token ids [M]
+    minimising the mean position error plus ``heading_weight`` x the mean heading error. With 10
+    targets it looks one token ahead: the first token of the best *pair* of tokens (V^2 pairs), so
+    that a token which is good now but leaves the agent badly oriented for the next one loses.
+    """
+    poses = token_poses[:vocab_size, 1:].to(torch.float64)  # (V, 5, 3)
+    cur = current_pose.to(torch.float64)
+    tgt = targets.to(torch.float64)
+    c, s = cur[:, 2].cos()[:, None], cur[:, 2].sin()[:, None]
+    dx, dy = tgt[..., 0] - cur[:, None, 0], tgt[..., 1] - cur[:, None, 1]
+    local = torch.stack([c * dx + s * dy, -s * dx + c * dy, tgt[..., 2] - cur[:, None, 2]], -1)  # (M, F, 3)
+
+    def error(candidate: torch.Tensor, target: torch.Tensor) -> torch.Tensor:  # (..., F, 3) vs (M, 1.., F, 3)
+        pos = (candidate[..., :2] - target[..., :2]).norm(dim=-1).mean(-1)
+        dh = candidate[..., 2] - target[..., 2]
+        return pos + heading_weight * wrap_angle(dh).abs().mean(-1)
+
+    if local.shape[1] < 2 * FRAMES_PER_TOKEN:
+        return error(poses[None], local[:, None, :FRAMES_PER_TOKEN]).argmin(1)
+    # pairs: token b placed at the end of token a -> (V, V, 5, 3)
+    end = poses[:, -1]  # (V, 3)
+    ce, se = end[:, 2].cos()[:, None, None], end[:, 2].sin()[:, None, None]
+    bx, by = poses[None, :, :, 0], poses[None, :, :, 1]
+    second = torch.stack([end[:, None, None, 0] + ce * bx - se * by, end[:, None, None, 1] + se * bx + ce * by,
+                          end[:, None, None, 2] + poses[None, :, :, 2]], -1)
+    pair = torch.cat([poses[:, None].expand(-1, poses.shape[0], -1, -1), second], 2)  # (V, V, 10, 3)
+    err = error(pair[None], local[:, None, None, : 2 * FRAMES_PER_TOKEN])  # (M, V, V)
+    return err.amin(2).argmin(1)

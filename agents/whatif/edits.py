@@ -1,0 +1,200 @@
+"""What-if scenarios, the edits: what a what-if script says, as dataclasses, and the YAML reader.
+
+Stage: agents (what-if). What comes in: edit objects built in Python or a YAML (or JSON) script
+file. What goes out: a :class:`WhatIf` (a name, a description and a list of edits), which
+:func:`agents.whatif.prepare.prepare` applies to a scene. The format is in :mod:`agents.whatif`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence, Union
+
+from smart_marl.errors import SmartMarlError
+
+AgentRef = Union[int, str]
+
+
+class WhatIfError(SmartMarlError, ValueError):
+    """A what-if script that cannot be applied: names the file (or ``<python>``), the edit and the problem."""
+
+    def __init__(self, path: str | os.PathLike | None, problem: str, edit: int | None = None):
+        self.path = os.fspath(path) if path is not None else "<python>"
+        self.problem, self.edit = problem, edit
+        where = f"{self.path}: edit {edit}" if edit is not None else self.path
+        super().__init__(f"{where}: {problem}")
+
+
+
+# ------------------------------------------------------------------------------------ edits
+@dataclass
+class Placement:
+    """How an edit's coordinates are read: ``frame`` "source" (the scene file's coordinates) or
+    "local" (the Scenario's local frame), or ``relative_to`` an agent (its pose at the current
+    frame: x forward, y left, headings relative to its heading)."""
+
+    frame: str = "source"
+    relative_to: AgentRef | None = None
+
+
+@dataclass
+class Remove(Placement):
+    """Take ``agents`` out of the scene (``at_s`` 0: before the rollout) or of the rollout from ``at_s`` on."""
+
+    agents: Sequence[AgentRef] = ()
+    at_s: float = 0.0
+
+
+@dataclass
+class Insert(Placement):
+    """Add an agent of ``type`` (vehicle, pedestrian, cyclist) at the current frame, moving by one of:
+    ``trajectory`` [[x, y(, heading)], ...] at 10 Hz from the current frame; ``path`` waypoints
+    [[x, y], ...] at ``speed_mps`` after waiting ``wait_s``; or ``tokens`` (ids of its type's
+    vocabulary, forced one per 0.5 s step) from ``pose`` [x, y, heading] with history speed
+    ``speed_mps``. ``then``: "release" (the prior drives it once the script ends) or "hold"."""
+
+    type: str = "vehicle"
+    trajectory: Any = None
+    path: Any = None
+    speed_mps: float = 0.0
+    wait_s: float = 0.0
+    tokens: Sequence[int] | None = None
+    pose: Sequence[float] | None = None
+    id: int | None = None
+    size_m: Sequence[float] | None = None
+    then: str = "release"
+
+
+@dataclass
+class Brake(Placement):
+    """``agent`` brakes at ``decel_mps2`` from ``at_s`` on, straight ahead, to a standstill, and stays."""
+
+    agent: AgentRef = "sdc"
+    at_s: float = 0.0
+    decel_mps2: float = 8.0
+
+
+@dataclass
+class Stop(Brake):
+    """``agent`` comes to a stop at a moderate ``decel_mps2`` from ``at_s`` on and stays stopped."""
+
+    decel_mps2: float = 3.0
+
+
+@dataclass
+class CutIn(Placement):
+    """``agent`` changes lane by ``lateral_m`` (left positive) over ``duration_s`` from ``at_s`` on,
+    at ``speed_mps`` (default: its speed at the onset); then the prior drives it again."""
+
+    agent: AgentRef = "sdc"
+    at_s: float = 0.0
+    lateral_m: float = 3.5
+    duration_s: float = 2.0
+    speed_mps: float | None = None
+
+
+@dataclass
+class Follow(Placement):
+    """``agent`` follows ``path`` waypoints at ``speed_mps`` (default: its speed at the onset), or
+    takes ``tokens`` one per step, from ``at_s`` on; ``then`` "release" or "hold"."""
+
+    agent: AgentRef = "sdc"
+    at_s: float = 0.0
+    path: Any = None
+    speed_mps: float | None = None
+    tokens: Sequence[int] | None = None
+    then: str = "release"
+
+
+@dataclass
+class StalledVehicle(Placement):
+    """A vehicle that does not move: an existing ``agent`` held where it is for the whole rollout,
+    or a new vehicle standing at ``pose`` [x, y, heading] (its history: standing there)."""
+
+    agent: AgentRef | None = None
+    pose: Sequence[float] | None = None
+    id: int | None = None
+    size_m: Sequence[float] | None = None
+
+
+@dataclass
+class Jaywalker(Placement):
+    """A pedestrian who stands at ``start`` [x, y], then crosses to ``end`` at ``speed_mps`` after ``wait_s``."""
+
+    start: Sequence[float] = (0.0, 0.0)
+    end: Sequence[float] = (0.0, 0.0)
+    speed_mps: float = 1.4
+    wait_s: float = 0.0
+    id: int | None = None
+
+
+@dataclass
+class TrafficLightOverride(Placement):
+    """Force the signal of ``lanes`` (feature ids of lanes with a signal, or "all") to ``state``
+    (a SignalState name: stop, caution, go, arrow_stop, ...) from ``at_s`` on."""
+
+    lanes: Any = "all"
+    state: str = "stop"
+    at_s: float = 0.0
+
+
+KINDS = {"remove": Remove, "insert": Insert, "brake": Brake, "stop": Stop, "cut_in": CutIn, "follow": Follow,
+         "stalled_vehicle": StalledVehicle, "jaywalker": Jaywalker, "traffic_light": TrafficLightOverride}
+KIND_OF = {cls: kind for kind, cls in KINDS.items()}
+
+
+@dataclass
+class WhatIf:
+    """A what-if scenario: a name, a description and a list of edits (applied in order)."""
+
+    edits: list
+    name: str = "what-if"
+    description: str = ""
+    path: str | None = None  # the script file, for error messages
+
+    @classmethod
+    def from_dict(cls, data: dict, path: str | None = None) -> "WhatIf":
+        if not isinstance(data, dict) or "edits" not in data:
+            raise WhatIfError(path, "a what-if script is a mapping with an 'edits' list (and optional name, description)")
+        unknown = set(data) - {"name", "description", "edits"}
+        if unknown:
+            raise WhatIfError(path, f"unknown top-level keys {sorted(unknown)} (expected name, description, edits)")
+        edits = data["edits"]
+        if not isinstance(edits, list) or not edits:
+            raise WhatIfError(path, "'edits' must be a non-empty list")
+        out = []
+        for i, e in enumerate(edits):
+            if not isinstance(e, dict) or "kind" not in e:
+                raise WhatIfError(path, "each edit is a mapping with a 'kind'", i)
+            kind = e["kind"]
+            if kind not in KINDS:
+                raise WhatIfError(path, f"unknown kind {kind!r} (one of {', '.join(KINDS)})", i)
+            cls_ = KINDS[kind]
+            names = {f.name for f in dataclasses.fields(cls_)}
+            bad = set(e) - names - {"kind"}
+            if bad:
+                raise WhatIfError(path, f"{kind}: unknown keys {sorted(bad)} (allowed: {', '.join(sorted(names))})", i)
+            out.append(cls_(**{k: v for k, v in e.items() if k != "kind"}))
+        return cls(edits=out, name=str(data.get("name", Path(path).stem if path else "what-if")),
+                   description=str(data.get("description", "")), path=path)
+
+
+def load_script(path: str | os.PathLike) -> WhatIf:
+    """Read a what-if YAML (or JSON) script."""
+    p = Path(path)
+    if not p.is_file():
+        raise WhatIfError(p, "no such script file")
+    try:
+        import yaml
+    except ImportError as exc:  # pragma: no cover - pyyaml is in the whatif extra
+        raise WhatIfError(p, "reading YAML scripts needs pyyaml (pip install 'smart-marl[whatif]')") from exc
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        raise WhatIfError(p, f"not valid YAML: {exc}") from exc
+    return WhatIf.from_dict(data, str(p))
+
+
