@@ -30,14 +30,14 @@ from typing import Mapping
 
 import numpy as np
 
-from smart_marl.geometry import (
-    Z_STRETCH, RoadEdgeSegments, box_corners_float32, box_distance_bounds, boxes_overlap, is_offroad, pairwise_distance,
-)
-from smart_marl.scenario import AgentType
+from smart_marl.geometry import Z_STRETCH, RoadEdgeSegments, box_corners_float32, colliding, is_offroad, pairwise_distance
+from smart_marl.scenario import DT_S, AgentType
+from smart_marl.tokens import FRAMES_PER_TOKEN
+
+from ._scene import SceneStatic
 
 REWARD_TERMS = ("progress", "goal_reached", "collision", "offroad", "comfort", "prior_log_likelihood")
 TERMINATION_EVENTS = ("collision", "offroad", "goal")
-DT_S = 0.1
 
 
 @dataclass(frozen=True)
@@ -71,30 +71,11 @@ class RewardConfig:
 
 
 def collisions(ctrl: np.ndarray, frames: np.ndarray, present: np.ndarray, box_size: np.ndarray) -> np.ndarray:
-    """[C] bool: controlled track ``ctrl[i]`` overlaps another present track at any frame.
-    frames [N, F, 3] poses of every track over the step, present [N] bool."""
-    c = len(ctrl)
-    out = np.zeros(c, bool)
-    if c == 0:
-        return out
-    others = np.flatnonzero(present)
-    if len(others) == 0:
-        return out
-    # candidate pairs: lower bound of the box distance (circumscribed discs) < 0 at some frame
-    d = np.linalg.norm(frames[ctrl][:, None, :, :2] - frames[others][None, :, :, :2], axis=-1)  # [C, O, F]
-    lo, _ = box_distance_bounds(d, box_size[ctrl, 0, None, None], box_size[ctrl, 1, None, None],
-                                box_size[others, 0][None, :, None], box_size[others, 1][None, :, None])
-    cand = (lo < 0).any(-1) & (others[None, :] != ctrl[:, None])  # [C, O]
-    ci, oi = np.nonzero(cand)
-    if len(ci) == 0:
-        return out
-    a, b = ctrl[ci], others[oi]
-    fa, fb = frames[a], frames[b]  # [Q, F, 3]
-    sa, sb = box_size[a][:, None], box_size[b][:, None]
-    hit = boxes_overlap(fa[..., 0], fa[..., 1], sa[..., 0], sa[..., 1], fa[..., 2],
-                        fb[..., 0], fb[..., 1], sb[..., 0], sb[..., 1], fb[..., 2]).any(-1)
-    np.logical_or.at(out, ci, hit)
-    return out
+    """[C] bool: controlled track ``ctrl[i]`` overlaps another present track at any frame
+    (:func:`smart_marl.geometry.colliding`). frames [N, F, 3] poses of every track over the step,
+    present [N] bool, box_size [N, 2+] length, width."""
+    on = np.broadcast_to(present[:, None], frames.shape[:2])
+    return colliding(frames, on, box_size[:, 0], box_size[:, 1], ctrl)
 
 
 def crop_road_edges(segments: RoadEdgeSegments, points_xyz: np.ndarray) -> RoadEdgeSegments:
@@ -137,6 +118,16 @@ def offroad(static, ctrl: np.ndarray, frames: np.ndarray) -> np.ndarray:
     return out
 
 
+def route_progress_m(static: SceneStatic, tracks: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Arc length [C] along each track's logged route at its valid route point nearest to ``xy`` [C, 2]."""
+    if static.route_xy.shape[1] == 0 or len(tracks) == 0:
+        return np.zeros(len(tracks))
+    d = np.linalg.norm(static.route_xy[tracks] - xy[:, None], axis=-1)  # [C, R]
+    d = np.where(static.route_valid[tracks], d, np.inf)
+    k = d.argmin(1)
+    return static.route_arc_m[tracks, k]
+
+
 def goal_reached(static, ctrl: np.ndarray, xy: np.ndarray, radius_m: float) -> np.ndarray:
     """[C] bool: within ``radius_m`` of the logged goal (tracks with a route longer than the radius)."""
     has_goal = static.route_length_m[ctrl] > radius_m
@@ -151,3 +142,38 @@ def mean_jerk(positions: np.ndarray, valid: np.ndarray, new_frames: int) -> np.n
     mag = np.linalg.norm(j, axis=-1)[:, -new_frames:]
     ok = ok[:, -new_frames:]
     return np.where(ok.any(1), (mag * ok).sum(1) / np.maximum(ok.sum(1), 1), 0.0)
+
+
+@dataclass
+class StepReward:
+    """One step's outcome for the live controlled agents ``ctrl`` [C]."""
+
+    collision: np.ndarray  # [C] bool
+    offroad: np.ndarray  # [C] bool
+    goal_reached: np.ndarray  # [C] bool, reached this step (the first time)
+    progress_m: np.ndarray  # [C] route progress after the step
+    terms: np.ndarray  # [C, 6] the reward terms, REWARD_TERMS order
+    reward: np.ndarray  # [C] terms . weights
+    terminated: np.ndarray  # [C] bool, an event of ``terminate_on`` happened
+
+
+def step_reward(static: SceneStatic, config: RewardConfig, terminate_on, ctrl: np.ndarray, frames: np.ndarray,
+                present: np.ndarray, hist_pose: np.ndarray, hist_valid: np.ndarray, progress_m: np.ndarray,
+                goal_done: np.ndarray, action_log_prob: np.ndarray) -> StepReward:
+    """Events, reward terms, reward and termination of the controlled tracks ``ctrl`` [C] after a
+    step: frames [N, 5, 3] and present [N] of every track (the step's motion), hist_pose [C, H, 3]
+    and hist_valid [C, H] the controlled agents' pose history *including* the step, progress_m [C]
+    their route progress before it, goal_done [C] whether they reached their goal before, and
+    action_log_prob [C] the prior's log-probability of their tokens (0 without a prior)."""
+    coll = collisions(ctrl, frames, present, static.box_size)
+    off = offroad(static, ctrl, frames)
+    progress = route_progress_m(static, ctrl, frames[ctrl, -1, :2])
+    goal = goal_reached(static, ctrl, frames[ctrl, -1, :2], config.goal_radius_m) & ~goal_done
+    jerk = mean_jerk(hist_pose[:, :, :2], hist_valid, FRAMES_PER_TOKEN)
+    terms = np.stack([progress - progress_m, goal.astype(float), coll.astype(float), off.astype(float), jerk, action_log_prob], -1)
+    term = np.zeros(len(ctrl), bool)
+    for event, happened in (("collision", coll), ("offroad", off), ("goal", goal)):
+        if event in terminate_on:
+            term |= happened
+    return StepReward(collision=coll, offroad=off, goal_reached=goal, progress_m=progress, terms=terms,
+                      reward=terms @ config.weights(), terminated=term)

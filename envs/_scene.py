@@ -106,14 +106,4 @@ def scene_static(scenario: Scenario) -> SceneStatic:
     )
 
 
-def route_progress_m(static: SceneStatic, tracks: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Arc length [C] along each track's logged route at its valid route point nearest to ``xy`` [C, 2]."""
-    if static.route_xy.shape[1] == 0 or len(tracks) == 0:
-        return np.zeros(len(tracks))
-    d = np.linalg.norm(static.route_xy[tracks] - xy[:, None], axis=-1)  # [C, R]
-    d = np.where(static.route_valid[tracks], d, np.inf)
-    k = d.argmin(1)
-    return static.route_arc_m[tracks, k]
-
-
-__all__ = ["SceneStatic", "scene_static", "route_progress_m"]
+__all__ = ["SceneStatic", "scene_static"]

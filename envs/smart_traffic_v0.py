@@ -20,6 +20,12 @@ id of their type's vocabulary: Discrete(V)); every other agent follows the backg
 With a prior and a non-prior background, the prior still runs (for the logits it exposes): the
 background agents' moves are fed to it as the nearest token, re-anchored at their true poses.
 
+One step, in four files: :meth:`SmartTrafficEnv.step` here calls the dynamics
+(:func:`envs._dynamics.move`: every agent's 5 new frames, the prior's step), updates the state,
+calls the reward (:func:`envs._reward.step_reward`: events, reward terms, termination), lets the
+prior forget agents that are done (:func:`envs._dynamics.release`) and builds the observations
+(:mod:`envs._observation`). Per-scene constants are computed once per scene (:mod:`envs._scene`).
+
 Agents: ``possible_agents`` are the controlled tracks of the current scene, named
 ``"vehicle_1234"`` (type and track id), in track order. They change when a reset loads another
 scene (TorchRL's PettingZooWrapper fixes its agent set at construction: wrap a one-scene env).
@@ -47,26 +53,27 @@ import sys
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+import gymnasium
 import numpy as np
 import torch
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 from pettingzoo.utils import wrappers
+from pettingzoo.utils.conversions import parallel_to_aec_wrapper
 
 from smart_marl.embedded import sample_scenarios
 from smart_marl.errors import SmartMarlError
 from smart_marl.model.checkpoint import CheckpointError, load_prior
 from smart_marl.readers import read_scenarios
+from smart_marl.render import BevRenderer, EpisodeRecorder
 from smart_marl.rollout import RolloutState
-from smart_marl.scenario import AgentType, Scenario
+from smart_marl.scenario import DT_S, AgentType, Scenario
 from smart_marl.tokens import FRAMES_PER_TOKEN, MotionVocabulary
 
+from ._dynamics import BACKGROUNDS, Motion, move, release
 from ._observation import HISTORY_FRAMES, ObservationConfig, build_observations, observation_size
-from ._reward import REWARD_TERMS, TERMINATION_EVENTS, RewardConfig, collisions, goal_reached, mean_jerk, offroad
-from ._scene import SceneStatic, route_progress_m, scene_static
-
-BACKGROUNDS = ("prior", "log", "constant_velocity")
-DT_S = 0.1
+from ._reward import REWARD_TERMS, TERMINATION_EVENTS, RewardConfig, StepReward, route_progress_m, step_reward
+from ._scene import SceneStatic, scene_static
 
 
 class EnvConfigError(SmartMarlError, ValueError):
@@ -436,177 +443,68 @@ class SmartTrafficEnv(ParallelEnv):
             tokens[i] = tok
         return tokens
 
-    def _background_frames(self, tracks: np.ndarray, mode: str) -> tuple[np.ndarray, np.ndarray]:
-        """(poses [B, 5, 3], present after the step [B]) of background tracks under ``mode``: "log"
-        or "constant_velocity"."""
-        k = np.arange(1, FRAMES_PER_TOKEN + 1)
-        if mode == "log":
-            tr = self.static.scenario.tracks
-            frames = self.frame + k
-            inside = frames < tr.num_frames
-            fi = np.minimum(frames, tr.num_frames - 1)
-            valid = tr.valid[tracks][:, fi] & inside[None]  # [B, 5]
-            pos = np.concatenate([tr.position[tracks][:, fi, :2], tr.heading[tracks][:, fi, None]], -1).astype(np.float64)
-            # frames the log misses keep the last pose
-            out = np.empty_like(pos)
-            last = self.pose[tracks]
-            for j in range(FRAMES_PER_TOKEN):
-                last = np.where(valid[:, j, None], pos[:, j], last)
-                out[:, j] = last
-            return out, valid[:, -1]
-        # constant velocity (also OTHER agents under the prior)
-        t = (self.frame - self.static.scenario.current_frame + k) * DT_S
-        cf = self.static.scenario.current_frame
-        tr = self.static.scenario.tracks
-        start = np.concatenate([tr.position[tracks, cf, :2], tr.heading[tracks, cf, None]], -1).astype(np.float64)
-        out = np.repeat(start[:, None], FRAMES_PER_TOKEN, 1)
-        out[..., :2] += self.cv_velocity[tracks][:, None] * t[None, :, None]
-        return out, np.ones(len(tracks), bool)
-
-    def _nearest_tokens(self, tracks: np.ndarray, end_pose: np.ndarray) -> np.ndarray:
-        """The token whose end pose best matches each track's move from its pose to ``end_pose`` [B, 3]."""
-        out = np.zeros(len(tracks), np.int64)
-        start = self.pose[tracks]
-        c, s = np.cos(start[:, 2]), np.sin(start[:, 2])
-        d = end_pose[:, :2] - start[:, :2]
-        rel = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], end_pose[:, 2] - start[:, 2]], -1)
-        for t in np.unique(self.static.types[tracks]):
-            sel = self.static.types[tracks] == t
-            ends = self.motion_vocab[int(t)].poses[:, -1].astype(np.float64)  # [V, 3]
-            dh = np.angle(np.exp(1j * (rel[sel, None, 2] - ends[None, :, 2])))
-            cost = np.sum((rel[sel, None, :2] - ends[None, :, :2]) ** 2, -1) + dh ** 2
-            out[sel] = cost.argmin(1)
-        return out
-
     def step(self, actions: dict):
         tokens = self._check_actions(actions)
-        st = self.static
-        n = st.num_tracks
         live_names = list(self.agents)
-        live_ctrl_mask = tokens >= 0
-        live_tracks = self.ctrl_tracks[live_ctrl_mask]
-        live_tokens = tokens[live_ctrl_mask]
-        is_ctrl = np.zeros(n, bool)
-        is_ctrl[live_tracks] = True
-        moving = self.present & ~self._done_tracks
-        frames = np.repeat(self.pose[:, None], FRAMES_PER_TOKEN, 1)  # [N, 5, 3]
-        present_after = moving.copy()
-        action_logp = np.zeros(n)
-
-        # background agents outside the prior's control: log or constant velocity
-        if self.background == "prior":
-            outside = np.flatnonzero(moving & ~is_ctrl & ~st.is_motion)  # OTHER agents: constant velocity
-        elif self.background == "log":  # present when the log is valid: an agent may come back after a gap
-            outside = np.flatnonzero(self.in_sim & ~self._done_tracks & ~is_ctrl)
-        else:
-            outside = np.flatnonzero(moving & ~is_ctrl)
-        if len(outside):
-            bf, bp = self._background_frames(outside, "log" if self.background == "log" else "constant_velocity")
-            frames[outside] = bf
-            present_after[outside] = bp
-
-        if self.rollout_state is not None:
-            state = self.rollout_state
-            ns = state.num_slots
-            forced = np.full(ns, -1, np.int64)
-            forced[self.slot_of_track[live_tracks]] = live_tokens
-            sim_now = state.valid[0].numpy()
-            follow = outside[(self.slot_of_track[outside] >= 0)] if len(outside) else outside
-            follow = follow[sim_now[self.slot_of_track[follow]]]
-            if len(follow):
-                forced[self.slot_of_track[follow]] = self._nearest_tokens(follow, frames[follow, -1])
-            out = state.step(torch.from_numpy(forced)[None])
-            sim = out.simulated[0].numpy()
-            slot_tracks = state.track_index[0].numpy()
-            by_prior = np.flatnonzero(sim & (slot_tracks >= 0))
-            prior_tracks = slot_tracks[by_prior]
-            keep = ~np.isin(prior_tracks, outside)  # log / cv agents keep their own poses
-            frames[prior_tracks[keep]] = out.poses[0, by_prior[keep]].numpy().astype(np.float64)
-            action_logp[prior_tracks] = out.log_probs[0, by_prior].numpy()
-            # re-anchor log / cv agents at their true poses; remove agents that left
-            if len(follow):
-                pose_t = state.current_pose.clone()
-                m = torch.zeros_like(state.valid)
-                pose_t[0, self.slot_of_track[follow]] = torch.from_numpy(frames[follow, -1]).float()
-                m[0, self.slot_of_track[follow]] = True
-                state.set_agent_pose(pose_t, m)
-        else:
-            from smart_marl.tokens import compose_poses
-
-            for t in np.unique(st.types[live_tracks]):
-                sel = st.types[live_tracks] == t
-                local = self.motion_vocab[int(t)].poses[live_tokens[sel], 1:].astype(np.float64)  # [c, 5, 3]
-                placed = compose_poses(self.pose[live_tracks[sel]][:, None], local)
-                placed[..., 2] = np.angle(np.exp(1j * placed[..., 2]))
-                frames[live_tracks[sel]] = placed
-
-        # events of the controlled agents over the step's frames
-        coll = collisions(live_tracks, frames, present_after, st.box_size)
-        off = offroad(st, live_tracks, frames)
-        new_progress = route_progress_m(st, live_tracks, frames[live_tracks, -1, :2])
-        goal = goal_reached(st, live_tracks, frames[live_tracks, -1, :2], self.reward_config.goal_radius_m) & ~self._goal_done[live_tracks]
-
-        # advance the state
-        self.pose = frames[:, -1].copy()
-        self.velocity = (frames[:, -1, :2] - frames[:, -2, :2]) / DT_S
-        self.hist_pose = np.concatenate([self.hist_pose[:, FRAMES_PER_TOKEN:], frames], 1)
-        self.hist_valid = np.concatenate([self.hist_valid[:, FRAMES_PER_TOKEN:], np.repeat(present_after[:, None], FRAMES_PER_TOKEN, 1)], 1)
-        self.present = present_after
-        self.frame += FRAMES_PER_TOKEN
-        self.step_count += 1
-        self.episode_poses.append(frames.copy())
-        self.episode_present.append(present_after.copy())
-
-        # rewards
-        jerk = mean_jerk(self.hist_pose[live_tracks, :, :2], self.hist_valid[live_tracks], FRAMES_PER_TOKEN)
-        terms = np.stack([new_progress - self.progress_m[live_tracks], goal.astype(float), coll.astype(float), off.astype(float),
-                          jerk, action_logp[live_tracks] if self.model is not None else np.zeros(len(live_tracks))], -1)
-        rewards = terms @ self.reward_config.weights()
-        self.progress_m[live_tracks] = new_progress
-        self._goal_done[live_tracks] |= goal
-        self._last_terms = np.zeros((n, len(REWARD_TERMS)))
-        self._last_terms[live_tracks] = terms
-        self._last_action_logp = np.zeros(n)
-        self._last_action_logp[live_tracks] = action_logp[live_tracks]
-        self._last_events = {k: np.zeros(n, bool) for k in ("collision", "offroad", "goal_reached")}
-        self._last_events["collision"][live_tracks] = coll
-        self._last_events["offroad"][live_tracks] = off
-        self._last_events["goal_reached"][live_tracks] = goal
-
-        term = np.zeros(len(live_tracks), bool)
-        if "collision" in self.terminate_on:
-            term |= coll
-        if "offroad" in self.terminate_on:
-            term |= off
-        if "goal" in self.terminate_on:
-            term |= goal
+        ctrl, ctrl_tokens = self.ctrl_tracks[tokens >= 0], tokens[tokens >= 0]  # the live controlled agents
+        # 1. dynamics: every agent's 5 new frames (the prior, if any, takes its step here)
+        motion = move(self.static, self.background, self.motion_vocab, self.rollout_state, self.slot_of_track, self.pose,
+                      self.present, self.in_sim, self._done_tracks, self.frame, self.cv_velocity, ctrl, ctrl_tokens)
+        self._advance(motion)
+        # 2. events, rewards and termination of the controlled agents
+        r = step_reward(self.static, self.reward_config, self.terminate_on, ctrl, motion.frames, motion.present,
+                        self.hist_pose[ctrl], self.hist_valid[ctrl], self.progress_m[ctrl], self._goal_done[ctrl],
+                        motion.action_log_prob[ctrl])
         truncated = self.step_count >= self.horizon_steps
-        done = term | truncated
-        self._done_tracks[live_tracks[done]] = True
-
-        # remove done controlled agents and log agents that left from the prior's scene
+        done = r.terminated | truncated
+        self._record_outcome(ctrl, r, motion.action_log_prob, done)
+        # 3. the prior forgets done agents and log agents that left; its logits of the next step
         if self.rollout_state is not None:
-            state = self.rollout_state
-            keep_slot = torch.ones_like(state.valid)
-            gone = np.flatnonzero((self._done_tracks | ~self.present) & (self.slot_of_track >= 0))
-            keep_slot[0, self.slot_of_track[gone]] = False
-            state.set_agent_valid(keep_slot)
-            alive = not bool(done.all())
-            self._next_logits = state.logits()[0] if alive else None
+            release(self.rollout_state, self.slot_of_track, self._done_tracks | ~self.present)
+            self._next_logits = self.rollout_state.logits()[0] if not bool(done.all()) else None
         # a terminated controlled agent leaves the scene (truncation ends the episode: everyone stays drawn)
-        self.present[live_tracks[term]] = False
+        self.present[ctrl[r.terminated]] = False
 
-        rewards_d = {a: float(r) for a, r in zip(live_names, rewards)}
-        terms_d = {a: bool(t) for a, t in zip(live_names, term)}
-        truncs_d = {a: bool(truncated and not t) for a, t in zip(live_names, term)}
         obs = self._observations(live_names)
         infos = self._infos(live_names)
+        rewards = {a: float(x) for a, x in zip(live_names, r.reward)}
+        terminations = {a: bool(t) for a, t in zip(live_names, r.terminated)}
+        truncations = {a: bool(truncated and not t) for a, t in zip(live_names, r.terminated)}
         self.agents = [a for a, d in zip(live_names, done) if not d]
         if self._recorder is not None:
             self._recorder.add(self._render_frame())
         if self.render_mode == "human":
             self.render()
-        return obs, rewards_d, terms_d, truncs_d, infos
+        return obs, rewards, terminations, truncations, infos
+
+    def _advance(self, motion: Motion) -> None:
+        """The state update of a step: poses, velocities, the pose history, who is present, the clock."""
+        frames = motion.frames
+        self.pose = frames[:, -1].copy()
+        self.velocity = (frames[:, -1, :2] - frames[:, -2, :2]) / DT_S
+        self.hist_pose = np.concatenate([self.hist_pose[:, FRAMES_PER_TOKEN:], frames], 1)
+        self.hist_valid = np.concatenate([self.hist_valid[:, FRAMES_PER_TOKEN:],
+                                          np.repeat(motion.present[:, None], FRAMES_PER_TOKEN, 1)], 1)
+        self.present = motion.present
+        self.frame += FRAMES_PER_TOKEN
+        self.step_count += 1
+        self.episode_poses.append(frames.copy())
+        self.episode_present.append(motion.present.copy())
+
+    def _record_outcome(self, ctrl: np.ndarray, r: StepReward, action_log_prob: np.ndarray, done: np.ndarray) -> None:
+        """Per-track bookkeeping of the controlled agents' outcome (what infos report), and who is done."""
+        n = self.static.num_tracks
+        self.progress_m[ctrl] = r.progress_m
+        self._goal_done[ctrl] |= r.goal_reached
+        self._last_terms = np.zeros((n, len(REWARD_TERMS)))
+        self._last_terms[ctrl] = r.terms
+        self._last_action_logp = np.zeros(n)
+        self._last_action_logp[ctrl] = action_log_prob[ctrl]
+        self._last_events = {k: np.zeros(n, bool) for k in ("collision", "offroad", "goal_reached")}
+        self._last_events["collision"][ctrl] = r.collision
+        self._last_events["offroad"][ctrl] = r.offroad
+        self._last_events["goal_reached"][ctrl] = r.goal_reached
+        self._done_tracks[ctrl[done]] = True
 
     # ----------------------------------------------------------------------------- results
     def trajectories(self) -> tuple[np.ndarray, np.ndarray]:
@@ -621,8 +519,6 @@ class SmartTrafficEnv(ParallelEnv):
 
     # --------------------------------------------------------------------------- rendering
     def _render_frame(self) -> np.ndarray:
-        from smart_marl.render import BevRenderer
-
         st = self.static
         if self._renderer is None or self._renderer_scene != self.scene_index:
             if self._renderer is not None:
@@ -640,8 +536,6 @@ class SmartTrafficEnv(ParallelEnv):
 
     def render(self):
         if self.render_mode is None:
-            import gymnasium
-
             gymnasium.logger.warn("render() without a render_mode: pass render_mode='rgb_array' or 'human' to parallel_env()")
             return None
         if not hasattr(self, "pose"):
@@ -662,8 +556,6 @@ class SmartTrafficEnv(ParallelEnv):
 
     def start_recording(self, path: str | os.PathLike, fps: float | None = None) -> None:
         """Record one bird's-eye frame per token step (from the next reset or now) to a GIF or MP4."""
-        from smart_marl.render import EpisodeRecorder
-
         self._recorder = EpisodeRecorder(path, fps=fps or self.metadata["render_fps"])
         if hasattr(self, "pose"):
             self._recorder.add(self._render_frame())
@@ -705,8 +597,6 @@ def parallel_env(scenarios="embedded", prior="embedded", controlled="sdc", backg
 
 def raw_env(**kwargs):
     """The AEC form without wrappers (agents act in turn; a full step runs when the last one has acted)."""
-    from pettingzoo.utils.conversions import parallel_to_aec_wrapper
-
     return parallel_to_aec_wrapper(parallel_env(**kwargs))
 
 
