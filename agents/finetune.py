@@ -23,7 +23,10 @@ The pipeline:
    every agent's observation) or decentralised (``"ippo"``);
 4. loss: :class:`agents.kl_ppo.PriorKLPPOLoss` = TorchRL's ``ClipPPOLoss`` + ``beta *
    KL(pi || prior)``, agents that are done masked out of every term; GAE advantages;
-5. a TorchRL ``Collector``; PPO epochs over shuffled minibatches; logging; checkpoints.
+5. a TorchRL ``Collector``; PPO epochs over shuffled minibatches; logging
+   (:class:`smart_marl.runlog.RunLog`); checkpoints;
+6. evaluation: the fine-tuned policy against the prior on the same scenes and seeds
+   (:func:`compare_policies`).
 
 Logged per iteration (CSV and TensorBoard, names say what they are): ``return_per_agent_episode``,
 ``goal_rate``, ``collision_rate``, ``offroad_rate`` (per agent-episode that ended in the batch),
@@ -36,10 +39,8 @@ not the 8 s the metrics score. The KL to the prior is the realism proxy reported
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import json
-import math
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -48,12 +49,28 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 import torch
+from safetensors.torch import load_file, save_file
+from tensordict.nn import TensorDictModule
 from torch import nn
+from torchrl.collectors import Collector
+from torchrl.envs import PettingZooWrapper, SerialEnv
+from torchrl.envs.utils import MarlGroupMapType
+from torchrl.modules import MultiAgentMLP, ProbabilisticActor
+from torchrl.objectives import ValueEstimators
 
+from envs import smart_traffic_v0
 from smart_marl.config_files import apply_overrides, read_config_file
+from smart_marl.embedded import SAMPLES_DIR
 from smart_marl.errors import SmartMarlError
-from smart_marl.model.checkpoint import CheckpointError
+from smart_marl.model.checkpoint import EMBEDDED, CheckpointError
 from smart_marl.model.checkpoint import load_prior as load_smart_prior
+from smart_marl.readers import read_scenarios
+from smart_marl.rollout import sample_tokens
+from smart_marl.runlog import RunLog
+from smart_marl.scenario import AgentType
+
+from .kl_ppo import PriorKLPPOLoss
+from .prior_policy import PriorPolicy, evaluate_policy, kl_to_prior
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "finetune"
 GROUP = "agents"
@@ -168,8 +185,6 @@ def load_prior(path: str):
 def moving_vehicles(min_route_m: float):
     """A ``controlled`` selection for the env: vehicles present at the current frame whose logged
     position moves more than ``min_route_m`` between the current frame and their last valid frame."""
-    from smart_marl.scenario import AgentType
-
     def select(sc) -> np.ndarray:
         tr, cf = sc.tracks, sc.current_frame
         last = tr.valid.shape[1] - 1 - np.argmax(tr.valid[:, ::-1], axis=1)  # [N] last valid frame
@@ -181,8 +196,6 @@ def moving_vehicles(min_route_m: float):
 
 def scene_env(cfg: FinetuneConfig, scenes, model, vocab, render_mode: str | None = None):
     """The PettingZoo env of the run's settings over ``scenes`` (a list of Scenario)."""
-    from envs import smart_traffic_v0
-
     controlled = moving_vehicles(cfg.moving_min_route_m) if cfg.controlled == "moving_vehicles" else cfg.controlled
     return smart_traffic_v0.parallel_env(
         scenarios=list(scenes), prior=model, motion_vocab=vocab, controlled=controlled, max_agents=cfg.max_agents,
@@ -193,18 +206,14 @@ def scene_env(cfg: FinetuneConfig, scenes, model, vocab, render_mode: str | None
 def select_scenes(cfg: FinetuneConfig, model, vocab) -> list:
     """The first ``num_scenes`` scenes of ``cfg.scenes`` with exactly ``max_agents`` controlled
     agents of one vocabulary size (TorchRL stacks the group's agents)."""
-    from smart_marl.readers import read_scenarios
-
     if not cfg.scenes:
         raise FinetuneError("scenes: no scenes given (scenes=PATH)")
     sources = [cfg.scenes] if isinstance(cfg.scenes, str) else list(cfg.scenes)
-    if "embedded" in sources:
-        from smart_marl.embedded import SAMPLES_DIR
-
+    if EMBEDDED in sources:
         files = sorted(str(p) for p in SAMPLES_DIR.glob("*.smsc"))
         if not files:
             raise FinetuneError(f"scenes='embedded': the package ships no sample scenes ({SAMPLES_DIR}); give scenes=PATH")
-        i = sources.index("embedded")
+        i = sources.index(EMBEDDED)
         sources[i : i + 1] = files
     chosen, skipped = [], []
     for sc in (sc for src in sources for sc in read_scenarios(src)):
@@ -228,9 +237,6 @@ def select_scenes(cfg: FinetuneConfig, model, vocab) -> list:
 
 def torchrl_env(cfg: FinetuneConfig, scenes, model, vocab):
     """One PettingZooWrapper per scene (group "agents"), side by side in a SerialEnv."""
-    from torchrl.envs import PettingZooWrapper, SerialEnv
-    from torchrl.envs.utils import MarlGroupMapType
-
     def make(sc):
         def fn():
             with warnings.catch_warnings():
@@ -250,8 +256,6 @@ class PolicyLogits(nn.Module):
     def __init__(self, obs_dim: int, vocab_size: int, n_agents: int, hidden: int, depth: int, residual: bool = True,
                  obs_scale: float = 0.1, temperature: float = 1.0) -> None:
         super().__init__()
-        from torchrl.modules import MultiAgentMLP
-
         self.residual, self.obs_scale, self.temperature = bool(residual), float(obs_scale), float(temperature)
         self.f = MultiAgentMLP(obs_dim, vocab_size, n_agents, centralized=False, share_params=True, depth=depth,
                                num_cells=hidden, activation_class=nn.Tanh)
@@ -272,8 +276,6 @@ class Critic(nn.Module):
 
     def __init__(self, obs_dim: int, n_agents: int, hidden: int, depth: int, centralized: bool, obs_scale: float = 0.1) -> None:
         super().__init__()
-        from torchrl.modules import MultiAgentMLP
-
         self.obs_scale = float(obs_scale)
         self.v = MultiAgentMLP(obs_dim, 1, n_agents, centralized=centralized, share_params=True, depth=depth, num_cells=hidden,
                                activation_class=nn.Tanh)
@@ -284,9 +286,6 @@ class Critic(nn.Module):
 
 def build_modules(cfg: FinetuneConfig, obs_dim: int, vocab_size: int, n_agents: int):
     """(logits net, TorchRL ProbabilisticActor, TorchRL critic module)."""
-    from tensordict.nn import TensorDictModule
-    from torchrl.modules import ProbabilisticActor
-
     net = PolicyLogits(obs_dim, vocab_size, n_agents, cfg.hidden, cfg.depth, cfg.residual, cfg.obs_scale, cfg.temperature)
     actor = ProbabilisticActor(
         TensorDictModule(net, in_keys=[OBS_KEY, PRIOR_KEY], out_keys=[(GROUP, "logits")]),
@@ -301,8 +300,6 @@ def build_modules(cfg: FinetuneConfig, obs_dim: int, vocab_size: int, n_agents: 
 def save_policy(path: Path, cfg: FinetuneConfig, net: PolicyLogits, critic: nn.Module, dims: dict, iteration: int,
                 metrics: dict) -> Path:
     """``path.safetensors`` (actor and critic weights) + ``path.json`` (config, sizes, step, metrics)."""
-    from safetensors.torch import save_file
-
     path.parent.mkdir(parents=True, exist_ok=True)
     tensors = {f"actor.{k}": v.detach().contiguous() for k, v in net.state_dict().items()}
     tensors.update({f"critic.{k}": v.detach().contiguous() for k, v in critic.state_dict().items()})
@@ -319,8 +316,6 @@ def save_policy(path: Path, cfg: FinetuneConfig, net: PolicyLogits, critic: nn.M
 
 def load_policy(path: str | Path) -> tuple[FinetuneConfig, PolicyLogits, dict]:
     """(config, actor logits net with its weights, meta) of a policy checkpoint (NAME or NAME.json)."""
-    from safetensors.torch import load_file
-
     p = Path(path)
     stem = p.with_suffix("") if p.suffix in (".json", ".safetensors") else p
     jpath, wpath = stem.with_name(stem.name + ".json"), stem.with_name(stem.name + ".safetensors")
@@ -369,8 +364,6 @@ class FinetunedPolicy:
         return self.net(torch.from_numpy(obs).to(dev), torch.from_numpy(prior).to(dev))[: len(agents)].cpu()
 
     def __call__(self, observations: Mapping, infos: Mapping, agents: list[str] | None = None) -> dict[str, int]:
-        from smart_marl.rollout import sample_tokens
-
         agents = list(observations) if agents is None else list(agents)
         if not agents:
             return {}
@@ -384,36 +377,6 @@ COLUMNS = ["iteration", "frames", "seconds", "return_per_agent_episode", "goal_r
            "clip_fraction"]
 
 
-class RunLog:
-    """``finetune.csv`` (always) and TensorBoard (when importable)."""
-
-    def __init__(self, out_dir: Path, tensorboard: bool) -> None:
-        self.path = out_dir / "finetune.csv"
-        with open(self.path, "w", newline="") as f:
-            csv.DictWriter(f, COLUMNS).writeheader()
-        self.tb = None
-        if tensorboard:
-            try:
-                from torch.utils.tensorboard import SummaryWriter
-
-                self.tb = SummaryWriter(str(out_dir / "tensorboard"))
-            except ImportError:
-                self.tb = None
-
-    def write(self, row: dict[str, float]) -> None:
-        with open(self.path, "a", newline="") as f:
-            csv.DictWriter(f, COLUMNS, extrasaction="ignore").writerow(
-                {k: (f"{row[k]:.6g}" if isinstance(row.get(k), float) else row.get(k, "")) for k in COLUMNS})
-        if self.tb is not None:
-            for k, v in row.items():
-                if k != "iteration" and isinstance(v, (int, float)) and math.isfinite(v):
-                    self.tb.add_scalar(f"finetune/{k}", v, int(row["iteration"]))
-
-    def close(self) -> None:
-        if self.tb is not None:
-            self.tb.close()
-
-
 def batch_stats(batch, temperature: float = 1.0) -> dict[str, float]:
     """Episode statistics of one collected batch [envs, T] (group [envs, T, A]): per agent-episode
     that ended in the batch, its return (the part of it inside the batch), goal / collision /
@@ -424,10 +387,8 @@ def batch_stats(batch, temperature: float = 1.0) -> dict[str, float]:
     n = int(ended.sum())
     reward = torch.where(acted, nxt["reward"].squeeze(-1), torch.zeros(()))
     info = nxt["info"]
-    logp = torch.log_softmax(batch[GROUP, "logits"], -1)
     prior = batch[PRIOR_KEY]
-    prior_logp = torch.log_softmax(prior / temperature, -1)
-    kl = (logp.exp() * (logp - prior_logp)).sum(-1)
+    kl = kl_to_prior(torch.log_softmax(batch[GROUP, "logits"], -1), prior, temperature)
     valid = acted & prior.ne(0).any(-1)
     den = max(n, 1)
     return {
@@ -453,7 +414,7 @@ class FinetuneResult:
 def finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     """Run the whole pipeline (module docstring); ``on_iteration(row)`` is called after each
     iteration's log row. With ``eval_episodes > 0`` the fine-tuned policy is compared with the prior
-    on the same scenes and seeds at the end (:func:`agents.evaluate.compare_policies`)."""
+    on the same scenes and seeds at the end (:func:`compare_policies`)."""
     with warnings.catch_warnings():
         # the advantage is normalised over agents and steps together, on purpose
         warnings.filterwarnings("ignore", message="You requested advantage normalization")
@@ -462,11 +423,6 @@ def finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
 
 
 def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
-    from torchrl.collectors import Collector
-    from torchrl.objectives import ValueEstimators
-
-    from .kl_ppo import PriorKLPPOLoss
-
     if cfg.torch_threads > 0:
         torch.set_num_threads(cfg.torch_threads)
     torch.manual_seed(cfg.seed)
@@ -505,7 +461,7 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     collector = Collector(env, actor, frames_per_batch=frames_per_batch, total_frames=frames_per_batch * cfg.iterations,
                           policy_device=device, env_device="cpu", storing_device=device,  # the env steps numpy on the CPU
                           auto_register_policy_transforms=False)  # a feed-forward policy: no InitTracker
-    log = RunLog(out_dir, cfg.tensorboard)
+    log = RunLog(out_dir, {"finetune": COLUMNS}, "iteration", tensorboard=cfg.tensorboard)
     history: list[dict] = []
     ckpt_dir = out_dir / "checkpoints"
     start = time.perf_counter()
@@ -538,7 +494,7 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
         collector.update_policy_weights_()
         row = {"iteration": it, "frames": frames, "seconds": time.perf_counter() - start, **stats,
                **{k: v / max(steps, 1) for k, v in sums.items()}}
-        log.write(row)
+        log.write("finetune", row)
         history.append(row)
         if on_iteration is not None:
             on_iteration(row)
@@ -551,8 +507,36 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     final = save_policy(ckpt_dir / "policy_last", cfg, net, critic.module, dims, len(history), history[-1])
     evaluation = None
     if cfg.eval_episodes > 0:
-        from .evaluate import compare_policies
-
         evaluation = compare_policies(cfg, net, scenes=scenes, model=model, vocab=vocab)
         (out_dir / "evaluation.json").write_text(json.dumps(evaluation, indent=1, default=float))
     return FinetuneResult(out_dir, final, history, evaluation, [sc.scenario_id for sc in scenes])
+
+
+# ------------------------------------------------------------------------------- evaluation
+def compare_policies(cfg, net, scenes=None, model=None, vocab=None, episodes: int | None = None,
+                     seed: int | None = None) -> dict:
+    """Prior, prior top-k and the fine-tuned actor ``net`` on the run's scenes and the same seeds.
+    Returns ``{"scenes": [...], "seeds": [...], "rows": {name: metrics}}``.
+
+    Fairness: every policy runs the same episodes: scene ``i`` with env seed ``s`` (which seeds the
+    background prior's sampler) and policy seed ``s`` (which seeds the policy's sampler, the same
+    sampling function for every policy), for every scene and ``s`` in ``eval_seed .. eval_seed +
+    episodes - 1``. The rows: ``prior`` (:class:`~agents.prior_policy.PriorPolicy` sampling the full
+    softmax, the reference the KL is taken against: its KL is 0), ``prior top-k`` (the prior with the
+    background's top-k sampling, how SMART is usually driven) and ``fine-tuned`` (the actor, sampled).
+    """
+    if model is None or vocab is None:
+        model, vocab = load_prior(cfg.prior)
+    if scenes is None:
+        scenes = select_scenes(cfg, model, vocab)
+    episodes = cfg.eval_episodes if episodes is None else int(episodes)
+    seed0 = cfg.eval_seed if seed is None else int(seed)
+    seeds = list(range(seed0, seed0 + max(episodes, 1)))
+    env = scene_env(cfg, scenes, model, vocab)
+    idx = list(range(len(scenes)))
+    rows = {
+        "prior": evaluate_policy(env, PriorPolicy(top_k=None, temperature=cfg.temperature), idx, seeds),
+        f"prior top-{cfg.top_k}": evaluate_policy(env, PriorPolicy(top_k=cfg.top_k, temperature=cfg.temperature), idx, seeds),
+        "fine-tuned": evaluate_policy(env, FinetunedPolicy(net), idx, seeds),
+    }
+    return {"scenes": [sc.scenario_id for sc in scenes], "seeds": seeds, "rows": rows}

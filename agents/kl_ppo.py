@@ -12,9 +12,9 @@ parent builds for its importance weights, and adds the exact (analytic, categori
 
     KL(pi || prior) = sum_v pi(v) (log pi(v) - log prior(v)),  prior = softmax(prior_logits / T)
 
-averaged over the agents that acted (masked rows, and rows whose prior logits are all zero:
-agents the prior no longer simulates, are left out). The parent's own reductions use the same
-mask (``loss_mask_key``), so done agents contribute to no term.
+(:func:`agents.prior_policy.kl_to_prior`) averaged over the agents that acted (masked rows, and rows
+whose prior logits are all zero: agents the prior no longer simulates, are left out). The parent's
+own reductions use the same mask (``loss_mask_key``), so done agents contribute to no term.
 """
 
 from __future__ import annotations
@@ -22,6 +22,8 @@ from __future__ import annotations
 import torch
 from tensordict import NestedKey, TensorDictBase
 from torchrl.objectives import ClipPPOLoss
+
+from .prior_policy import kl_to_prior
 
 
 class PriorKLPPOLoss(ClipPPOLoss):
@@ -54,8 +56,7 @@ class PriorKLPPOLoss(ClipPPOLoss):
         """(KL(pi || prior) per row [...], bool mask of the rows that count [...]) from the policy's
         log-probabilities [..., V] and the batch's prior logits."""
         prior_logits = tensordict.get(self.prior_logits_key)
-        prior_logp = torch.log_softmax(prior_logits / self.prior_temperature, -1)
-        kl = (policy_log_probs.exp() * (policy_log_probs - prior_logp)).sum(-1)
+        kl = kl_to_prior(policy_log_probs, prior_logits, self.prior_temperature)
         valid = prior_logits.ne(0).any(-1)
         if self.agent_mask_key is not None:
             valid = valid & tensordict.get(self.agent_mask_key).reshape(valid.shape)

@@ -17,12 +17,21 @@ equal seeds.
 
 from __future__ import annotations
 
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 import torch
 
 from smart_marl.rollout import sample_tokens
+
+
+def kl_to_prior(policy_log_probs: torch.Tensor, prior_logits: torch.Tensor, temperature: float = 1.0) -> torch.Tensor:
+    """The exact categorical ``KL(pi || prior) = sum_v pi(v) (log pi(v) - log prior(v))`` per row,
+    prior = ``softmax(prior_logits / temperature)``: policy_log_probs [..., V] (``log pi``),
+    prior_logits [..., V] -> [...]. The one KL of the project (evaluation, batch statistics and the
+    PPO loss term, :class:`agents.kl_ppo.PriorKLPPOLoss`)."""
+    prior_log_probs = torch.log_softmax(prior_logits / temperature, -1)
+    return (policy_log_probs.exp() * (policy_log_probs - prior_log_probs)).sum(-1)
 
 
 def prior_logits_of(agent: str, observations: Mapping, infos: Mapping) -> np.ndarray:
@@ -84,9 +93,7 @@ def run_episode(env, policy, seed: int, scene_index: int | None = None) -> dict:
         logits = policy.logits(live, obs, infos)
         prior = torch.from_numpy(np.stack([prior_logits_of(a, obs, infos) for a in live]))
         t = getattr(policy, "temperature", 1.0)
-        logp = torch.log_softmax(logits / t, -1)
-        prior_logp = torch.log_softmax(prior / env.temperature, -1)
-        kl = (logp.exp() * (logp - prior_logp)).sum(-1).clamp_min(0.0)
+        kl = kl_to_prior(torch.log_softmax(logits / t, -1), prior, env.temperature).clamp_min(0.0)
         tokens, _ = sample_tokens(logits, policy.generator, top_k=policy.top_k, temperature=t)
         actions = {a: int(x) for a, x in zip(live, tokens.tolist())}
         obs, rewards, terms, truncs, infos = env.step(actions)
@@ -97,3 +104,23 @@ def run_episode(env, policy, seed: int, scene_index: int | None = None) -> dict:
             for key, ev in (("goal", "goal_reached"), ("collision", "collision"), ("offroad", "offroad")):
                 out[key][a] = max(out[key][a], float(infos[a][ev]))
     return out
+
+
+def evaluate_policy(env, policy, scene_indices: Sequence[int], seeds: Sequence[int]) -> dict[str, float]:
+    """:func:`run_episode` aggregated over every (scene, seed): ``goal_rate``, ``collision_rate``,
+    ``offroad_rate`` (fractions of agent-episodes), ``return`` (mean per agent-episode),
+    ``kl_to_prior`` (mean per agent-step), ``agent_episodes`` and ``steps``."""
+    goal, coll, off, ret, kl, steps, n = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0
+    for i in scene_indices:
+        for s in seeds:
+            ep = run_episode(env, policy, seed=int(s), scene_index=int(i))
+            for a in ep["return"]:
+                goal += ep["goal"][a]
+                coll += ep["collision"][a]
+                off += ep["offroad"][a]
+                ret += ep["return"][a]
+                kl += ep["kl_to_prior"][a]
+                steps += ep["steps"][a]
+                n += 1
+    return {"goal_rate": goal / n, "collision_rate": coll / n, "offroad_rate": off / n, "return": ret / n,
+            "kl_to_prior": kl / max(steps, 1), "agent_episodes": n, "steps": int(steps)}

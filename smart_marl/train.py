@@ -24,36 +24,37 @@ and rank 0 writes checkpoints and logs.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import math
 import os
 import random
-import signal
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, Sampler
+from tqdm import tqdm
 
+from .cache import SceneCache, is_cache_dir
 from .config_files import apply_overrides, read_config_file
 from .errors import SmartMarlError
 from .model.batch import RoadArrays, SmartBatch, collate_scenes, scene_road, scene_tensors
 from .model.checkpoint import (VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
                                save_checkpoint)
 from .model.losses import NextTokenLoss, summarise
-from .model.smart import SMART, SmartConfig, get_config
-from .scenario import Scenario
+from .model.smart import NAMED_CONFIGS, SMART, SmartConfig, get_config
+from .readers import read_scenarios
+from .runlog import RunLog
+from .scenario import AgentType, Scenario
 from .tokens import MotionVocabulary, build_motion_vocabulary, collect_snippets, tokenize_motion
 from .tokens.road import RoadVocabulary, build_road_vocabulary, road_pieces
 from .tokens.vocab_io import load_motion_vocabulary, load_road_vocabulary, save_motion_vocabulary, save_road_vocabulary
 
-KILL_ENV = "SMART_MARL_KILL_AFTER_STEP"  # tests: SIGKILL this process right after that step (a hard kill)
 
 
 class TrainError(SmartMarlError, ValueError):
@@ -106,8 +107,6 @@ def load_train_config(config: str | Mapping[str, Any] | None = None, overrides: 
     """A :class:`TrainConfig` from a JSON/TOML file, a model config name (``smart-7m``) or a dict,
     plus ``key=value`` overrides (values parsed as JSON when they parse; ``model.FIELD=...`` sets a
     model field)."""
-    from .model.smart import NAMED_CONFIGS
-
     values: dict[str, Any] = {}
     if isinstance(config, Mapping):
         values.update(config)
@@ -130,9 +129,6 @@ def load_train_config(config: str | Mapping[str, Any] | None = None, overrides: 
 def open_scenes(path: str) -> Sequence[Scenario]:
     """A map-style sequence of scenes: a :class:`~smart_marl.cache.SceneCache` for a cache folder,
     else every scene that ``read_scenarios`` yields for the path (read once, kept in memory)."""
-    from .cache import SceneCache, is_cache_dir
-    from .readers import read_scenarios
-
     if not path:
         raise TrainError("no training data given (set data=PATH: a scene cache folder, scene files, a folder or a glob)")
     scenes: Sequence[Scenario] = SceneCache(path) if os.path.isdir(path) and is_cache_dir(path) else list(read_scenarios(path))
@@ -223,8 +219,6 @@ def build_vocabularies(scenes: Sequence[Scenario], model_cfg: SmartConfig, num_s
     subset = [scenes[i] for i in range(min(num_scenes, len(scenes)))]
     snippets, prov = collect_snippets(subset)
     sizes = dict(zip((0, 1, 2), model_cfg.motion_vocab_sizes))
-    from .scenario import AgentType
-
     mv = build_motion_vocabulary({AgentType(k): v for k, v in snippets.items()}, {AgentType(k): v for k, v in sizes.items()},
                                  seed=seed, provenance=prov, progress=progress)
     local = np.concatenate([road_pieces(s.road_map).local for s in subset])
@@ -361,46 +355,6 @@ VAL_COLUMNS = ["step", "motion_loss", "road_loss", "motion_top1_acc", "motion_to
                "pedestrian_top1_acc", "pedestrian_top5_acc", "cyclist_top1_acc", "cyclist_top5_acc", "road_top1_acc"]
 
 
-class RunLog:
-    """CSV files (always) and TensorBoard (when importable) of rank 0. On resume, rows after the
-    resumed step are dropped so the log reads as one uninterrupted run."""
-
-    def __init__(self, out_dir: Path, resume_step: int, tensorboard: bool) -> None:
-        self.files = {"train": out_dir / "train.csv", "val": out_dir / "val.csv"}
-        self.columns = {"train": TRAIN_COLUMNS, "val": VAL_COLUMNS}
-        for split, path in self.files.items():
-            rows = []
-            if path.is_file():
-                with open(path, newline="") as f:
-                    rows = [r for r in csv.DictReader(f) if int(r["step"]) <= resume_step]
-            with open(path, "w", newline="") as f:
-                w = csv.DictWriter(f, self.columns[split])
-                w.writeheader()
-                w.writerows(rows)
-        self.tb = None
-        self.note = None
-        if tensorboard:
-            try:
-                from torch.utils.tensorboard import SummaryWriter
-
-                self.tb = SummaryWriter(str(out_dir / "tensorboard"), purge_step=resume_step + 1 if resume_step else None)
-            except ImportError as exc:
-                self.note = f"TensorBoard is not importable ({exc}); logging to CSV only (pip install 'smart-marl[train]')"
-
-    def write(self, split: str, row: dict[str, float]) -> None:
-        with open(self.files[split], "a", newline="") as f:
-            csv.DictWriter(f, self.columns[split], extrasaction="ignore").writerow(
-                {k: (f"{row[k]:.6g}" if isinstance(row.get(k), float) else row.get(k, "")) for k in self.columns[split]})
-        if self.tb is not None:
-            for k, v in row.items():
-                if k != "step" and isinstance(v, (int, float)) and math.isfinite(v):
-                    self.tb.add_scalar(f"{split}/{k}", v, int(row["step"]))
-
-    def close(self) -> None:
-        if self.tb is not None:
-            self.tb.close()
-
-
 # ------------------------------------------------------------------------------------ the run
 @dataclass
 class TrainResult:
@@ -456,8 +410,10 @@ def _vocabularies(cfg: TrainConfig, model_cfg: SmartConfig, scenes, out_dir: Pat
     return load_motion_vocabulary(run_mv), load_road_vocabulary(run_rv)
 
 
-def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None) -> TrainResult:
-    """Run (or resume) a training run in ``cfg.out_dir``; see the module docstring."""
+def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
+          on_step: Callable[[int], None] | None = None) -> TrainResult:
+    """Run (or resume) a training run in ``cfg.out_dir``; see the module docstring. ``on_step(step)``
+    is called at the end of every step (after its log rows and checkpoint)."""
     device = resolve_device(cfg.device)
     info = init_distributed(device)
     if device.type == "cuda":
@@ -523,7 +479,7 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None) -> TrainRe
     val_keys = [(i, i) for i in range(info.rank, n_val, info.world_size)]
     pin = device.type == "cuda"
 
-    log = RunLog(out_dir, step, cfg.tensorboard) if info.is_main else None
+    log = RunLog(out_dir, {"train": TRAIN_COLUMNS, "val": VAL_COLUMNS}, "step", step, cfg.tensorboard) if info.is_main else None
     if log is not None and log.note and cfg.progress:
         print(f"note: {log.note}", file=sys.stderr)
     data_info = {"data": cfg.data, "val_data": cfg.val_data, "num_scenes": len(scenes),
@@ -548,11 +504,8 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None) -> TrainRe
 
     sampler = EpochBatchSampler(len(scenes), cfg.batch_size, cfg.seed, step, max(cfg.max_steps - step, 0), info.rank, info.world_size)
     loader = make_loader(train_set, sampler, cfg.num_workers, pin, cfg.seed + step)
-    kill_at = int(os.environ.get(KILL_ENV, "-1"))
     bar = None
     if cfg.progress and info.is_main:
-        from tqdm import tqdm
-
         bar = tqdm(total=cfg.max_steps, initial=step, desc="train", dynamic_ncols=True)
     last_train: dict[str, float] = {}
     last_val: dict[str, float] = {}
@@ -595,8 +548,8 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None) -> TrainRe
             ckpt_path = save("last", {"train": last_train, "val": last_val})
         if bar is not None:
             bar.update(1)
-        if step == kill_at:
-            os.kill(os.getpid(), signal.SIGKILL)
+        if on_step is not None:
+            on_step(step)
     if bar is not None:
         bar.close()
     if step > resumed_from or not resuming:

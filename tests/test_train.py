@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -132,9 +132,18 @@ def test_run_killed_and_resumed_matches_an_uninterrupted_run(shared_data, tmp_pa
     assert full.step == 6
     cfg_file = tmp_path / "killed.json"
     cfg_file.write_text(json.dumps({**base, "out_dir": str(tmp_path / "killed")}))
-    env = {**os.environ, "SMART_MARL_KILL_AFTER_STEP": "5"}
-    proc = subprocess.run([sys.executable, "-m", "smart_marl.cli", "train", "--config", str(cfg_file)], cwd=ROOT, env=env,
-                          capture_output=True, text=True, timeout=300)
+    # the run is SIGKILLed (a hard kill, as a power cut would) by its own on_step hook right after step 5
+    kill_after_step_5 = textwrap.dedent(f"""
+        import os, signal
+        from smart_marl.train import load_train_config, train
+
+        def kill_after_step_5(step):
+            if step == 5:
+                os.kill(os.getpid(), signal.SIGKILL)
+
+        train(load_train_config({str(cfg_file)!r}), on_step=kill_after_step_5)
+    """)
+    proc = subprocess.run([sys.executable, "-c", kill_after_step_5], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == -9, proc.stderr[-2000:]  # SIGKILLed after step 5; its last checkpoint is step 4
     assert len(_losses(tmp_path / "killed")) == 5
     resumed = train(load_train_config(str(cfg_file)))
