@@ -3,29 +3,26 @@
 Every subcommand module exposes ``register(subparsers)``, which adds its parser and sets
 ``func`` (called with the parsed args, returning an exit code). Exit codes: 0 success, 1 the job
 failed on bad input (the message names the file and record), 2 bad arguments.
+
+The commands of :mod:`smart_marl.commands` are listed below; commands of other packages (``agents``'
+``finetune`` and ``whatif``) are found through the ``smart_marl.commands`` entry-point group
+(``[project.entry-points."smart_marl.commands"]`` in their pyproject.toml, ``NAME =
+"module:register"``), so smart_marl never imports them.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
+from importlib.metadata import entry_points
 
+from .commands import demo, generate_sumo, info, models, preprocess, train, vocab
+from .commands import eval as eval_command
 from .errors import SmartMarlError
 
-# Modules that add subcommands, in the order --help lists them.
-_COMMAND_MODULES = (
-    "smart_marl.commands.info",
-    "smart_marl.commands.preprocess",
-    "smart_marl.commands.demo",
-    "smart_marl.commands.train",
-    "smart_marl.commands.models",
-    "smart_marl.commands.generate_sumo",
-    "smart_marl.commands.vocab",
-    "smart_marl.commands.eval",
-    "smart_marl.commands.finetune",
-    "smart_marl.commands.whatif",
-)
+# Modules that add subcommands, in the order --help lists them (entry-point commands follow, by name).
+_COMMAND_MODULES = (info, preprocess, demo, train, models, generate_sumo, vocab, eval_command)
+COMMAND_GROUP = "smart_marl.commands"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,8 +31,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="SMART behaviour prior for multi-agent driving: read scenes, build caches, tokenize, train, simulate.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in _COMMAND_MODULES:
-        importlib.import_module(name).register(sub)
+    for module in _COMMAND_MODULES:
+        module.register(sub)
+    for ep in sorted(entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
+        ep.load()(sub)
     return parser
 
 

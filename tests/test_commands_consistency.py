@@ -5,7 +5,8 @@ there is randomness, ``--device`` where a model runs, ``--out`` for the folder a
 and one example per command in the README.
 
 The commands are discovered from the parser, so a new subcommand is checked as soon as it is
-registered in ``smart_marl.cli._COMMAND_MODULES``."""
+registered (in ``smart_marl.cli._COMMAND_MODULES`` or through the
+``smart_marl.commands`` entry-point group)."""
 
 from __future__ import annotations
 

@@ -16,6 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ..embedded import sample_scenarios
+from ..metrics import aggregate, logged_scene, score_rollouts
+from ..metrics.baselines import policy_rollouts
+from ..model.checkpoint import EMBEDDED, load_checkpoint
+from ..render import BevRenderer, EpisodeRecorder
+from ..rollout import rollout
+from .eval import format_table, prior_rollouts
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("demo", help="simulate the built-in sample scenes with the embedded SMART prior",
@@ -31,8 +39,6 @@ def register(subparsers) -> None:
 
 def _animation_frames(scenario, result, group: int, size_px: int = 480):
     """BEV frames: the logged history up to the current frame, then rollout ``group``'s future."""
-    from ..render import BevRenderer
-
     tr, cf = scenario.tracks, scenario.current_frame
     renderer = BevRenderer(scenario, size_px=size_px, view_radius_m=50.0)
     future = result.trajectory[group]  # [A, T, 4] source frame
@@ -57,18 +63,10 @@ def _animation_frames(scenario, result, group: int, size_px: int = 480):
 
 
 def run(args) -> int:
-    from ..commands.eval import format_table, prior_rollouts
-    from ..embedded import sample_scenarios
-    from ..metrics import aggregate, logged_scene, score_rollouts
-    from ..metrics.baselines import policy_rollouts
-    from ..model.checkpoint import load_checkpoint, load_embedded
-    from ..render import EpisodeRecorder
-    from ..rollout import rollout
-
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    prior = load_checkpoint(args.checkpoint, map_location=args.device) if args.checkpoint else load_embedded(args.device)
+    prior = load_checkpoint(args.checkpoint or EMBEDDED, map_location=args.device)
     scenes = sample_scenarios()
     meta = prior.meta
     print(f"SMART prior: {args.checkpoint or 'embedded'} ({meta.get('model_config', {}).get('name', '?')}, "

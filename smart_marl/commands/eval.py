@@ -13,6 +13,18 @@ from __future__ import annotations
 import json
 import sys
 
+import numpy as np
+from tqdm import tqdm
+
+from ..metrics import aggregate, logged_scene, score_rollouts
+from ..metrics.baselines import policy_rollouts
+from ..metrics.config import get_rules
+from ..metrics.inputs import RolloutError, Rollouts
+from ..metrics.submission import ScenarioRolloutArrays, check_against_scene, rollouts_from_submission, write_rollouts
+from ..model.checkpoint import EMBEDDED, load_checkpoint
+from ..readers import read_scenarios
+from ..rollout import rollout
+
 POLICY_CHOICES = ("constant_velocity", "log_replay", "random", "prior")
 
 
@@ -38,8 +50,6 @@ def register(subparsers) -> None:
 
 
 def format_table(result: dict) -> str:
-    from ..metrics.config import get_rules
-
     rules = get_rules(result["rules"])
     lines = [f"sim-agents realism ({result['rules']} rules), {result['num_scenarios']} scenario(s)",
              f"{'feature':<30} {'likelihood':>10} {'weight':>7}"]
@@ -53,14 +63,6 @@ def format_table(result: dict) -> str:
 
 
 def run(args) -> int:
-    from tqdm import tqdm
-
-    from ..metrics import aggregate, logged_scene, score_rollouts
-    from ..metrics.baselines import policy_rollouts
-    from ..metrics.inputs import RolloutError
-    from ..metrics.submission import ScenarioRolloutArrays, check_against_scene, rollouts_from_submission, write_rollouts
-    from ..readers import read_scenarios
-
     if args.checkpoint and args.policy != "prior":
         print("smart-marl eval: error: --checkpoint only applies to --policy prior", file=sys.stderr)
         return 2
@@ -87,7 +89,7 @@ def run(args) -> int:
             where = args.submission
         elif args.policy == "prior":
             if prior is None:
-                prior = _load_prior(args.checkpoint, args.device)
+                prior = load_checkpoint(args.checkpoint or EMBEDDED, map_location=args.device)
             rollouts = prior_rollouts(prior, scenario, args.rollouts, args.seed, args.device)
             where = f"--policy prior ({args.checkpoint or 'embedded'})"
         else:
@@ -112,22 +114,10 @@ def run(args) -> int:
     return 0
 
 
-def _load_prior(checkpoint, device):
-    """The SMART prior for ``--policy prior``: a checkpoint path, or the package's embedded one."""
-    from ..model.checkpoint import load_checkpoint, load_embedded
-
-    return load_checkpoint(checkpoint, map_location=device) if checkpoint else load_embedded(map_location=device)
-
-
 def prior_rollouts(prior, scenario, num_rollouts: int, seed: int, device: str = "cpu"):
     """WOSAC rollouts of one scene by the SMART prior: 16 token steps (80 frames) of every agent valid
     at the current frame (the engine simulates vehicles, pedestrians and cyclists and moves agents of
     type OTHER at constant velocity), as :class:`~smart_marl.metrics.inputs.Rollouts`."""
-    import numpy as np
-
-    from ..metrics.inputs import Rollouts
-    from ..rollout import rollout
-
     result = rollout(prior, scenario, num_rollouts=num_rollouts, num_steps=16, seed=seed, device=device)
     agents = np.flatnonzero(result.has_trajectory[0])
     return Rollouts.from_source(result.agent_ids[0, agents], result.trajectory[:, agents], scenario.frame)

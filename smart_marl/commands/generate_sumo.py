@@ -6,6 +6,9 @@ from __future__ import annotations
 import os
 import sys
 
+from ..errors import SmartMarlError
+from ..sources.sumo import SumoConfig, SumoUnavailableError, generate_to_dir
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -31,9 +34,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..errors import SmartMarlError
-    from ..sources.sumo import SumoConfig, SumoUnavailableError, generate_to_dir
-
     if args.scenes < 1 or args.workers < 1 or args.scenes_per_sim < 1:
         print("smart-marl generate-sumo: error: --scenes, --workers and --scenes-per-sim must be at least 1", file=sys.stderr)
         return 2

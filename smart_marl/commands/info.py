@@ -6,6 +6,7 @@ import json
 import sys
 
 from ..errors import ScenarioReadError
+from ..readers import detect_format, expand_paths, read_scenarios
 
 
 def register(subparsers) -> None:
@@ -30,8 +31,6 @@ def format_line(summary: dict, path: str) -> str:
 
 
 def run(args) -> int:
-    from ..readers import detect_format, expand_paths, read_scenarios
-
     failures = 0
     for root in args.paths:
         try:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+from ..model.smart import NAMED_CONFIGS, PAPER_PARAMS, get_config, model_parameter_count
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("models", help="list the named SMART configs and their parameter counts",
@@ -14,8 +16,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..model.smart import NAMED_CONFIGS, PAPER_PARAMS, get_config, model_parameter_count
-
     for name in NAMED_CONFIGS:
         cfg = get_config(name)
         n = model_parameter_count(cfg)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 
+from ..cache import preprocess
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("preprocess", help="convert scene files of any format into a scene cache",
@@ -22,8 +24,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..cache import preprocess
-
     report = preprocess(args.sources, args.out, workers=args.workers, scenes_per_shard=args.scenes_per_shard,
                         skip_bad=args.skip_bad, reader_format=args.format, progress=not args.quiet)
     print(f"{report.scenes} scenes in {report.shards} shards from {report.files} files "

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 
 from ..config_files import apply_command_flags
+from ..train import load_train_config, train
 
 
 def register(subparsers) -> None:
@@ -29,8 +30,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..train import load_train_config, train
-
     cfg = load_train_config(args.config, args.overrides)
     if args.init:
         cfg.init = args.init

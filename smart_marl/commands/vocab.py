@@ -9,6 +9,14 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
+from ..readers import expand_paths, read_scenarios
+from ..tokens import (
+    build_motion_vocabulary, build_road_vocabulary, collect_snippets, road_pieces, save_motion_vocabulary, save_road_vocabulary,
+)
+from ..tokens.motion import MOTION_TYPES
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("vocab", help="build motion and road token vocabularies from scenes",
@@ -30,13 +38,6 @@ def register(subparsers) -> None:
 
 
 def run_build(args) -> int:
-    import numpy as np
-
-    from ..readers import expand_paths, read_scenarios
-    from ..tokens import (build_motion_vocabulary, build_road_vocabulary, collect_snippets, road_pieces,
-                          save_motion_vocabulary, save_road_vocabulary)
-    from ..tokens.motion import MOTION_TYPES
-
     try:
         sizes = [int(s) for s in str(args.sizes).split(",") if s.strip()]
     except ValueError:

@@ -2,11 +2,11 @@
 agents against the SMART prior (TorchRL); ``--evaluate CHECKPOINT`` compares a fine-tuned policy
 with the prior on the same scenes and seeds and prints a table.
 
-Stage: fine-tuning. The pipeline lives in ``agents`` (:mod:`agents.finetune`,
-:mod:`agents.evaluate`), which sits *above* smart_marl (imports go smart_marl <- envs <- agents).
-This module is the command line's thin front: it imports ``agents`` lazily, inside :func:`run`,
-so nothing in smart_marl imports envs or agents when smart_marl is imported; ``agents`` and
-``envs`` ship in the same distribution, and the command needs the ``env`` and ``rl`` extras.
+Stage: fine-tuning; the pipeline is :mod:`agents.finetune` and :mod:`agents.evaluate`. Registered
+through the ``smart_marl.commands`` entry point (see :mod:`agents.commands`). The command needs the
+``env`` and ``rl`` extras (pettingzoo, torchrl): they are optional, so the pipeline is imported
+inside :func:`run`, which says what to install when they are missing, and ``--help`` works
+without them.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 import sys
 
-from ..config_files import apply_command_flags
+from smart_marl.config_files import apply_command_flags
 
 
 def register(subparsers) -> None:
@@ -39,9 +39,9 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    try:
-        from agents.evaluate import evaluate_checkpoint, format_table
-        from agents.finetune import finetune, load_finetune_config
+    try:  # the optional env and rl extras
+        from ..evaluate import evaluate_checkpoint, format_table
+        from ..finetune import finetune, load_finetune_config
     except ImportError as exc:
         print(f"smart-marl finetune: error: needs the env and rl extras (pip install 'smart-marl[env,rl]'): {exc}", file=sys.stderr)
         return 2

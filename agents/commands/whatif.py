@@ -5,15 +5,20 @@ Writes ``DIR/whatif.gif`` (or ``.mp4``; baseline left, what-if right, rollout 0)
 (collisions, minimum distances and speeds of the affected agents, speeds of the vehicles behind a
 braking or stalled one, realism) and prints the table.
 
-Import direction: smart_marl never imports agents at module level (imports go smart_marl <- envs <-
-agents). This command is the one exception the CLI allows: it imports :mod:`agents.whatif` lazily
-inside :func:`run`, so ``smart-marl --help`` and every other command work without it.
+Registered through the ``smart_marl.commands`` entry point (see :mod:`agents.commands`).
 """
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
+
+import torch
+
+from smart_marl.errors import SmartMarlError
+from smart_marl.readers import read_scenarios
+
+from ..whatif import format_table, load_script, render_comparison, run_whatif, write_table_csv
 
 
 def register(subparsers) -> None:
@@ -36,20 +41,14 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..errors import SmartMarlError
-    from ..readers import read_scenarios
-
     if args.rollouts < 1 or args.steps < 1:
         print("smart-marl whatif: error: --rollouts and --steps must be at least 1", file=sys.stderr)
         return 2
     try:
-        import torch
-
         torch.device(args.device)
     except RuntimeError as exc:
         print(f"smart-marl whatif: error: --device {args.device}: {exc}", file=sys.stderr)
         return 2
-    from agents.whatif import format_table, load_script, render_comparison, run_whatif, write_table_csv
 
     script = load_script(args.script)
     scene = None
