@@ -62,9 +62,6 @@ class SmartBatch:
     def num_scenes(self) -> int:
         return int(self.agent_tokens.shape[0])
 
-    def num_target_tokens(self) -> int:
-        return int(self.target_valid.sum())
-
 
 @dataclass
 class RoadArrays:

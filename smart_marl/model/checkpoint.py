@@ -136,7 +136,9 @@ def load_checkpoint(path: str | os.PathLike, motion_vocab: MotionVocabulary | No
                     map_location: str | torch.device = "cpu", **config_overrides: Any) -> Checkpoint:
     """Load a checkpoint. ``motion_vocab``/``road_vocab``, when given, must be the model's
     (same content hash), else :class:`VocabularyMismatchError`. ``config_overrides`` may change
-    fields that do not touch the weights' shapes (dropout, neighbourhood sizes)."""
+    fields that do not touch the weights' shapes (dropout, neighbourhood sizes). ``path`` may be
+    ``"embedded"``, the package's prior."""
+    path = resolve_checkpoint_path(path)
     paths = checkpoint_paths(path)
     meta = read_meta(path)
     vocabs = meta["vocabularies"]
@@ -170,6 +172,8 @@ def load_train_state(path: str | os.PathLike) -> dict[str, Any]:
 
 EMBEDDED_DIR = Path(__file__).resolve().parents[1] / "checkpoints" / "embedded"
 """Where the package ships its pretrained prior (``prior="embedded"``)."""
+EMBEDDED = "embedded"
+"""The name that stands for the package's embedded prior wherever a checkpoint path is taken."""
 
 
 def embedded_checkpoint_path() -> Path:
@@ -181,13 +185,14 @@ def embedded_checkpoint_path() -> Path:
     return metas[0]
 
 
+def resolve_checkpoint_path(path: str | os.PathLike) -> str | os.PathLike:
+    """``path``, or the embedded prior's checkpoint for ``"embedded"``."""
+    return embedded_checkpoint_path() if isinstance(path, str) and path == EMBEDDED else path
+
+
 def load_embedded(map_location: str | torch.device = "cpu", **config_overrides: Any) -> Checkpoint:
     """The package's pretrained SMART prior (see the model card in the README)."""
-    return load_checkpoint(embedded_checkpoint_path(), map_location=map_location, **config_overrides)
-
-
-EMBEDDED = "embedded"
-"""The name that stands for the package's embedded prior wherever a prior is given."""
+    return load_checkpoint(EMBEDDED, map_location=map_location, **config_overrides)
 
 
 def motion_vocabulary_from_model(model: SMART) -> MotionVocabulary:
@@ -202,16 +207,15 @@ def motion_vocabulary_from_model(model: SMART) -> MotionVocabulary:
 
 def load_prior(prior, map_location: str | torch.device = "cpu") -> tuple[SMART, MotionVocabulary]:
     """The one way to get a SMART prior: (model in eval mode on ``map_location``, its motion
-    vocabulary) from ``"embedded"`` (the package's prior, :func:`load_embedded`), a checkpoint path
-    (``NAME`` or ``NAME.json``), a :class:`Checkpoint`, or a SMART model (its vocabulary rebuilt
-    from its contour buffers). A path with no checkpoint raises :class:`CheckpointError`."""
-    if isinstance(prior, str) and prior == EMBEDDED:
-        prior = embedded_checkpoint_path()
+    vocabulary) from ``"embedded"`` (the package's prior), a checkpoint path (``NAME`` or
+    ``NAME.json``), a :class:`Checkpoint`, or a SMART model (its vocabulary rebuilt from its contour
+    buffers). A path with no checkpoint raises :class:`CheckpointError`."""
     if isinstance(prior, (str, os.PathLike)):
-        meta = checkpoint_paths(prior)["meta"]
+        path = resolve_checkpoint_path(prior)
+        meta = checkpoint_paths(path)["meta"]
         if not meta.is_file():
-            raise CheckpointError(prior, f"no checkpoint at this path (expected {meta.name} next to its .safetensors)")
-        prior = load_checkpoint(prior, map_location=map_location)
+            raise CheckpointError(path, f"no checkpoint at this path (expected {meta.name} next to its .safetensors)")
+        prior = load_checkpoint(path, map_location=map_location)
     if isinstance(prior, Checkpoint):
         model, vocab = prior.model, prior.motion_vocab
     else:

@@ -11,8 +11,11 @@ and shape embeddings, and the pose it reached at the end of token s. Each block 
 
 each with RPE (distance, bearing in the query's frame, heading difference, and the time gap for
 temporal edges) added to keys and values. Step s's features depend only on steps <= s, so one new
-step can be run against cached key/value rows of the last w steps (the KV cache of a later issue):
-every attention projects its key rows with :meth:`NeighbourAttention.project_source`, per step.
+step can be run against cached key/value rows of the last w steps: every attention projects its key
+rows with :meth:`NeighbourAttention.project_source`, per step. :meth:`MotionNet.forward` runs every
+step at once (training, and the rollout's ``mode="full"``); :meth:`MotionNet.step` runs one new step
+against a :class:`MotionCache` (inference), through the same embeddings, neighbour search, RPE and
+attention layers, so the two give the same features (``tests/test_rollout.py``).
 """
 
 from __future__ import annotations

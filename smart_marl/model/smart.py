@@ -11,7 +11,7 @@ Named configs follow the paper's Table 6 (``smart-1m``, ``smart-7m``, ``smart-26
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 import torch
