@@ -2,150 +2,47 @@
 
 Second stage of the data flow (logs -> Scenario -> **scene cache** -> tokens). A cache is a folder:
 
-* ``*.smsc`` shards, each holding up to ``scenes_per_shard`` Scenarios as raw little-endian arrays
-  behind a JSON header (one file: magic, header length, header, 64-byte aligned array data). Reading
-  one is an ``mmap`` plus ``np.frombuffer`` views: no decoding, no copy until a batch is built.
+* ``*.smsc`` shards and ``manifest.json``: the format, its writer and its reader live in
+  :mod:`smart_marl.readers.scene_cache` (a cache folder is one more source for ``read_scenarios``);
+  ``write_shard``, ``ShardReader`` and ``write_manifest`` are importable from here too;
 * ``parts/*.json``: one marker per finished input file (its shards and scenes). A preprocess run
   that is killed leaves no half-written shard (shards and markers are written to a temporary
   name and renamed) and a rerun skips every input that already has a marker.
-* ``manifest.json``: every scene (scenario id, source, frames, agent counts per type, shard),
-  every input file and every input that was skipped as bad, with the reason.
 
 :class:`SceneCache` is a map-style dataset (``len`` and ``[i]``) that a ``torch.utils.data.DataLoader``
 reads with workers (use ``collate_fn=list`` or a collate of your own); each worker opens the
-shards lazily.
+shards lazily. :func:`preprocess` converts scene files of any format into a cache.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import mmap
 import os
-import struct
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Sequence
+from typing import Any, Iterable, Iterator
 
-import numpy as np
+from tqdm import tqdm
 
 from .errors import ScenarioReadError, SmartMarlError
+from .readers import expand_paths, read_scenarios
+from .readers.scene_cache import (
+    MANIFEST, MANIFEST_KIND, SHARD_SUFFIX, ShardReader, atomic_write, is_cache_dir, read_manifest, scene_entry, write_manifest,
+    write_shard,
+)
 from .scenario import Scenario
 
-MAGIC = b"SMSC0001"
-SHARD_SUFFIX = ".smsc"
-MANIFEST = "manifest.json"
-MANIFEST_KIND = "smart_marl_scene_cache"
-_ALIGN = 64
-
-
-# ------------------------------------------------------------------------------------ shard files
-def _atomic_write(path: Path, chunks: Iterable[bytes]) -> None:
-    """Write ``path`` so that it either holds all of ``chunks`` or does not exist/keeps its old
-    content: a temporary file in the same folder, fsync, rename."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with open(tmp, "wb") as f:
-            for chunk in chunks:
-                f.write(chunk)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-def write_shard(path: str | os.PathLike, scenarios: Sequence[Scenario]) -> int:
-    """Write Scenarios into one shard file atomically; returns the file's size in bytes."""
-    path = Path(path)
-    entries, blobs, offset = [], [], 0
-    for scenario in scenarios:
-        arrays, meta = scenario.to_arrays()
-        index = {}
-        for name, array in arrays.items():
-            data = np.ascontiguousarray(array).astype(array.dtype.newbyteorder("<"), copy=False)
-            raw = data.tobytes()
-            index[name] = [data.dtype.str, list(data.shape), offset, len(raw)]
-            blobs.append(raw)
-            pad = (-len(raw)) % _ALIGN
-            blobs.append(b"\0" * pad)
-            offset += len(raw) + pad
-        entries.append({"meta": meta, "arrays": index})
-    header = json.dumps({"scenes": entries}, separators=(",", ":")).encode()
-    head_len = len(MAGIC) + 8 + len(header)
-    head_pad = (-head_len) % _ALIGN
-    prefix = MAGIC + struct.pack("<Q", len(header) + head_pad) + header + b" " * head_pad
-    _atomic_write(path, [prefix, *blobs])
-    return len(prefix) + offset
-
-
-class ShardReader:
-    """The Scenarios of one shard, read through a memory map (zero-copy array views)."""
-
-    def __init__(self, path: str | os.PathLike):
-        self.path = os.fspath(path)
-        try:
-            self._file = open(self.path, "rb")
-            self._map = mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ)
-        except (OSError, ValueError) as exc:
-            raise ScenarioReadError(self.path, f"cannot open shard: {exc}") from exc
-        if self._map[: len(MAGIC)] != MAGIC:
-            raise ScenarioReadError(self.path, "not a smart-marl scene-cache shard (bad magic)")
-        start = len(MAGIC) + 8
-        if len(self._map) < start:
-            raise ScenarioReadError(self.path, f"truncated shard: {len(self._map)} bytes, shorter than its header")
-        (header_len,) = struct.unpack_from("<Q", self._map, len(MAGIC))
-        if start + header_len > len(self._map):
-            raise ScenarioReadError(self.path, f"truncated shard: header of {header_len} bytes runs past the end")
-        try:
-            self._entries = json.loads(bytes(self._map[start : start + header_len]))["scenes"]
-        except (ValueError, KeyError) as exc:
-            raise ScenarioReadError(self.path, f"corrupt shard header: {exc}") from exc
-        self._data_start = start + header_len
-
-    def __len__(self) -> int:
-        return len(self._entries)
-
-    def __getitem__(self, i: int) -> Scenario:
-        entry = self._entries[i]
-        arrays = {}
-        for name, (dtype, shape, offset, nbytes) in entry["arrays"].items():
-            count = int(np.prod(shape)) if shape else 1
-            try:
-                arrays[name] = np.frombuffer(self._map, dtype=np.dtype(dtype), count=count,
-                                             offset=self._data_start + offset).reshape(shape)
-            except ValueError as exc:
-                raise ScenarioReadError(self.path, f"truncated or corrupt array {name!r}: {exc}", record=i) from exc
-        # Arrays were validated when the shard was written; skip re-validation on the hot path.
-        return Scenario.from_arrays(arrays, entry["meta"], validate=False)
-
-    def __iter__(self) -> Iterator[Scenario]:
-        for i in range(len(self)):
-            yield self[i]
-
-    def close(self) -> None:
-        self._map.close()
-        self._file.close()
-
-
-def is_shard(head: bytes) -> bool:
-    return head[: len(MAGIC)] == MAGIC
+__all__ = [
+    "MANIFEST", "MANIFEST_KIND", "SHARD_SUFFIX", "PreprocessError", "PreprocessReport", "SceneCache", "ShardReader",
+    "is_cache_dir", "preprocess", "scene_entry", "write_manifest", "write_shard",
+]
 
 
 # ------------------------------------------------------------------------------------ the dataset
-def is_cache_dir(path: str | os.PathLike) -> bool:
-    manifest = Path(path) / MANIFEST
-    if not manifest.is_file():
-        return False
-    try:
-        return json.loads(manifest.read_text()).get("kind") == MANIFEST_KIND
-    except ValueError:
-        return False
-
-
 class SceneCache:
     """A preprocessed cache folder as a map-style dataset of Scenarios.
 
@@ -156,12 +53,7 @@ class SceneCache:
 
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)
-        manifest_path = self.root / MANIFEST
-        if not manifest_path.is_file():
-            raise ScenarioReadError(self.root, f"not a scene cache: no {MANIFEST} (run `smart-marl preprocess`)")
-        self.manifest = json.loads(manifest_path.read_text())
-        if self.manifest.get("kind") != MANIFEST_KIND:
-            raise ScenarioReadError(manifest_path, "not a smart-marl scene-cache manifest")
+        self.manifest = read_manifest(self.root)
         self.scenes: list[dict[str, Any]] = [s for shard in self.manifest["shards"] for s in shard["scenes"]]
         self._locations = [(k, j) for k, shard in enumerate(self.manifest["shards"]) for j in range(len(shard["scenes"]))]
         self._readers: dict[int, ShardReader] = {}
@@ -214,32 +106,18 @@ def _input_stamp(path: str) -> dict[str, int]:
     return {"size": st.st_size, "mtime_ns": st.st_mtime_ns}
 
 
-def _scene_entry(scenario: Scenario, shard_file: str) -> dict[str, Any]:
-    summary = scenario.summary()
-    return {
-        "scenario_id": scenario.scenario_id,
-        "source": scenario.source,
-        "frames": scenario.num_frames,
-        "tracks": scenario.num_tracks,
-        "tracks_per_type": summary["tracks_per_type"],
-        "shard": shard_file,
-    }
-
-
 def _process_file(path: str, out: str, scenes_per_shard: int, reader_format: str | None) -> dict[str, Any]:
     """Convert one input file into shards plus its marker. Runs in a worker process."""
-    from .readers import read_scenarios
-
     out_dir = Path(out)
     key = _input_key(path)
     stem = "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(path).name)[:60]
-    shards, scenes, pending, nbytes = [], [], [], 0
+    shards, pending, nbytes = [], [], 0
 
     def flush() -> None:
         nonlocal nbytes
         name = f"{stem}-{key[:8]}-{len(shards):04d}{SHARD_SUFFIX}"
         nbytes += write_shard(out_dir / name, pending)
-        shards.append({"file": name, "scenes": [_scene_entry(s, name) for s in pending]})
+        shards.append({"file": name, "scenes": [scene_entry(s, name) for s in pending]})
         pending.clear()
 
     try:
@@ -252,7 +130,7 @@ def _process_file(path: str, out: str, scenes_per_shard: int, reader_format: str
     except ScenarioReadError as exc:
         return {"status": "bad", "input": path, "error": str(exc)}
     marker = {"input": os.path.abspath(path), "stamp": _input_stamp(path), "shards": shards, "bytes": nbytes}
-    _atomic_write(out_dir / "parts" / f"{key}.json", [json.dumps(marker).encode()])
+    atomic_write(out_dir / "parts" / f"{key}.json", [json.dumps(marker).encode()])
     return {"status": "ok", "input": path, "marker": marker}
 
 
@@ -272,43 +150,10 @@ def _load_marker(out_dir: Path, path: str) -> dict[str, Any] | None:
 
 
 def _write_manifest(out_dir: Path, inputs: list[str], markers: dict[str, dict], skipped: list[dict]) -> None:
-    shards = []
-    for path in inputs:
-        marker = markers.get(path)
-        if marker:
-            for shard in marker["shards"]:
-                shards.append({"file": shard["file"], "input": marker["input"], "scenes": shard["scenes"]})
-    manifest = {
-        "kind": MANIFEST_KIND,
-        "version": 1,
-        "created_unix_s": time.time(),
-        "num_scenes": sum(len(s["scenes"]) for s in shards),
-        "inputs": [os.path.abspath(p) for p in inputs],
-        "shards": shards,
-        "skipped": skipped,
-    }
-    _atomic_write(out_dir / MANIFEST, [json.dumps(manifest, indent=1).encode()])
-
-
-def scene_entry(scenario: Scenario, shard_file: str) -> dict[str, Any]:
-    """The manifest entry of one scene written into ``shard_file`` (for :func:`write_manifest`)."""
-    return _scene_entry(scenario, shard_file)
-
-
-def write_manifest(out: str | os.PathLike, shards: list[dict[str, Any]], inputs: Sequence[str] = (),
-                   skipped: Sequence[dict[str, str]] = ()) -> None:
-    """Write ``manifest.json`` for shards written with :func:`write_shard` by a producer other than
-    :func:`preprocess` (e.g. a simulator). ``shards``: ``{"file", "input", "scenes": [scene_entry(...)]}``."""
-    manifest = {
-        "kind": MANIFEST_KIND,
-        "version": 1,
-        "created_unix_s": time.time(),
-        "num_scenes": sum(len(s["scenes"]) for s in shards),
-        "inputs": list(inputs),
-        "shards": list(shards),
-        "skipped": list(skipped),
-    }
-    _atomic_write(Path(out) / MANIFEST, [json.dumps(manifest, indent=1).encode()])
+    """The manifest of a preprocess run: the shards of every finished input, in input order."""
+    shards = [{"file": shard["file"], "input": markers[path]["input"], "scenes": shard["scenes"]}
+              for path in inputs if markers.get(path) for shard in markers[path]["shards"]]
+    write_manifest(out_dir, shards, inputs=[os.path.abspath(p) for p in inputs], skipped=skipped)
 
 
 class PreprocessError(SmartMarlError):
@@ -324,10 +169,6 @@ def preprocess(sources: Iterable[str | os.PathLike] | str, out: str | os.PathLik
     again. A bad input stops the run with :class:`PreprocessError` (what was finished stays, so a
     rerun continues) unless ``skip_bad``, which reports it, records it in the manifest and goes on.
     """
-    from tqdm import tqdm
-
-    from .readers import expand_paths
-
     started = time.perf_counter()
     out_dir = Path(out)
     (out_dir / "parts").mkdir(parents=True, exist_ok=True)
@@ -372,8 +213,6 @@ def preprocess(sources: Iterable[str | os.PathLike] | str, out: str | os.PathLik
                 if not handle(_process_file(path, os.fspath(out_dir), scenes_per_shard, reader_format)):
                     break
         else:
-            from concurrent.futures import ProcessPoolExecutor, as_completed
-
             with ProcessPoolExecutor(max_workers=workers) as pool:
                 futures = [pool.submit(_process_file, p, os.fspath(out_dir), scenes_per_shard, reader_format) for p in todo]
                 for future in as_completed(futures):

@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .errors import ScenarioReadError
+from .readers import read_scenarios
 from .scenario import Scenario
 
 SAMPLES_DIR = Path(__file__).resolve().parent / "samples"
@@ -14,8 +15,6 @@ SAMPLES_DIR = Path(__file__).resolve().parent / "samples"
 
 def sample_scenarios() -> list[Scenario]:
     """The package's sample scenes (SUMO-generated, 91 frames at 10 Hz, current frame 10)."""
-    from .readers import read_scenarios
-
     files = sorted(SAMPLES_DIR.glob("*.smsc"))
     if not files:
         raise ScenarioReadError(SAMPLES_DIR, "this installation ships no sample scenes")

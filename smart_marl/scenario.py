@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any, Iterable, Mapping
@@ -268,8 +269,6 @@ class Tracks:
         """[N, 3] length, width, height of each agent: the median over its valid frames."""
         size = np.where(self.valid[..., None], self.size, np.nan)
         with np.errstate(all="ignore"):
-            import warnings
-
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
                 out = np.nanmedian(size, axis=1)

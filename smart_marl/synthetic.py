@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from .scenario import (
-    AgentType, LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadMap, SceneFrame, Scenario, SignalState,
+    DT_S, AgentType, LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadMap, SceneFrame, Scenario, SignalState,
     TrafficLights, Tracks,
 )
 
@@ -43,7 +43,7 @@ def synthetic_scenario(seed: int = 0, num_frames: int = 91, num_vehicles: int = 
     road_map = RoadMap.from_features(features, links)
 
     n = num_vehicles + num_pedestrians
-    t = np.arange(num_frames) * 0.1
+    t = np.arange(num_frames) * DT_S
     pos = np.zeros((n, num_frames, 3))
     heading = np.zeros((n, num_frames))
     vel = np.zeros((n, num_frames, 2))

@@ -44,10 +44,6 @@ class FeatureConfig:
     bins: int = 0
     pseudocount: float = 0.1
 
-    @property
-    def is_bernoulli(self) -> bool:
-        return self.bins == 0
-
     def edges(self) -> np.ndarray:
         """Histogram edges [bins + 1] exactly as the official code makes them (float32
         ``tf.linspace``: ``start + i * step`` in float32, the last edge the maximum)."""

@@ -23,8 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import geometry
+from ..scenario import wrap_angle
 from .config import CURRENT_STEP, NUM_STEPS, STEP_S
-from .inputs import LoggedScene, Rollouts
+from .inputs import LoggedScene, Rollouts, Signals
 
 _FUTURE = slice(CURRENT_STEP + 1, NUM_STEPS)
 STOP_STATES = (1, 4)  # ARROW_STOP, STOP
@@ -63,19 +64,15 @@ def central_and(valid: np.ndarray) -> np.ndarray:
     return out
 
 
-def _wrap(angle: np.ndarray) -> np.ndarray:
-    return (angle + np.pi) % (2 * np.pi) - np.pi
-
-
 def kinematic_features(x, y, z, heading, step_s: float = STEP_S):
     """Linear speed, linear acceleration, angular speed, angular acceleration [..., T] (the official
     central differences: the speed is the 3D norm, the angular ones wrap twice the half difference)."""
     dpos = np.stack([central_diff(x), central_diff(y), central_diff(z)], axis=0)
     speed = np.sqrt((dpos ** 2).sum(axis=0)) / step_s
     accel = central_diff(speed) / step_s
-    dh_step = _wrap(central_diff(heading) * 2) / 2
+    dh_step = wrap_angle(central_diff(heading) * 2) / 2
     dh = dh_step / step_s
-    d2h_step = _wrap(central_diff(dh_step) * 2) / 2
+    d2h_step = wrap_angle(central_diff(dh_step) * 2) / 2
     d2h = d2h_step / step_s ** 2
     return speed, accel, dh, d2h
 
@@ -364,6 +361,4 @@ def _signals_window(scene: LoggedScene, window: slice):
     sig = scene.signals
     if sig is None:
         return None
-    from .inputs import Signals
-
     return Signals(sig.lane_ids, sig.states[window], sig.stop_points)

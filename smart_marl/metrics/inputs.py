@@ -109,9 +109,6 @@ class Rollouts:
         t = np.asarray(trajectories, dtype=np.float64)
         return cls(np.asarray(object_ids, np.int64), t[..., 0], t[..., 1], t[..., 2], t[..., 3])
 
-    def to_array(self) -> np.ndarray:
-        return np.stack([self.x, self.y, self.z, self.heading], axis=-1)
-
     @classmethod
     def from_source(cls, object_ids, trajectories_source, frame: SceneFrame) -> "Rollouts":
         """From source-frame trajectories [R, A, 80, 4] (e.g. read from a submission file)."""

@@ -19,9 +19,9 @@ import os
 from pathlib import Path
 from typing import Iterable, Iterator
 
-from ..cache import SceneCache, is_cache_dir
 from ..errors import ScenarioReadError, UnknownFormatError
 from ..scenario import Scenario
+from .scene_cache import is_cache_dir, shard_paths
 
 # Order matters: the first module whose sniff() accepts a file reads it.
 _FORMAT_MODULES = ("scene_cache", "womd", "scenarionet", "smart_pkl", "gpudrive_json", "av2")
@@ -80,7 +80,7 @@ def expand_paths(path_or_glob: str | os.PathLike | Iterable[str | os.PathLike]) 
         return out
     text = os.fspath(path_or_glob)
     if os.path.isdir(text) and is_cache_dir(text):
-        return [str(p) for p in SceneCache(text).shard_paths()]
+        return [str(p) for p in shard_paths(text)]
     if os.path.isdir(text):
         files = sorted(str(p) for p in Path(text).rglob("*") if p.is_file() and _is_scene_name(p.name))
         return [f for f in files if not _is_companion(f)]

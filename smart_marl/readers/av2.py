@@ -35,18 +35,18 @@ observed timestep) and ``log_map_archive_<id>.json`` (the local vector map). Nee
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 
-from ..errors import ScenarioReadError, ScenarioValidationError
+from ..errors import ScenarioReadError
 from ..scenario import (
     DT_S, AgentType, LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadLineType, RoadMap, Scenario,
-    TrafficLights, Tracks, choose_frame,
+    TrafficLights, Tracks, choose_frame, wrap_angle,
 )
+from .common import load_json_object, read_errors
 
 NAME = "av2"
 
@@ -169,7 +169,7 @@ def read_av2(path: str, map_path: str | os.PathLike | None = None) -> Scenario:
         value = _single(columns, key, path)
         if value is not None:
             metadata[key] = value.item() if isinstance(value, np.generic) else value
-    try:
+    with read_errors(path):
         return Scenario(
             scenario_id=str(scenario_id),
             source="av2",
@@ -190,8 +190,6 @@ def read_av2(path: str, map_path: str | os.PathLike | None = None) -> Scenario:
             frame=frame,
             metadata=metadata,
         )
-    except ScenarioValidationError as exc:
-        raise ScenarioReadError(path, str(exc)) from exc
 
 
 def _single(columns: dict[str, np.ndarray], name: str, path: str):
@@ -282,7 +280,7 @@ def _read_tracks(columns: dict[str, np.ndarray], path: str) -> tuple[dict[str, A
     sdc = np.flatnonzero(id_strings == "AV")
 
     tracks = {
-        "ids": ids, "types": types, "position": position, "heading": (heading + np.pi) % (2 * np.pi) - np.pi,
+        "ids": ids, "types": types, "position": position, "heading": wrap_angle(heading),
         "velocity": velocity, "size": size, "valid": valid,
         "id_map": {str(s): int(i) for s, i in zip(id_strings, ids)},
     }
@@ -327,15 +325,7 @@ def lane_centerline(left: np.ndarray, right: np.ndarray, spacing_m: float = CENT
 
 
 def _read_map(map_path: Path) -> dict[str, Any]:
-    try:
-        with open(map_path, "rb") as f:
-            data = json.load(f)
-    except json.JSONDecodeError as exc:
-        raise ScenarioReadError(map_path, f"invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from exc
-    except OSError as exc:
-        raise ScenarioReadError(map_path, f"cannot read: {exc.strerror or exc}") from exc
-    if not isinstance(data, dict):
-        raise ScenarioReadError(map_path, "top level is not a JSON object")
+    data = load_json_object(map_path)
     for key in ("lane_segments", "drivable_areas", "pedestrian_crossings"):
         if not isinstance(data.get(key, {}), dict):
             raise ScenarioReadError(map_path, f"'{key}' is not an object keyed by id", record=key)

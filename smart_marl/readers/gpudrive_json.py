@@ -42,7 +42,6 @@ Values on invalid frames (the converters write -1e4 or 1e-4 there) are replaced 
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from itertools import chain
@@ -52,10 +51,11 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from ..errors import ScenarioReadError, ScenarioValidationError
+from ..errors import ScenarioReadError
 from ..scenario import (
-    DT_S, AgentType, MapFeatureType, RoadMap, Scenario, SignalState, TrafficLights, Tracks, choose_frame,
+    DT_S, AgentType, MapFeatureType, RoadMap, Scenario, SignalState, TrafficLights, Tracks, choose_frame, wrap_angle,
 )
+from .common import json_point, load_json_object, read_errors
 
 NAME = "gpudrive_json"
 
@@ -141,22 +141,7 @@ def _file_mentions(path: str, needles: tuple[bytes, ...]) -> bool:
 def read(path: str | os.PathLike) -> Iterator[Scenario]:
     """Yield the one Scenario of a GPUDrive / Nocturne JSON file."""
     path = os.fspath(path)
-    yield scenario_from_json(_load_json(path), path)
-
-
-def _load_json(path: str) -> dict:
-    try:
-        with open(path, "rb") as f:
-            data = json.load(f)
-    except json.JSONDecodeError as exc:
-        raise ScenarioReadError(path, f"invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from exc
-    except UnicodeDecodeError as exc:
-        raise ScenarioReadError(path, f"not UTF-8 text: {exc}") from exc
-    except OSError as exc:
-        raise ScenarioReadError(path, f"cannot read: {exc.strerror or exc}") from exc
-    if not isinstance(data, dict):
-        raise ScenarioReadError(path, f"top level is a JSON {type(data).__name__}, expected an object")
-    return data
+    yield scenario_from_json(load_json_object(path), path)
 
 
 def scenario_from_json(data: dict[str, Any], path: str = "<memory>") -> Scenario:
@@ -208,7 +193,7 @@ def scenario_from_json(data: dict[str, Any], path: str = "<memory>") -> Scenario
     if track["experts"] is not None:
         meta["mark_as_expert_ids"] = track["experts"]
 
-    try:
+    with read_errors(path):
         return Scenario(
             scenario_id=str(scenario_id),
             source=flavour,
@@ -230,8 +215,6 @@ def scenario_from_json(data: dict[str, Any], path: str = "<memory>") -> Scenario
             frame=frame,
             metadata=meta,
         )
-    except ScenarioValidationError as exc:
-        raise ScenarioReadError(path, str(exc)) from exc
 
 
 def _strip_json(name: Any) -> str | None:
@@ -333,7 +316,7 @@ def _read_objects(objects: list, path: str) -> dict[str, Any]:
     valid_heading = heading[valid]
     radians = has_ids and (valid_heading.size == 0 or float(np.abs(valid_heading).max()) <= 2 * math.pi + 1e-3)
     heading_rad = heading if radians else np.radians(heading)
-    heading_rad = np.where(valid, (heading_rad + np.pi) % (2 * np.pi) - np.pi, 0.0)
+    heading_rad = np.where(valid, wrap_angle(heading_rad), 0.0)
     size = np.repeat(np.stack([length, width, height], axis=-1)[:, None, :], num_frames, axis=1)
     experts = [int(i) for i, o in zip(ids, objects) if o.get("mark_as_expert")] if any(
         "mark_as_expert" in o for o in objects) else None
@@ -350,19 +333,11 @@ def _points_slow(objects: list, key: str, num_frames: int, path: str, dims: int 
     has_z = False
     for i, obj in enumerate(objects):
         for f, p in enumerate(obj[key]):
-            record = f"objects[{i}].{key}[{f}]"
-            if not isinstance(p, dict):
-                raise ScenarioReadError(path, f"is a {type(p).__name__}, expected an object with x, y", record=record)
-            for axis in ("x", "y"):
-                if axis not in p:
-                    raise ScenarioReadError(path, f"missing field '{axis}'", record=record)
-            try:
-                out[i, f, 0], out[i, f, 1] = float(p["x"]), float(p["y"])
-                if dims == 3 and "z" in p:
-                    out[i, f, 2] = float(p["z"])
-                    has_z = True
-            except (TypeError, ValueError) as exc:
-                raise ScenarioReadError(path, f"a coordinate is not a number: {exc}", record=record) from exc
+            x, y, z = json_point(p, path, f"objects[{i}].{key}[{f}]", with_z=dims == 3)
+            out[i, f, 0], out[i, f, 1] = x, y
+            if z is not None:
+                out[i, f, 2] = z
+                has_z = True
     return out, has_z
 
 
@@ -441,17 +416,9 @@ def _road_points_slow(roads: list, path: str) -> tuple[np.ndarray, bool]:
     has_z = False
     for i, road in enumerate(roads):
         for k, p in enumerate(road["geometry"]):
-            record = f"roads[{i}].geometry[{k}]"
-            if not isinstance(p, dict):
-                raise ScenarioReadError(path, f"is a {type(p).__name__}, expected an object with x, y", record=record)
-            for axis in ("x", "y"):
-                if axis not in p:
-                    raise ScenarioReadError(path, f"missing field '{axis}'", record=record)
-            try:
-                rows.append((float(p["x"]), float(p["y"]), float(p.get("z", 0.0))))
-            except (TypeError, ValueError) as exc:
-                raise ScenarioReadError(path, f"a coordinate is not a number: {exc}", record=record) from exc
-            has_z = has_z or "z" in p
+            x, y, z = json_point(p, path, f"roads[{i}].geometry[{k}]")
+            rows.append((x, y, 0.0 if z is None else z))
+            has_z = has_z or z is not None
     return np.array(rows, np.float64).reshape(-1, 3), has_z
 
 
@@ -504,8 +471,6 @@ def _read_traffic_lights(tl_states: Any, num_frames: int, origin: np.ndarray, pa
         stop_points.append((float(entry["x"][0]), float(entry["y"][0]), float(z[0])))
     if len(set(lane_ids)) != len(lane_ids):
         raise ScenarioReadError(path, "a lane appears twice", record="tl_states")
-    try:
+    with read_errors(path, "tl_states"):
         return TrafficLights(lane_ids=np.asarray(lane_ids, np.int64), states=states, present=present,
                              stop_points=np.asarray(stop_points, np.float64).reshape(-1, 3) - origin)
-    except ScenarioValidationError as exc:
-        raise ScenarioReadError(path, str(exc), record="tl_states") from exc

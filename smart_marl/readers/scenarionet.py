@@ -44,8 +44,9 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
-from ..errors import ScenarioReadError, ScenarioValidationError
+from ..errors import ScenarioReadError
 from ..scenario import (
+    DT_S,
     AgentType,
     LaneType,
     LinkType,
@@ -59,6 +60,7 @@ from ..scenario import (
     Tracks,
     choose_frame,
 )
+from .common import read_errors
 from .safe_pickle import SCENARIONET_GLOBALS, load_restricted, looks_like_pickle
 
 NAME = "scenarionet"
@@ -220,7 +222,7 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
     num_frames = int(np.shape(_need(first_state, "position", path, f"tracks/{track_keys[0]}/state"))[0])
     ts = meta.get("ts")
     ts = None if ts is None else np.asarray(ts, dtype=np.float64).reshape(-1)
-    timestamps = ts if ts is not None and ts.shape == (num_frames,) and np.isfinite(ts).all() else 0.1 * np.arange(num_frames)
+    timestamps = ts if ts is not None and ts.shape == (num_frames,) and np.isfinite(ts).all() else DT_S * np.arange(num_frames)
     current = meta.get("current_time_index")
     if current is None:
         current = DEFAULT_CURRENT_FRAME if num_frames > DEFAULT_CURRENT_FRAME else 0
@@ -250,7 +252,7 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
         if "velocity" in state:
             velocity[i] = _per_frame(state["velocity"], num_frames, path, srec + "/velocity", 2)
         else:  # finite differences of the positions (the first frame repeats the second)
-            v = np.gradient(position[i, :, :2], axis=0) / 0.1 if num_frames > 1 else np.zeros((num_frames, 2))
+            v = np.gradient(position[i, :, :2], axis=0) / DT_S if num_frames > 1 else np.zeros((num_frames, 2))
             velocity[i] = v
         size[i, :, 0] = _per_frame(_need(state, "length", path, srec), num_frames, path, srec + "/length")
         size[i, :, 1] = _per_frame(_need(state, "width", path, srec), num_frames, path, srec + "/width")
@@ -387,7 +389,7 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
 
     dataset = str(meta.get("dataset") or "").lower()
     scenario_id = meta.get("scenario_id") or data.get("id") or meta.get("id") or os.path.basename(path)
-    try:
+    with read_errors(path, "scene"):
         return Scenario(
             scenario_id=str(scenario_id),
             source=f"scenarionet/{dataset}" if dataset else "scenarionet",
@@ -417,8 +419,6 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
             frame=frame,
             metadata=metadata,
         )
-    except ScenarioValidationError as exc:
-        raise ScenarioReadError(path, str(exc), "scene") from exc
 
 
 __all__ = ["NAME", "DEFAULT_CURRENT_FRAME", "sniff", "read", "scenario_from_dict"]

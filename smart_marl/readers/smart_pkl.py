@@ -44,8 +44,9 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
-from ..errors import ScenarioReadError, ScenarioValidationError
+from ..errors import ScenarioReadError
 from ..scenario import (
+    DT_S,
     AgentType,
     LaneType,
     LinkType,
@@ -60,6 +61,7 @@ from ..scenario import (
     choose_frame,
     wrap_angle,
 )
+from .common import read_errors
 from .safe_pickle import load_restricted, looks_like_pickle, smart_pickle_globals
 
 NAME = "smart_pkl"
@@ -262,11 +264,11 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
     }
     if isinstance(city, (str, int, float, np.floating, np.integer)):
         metadata["city"] = city if isinstance(city, str) else float(city)
-    try:
+    with read_errors(path, "scene"):
         return Scenario(
             scenario_id=scenario_id,
             source=NAME,
-            timestamps_s=0.1 * np.arange(t),
+            timestamps_s=DT_S * np.arange(t),
             current_frame=current,
             tracks=Tracks(
                 ids=ids, types=_AGENT_TYPE[types], position=(position - origin).astype(np.float32),
@@ -290,8 +292,6 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
             frame=frame,
             metadata=metadata,
         )
-    except ScenarioValidationError as exc:
-        raise ScenarioReadError(path, str(exc), "scene") from exc
 
 
 __all__ = ["NAME", "CURRENT_FRAME", "sniff", "read", "scenario_from_dict"]

@@ -50,12 +50,13 @@ from typing import Iterable, Iterator
 import numpy as np
 from google.protobuf.message import DecodeError
 
-from ..errors import ScenarioReadError, ScenarioValidationError
+from ..errors import ScenarioReadError
 from ..proto import womd as pb
 from ..scenario import (
     AgentType, LinkType, MapFeatureType, RoadMap, Scenario, TrafficLights, Tracks, choose_frame,
 )
 from . import tfrecord
+from .common import read_errors
 
 NAME = "womd"
 SOURCE = "womd"
@@ -230,16 +231,15 @@ def decode_scenario(payload: bytes, path: str = "<bytes>", record: int = 0) -> S
     except (DecodeError, RuntimeError, ValueError):
         view = None  # the plain parse below says what is wrong
     message = view if view is not None and view.scenario_id and len(view.timestamps_seconds) else None
-    try:
-        if message is not None:
+    if message is not None:
+        with read_errors(path, record, f"scenario {message.scenario_id}: "):
             try:
                 return scenario_from_proto(message, path=path, record=record)
             except _NeedsProtobuf:
                 pass
-        message = parse_scenario_proto(payload, path, record)
+    message = parse_scenario_proto(payload, path, record)
+    with read_errors(path, record, f"scenario {message.scenario_id}: "):
         return scenario_from_proto(message, path=path, record=record)
-    except ScenarioValidationError as exc:
-        raise ScenarioReadError(path, f"scenario {message.scenario_id}: {exc}", record) from exc
 
 
 class _NeedsProtobuf(Exception):

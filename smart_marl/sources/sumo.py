@@ -32,7 +32,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
-from ..scenario import Scenario
+from tqdm import tqdm
+
+from ..readers.scene_cache import MANIFEST, SHARD_SUFFIX, scene_entry, write_manifest, write_shard
+from ..readers.womd import write_womd_tfrecord
+from ..scenario import DT_S, Scenario
 from .sumo_net import INSTALL_HINT, SumoUnavailableError, require_sumo
 from .sumo_sim import SCENE_FRAMES, SumoConfig, simulate_scenes
 
@@ -69,8 +73,6 @@ def generate_scenes(num_scenes: int, seed: int = 0, config: SumoConfig | None = 
     same seed and config give the same scenes, whatever ``workers``."""
     require_sumo()
     config = config or SumoConfig()
-    from tqdm import tqdm
-
     bar = tqdm(total=num_scenes, unit="scene", desc="generate-sumo", disable=not progress, file=sys.stderr)
     produced = 0
     try:
@@ -102,10 +104,6 @@ def generate_to_dir(out: str | os.PathLike, num_scenes: int, seed: int = 0, conf
     """Generate ``num_scenes`` scenes into ``out``: a scene cache (``fmt="cache"``: one shard per
     simulation, ``sumo-{seed}-{sim}.smsc``, plus ``manifest.json``) or WOMD TFRecords (``fmt="womd"``:
     ``sumo-{seed}-{sim}.tfrecord``)."""
-    from tqdm import tqdm
-
-    from ..cache import MANIFEST, SHARD_SUFFIX, scene_entry, write_manifest, write_shard
-
     if fmt not in ("cache", "womd"):
         raise ValueError(f"unknown format {fmt!r}: use 'cache' or 'womd'")
     require_sumo()
@@ -129,14 +127,12 @@ def generate_to_dir(out: str | os.PathLike, num_scenes: int, seed: int = 0, conf
                     shards.append({"file": name, "input": f"sumo:seed={seed}:simulation={sim}",
                                    "scenes": [scene_entry(s, name) for s in scenes]})
                 else:
-                    from ..readers.womd import write_womd_tfrecord
-
                     path = out_dir / f"sumo-{seed}-{sim:06d}.tfrecord"
                     write_womd_tfrecord(scenes, path)
                     report.bytes_written += path.stat().st_size
                 report.files += 1
                 report.scenes += len(scenes)
-                report.agent_seconds += sum(float(s.tracks.valid.sum()) for s in scenes) * 0.1
+                report.agent_seconds += sum(float(s.tracks.valid.sum()) for s in scenes) * DT_S
                 bar.update(len(scenes))
                 if report.scenes >= num_scenes:
                     break

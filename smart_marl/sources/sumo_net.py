@@ -227,9 +227,6 @@ class NetworkMap:
     lane_index_of_sumo: dict[str, int] = field(default_factory=dict)
     stats: dict[str, Any] = field(default_factory=dict)
 
-    def to_source_xy(self, xy: np.ndarray, rotation: np.ndarray) -> np.ndarray:
-        return quantize(np.asarray(xy, np.float64) @ rotation.T)
-
     def crop(self, path_xy: np.ndarray, radius_m: float, origin: np.ndarray) -> tuple[RoadMap, np.ndarray]:
         """The RoadMap of the features within ``radius_m`` of the path ``path_xy`` ([K, 2] source frame:
         the self-driving car's positions over the scene), in the local frame whose origin is ``origin``

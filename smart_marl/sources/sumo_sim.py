@@ -25,15 +25,14 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from ..scenario import AgentType, SceneFrame, Scenario, TrafficLights, Tracks
+from ..scenario import DT_S, AgentType, SceneFrame, Scenario, TrafficLights, Tracks, wrap_angle
 from .sumo_net import (
-    SIGNAL_OF_CHAR, NetworkMap, NetworkSpec, build_network, network_map, quantize, random_network_spec,
+    SIGNAL_OF_CHAR, NetworkMap, build_network, network_map, quantize, random_network_spec,
     require_sumo, rotation_matrix, sumo_binary,
 )
 
 SCENE_FRAMES = 91
 CURRENT_FRAME = 10
-DT_S = 0.1
 SOURCE = "sumo"
 
 
@@ -251,7 +250,7 @@ def run_simulation(net_path: Path, route_path: Path, duration_s: float, record_f
     speed = np.zeros((num_agents, num_frames))
     speed[ag, fr] = vals[:, 4]
     heading = np.pi / 2 - np.radians(angle) + rotation_rad
-    heading = (heading + np.pi) % (2 * np.pi) - np.pi
+    heading = wrap_angle(heading)
     rot = rotation_matrix(rotation_rad)
     front[..., :2] = front[..., :2] @ rot.T
     riders = np.flatnonzero(info_arr[:, 0] != AgentType.PEDESTRIAN)
@@ -330,10 +329,10 @@ def smooth_walkers(xy: np.ndarray, valid: np.ndarray, heading: np.ndarray, windo
         if t == 0:
             out[:, 0] = goal
             continue
-        turn = (goal - out[:, t - 1] + np.pi) % (2 * np.pi) - np.pi
+        turn = wrap_angle(goal - out[:, t - 1])
         limited = out[:, t - 1] + np.clip(turn, -step, step)
         out[:, t] = np.where(valid[:, t] & valid[:, t - 1], limited, goal)
-    out = (out + np.pi) % (2 * np.pi) - np.pi
+    out = wrap_angle(out)
     return smooth, velocity, out
 
 

@@ -26,6 +26,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from tqdm.auto import tqdm
 
 __all__ = ["KDisksResult", "kdisks", "kdisks_pass", "mean_point_distance"]
 
@@ -130,8 +131,6 @@ def kdisks(samples: np.ndarray, size: int, seed: int = 0, iterations: int = 24, 
     m = samples.shape[0]
     order = np.random.default_rng(seed).permutation(m)
     index = _Index(samples)
-    from tqdm.auto import tqdm
-
     passes = 0
 
     def run(tol: float, tag: str) -> tuple[np.ndarray, int]:

@@ -27,7 +27,7 @@ from ..readers.safe_pickle import NUMPY_GLOBALS, load_restricted
 from ..scenario import AgentType
 from ..version import __version__
 from .motion import (
-    BOX_SIZE_M, MOTION_TYPES, POSES_PER_TOKEN, TYPE_KEYS, VOCABULARY_VERSION, MotionVocabulary, TypeVocab, box_contour,
+    BOX_SIZE_M, POSES_PER_TOKEN, TYPE_KEYS, VOCABULARY_VERSION, MotionVocabulary, TypeVocab, box_contour,
     motion_vocabulary_hash,
 )
 from .road import RoadVocabulary, road_vocabulary_hash
