@@ -59,6 +59,24 @@ def womd_vocab(womd_scenes, kdisks_vocab):
     return kdisks_vocab(womd_scenes)
 
 
+# The env, what-if and fine-tuning mechanics tests share these under short names: the real WOMD scenes,
+# their 32-token vocabulary and the tiny random model over it (a test module defines its own
+# ``scenes`` / ``vocab`` / ``model`` to mean something else, as tests/test_rollout.py does).
+@pytest.fixture(scope="module")
+def scenes(womd_scenes):
+    return womd_scenes
+
+
+@pytest.fixture(scope="module")
+def vocab(womd_vocab):
+    return womd_vocab
+
+
+@pytest.fixture(scope="module")
+def model(vocab, tiny_smart):
+    return tiny_smart(vocab)
+
+
 def _tiny_smart(vocab):
     """A small randomly initialised SMART model (eval mode, seed 0) over ``vocab``'s motion tokens."""
     import torch

@@ -28,21 +28,6 @@ ONE_SCENE = "womd_tfrecord/motion_data_one_scenario.tfrecord"
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 
 
-@pytest.fixture(scope="module")
-def scenes(womd_scenes):
-    return womd_scenes
-
-
-@pytest.fixture(scope="module")
-def vocab(womd_vocab):
-    return womd_vocab
-
-
-@pytest.fixture(scope="module")
-def model(vocab, tiny_smart):
-    return tiny_smart(vocab)
-
-
 def make(scenes, vocab, model, **kw):
     args = dict(scenarios=scenes[:1], prior=model, motion_vocab=vocab, controlled="vehicles", max_agents=3, horizon_steps=3)
     args.update(kw)

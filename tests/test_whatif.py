@@ -35,23 +35,8 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.p
 
 
 @pytest.fixture(scope="module")
-def scenes(womd_scenes):
-    return womd_scenes
-
-
-@pytest.fixture(scope="module")
 def scene(scenes):
     return scenes[0]
-
-
-@pytest.fixture(scope="module")
-def vocab(womd_vocab):
-    return womd_vocab
-
-
-@pytest.fixture(scope="module")
-def model(vocab, tiny_smart):
-    return tiny_smart(vocab)
 
 
 def run(model, vocab, scene, *edits, rollouts=2, steps=16, seed=0):
