@@ -84,10 +84,10 @@ def main(argv=None) -> None:
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    from smart_marl.model.checkpoint import load_checkpoint, load_embedded
+    from smart_marl.model.checkpoint import load_checkpoint
     from smart_marl.readers import read_scenarios
 
-    ck = load_embedded() if args.prior == "embedded" else load_checkpoint(args.prior)
+    ck = load_checkpoint(args.prior)  # a path or "embedded"
     ck.model.eval()
     roll_sum, log_sum, log_count, tf = 0.0, 0.0, 0.0, np.zeros(3)
     vehicles = 0

@@ -1,5 +1,5 @@
 """Benchmark of the rollout stage: per-token-step latency of closed-loop generation, KV-cached
-(``mode="cached"``, :mod:`smart_marl.rollout.incremental`) against a full re-computation of
+(``mode="cached"``, the model's own step, :meth:`smart_marl.model.SMART.step`) against a full re-computation of
 MotionNet over the whole history every step (``mode="full"``), and the wall time of 32 rollouts x
 8 s of real scenes.
 
