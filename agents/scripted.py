@@ -4,9 +4,9 @@ What comes in: an agent's pose and speed when a manoeuvre starts (one row per ro
 manoeuvre's parameters, and the motion vocabulary's token poses. What goes out: target paths
 ``[G, T, 3]`` (x, y, heading in the scene's local frame, frames 1..T after the onset) and, each
 0.5 s token step, the token of the agent's type vocabulary whose 5 placed poses come closest to the
-next 5 target poses (:func:`smart_marl.tokens.motion.match_token_path`, also :func:`nearest_tokens` here). The rollout engine takes those tokens as forced
-tokens (``RolloutState.step(forced_tokens)``), so a scripted agent moves only by real vocabulary
-tokens, as every other agent does.
+next 5 target poses (:func:`smart_marl.tokens.motion.match_token_path`, also :func:`nearest_tokens`
+here). The rollout engine takes those tokens as forced tokens (``RolloutState.step(forced_tokens)``),
+so a scripted agent moves only by real vocabulary tokens, as every other agent does.
 
 Closed loop, no drift: the target path is fixed in space when the manoeuvre starts; each step's
 token is chosen from the pose the agent actually reached, so quantisation errors are corrected at

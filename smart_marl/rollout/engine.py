@@ -159,8 +159,9 @@ class RolloutState:
     ``vocab_sizes`` [3] (so slot ``(g, n)``'s vocabulary has ``vocab_sizes[agent_type[g, n]]``
     tokens), ``valid`` / ``simulated`` [G, N], ``current_pose`` [G, N, 3] (local frame),
     ``generator`` (the sampler's ``torch.Generator``; replace it to reseed), ``num_groups``,
-    ``num_slots``, ``step_index`` (token steps taken), ``scenes``, ``mode``.
-    Slots that are never simulated (agents seen in the history but gone at the current frame) are
+    ``num_slots``, ``step_index`` (token steps taken), ``scenes``, ``mode``, ``cache`` (the model's
+    :class:`~smart_marl.model.MotionCache` in mode "cached"). :meth:`run` steps in a loop,
+    :meth:`fork` copies a state. Slots that are never simulated (agents seen in the history but gone at the current frame) are
     kept as context: the history's features of the others depend on them.
     """
 
