@@ -42,6 +42,7 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from .config_files import apply_overrides, read_config_file
+from .cpu_memory import keep_freed_memory
 from .errors import SmartMarlError
 from .model.batch import RoadArrays, SmartBatch, collate_scenes, scene_road, scene_tensors
 from .model.checkpoint import (VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
@@ -462,6 +463,8 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None) -> TrainRe
     info = init_distributed(device)
     if device.type == "cuda":
         torch.cuda.set_device(device)
+    else:
+        keep_freed_memory()  # a CPU step reuses its freed gigabytes instead of faulting them in again
     out_dir = Path(cfg.out_dir)
     last = out_dir / "checkpoints" / "last"
     resuming = checkpoint_paths(last)["meta"].is_file()
