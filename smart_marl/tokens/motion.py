@@ -323,13 +323,19 @@ def _contour_torch(poses: torch.Tensor, length_m: float, width_m: float) -> torc
 def tokenize_tracks(position: np.ndarray, heading: np.ndarray, valid: np.ndarray, types: np.ndarray,
                     vocab: MotionVocabulary, boundaries: np.ndarray, match: str = "contour", noise_topk: int = 0,
                     noise_prob: float = 1.0, rng: np.random.Generator | int | None = None,
-                    agent_chunk: int = 64) -> MotionTokens:
+                    agent_chunk: int = 64, candidates=None) -> MotionTokens:
     """Rolling matching of tracks ``position`` [N, T, 2+], ``heading`` [N, T], ``valid`` [N, T],
     ``types`` [N] on the token grid ``boundaries`` [S + 1] (see the module docstring).
 
     Vectorised over agents (per type, in chunks of ``agent_chunk`` against the whole vocabulary);
     the loop is over the S token steps, which depend on each other. Tracks of type OTHER get no
     valid token. Scenes can be batched by concatenating their tracks (same boundaries).
+
+    ``candidates`` (closed-loop training, :mod:`smart_marl.catk`): a callable
+    ``candidates(k, partial) -> allowed [N, Vmax] bool or None`` called before step ``k`` with the
+    :class:`MotionTokens` filled up to step ``k - 1`` (later steps are zeros). Where a row of
+    ``allowed`` has a true entry, token ``k`` is the closest to the track among the allowed tokens
+    (no noise); ``nearest_ids`` stays the closest of the whole vocabulary.
     """
     if match not in ("contour", "end"):
         raise ValueError(f"match must be 'contour' or 'end', got {match!r}")
@@ -349,7 +355,10 @@ def tokenize_tracks(position: np.ndarray, heading: np.ndarray, valid: np.ndarray
     reached = np.zeros((n, s + 1, 3), np.float64)
     reached_valid = np.zeros((n, s + 1), bool)
     vocab_t = {t: (torch.from_numpy(v.contour[:, 1:].reshape(v.size, FRAMES_PER_TOKEN, 8)), v) for t, v in vocab.types.items()}
+    partial = MotionTokens(ids=ids, valid=tok_valid, start_pose=start, reached=reached, reached_valid=reached_valid,
+                           types=types, boundaries=boundaries, nearest_ids=nearest)  # views of the arrays being filled
     for k in range(s):
+        allowed = candidates(k, partial) if candidates is not None else None
         b0, b1 = int(boundaries[k]), int(boundaries[k + 1])
         frames = np.arange(b0 + 1, b1 + 1)
         ok = valid[:, b0] & valid[:, b1] & is_motion
@@ -370,7 +379,12 @@ def tokenize_tracks(position: np.ndarray, heading: np.ndarray, valid: np.ndarray
                 dist = (d * wt[:, None, :]).sum(-1)  # [n, V] mean corner distance over the valid frames
                 best = dist.argmin(-1).numpy()
                 choice = best.copy()
-                if noise_topk > 1:
+                if allowed is not None:
+                    allow = torch.from_numpy(np.ascontiguousarray(allowed[r, : v.size]))
+                    restricted = allow.any(-1).numpy()
+                    closest_allowed = dist.masked_fill(~allow, float("inf")).argmin(-1).numpy()
+                    choice = np.where(restricted, closest_allowed, best)
+                elif noise_topk > 1:
                     kk = min(noise_topk, v.size)
                     top = torch.topk(dist, kk, dim=-1, largest=False).indices.numpy()  # [n, kk]
                     pick = top[np.arange(len(r)), rng.integers(0, kk, len(r))]
