@@ -159,8 +159,8 @@ class TokenizedScenes(Dataset):
 
     def __init__(self, scenes: Sequence[Scenario], motion_vocab: MotionVocabulary, road_vocab: RoadVocabulary, seed: int,
                  noise_topk: int, road_mask_prob: float, road_keep_radius_m: float | None, cache_size: int = 512,
-                 closed_loop: bool = False) -> None:
-        self.scenes, self.motion_vocab, self.road_vocab = scenes, motion_vocab, road_vocab
+                 closed_loop: bool = False, road_types: str = "all") -> None:
+        self.scenes, self.motion_vocab, self.road_vocab, self.road_types = scenes, motion_vocab, road_vocab, road_types
         self.seed, self.noise_topk, self.road_mask_prob = seed, noise_topk, road_mask_prob
         self.road_keep_radius_m, self.cache_size, self.closed_loop = road_keep_radius_m, cache_size, closed_loop
         self._roads: dict[int, RoadArrays] = {}
@@ -174,7 +174,7 @@ class TokenizedScenes(Dataset):
         scenario = self.scenes[index]
         road = self._roads.get(index)
         if road is None:
-            road = scene_road(scenario, self.road_vocab)
+            road = scene_road(scenario, self.road_vocab, self.road_types)
             if len(self._roads) < self.cache_size:
                 self._roads[index] = road
         if self.closed_loop:
@@ -550,9 +550,10 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None) -> TrainRe
     noise = cfg.token_noise_topk if cfg.token_noise_topk and cfg.token_noise_topk > 1 else 0
     if cfg.catk_top_k < 0:
         raise TrainError(f"catk_top_k must be >= 0 (0: teacher forcing), got {cfg.catk_top_k}")
-    train_set = TokenizedScenes(scenes, mv, rv, cfg.seed, noise, cfg.road_mask_prob, keep, closed_loop=cfg.catk_top_k > 0)
+    train_set = TokenizedScenes(scenes, mv, rv, cfg.seed, noise, cfg.road_mask_prob, keep, closed_loop=cfg.catk_top_k > 0,
+                                road_types=model_cfg.road_types)
     val_scenes = open_scenes(cfg.val_data) if cfg.val_data else scenes
-    val_set = TokenizedScenes(val_scenes, mv, rv, cfg.seed + 1, 0, cfg.road_mask_prob, keep)
+    val_set = TokenizedScenes(val_scenes, mv, rv, cfg.seed + 1, 0, cfg.road_mask_prob, keep, road_types=model_cfg.road_types)
     n_val = min(cfg.val_scenes, len(val_scenes))
     val_keys = [(i, i) for i in range(info.rank, n_val, info.world_size)]
     pin = device.type == "cuda"

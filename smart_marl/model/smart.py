@@ -49,11 +49,14 @@ class SmartConfig:
     road_piece_points: int = 11
     num_freq_bands: int = 64
     dropout: float = 0.1
+    road_types: str = "all"  # the road kinds the type embedding tells apart (batch.ROAD_TYPE_SETS): "all" or "sumo"
 
     def __post_init__(self) -> None:
         self.motion_vocab_sizes = tuple(int(v) for v in self.motion_vocab_sizes)
         if len(self.motion_vocab_sizes) != NUM_MOTION_TYPES:
             raise ModelConfigError(f"motion_vocab_sizes needs 3 sizes (vehicle, pedestrian, cyclist), got {self.motion_vocab_sizes}")
+        if self.road_types not in ("all", "sumo"):
+            raise ModelConfigError(f"road_types must be 'all' or 'sumo', got {self.road_types!r}")
         if self.num_heads * self.head_dim != self.hidden_dim:
             raise ModelConfigError(f"num_heads * head_dim must equal hidden_dim, got {self.num_heads} * {self.head_dim} != {self.hidden_dim}")
 
