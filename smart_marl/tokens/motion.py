@@ -221,8 +221,11 @@ def augment_snippets(snippets: np.ndarray, count: int, rng: np.random.Generator,
 
 def build_motion_vocabulary(snippets: Mapping[AgentType, np.ndarray], sizes: int | Mapping[AgentType, int], seed: int = 0,
                             min_samples_per_token: int = 4, provenance: Mapping[str, Any] | None = None,
-                            progress: bool = True) -> MotionVocabulary:
+                            progress: bool = True, tolerance_m: float | Mapping[AgentType, float] | None = None) -> MotionVocabulary:
     """k-disks vocabularies per type from snippets [M, 6, 3] (see :func:`collect_snippets`).
+
+    ``tolerance_m`` (per type or for all; None or 0: the covering radius is searched): a fixed disk
+    radius, so that the tokens go to the dense motions first (:func:`~.kdisks.kdisks`).
 
     When a type has fewer than ``min_samples_per_token * size`` snippets, jittered copies
     (:func:`augment_snippets`) are added up to that count before clustering; the counts are recorded
@@ -242,7 +245,9 @@ def build_motion_vocabulary(snippets: Mapping[AgentType, np.ndarray], sizes: int
             samples = np.concatenate([real, augment_snippets(real, want - len(real), rng)])
         length, width = BOX_SIZE_M[t]
         contour = box_contour(samples, length, width).reshape(len(samples), -1, 2)
-        res = kdisks(contour, size, seed=int(rng.integers(2**31)), progress=progress, desc=f"k-disks {TYPE_KEYS[t]} {size}")
+        tol = tolerance_m.get(t) if isinstance(tolerance_m, Mapping) else tolerance_m
+        res = kdisks(contour, size, seed=int(rng.integers(2**31)), progress=progress, desc=f"k-disks {TYPE_KEYS[t]} {size}",
+                     tolerance_m=tol or None)
         types[t] = TypeVocab.from_poses(samples[res.centre_indices], length, width, tolerance_m=res.tolerance_m,
                                         requested_size=size, num_samples=len(samples), num_real_samples=len(real))
     if not types:
