@@ -46,7 +46,7 @@ import numpy as np
 import torch
 
 from ..scenario import AgentType, Scenario, wrap_angle
-from .kdisks import kdisks
+from .kdisks import kdisks, point_distance_matrices
 
 __all__ = [
     "BOX_SIZE_M", "FRAMES_PER_TOKEN", "MOTION_TYPES", "POSES_PER_TOKEN", "TYPE_KEYS",
@@ -359,7 +359,7 @@ def tokenize_tracks(position: np.ndarray, heading: np.ndarray, valid: np.ndarray
     start = np.zeros((n, s, 3), np.float64)
     reached = np.zeros((n, s + 1, 3), np.float64)
     reached_valid = np.zeros((n, s + 1), bool)
-    vocab_t = {t: (torch.from_numpy(v.contour[:, 1:].reshape(v.size, FRAMES_PER_TOKEN, 8)), v) for t, v in vocab.types.items()}
+    vocab_t = {t: (torch.from_numpy(np.ascontiguousarray(v.contour[:, 1:].reshape(v.size, -1, 2))), v) for t, v in vocab.types.items()}
     partial = MotionTokens(ids=ids, valid=tok_valid, start_pose=start, reached=reached, reached_valid=reached_valid,
                            types=types, boundaries=boundaries, nearest_ids=nearest)  # views of the arrays being filled
     for k in range(s):
@@ -378,10 +378,11 @@ def tokenize_tracks(position: np.ndarray, heading: np.ndarray, valid: np.ndarray
                 w = valid[r][:, frames].astype(np.float64)  # [n, 5]
                 if match == "end":
                     w[:, :-1] = 0.0
-                tc = _contour_torch(torch.from_numpy(target.astype(np.float32)), v.length_m, v.width_m).reshape(len(r), 1, FRAMES_PER_TOKEN, 8)
-                d = (tc - vc[None]).view(len(r), v.size, FRAMES_PER_TOKEN, 4, 2).square().sum(-1).sqrt().mean(-1)  # [n, V, 5]
+                tc = _contour_torch(torch.from_numpy(target.astype(np.float32)), v.length_m, v.width_m)  # [n, 5, 4, 2]
+                d = point_distance_matrices(tc.reshape(len(r), -1, 2), vc)  # [5 * 4, n, V] corner distances
+                d = d.view(FRAMES_PER_TOKEN, 4, len(r), v.size).mean(1)  # [5, n, V] mean corner distance per frame
                 wt = torch.from_numpy((w / w.sum(1, keepdims=True)).astype(np.float32))
-                dist = (d * wt[:, None, :]).sum(-1)  # [n, V] mean corner distance over the valid frames
+                dist = (d * wt.t()[:, :, None]).sum(0)  # [n, V] mean corner distance over the valid frames
                 best = dist.argmin(-1).numpy()
                 choice = best.copy()
                 if allowed is not None:
