@@ -152,14 +152,15 @@ class NeighbourAttention(nn.Module):
         w_vr = self.to_v_r.weight.view(h, dh, -1)  # (h, dh, d)
         q_r = torch.einsum("qhe,hec->qhc", q, w_kr)  # (Q, h, d)
         k = k_rows[index].view(nq, kk, h, dh)  # (Q, K, h, dh)
-        scores = (torch.einsum("qhe,qkhe->qhk", q, k) + torch.bmm(q_r, r.transpose(1, 2))) / math.sqrt(dh)  # (Q, h, K)
+        # per-head dot products of a head dim of 8-16 run faster as a product and a sum than as Q tiny GEMMs
+        scores = ((q[:, None] * k).sum(-1).transpose(1, 2) + torch.bmm(q_r, r.transpose(1, 2))) / math.sqrt(dh)  # (Q, h, K)
         m = mask[:, None, :]
         scores = scores.masked_fill(~m, torch.finfo(scores.dtype).min)
         attn = torch.softmax(scores, dim=-1) * m  # queries with no neighbour attend to nothing
         attn = self.attn_drop(attn)
         v = v_rows[index].view(nq, kk, h, dh)  # (Q, K, h, dh)
         r_agg = torch.bmm(attn, r)  # (Q, h, d) attention-weighted RPE
-        agg = (torch.einsum("qhk,qkhe->qhe", attn, v) + torch.einsum("qhc,hec->qhe", r_agg, w_vr)
+        agg = ((attn.transpose(1, 2)[..., None] * v).sum(1) + torch.einsum("qhc,hec->qhe", r_agg, w_vr)
                + self.to_v_r.bias.view(h, dh) * attn.sum(-1, keepdim=True)).reshape(nq, h * dh)  # (Q, inner)
         g = torch.sigmoid(self.to_g(torch.cat([agg, q_in], -1)))
         agg = agg + g * (self.to_s(q_in) - agg)
