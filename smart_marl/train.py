@@ -93,6 +93,7 @@ class TrainConfig:
     catk_top_k: int = 0  # > 0: closed-loop targets (CAT-K, smart_marl.catk) from the model's top-K tokens; 0: teacher forcing
     road_mask_prob: float = 0.15  # share of road pieces hidden for the road next-token task
     road_keep_radius_m: float | None = -1.0  # crop roads to this distance from agents; -1: lossless radius from the model config
+    cache_scenes: int = 4096  # per data worker: scenes whose road arrays (and noise-free motion tokens) are kept (~0.2 MB each)
     log_every: int = 10
     val_every: int = 500
     val_scenes: int = 16
@@ -550,8 +551,8 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None) -> TrainRe
     noise = cfg.token_noise_topk if cfg.token_noise_topk and cfg.token_noise_topk > 1 else 0
     if cfg.catk_top_k < 0:
         raise TrainError(f"catk_top_k must be >= 0 (0: teacher forcing), got {cfg.catk_top_k}")
-    train_set = TokenizedScenes(scenes, mv, rv, cfg.seed, noise, cfg.road_mask_prob, keep, closed_loop=cfg.catk_top_k > 0,
-                                road_types=model_cfg.road_types)
+    train_set = TokenizedScenes(scenes, mv, rv, cfg.seed, noise, cfg.road_mask_prob, keep, cache_size=cfg.cache_scenes,
+                                closed_loop=cfg.catk_top_k > 0, road_types=model_cfg.road_types)
     val_scenes = open_scenes(cfg.val_data) if cfg.val_data else scenes
     val_set = TokenizedScenes(val_scenes, mv, rv, cfg.seed + 1, 0, cfg.road_mask_prob, keep, road_types=model_cfg.road_types)
     n_val = min(cfg.val_scenes, len(val_scenes))
