@@ -1,23 +1,25 @@
-"""Benchmark of a prior's kinematics in closed loop: do the vehicles it drives keep their speed?
+"""Benchmark of a prior's kinematics in closed loop: do the agents it drives keep their speed?
 
-For every scene, the vehicles moving faster than ``--moving-mps`` at the current frame (simulated
-by the prior), the mean speed in the prior's rollouts against the logged mean speed of the same
-vehicles, at several horizons; and the teacher-forced bias of the model's most likely next token
-(the training path, logged history as input): mean speed of the argmax token over the mean speed
-of the target token, for the same moving vehicles at every step.
+For each set of scenes (``--set NAME=PATH ...``; by default every shared real scene of 91 frames at
+10 Hz, and the package's SUMO sample scenes) and each agent type, the agents moving at the current
+frame (vehicles > 5 m/s, cyclists > 2 m/s, pedestrians > 0.5 m/s; simulated by the prior), the mean
+speed in the prior's rollouts against the logged mean speed of the same agents at several horizons
+(both from 10 Hz position differences, over the agents logged at that frame); and the
+teacher-forced bias of the model's most likely next token (logged history as input): mean speed
+of the argmax token over the mean speed of the target token, for the same moving agents at every
+step.
 
 Output (stdout, one JSON object per line)::
 
-    {"kind": "horizon", "t_s": 2.0, "rollout_mps": ..., "log_mps": ..., "ratio": ..., "vehicles": ...}
-    {"kind": "teacher_forced", "argmax_mps": ..., "target_mps": ..., "ratio": ..., "rows": ...}
+    {"kind": "horizon", "set": "real", "type": "vehicle", "t_s": 2.0, "rollout_mps": ..., "log_mps": ..., "ratio": ..., "agents": ...}
+    {"kind": "teacher_forced", "set": "real", "type": "vehicle", "argmax_mps": ..., "target_mps": ..., "ratio": ..., "rows": ...}
 
 A prior with no drift has ratios near 1 at every horizon (the log itself slows down where the
 traffic does, which the rollout should follow, not exceed).
 
-    .venv/bin/python benchmarks/prior_speed_drift.py [--prior PATH] [--scenes GLOB ...] [--rollouts 8]
+    .venv/bin/python benchmarks/prior_speed_drift.py [--prior PATH] [--set real=GLOB ...] [--rollouts 8] [--top-k 5]
 
-Default: the embedded prior on the two shared WOMD records, 8 rollouts, top-5 sampling, seed 0.
-Measured figures (embedded prior at steps 250 and 800) are in the README's model card.
+Measured figures are in the README's model card.
 """
 
 from __future__ import annotations
@@ -29,87 +31,135 @@ from pathlib import Path
 import numpy as np
 import torch
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+from smart_marl.model.batch import collate_scenes, scene_road, scene_tensors
+from smart_marl.model.checkpoint import load_checkpoint
+from smart_marl.readers import read_scenarios
+from smart_marl.rollout import rollout
+from smart_marl.scenario import AgentType
+from smart_marl.tokens.motion import MOTION_TYPES, tokenize_motion
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "data"
+REAL_91_FRAMES = ["womd_tfrecord/*.tfrecord", "smart_pkl/*.pkl", "scenarionet/waymo/sd_training*.pkl", "gpudrive_json/*.json",
+                  "nocturne_json/*.json"]
+SUMO_SAMPLES = ROOT / "smart_marl" / "samples"
 HORIZONS_S = (0.5, 1.0, 2.0, 4.0, 6.0, 8.0)
+MOVING_MPS = {AgentType.VEHICLE: 5.0, AgentType.PEDESTRIAN: 0.5, AgentType.CYCLIST: 2.0}
+NUM_FRAMES = 80  # 16 tokens of 5 frames
 
 
-def rollout_speeds(checkpoint, scene, num_rollouts: int, top_k: int, seed: int, moving_mps: float):
-    """(rollout mean speed [T], logged mean speed [T]) of the moving vehicles, frames cf+1..cf+80."""
-    from smart_marl.rollout import rollout
-    from smart_marl.scenario import AgentType
+def _speeds_from_positions(xy: np.ndarray, start_xy: np.ndarray) -> np.ndarray:
+    """Speeds [..., T] from positions [..., T, 2] and the position before the first one [..., 2]."""
+    return np.linalg.norm(np.diff(np.concatenate([start_xy[..., None, :], xy], -2), axis=-2), axis=-1) / 0.1
 
-    res = rollout(checkpoint, [scene], num_rollouts=num_rollouts, num_steps=16, top_k=top_k, seed=seed)
+
+def rollout_speeds(ck, scene, num_rollouts: int, top_k: int, temperature: float, seed: int) -> dict:
+    """Per motion type: (rollout speed sum [T], log speed sum [T], log count [T], agents), frames cf+1..cf+80,
+    over the agents moving at the current frame; a sum at frame t counts the agents logged at t and t-1."""
+    res = rollout(ck, [scene], num_rollouts=num_rollouts, num_steps=NUM_FRAMES // 5, top_k=top_k,
+                  temperature=temperature, seed=seed)
     tr, cf = scene.tracks, scene.current_frame
     a = res.agent_types.shape[1]
-    v_now = np.linalg.norm(tr.velocity[:a, cf], axis=-1)
-    moving = res.simulated[0] & (res.agent_types[0] == int(AgentType.VEHICLE)) & (v_now > moving_mps)
-    xy = res.trajectory[:, moving, :, :2]  # [R, M, 80, 2]
-    start = np.broadcast_to(tr.position[:a][moving, cf, None, :2], (xy.shape[0], int(moving.sum()), 1, 2))
-    speed = np.linalg.norm(np.diff(np.concatenate([start, xy], 2), axis=2), axis=-1) / 0.1  # [R, M, 80]
-    frames = slice(cf + 1, cf + 1 + xy.shape[2])
-    logged = np.where(tr.valid[:a][moving, frames], np.linalg.norm(tr.velocity[:a][moving, frames], axis=-1), np.nan)
-    return speed.mean((0, 1)) if moving.any() else np.full(xy.shape[2], np.nan), logged, int(moving.sum())
+    frames = np.arange(cf + 1, cf + 1 + NUM_FRAMES)
+    v_now = np.linalg.norm(tr.position[:a, cf, :2] - tr.position[:a, cf - 1, :2], axis=-1) / 0.1
+    v_now = np.where(tr.valid[:a, cf] & tr.valid[:a, cf - 1], v_now, 0.0)
+    out = {}
+    for t in MOTION_TYPES:
+        moving = res.simulated[0] & (res.agent_types[0] == int(t)) & (v_now > MOVING_MPS[t])
+        if not moving.any():
+            continue
+        ok = tr.valid[:a][moving][:, frames] & tr.valid[:a][moving][:, frames - 1]  # [M, T] logged at t and t - 1
+        log_speed = _speeds_from_positions(tr.position[:a][moving][:, frames, :2], tr.position[:a][moving][:, cf, :2])
+        sim = _speeds_from_positions(res.trajectory[:, moving, :, :2], np.broadcast_to(tr.position[:a][moving][:, cf, :2],
+                                                                                      (num_rollouts, int(moving.sum()), 2)))
+        out[t] = (np.where(ok, sim.mean(0), 0.0).sum(0), np.where(ok, log_speed, 0.0).sum(0), ok.sum(0), int(moving.sum()))
+    return out
 
 
-def teacher_forced_bias(ck, scene, moving_mps: float):
-    """(sum of argmax-token speeds, sum of target-token speeds, rows) over the moving vehicles' steps."""
-    from smart_marl.model.batch import collate_scenes, scene_road, scene_tensors
-    from smart_marl.scenario import AgentType
-    from smart_marl.tokens.motion import tokenize_motion
-
+@torch.no_grad()
+def teacher_forced_bias(ck, scene) -> dict:
+    """Per motion type: (sum of argmax-token speeds, sum of target-token speeds, rows) over the moving agents' steps."""
     mv = ck.motion_vocab
     mt = tokenize_motion(scene, mv)
-    d = scene_tensors(scene, mv, scene_road(scene, ck.road_vocab), noise_topk=0, road_mask_prob=0.0, rng=0, motion_tokens=mt)
+    d = scene_tensors(scene, mv, scene_road(scene, ck.road_vocab, ck.model.config.road_types), noise_topk=0, road_mask_prob=0.0, rng=0, motion_tokens=mt)
     b = collate_scenes([d])
-    with torch.no_grad():
-        feats, _ = ck.model(b)
-        logits = ck.model.motion_logits(feats, b.agent_type)[int(AgentType.VEHICLE)][0]  # [N, S, V]
+    feats, _ = ck.model(b)
+    logits = ck.model.motion_logits(feats, b.agent_type)
     keep = np.flatnonzero(mt.valid.any(1))
-    tr = scene.tracks
-    moving = (tr.types[keep] == int(AgentType.VEHICLE)) & (np.linalg.norm(tr.velocity[keep, scene.current_frame], axis=-1) > moving_mps)
-    rows = torch.from_numpy(moving)[:, None] & b.target_valid[0]
-    token_mps = torch.from_numpy(mv[AgentType.VEHICLE].poses[:, -1, :2]).norm(dim=-1) / 0.5
-    pred, tgt = logits.argmax(-1)[rows], b.target_tokens[0][rows]
-    return float(token_mps[pred].sum()), float(token_mps[tgt].sum()), int(rows.sum())
+    tr, cf = scene.tracks, scene.current_frame
+    v_now = np.where(tr.valid[keep, cf] & tr.valid[keep, cf - 1],
+                     np.linalg.norm(tr.position[keep, cf, :2] - tr.position[keep, cf - 1, :2], axis=-1) / 0.1, 0.0)
+    out = {}
+    for t in MOTION_TYPES:
+        moving = (tr.types[keep] == int(t)) & (v_now > MOVING_MPS[t])
+        rows = torch.from_numpy(moving)[:, None] & b.target_valid[0]
+        if not rows.any():
+            continue
+        token_mps = torch.from_numpy(mv[t].poses[:, -1, :2]).norm(dim=-1) / 0.5
+        pred, tgt = logits[int(t)][0].argmax(-1)[rows], b.target_tokens[0][rows]
+        out[t] = (float(token_mps[pred].sum()), float(token_mps[tgt].sum()), int(rows.sum()))
+    return out
+
+
+def scene_sets(specs: list[str] | None) -> dict[str, list]:
+    """NAME=PATH specs -> {name: [Scenario]}; by default the shared real 91-frame scenes and the SUMO samples."""
+    if not specs:
+        specs = [f"real={','.join(str(SHARED / p) for p in REAL_91_FRAMES)}", f"sumo_samples={SUMO_SAMPLES}"]
+    sets = {}
+    for spec in specs:
+        name, _, paths = spec.partition("=")
+        scenes = [sc for sc in read_scenarios(paths.split(",")) if sc.num_frames >= sc.current_frame + 1 + NUM_FRAMES]
+        sets[name] = scenes
+    return sets
 
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--prior", default="embedded", help="checkpoint path, or 'embedded'")
-    ap.add_argument("--scenes", nargs="*", default=[str(SHARED / "womd_tfrecord" / "*.tfrecord")])
+    ap.add_argument("--set", dest="sets", action="append", metavar="NAME=PATH[,PATH...]",
+                    help="a named set of scenes (files, folders, globs); repeatable (default: real shared scenes, SUMO samples)")
+    ap.add_argument("--max-scenes", type=int, default=0, help="at most this many scenes per set (0: all)")
     ap.add_argument("--rollouts", type=int, default=8)
     ap.add_argument("--top-k", type=int, default=5)
+    ap.add_argument("--temperature", type=float, default=1.0)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--moving-mps", type=float, default=5.0)
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    from smart_marl.model.checkpoint import load_checkpoint
-    from smart_marl.readers import read_scenarios
-
     ck = load_checkpoint(args.prior)  # a path or "embedded"
     ck.model.eval()
-    roll_sum, log_sum, log_count, tf = 0.0, 0.0, 0.0, np.zeros(3)
-    vehicles = 0
-    for pattern in args.scenes:
-        for scene in read_scenarios(pattern):
-            r, lg, m = rollout_speeds(ck, scene, args.rollouts, args.top_k, args.seed, args.moving_mps)
-            if m:
-                roll_sum = roll_sum + r * m
-                log_sum, log_count = log_sum + np.nansum(lg, 0), log_count + np.isfinite(lg).sum(0)
-                vehicles += m
-                tf += teacher_forced_bias(ck, scene, args.moving_mps)
-            print(json.dumps({"kind": "scene", "scenario_id": scene.scenario_id, "moving_vehicles": m}), flush=True)
-    roll_mean = np.asarray(roll_sum) / max(vehicles, 1)
-    log_mean = np.asarray(log_sum) / np.maximum(log_count, 1)  # over the vehicles logged at each frame
-    for t in HORIZONS_S:
-        k = int(round(t * 10)) - 1
-        line = {"kind": "horizon", "t_s": t, "rollout_mps": round(float(roll_mean[k]), 3), "log_mps": round(float(log_mean[k]), 3),
-                "ratio": round(float(roll_mean[k] / log_mean[k]), 3), "vehicles": vehicles, "rollouts": args.rollouts,
-                "top_k": args.top_k, "prior": args.prior}
-        print(json.dumps(line), flush=True)
-    print(json.dumps({"kind": "teacher_forced", "argmax_mps": round(tf[0] / max(tf[2], 1), 3), "target_mps": round(tf[1] / max(tf[2], 1), 3),
-                      "ratio": round(tf[0] / max(tf[1], 1e-9), 3), "rows": int(tf[2]), "prior": args.prior}), flush=True)
+    for set_name, scenes in scene_sets(args.sets).items():
+        if args.max_scenes:
+            scenes = scenes[: args.max_scenes]
+        roll = {t: [np.zeros(NUM_FRAMES), np.zeros(NUM_FRAMES), np.zeros(NUM_FRAMES), 0] for t in MOTION_TYPES}
+        tf = {t: np.zeros(3) for t in MOTION_TYPES}
+        for scene in scenes:
+            for t, (r, lg, n, m) in rollout_speeds(ck, scene, args.rollouts, args.top_k, args.temperature, args.seed).items():
+                acc = roll[t]
+                acc[0] += r
+                acc[1] += lg
+                acc[2] += n
+                acc[3] += m
+            for t, v in teacher_forced_bias(ck, scene).items():
+                tf[t] += v
+        common = {"set": set_name, "scenes": len(scenes), "rollouts": args.rollouts, "top_k": args.top_k,
+                  "temperature": args.temperature, "prior": args.prior}
+        for t in MOTION_TYPES:
+            r, lg, n, m = roll[t]
+            if m == 0:
+                continue
+            for h in HORIZONS_S:
+                k = int(round(h * 10)) - 1
+                if n[k] == 0:
+                    continue
+                print(json.dumps({"kind": "horizon", "type": t.name.lower(), "t_s": h, "rollout_mps": round(r[k] / n[k], 3),
+                                  "log_mps": round(lg[k] / n[k], 3), "ratio": round(r[k] / max(lg[k], 1e-9), 3),
+                                  "agents": m, "logged_at_t": int(n[k]), **common}), flush=True)
+            s = tf[t]
+            if s[2]:
+                print(json.dumps({"kind": "teacher_forced", "type": t.name.lower(), "argmax_mps": round(s[0] / s[2], 3),
+                                  "target_mps": round(s[1] / s[2], 3), "ratio": round(s[0] / max(s[1], 1e-9), 3),
+                                  "rows": int(s[2]), **common}), flush=True)
 
 
 if __name__ == "__main__":

@@ -8,7 +8,11 @@ checkpoints (:mod:`smart_marl.model.checkpoint`), ``train.csv`` / ``val.csv`` an
 The loop: AdamW (weight decay 0.1 on matrices), learning rate 2e-4 with optional linear warm-up and
 cosine annealing to 0 at ``max_steps``, gradient clipping, bf16 autocast on CUDA. Tokenization
 (rolling matching with top-k token noise, road tokens) runs in DataLoader workers
-(:class:`TokenizedScenes`); one training step sees a padded batch of several scenes.
+(:class:`TokenizedScenes`); one training step sees a padded batch of several scenes. With
+``catk_top_k = K > 0`` the motion tokens are closed-loop instead (CAT-K, :mod:`smart_marl.catk`):
+the current model rolls each batch's scenes out from their current frame, every step taking among
+its top-K tokens the one closest to the log, and trains on those sequences with targets that lead
+back to the log (usually as fine-tuning of a teacher-forced run, ``init=CHECKPOINT``).
 
 Determinism and resume: the data order is a function of (seed, global sample position) only
 (:class:`EpochBatchSampler`), each sample's token noise is seeded by its position, and the
@@ -41,7 +45,9 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from tqdm import tqdm
 
 from .cache import SceneCache, is_cache_dir
+from .catk import catk_tokens
 from .config_files import apply_overrides, read_config_file
+from .cpu_memory import keep_freed_memory
 from .errors import SmartMarlError
 from .model.batch import RoadArrays, SmartBatch, collate_scenes, scene_road, scene_tensors
 from .model.checkpoint import (VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
@@ -85,8 +91,10 @@ class TrainConfig:
     dropout: float = 0.1
     label_smoothing: float = 0.1
     token_noise_topk: int = 5  # top-k noisy rolling matching; 0 or 1: off
+    catk_top_k: int = 0  # > 0: closed-loop targets (CAT-K, smart_marl.catk) from the model's top-K tokens; 0: teacher forcing
     road_mask_prob: float = 0.15  # share of road pieces hidden for the road next-token task
     road_keep_radius_m: float | None = -1.0  # crop roads to this distance from agents; -1: lossless radius from the model config
+    cache_scenes: int = 4096  # per data worker: scenes whose road arrays (and noise-free motion tokens) are kept (~0.2 MB each)
     log_every: int = 10
     val_every: int = 500
     val_scenes: int = 16
@@ -142,13 +150,16 @@ class TokenizedScenes(Dataset):
 
     An item key is ``(scene index, sample position)``; the position seeds the token noise and the
     road mask, so a sample is the same whichever worker makes it. Road arrays (static per scene)
-    and, without noise, motion tokens are cached per worker (bounded)."""
+    and, without noise, motion tokens are cached per worker (bounded). With ``closed_loop`` the
+    motion tokens depend on the model being trained: an item is then the scene, its road arrays and
+    its position, and :func:`closed_loop_batch` makes the batch in the training process."""
 
     def __init__(self, scenes: Sequence[Scenario], motion_vocab: MotionVocabulary, road_vocab: RoadVocabulary, seed: int,
-                 noise_topk: int, road_mask_prob: float, road_keep_radius_m: float | None, cache_size: int = 512) -> None:
-        self.scenes, self.motion_vocab, self.road_vocab = scenes, motion_vocab, road_vocab
+                 noise_topk: int, road_mask_prob: float, road_keep_radius_m: float | None, cache_size: int = 512,
+                 closed_loop: bool = False, road_types: str = "all") -> None:
+        self.scenes, self.motion_vocab, self.road_vocab, self.road_types = scenes, motion_vocab, road_vocab, road_types
         self.seed, self.noise_topk, self.road_mask_prob = seed, noise_topk, road_mask_prob
-        self.road_keep_radius_m, self.cache_size = road_keep_radius_m, cache_size
+        self.road_keep_radius_m, self.cache_size, self.closed_loop = road_keep_radius_m, cache_size, closed_loop
         self._roads: dict[int, RoadArrays] = {}
         self._motion: dict[int, Any] = {}
 
@@ -160,9 +171,11 @@ class TokenizedScenes(Dataset):
         scenario = self.scenes[index]
         road = self._roads.get(index)
         if road is None:
-            road = scene_road(scenario, self.road_vocab)
+            road = scene_road(scenario, self.road_vocab, self.road_types)
             if len(self._roads) < self.cache_size:
                 self._roads[index] = road
+        if self.closed_loop:
+            return {"scenario": scenario, "road": road, "position": int(position)}
         rng = np.random.default_rng([self.seed, int(position)])
         tokens = None
         if self.noise_topk <= 1:
@@ -206,8 +219,26 @@ class EpochBatchSampler(Sampler):
             yield [(self._scene_at(p), p) for p in range(first, first + self.b)]
 
 
+def closed_loop_batch(model: SMART, items: list[dict], motion_vocab: MotionVocabulary, top_k: int, road_mask_prob: float,
+                      road_keep_radius_m: float | None, seed: int, device: torch.device) -> SmartBatch:
+    """The training batch of closed-loop items (:class:`TokenizedScenes` with ``closed_loop``): CAT-K
+    token sequences under the current ``model`` (:func:`smart_marl.catk.catk_tokens`), then the usual
+    per-scene tensors (the road mask seeded by the sample position) and padding."""
+    scenes = [it["scenario"] for it in items]
+    tokens = catk_tokens(model, scenes, [it["road"] for it in items], motion_vocab, top_k, device)
+    return collate_scenes([scene_tensors(it["scenario"], motion_vocab, it["road"], road_mask_prob=road_mask_prob,
+                                         rng=np.random.default_rng([seed, it["position"]]), motion_tokens=mt,
+                                         road_keep_radius_m=road_keep_radius_m) for it, mt in zip(items, tokens)])
+
+
+def _item_list(items: list) -> list:
+    return items
+
+
 def make_loader(dataset: TokenizedScenes, sampler: EpochBatchSampler, num_workers: int, pin_memory: bool, seed: int) -> DataLoader:
-    return DataLoader(dataset, batch_sampler=sampler, collate_fn=collate_scenes, num_workers=num_workers, pin_memory=pin_memory,
+    collate = _item_list if dataset.closed_loop else collate_scenes
+    return DataLoader(dataset, batch_sampler=sampler, collate_fn=collate, num_workers=num_workers,
+                      pin_memory=pin_memory and not dataset.closed_loop,
                       generator=torch.Generator().manual_seed(seed),  # leaves the global RNG alone (exact resume)
                       persistent_workers=False, prefetch_factor=2 if num_workers else None)
 
@@ -418,6 +449,8 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
     info = init_distributed(device)
     if device.type == "cuda":
         torch.cuda.set_device(device)
+    else:
+        keep_freed_memory()  # a CPU step reuses its freed gigabytes instead of faulting them in again
     out_dir = Path(cfg.out_dir)
     last = out_dir / "checkpoints" / "last"
     resuming = checkpoint_paths(last)["meta"].is_file()
@@ -472,9 +505,12 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
     if keep is not None and keep < 0:
         keep = model_cfg.map_radius_m + model_cfg.num_road_layers * model_cfg.road_radius_m
     noise = cfg.token_noise_topk if cfg.token_noise_topk and cfg.token_noise_topk > 1 else 0
-    train_set = TokenizedScenes(scenes, mv, rv, cfg.seed, noise, cfg.road_mask_prob, keep)
+    if cfg.catk_top_k < 0:
+        raise TrainError(f"catk_top_k must be >= 0 (0: teacher forcing), got {cfg.catk_top_k}")
+    train_set = TokenizedScenes(scenes, mv, rv, cfg.seed, noise, cfg.road_mask_prob, keep, cache_size=cfg.cache_scenes,
+                                closed_loop=cfg.catk_top_k > 0, road_types=model_cfg.road_types)
     val_scenes = open_scenes(cfg.val_data) if cfg.val_data else scenes
-    val_set = TokenizedScenes(val_scenes, mv, rv, cfg.seed + 1, 0, cfg.road_mask_prob, keep)
+    val_set = TokenizedScenes(val_scenes, mv, rv, cfg.seed + 1, 0, cfg.road_mask_prob, keep, road_types=model_cfg.road_types)
     n_val = min(cfg.val_scenes, len(val_scenes))
     val_keys = [(i, i) for i in range(info.rank, n_val, info.world_size)]
     pin = device.type == "cuda"
@@ -514,6 +550,8 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
     model.train()
     ckpt_path = None
     for batch in loader:
+        if train_set.closed_loop:
+            batch = closed_loop_batch(model, batch, mv, cfg.catk_top_k, cfg.road_mask_prob, keep, cfg.seed, device)
         lr = scheduler.get_last_lr()[0]
         res = train_step(wrapped, optimizer, scheduler, batch, cfg.grad_clip, info, device, cfg.amp)
         step += 1

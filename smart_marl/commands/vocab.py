@@ -1,6 +1,7 @@
-"""``smart-marl vocab build SRC... --sizes 512,1024,2048 --out DIR [--seed S]``: build motion-token
-vocabularies (k-disks per agent type, one file pair per size) and a road-token vocabulary from
-scene files, folders or globs (tokens stage; the files are what checkpoints refer to)."""
+"""``smart-marl vocab build SRC... --sizes 512,1024,2048 --out DIR [--seed S] [--tolerance T]``: build
+motion-token vocabularies (k-disks per agent type, one file pair per size; a size ``V/P/C`` gives
+vehicles, pedestrians and cyclists their own sizes) and a road-token vocabulary from scene files,
+folders or globs (tokens stage; the files are what checkpoints refer to)."""
 
 from __future__ import annotations
 
@@ -28,7 +29,11 @@ def register(subparsers) -> None:
                                    "k-disks vocabularies. Writes DIR/motion_SIZE.{npz,json} per size and "
                                    "DIR/road_SIZE.{npz,json}.")
     b.add_argument("sources", nargs="+", metavar="SRC", help="scene files, folders or globs (any supported format)")
-    b.add_argument("--sizes", default="512,1024,2048", help="motion vocabulary sizes per type, comma-separated")
+    b.add_argument("--sizes", default="512,1024,2048",
+                   help="motion vocabulary sizes, comma-separated; each N (every type) or VEH/PED/CYC (per type), e.g. 1024/512/512")
+    b.add_argument("--tolerance", default="0", metavar="T",
+                   help="k-disks disk radius in metres, T or VEH/PED/CYC; 0 (default): the radius that covers every "
+                        "snippet is searched; smaller: the tokens go to the common motions first (e.g. 0.05/0/0)")
     b.add_argument("--road-size", type=int, default=1024, help="road vocabulary size (0: no road vocabulary)")
     b.add_argument("--out", required=True, type=Path, help="output folder")
     b.add_argument("--seed", type=int, default=0, help="random seed of k-disks (default 0)")
@@ -38,13 +43,22 @@ def register(subparsers) -> None:
 
 
 def run_build(args) -> int:
+    def per_type(text: str, cast) -> tuple:
+        values = tuple(cast(v) for v in text.split("/"))
+        if len(values) == 1:
+            values = values * len(MOTION_TYPES)
+        if len(values) != len(MOTION_TYPES):
+            raise ValueError(text)
+        return values
+
     try:
-        sizes = [int(s) for s in str(args.sizes).split(",") if s.strip()]
+        sizes = [per_type(s.strip(), int) for s in str(args.sizes).split(",") if s.strip()]
+        tolerance = per_type(str(args.tolerance), float)
     except ValueError:
-        sizes = []
-    if not sizes or min(sizes) < 1 or args.road_size < 0 or args.stride < 1:
-        print(f"smart-marl vocab build: error: --sizes must be positive integers (got {args.sizes!r}), --road-size >= 0, "
-              f"--stride >= 1", file=sys.stderr)
+        sizes, tolerance = [], ()
+    if not sizes or min(min(s) for s in sizes) < 1 or not tolerance or min(tolerance) < 0 or args.road_size < 0 or args.stride < 1:
+        print(f"smart-marl vocab build: error: --sizes must be positive integers N or VEH/PED/CYC (got {args.sizes!r}), "
+              f"--tolerance T or VEH/PED/CYC metres >= 0 (got {args.tolerance!r}), --road-size >= 0, --stride >= 1", file=sys.stderr)
         return 2
     files = expand_paths(args.sources)
     parts = {t: [] for t in MOTION_TYPES}
@@ -68,8 +82,10 @@ def run_build(args) -> int:
           + ", ".join(f"{k} {v}" for k, v in provenance["snippets"].items()), file=sys.stderr)
     args.out.mkdir(parents=True, exist_ok=True)
     for size in sizes:
-        vocab = build_motion_vocabulary(snippets, size, seed=args.seed, provenance=provenance, progress=not args.no_progress)
-        npz, js = save_motion_vocabulary(vocab, args.out / f"motion_{size}")
+        vocab = build_motion_vocabulary(snippets, dict(zip(MOTION_TYPES, size)), seed=args.seed, provenance=provenance,
+                                        progress=not args.no_progress, tolerance_m=dict(zip(MOTION_TYPES, tolerance)))
+        name = str(size[0]) if len(set(size)) == 1 else "-".join(str(v) for v in size)
+        npz, js = save_motion_vocabulary(vocab, args.out / f"motion_{name}")
         print(json.dumps({"kind": "motion", "path": str(npz), "sizes": vocab.sizes(), "content_hash": vocab.content_hash(),
                           "tolerance_m": {t.name.lower(): round(v.tolerance_m, 5) for t, v in vocab.types.items()}}), flush=True)
     if args.road_size:

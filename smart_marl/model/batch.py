@@ -20,7 +20,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
-from ..scenario import AgentType, Scenario, SignalState
+from ..scenario import AgentType, LaneType, MapFeatureType, RoadEdgeType, RoadLineType, Scenario, SignalState
 from ..tokens import MotionVocabulary, tokenize_motion
 from ..tokens.road import RoadVocabulary, match_road_pieces, road_pieces, road_successor_pairs
 from .roadnet import NUM_LIGHT_STATES, NUM_ROAD_TYPES
@@ -75,8 +75,47 @@ class RoadArrays:
     pairs: np.ndarray  # [E, 2]
 
 
-def scene_road(scenario: Scenario, road_vocab: RoadVocabulary) -> RoadArrays:
-    """Road pieces, their tokens, types, light states (at the current frame) and successor pairs."""
+ROAD_TYPE_SETS = ("all", "sumo")
+"""What the model's road-type embedding distinguishes (``SmartConfig.road_types``): ``all`` every WOMD
+feature type and subtype; ``sumo`` the kinds the SUMO source produces, for a model trained on SUMO
+scenes and run on real ones. Under ``sumo``, subtypes SUMO never makes take the nearest kind it
+makes (a freeway or undefined lane is a street lane, every road edge a boundary, an unknown line a
+broken white one, a double white a solid white one, every yellow centre line but a solid single
+one a solid double yellow), and speed bumps and driveways are left out of the model's road: their
+embeddings would never have been trained."""
+
+_SUMO_SUBTYPE = {  # feature type -> {subtype: the subtype SUMO makes}
+    MapFeatureType.LANE: {LaneType.UNDEFINED: LaneType.SURFACE_STREET, LaneType.FREEWAY: LaneType.SURFACE_STREET},
+    MapFeatureType.ROAD_LINE: {RoadLineType.UNKNOWN: RoadLineType.BROKEN_SINGLE_WHITE,
+                               RoadLineType.SOLID_DOUBLE_WHITE: RoadLineType.SOLID_SINGLE_WHITE,
+                               RoadLineType.BROKEN_SINGLE_YELLOW: RoadLineType.SOLID_DOUBLE_YELLOW,
+                               RoadLineType.BROKEN_DOUBLE_YELLOW: RoadLineType.SOLID_DOUBLE_YELLOW,
+                               RoadLineType.PASSING_DOUBLE_YELLOW: RoadLineType.SOLID_DOUBLE_YELLOW},
+    MapFeatureType.ROAD_EDGE: {RoadEdgeType.UNKNOWN: RoadEdgeType.BOUNDARY, RoadEdgeType.MEDIAN: RoadEdgeType.BOUNDARY},
+}
+_SUMO_LEFT_OUT = (MapFeatureType.SPEED_BUMP, MapFeatureType.DRIVEWAY)
+
+
+def road_type_ids(feature_type: np.ndarray, subtype: np.ndarray, road_types: str = "all") -> tuple[np.ndarray, np.ndarray]:
+    """The model's road-type ids (feature type * 9 + subtype) of pieces ``feature_type``, ``subtype``
+    [R] under ``road_types`` (see :data:`ROAD_TYPE_SETS`), and which pieces the model sees [R] bool."""
+    if road_types not in ROAD_TYPE_SETS:
+        raise ValueError(f"road_types must be one of {ROAD_TYPE_SETS}, got {road_types!r}")
+    ftype = np.asarray(feature_type, np.int64)
+    sub = np.clip(np.asarray(subtype, np.int64), 0, _SUBTYPES - 1)
+    keep = np.ones(len(ftype), bool)
+    if road_types == "sumo":
+        sub = sub.copy()
+        for f, table in _SUMO_SUBTYPE.items():
+            for a, b in table.items():
+                sub[(ftype == int(f)) & (sub == int(a))] = int(b)
+        keep = ~np.isin(ftype, [int(f) for f in _SUMO_LEFT_OUT])
+    return ftype * _SUBTYPES + sub, keep
+
+
+def scene_road(scenario: Scenario, road_vocab: RoadVocabulary, road_types: str = "all") -> RoadArrays:
+    """Road pieces, their tokens, types (:func:`road_type_ids`), light states (at the current frame)
+    and successor pairs."""
     pieces = road_pieces(scenario.road_map, scenario.traffic_lights)
     ids, _, _ = match_road_pieces(pieces.local, road_vocab) if pieces.num_pieces else (np.zeros(0, np.int64),) * 3
     light = np.full(pieces.num_pieces, NO_LIGHT, np.int64)
@@ -87,8 +126,9 @@ def scene_road(scenario: Scenario, road_vocab: RoadVocabulary) -> RoadArrays:
         li = pieces.traffic_light_index[has]
         light[has] = np.where(tl.present[f, li], tl.states[f, li], int(SignalState.UNKNOWN))
     pairs, _ = road_successor_pairs(pieces, scenario.road_map)
-    type_id = pieces.feature_type.astype(np.int64) * _SUBTYPES + np.clip(pieces.feature_subtype, 0, _SUBTYPES - 1)
-    return RoadArrays(local=pieces.local, pose=pieces.pose, type_id=type_id, light=light, token=ids, pairs=pairs)
+    type_id, keep = road_type_ids(pieces.feature_type, pieces.feature_subtype, road_types)
+    road = RoadArrays(local=pieces.local, pose=pieces.pose, type_id=type_id, light=light, token=ids, pairs=pairs)
+    return road if keep.all() else crop_road(road, keep)
 
 
 def crop_road(road: RoadArrays, keep: np.ndarray) -> RoadArrays:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Mapping, NamedTuple
 
 import torch
 import torch.nn as nn
@@ -49,11 +49,14 @@ class SmartConfig:
     road_piece_points: int = 11
     num_freq_bands: int = 64
     dropout: float = 0.1
+    road_types: str = "all"  # the road kinds the type embedding tells apart (batch.ROAD_TYPE_SETS): "all" or "sumo"
 
     def __post_init__(self) -> None:
         self.motion_vocab_sizes = tuple(int(v) for v in self.motion_vocab_sizes)
         if len(self.motion_vocab_sizes) != NUM_MOTION_TYPES:
             raise ModelConfigError(f"motion_vocab_sizes needs 3 sizes (vehicle, pedestrian, cyclist), got {self.motion_vocab_sizes}")
+        if self.road_types not in ("all", "sumo"):
+            raise ModelConfigError(f"road_types must be 'all' or 'sumo', got {self.road_types!r}")
         if self.num_heads * self.head_dim != self.hidden_dim:
             raise ModelConfigError(f"num_heads * head_dim must equal hidden_dim, got {self.num_heads} * {self.head_dim} != {self.hidden_dim}")
 
@@ -94,6 +97,18 @@ def get_config(name_or_dict: str | Mapping[str, Any], **overrides: Any) -> Smart
     return SmartConfig(**values)
 
 
+class RoadInputs(NamedTuple):
+    """The road tensors :meth:`SMART.encode_road` reads, for callers that hold them loose (a
+    :class:`~smart_marl.model.batch.SmartBatch` and a :class:`~smart_marl.rollout.RolloutState`
+    carry the same attributes)."""
+
+    road_points: torch.Tensor  # [B, R, P, 2] piece points in the piece's frame
+    road_pose: torch.Tensor  # [B, R, 3]
+    road_type: torch.Tensor  # [B, R] long
+    road_light: torch.Tensor  # [B, R] long
+    road_valid: torch.Tensor  # [B, R] bool
+
+
 class SMART(nn.Module):
     """RoadNet + MotionNet + heads. The motion vocabularies' contours are buffers (they are part
     of the model: the token embedding reads them), shaped [V_t, 6, 4, 2] per type."""
@@ -119,7 +134,8 @@ class SMART(nn.Module):
     def encode_road(self, batch, masked: torch.Tensor | None = None) -> torch.Tensor:
         """Road encodings [B, R, d] (computed once per scene at inference). ``batch``: anything with
         ``road_points``, ``road_pose``, ``road_type``, ``road_light``, ``road_valid`` (a
-        :class:`~smart_marl.model.batch.SmartBatch`, a :class:`~smart_marl.rollout.RolloutState`)."""
+        :class:`~smart_marl.model.batch.SmartBatch`, a :class:`~smart_marl.rollout.RolloutState`,
+        :class:`RoadInputs`)."""
         return self.road_net(batch.road_points, batch.road_pose, batch.road_type, batch.road_light, batch.road_valid, masked)
 
     def agent_features(self, tokens: torch.Tensor, agent_type: torch.Tensor, agent_shape: torch.Tensor, start_pose: torch.Tensor,

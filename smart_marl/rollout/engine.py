@@ -201,7 +201,7 @@ class RolloutState:
         self.scene_of_group = torch.arange(len(self.scenes), device=dev).repeat_interleave(r)
         # ---- road: pieces per scene, encoded once per scene
         rv = road_vocab or _dummy_road_vocab()
-        roads = [scene_road(sc, rv) for sc in self.scenes]
+        roads = [scene_road(sc, rv, cfg.road_types) for sc in self.scenes]
         rmax = max(max(len(rd.token) for rd in roads), 1)
         p = cfg.road_piece_points
         t = lambda a: torch.from_numpy(a).to(dev)  # noqa: E731

@@ -23,6 +23,12 @@ What becomes what (decided here, relied on by the tests):
 * ROAD_EDGE (BOUNDARY): the boundary of the drivable area, the union of every LANE's polygon (small
   cracks between junction lanes closed, small holes dropped), oriented so that the drivable area is
   on the left of each polyline; cut to the scene's radius.
+* ROAD_LINE: the painted lines of every road (not through junctions), as WOMD maps hold them: a
+  ``BROKEN_SINGLE_WHITE`` line between two lanes of one direction (``SOLID_SINGLE_WHITE`` where one
+  of them is a bike lane), a ``SOLID_DOUBLE_YELLOW`` centre line between the two directions of a
+  two-way road (once per pair of opposite edges) and a ``SOLID_SINGLE_YELLOW`` on the left of a
+  one-way road; each is the lane's centre line offset by half its width (the right side of a road
+  is its road edge).
 * STOP_SIGN: one at the end of every lane whose junction link has a stop or all-way-stop rule
   (``priority_stop`` / ``allway_stop`` junctions), linked to that lane.
 * Traffic lights: every signal link of SUMO controls the internal lane that crosses the junction
@@ -46,7 +52,7 @@ from typing import Any
 
 import numpy as np
 
-from ..scenario import LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadMap, SignalState
+from ..scenario import LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadLineType, RoadMap, SignalState
 
 MPH_PER_MPS = 2.2369362920544
 QUANTUM = 2.0 ** -16
@@ -59,6 +65,7 @@ LANE_POINT_SPACING_M = 1.0
 CROSSWALK_ID0 = 1_000_000
 STOP_SIGN_ID0 = 2_000_000
 ROAD_EDGE_ID0 = 3_000_000
+ROAD_LINE_ID0 = 4_000_000
 
 _VEHICLE_CLASSES = ("passenger", "truck", "bus", "delivery")
 
@@ -222,6 +229,9 @@ class NetworkMap:
     stop_sign_points: np.ndarray  # [S, 3]
     stop_sign_lanes: np.ndarray  # [S] int64 lane ids
     road_edges: list[np.ndarray]  # oriented closed rings [n, 2] (drivable area on the left)
+    road_line_points: np.ndarray  # [Q, 3] float64
+    road_line_offsets: np.ndarray  # [M + 1]
+    road_line_subtypes: np.ndarray  # [M] int8 RoadLineType
     signal_links: dict[str, np.ndarray]  # tls id -> [links] lane id of each SUMO link index (-1: none)
     signal_stop_points: dict[int, np.ndarray]  # controlled lane id -> stop point [3]
     lane_index_of_sumo: dict[str, int] = field(default_factory=dict)
@@ -254,6 +264,9 @@ class NetworkMap:
             features.append(dict(id=int(self.lane_ids[i]), type=MapFeatureType.LANE, subtype=int(self.lane_subtypes[i]),
                                  speed_limit_mph=float(self.lane_speed_mph[i]),
                                  points=local(self.lane_points[self.lane_offsets[i]:self.lane_offsets[i + 1]])))
+        for k in np.flatnonzero(near(self.road_line_points, self.road_line_offsets)):
+            features.append(dict(id=ROAD_LINE_ID0 + int(k), type=MapFeatureType.ROAD_LINE, subtype=int(self.road_line_subtypes[k]),
+                                 points=local(self.road_line_points[self.road_line_offsets[k]:self.road_line_offsets[k + 1]])))
         for k in np.flatnonzero(near(self.crosswalk_points, self.crosswalk_offsets)):
             features.append(dict(id=CROSSWALK_ID0 + int(k), type=MapFeatureType.CROSSWALK,
                                  points=local(self.crosswalk_points[self.crosswalk_offsets[k]:self.crosswalk_offsets[k + 1]])))
@@ -398,6 +411,7 @@ def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0) -> Netwo
         rings.append(np.asarray(poly.exterior.coords))
         rings += [np.asarray(h.coords) for h in poly.interiors if shapely.Polygon(h).area >= 25.0]
 
+    line_pts, line_types = road_lines(net, lanes, subtypes, rot)
     stop_pts = np.array([shapes[k][-1] for k in stop_sign_lanes], np.float64).reshape(-1, 3)
     junction_types = sorted({n.getType() for n in net.getNodes()})
     return NetworkMap(
@@ -414,13 +428,52 @@ def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0) -> Netwo
         stop_sign_points=stop_pts,
         stop_sign_lanes=lane_ids[np.array(stop_sign_lanes, np.int64)] if stop_sign_lanes else np.zeros(0, np.int64),
         road_edges=rings,
+        road_line_points=np.concatenate(line_pts) if line_pts else np.zeros((0, 3)),
+        road_line_offsets=np.concatenate([[0], np.cumsum([len(q) for q in line_pts])]).astype(np.int64),
+        road_line_subtypes=np.array(line_types, np.int8),
         signal_links=signal_links,
         signal_stop_points=signal_stop_points,
         lane_index_of_sumo=index_of,
         stats={"lanes": len(lanes), "crossings": len(cw_len), "traffic_lights": len(signal_links),
-               "stop_signs": len(stop_sign_lanes), "junction_types": junction_types,
+               "stop_signs": len(stop_sign_lanes), "road_lines": len(line_types), "junction_types": junction_types,
                "edges": sum(1 for e in net.getEdges() if e.getFunction() == "")},
     )
+
+
+def road_lines(net, lanes: list, subtypes: list[int], rotation: np.ndarray) -> tuple[list[np.ndarray], list[int]]:
+    """The painted lines of the network's roads (see the module docstring): polylines [n, 3] (source
+    frame, quantised, a point at least every metre) and their RoadLineType."""
+    import shapely
+
+    kept = {lane.getID(): k for k, lane in enumerate(lanes)}
+    points: list[np.ndarray] = []
+    kinds: list[int] = []
+
+    def add(lane, side: float, kind: RoadLineType) -> None:
+        shape = np.asarray(lane.getShape(), np.float64)[:, :2]
+        if len(shape) < 2 or np.ptp(shape, axis=0).max() < 1e-3:
+            return
+        line = shapely.offset_curve(shapely.LineString(shape), side * lane.getWidth() / 2, join_style="mitre", mitre_limit=2.0)
+        for part in getattr(line, "geoms", [line]):
+            if part.is_empty or part.length < 0.5:
+                continue
+            xy = quantize(densify(np.asarray(part.coords)[:, :2], LANE_POINT_SPACING_M) @ rotation.T)
+            points.append(np.concatenate([xy, np.zeros((len(xy), 1))], axis=1))
+            kinds.append(int(kind))
+
+    for edge in net.getEdges():  # normal edges only: no painted line crosses a junction
+        road = [lane for lane in edge.getLanes() if lane.getID() in kept]
+        if not road:
+            continue
+        bike = [subtypes[kept[lane.getID()]] == LaneType.BIKE_LANE for lane in road]
+        for i in range(len(road) - 1):
+            add(road[i], 1.0, RoadLineType.SOLID_SINGLE_WHITE if bike[i] or bike[i + 1] else RoadLineType.BROKEN_SINGLE_WHITE)
+        opposite = [e for e in edge.getToNode().getOutgoing() if e.getToNode() == edge.getFromNode()]
+        if not opposite:
+            add(road[-1], 1.0, RoadLineType.SOLID_SINGLE_YELLOW)
+        elif edge.getID() < opposite[0].getID():  # one centre line per two-way road
+            add(road[-1], 1.0, RoadLineType.SOLID_DOUBLE_YELLOW)
+    return points, kinds
 
 
 # SUMO signal characters -> SignalState (https://sumo.dlr.de/docs/Simulation/Traffic_Lights.html#signal_state_definitions)

@@ -11,6 +11,13 @@ removed; repeat. A larger tolerance gives fewer centres. :func:`kdisks` searches
 bisection for the *largest* tolerance whose pass still yields the requested number of centres,
 then keeps the first ``size`` centres of that pass, so that the samples left uncovered are few.
 
+A given tolerance instead (``kdisks(..., tolerance_m=r)``, smaller than the covering one): the first
+``size`` centres of one pass at that radius. The visiting order is random, so the early centres
+fall where the samples are dense: the tokens go to the common motions at a fine resolution and
+rare ones (sharp turns, hard braking) are left to their nearest token. On SUMO-built vehicle
+vocabularies this is what makes real straight driving rebuild without a turning jitter
+(README, model card).
+
 Output: the indices of the centre samples (the vocabulary entries are real samples, not means)
 and the tolerance. Deterministic given the seed (CPU float32 arithmetic, fixed order).
 
@@ -26,14 +33,24 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 from tqdm.auto import tqdm
 
-__all__ = ["KDisksResult", "kdisks", "kdisks_pass", "mean_point_distance"]
+__all__ = ["KDisksResult", "kdisks", "kdisks_pass", "mean_point_distance", "point_distance_matrices"]
 
 
 def mean_point_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Mean over the points of the Euclidean distance: ``a``, ``b`` [..., P, 2] (broadcast) -> [...]."""
     return np.sqrt(((np.asarray(a) - np.asarray(b)) ** 2).sum(-1)).mean(-1)
+
+
+def point_distance_matrices(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Distances between corresponding points of every pair: ``a`` [N, P, 2], ``b`` [V, P, 2] ->
+    [P, N, V] (the matchers average them, possibly weighted). Computed point by point, directly (no
+    ``|a|^2 + |b|^2 - 2ab`` cancellation), without the [N, V, P, 2] difference tensor: 6-10x faster
+    than broadcasting on the CPU, equal to it within float rounding."""
+    return torch.cdist(a.transpose(0, 1).contiguous(), b.transpose(0, 1).contiguous(),
+                       compute_mode="donot_use_mm_for_euclid_dist")
 
 
 @dataclass(frozen=True)
@@ -111,8 +128,10 @@ def kdisks_pass(samples: np.ndarray, tolerance_m: float, max_centres: int, seed:
 
 
 def kdisks(samples: np.ndarray, size: int, seed: int = 0, iterations: int = 24, progress: bool = True,
-           desc: str = "k-disks") -> KDisksResult:
-    """Choose ``size`` centres among ``samples`` [M, P, 2] by k-disks with a searched tolerance.
+           desc: str = "k-disks", tolerance_m: float | None = None) -> KDisksResult:
+    """Choose ``size`` centres among ``samples`` [M, P, 2] by k-disks with a searched tolerance
+    (or the given ``tolerance_m``: the first ``size`` centres of a pass at that radius, see the
+    module docstring; when that pass covers every sample with fewer centres, the search runs).
 
     The search is a bisection on log(tolerance) for the largest tolerance whose pass reaches
     ``size`` centres (at most ``iterations`` passes; it stops early when a pass reaches ``size``
@@ -145,6 +164,10 @@ def kdisks(samples: np.ndarray, size: int, seed: int = 0, iterations: int = 24, 
     best = (0.0, centres, left)
     if left == 0:
         return KDisksResult(centres, 0.0, m, 0, passes)
+    if tolerance_m is not None and tolerance_m > 0:
+        centres, left = run(float(tolerance_m), "given")
+        if len(centres) >= size:
+            return KDisksResult(np.asarray(centres, np.int64), float(tolerance_m), m, int(left), passes)
     probe = samples[order[: min(m, 500)]]
     scale = float(np.median(np.sqrt(((probe[:, None] - probe[None, :100]) ** 2).sum(-1)).mean(-1))) or 1.0
     lo, hi = scale * 1e-6, scale * 4.0

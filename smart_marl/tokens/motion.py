@@ -50,7 +50,7 @@ import numpy as np
 import torch
 
 from ..scenario import DT_S, AgentType, Scenario, wrap_angle
-from .kdisks import kdisks
+from .kdisks import kdisks, point_distance_matrices
 
 __all__ = [
     "BOX_SIZE_M", "FRAMES_PER_TOKEN", "MOTION_TYPES", "POSES_PER_TOKEN", "TOKEN_S", "TYPE_KEYS", "VOCABULARY_VERSION",
@@ -259,8 +259,11 @@ def augment_snippets(snippets: np.ndarray, count: int, rng: np.random.Generator,
 
 def build_motion_vocabulary(snippets: Mapping[AgentType, np.ndarray], sizes: int | Mapping[AgentType, int], seed: int = 0,
                             min_samples_per_token: int = 4, provenance: Mapping[str, Any] | None = None,
-                            progress: bool = True) -> MotionVocabulary:
+                            progress: bool = True, tolerance_m: float | Mapping[AgentType, float] | None = None) -> MotionVocabulary:
     """k-disks vocabularies per type from snippets [M, 6, 3] (see :func:`collect_snippets`).
+
+    ``tolerance_m`` (per type or for all; None or 0: the covering radius is searched): a fixed disk
+    radius, so that the tokens go to the dense motions first (:func:`~.kdisks.kdisks`).
 
     When a type has fewer than ``min_samples_per_token * size`` snippets, jittered copies
     (:func:`augment_snippets`) are added up to that count before clustering; the counts are recorded
@@ -280,7 +283,9 @@ def build_motion_vocabulary(snippets: Mapping[AgentType, np.ndarray], sizes: int
             samples = np.concatenate([real, augment_snippets(real, want - len(real), rng)])
         length, width = BOX_SIZE_M[t]
         contour = box_contour(samples, length, width).reshape(len(samples), -1, 2)
-        res = kdisks(contour, size, seed=int(rng.integers(2**31)), progress=progress, desc=f"k-disks {TYPE_KEYS[t]} {size}")
+        tol = tolerance_m.get(t) if isinstance(tolerance_m, Mapping) else tolerance_m
+        res = kdisks(contour, size, seed=int(rng.integers(2**31)), progress=progress, desc=f"k-disks {TYPE_KEYS[t]} {size}",
+                     tolerance_m=tol or None)
         types[t] = TypeVocab.from_poses(samples[res.centre_indices], length, width, tolerance_m=res.tolerance_m,
                                         requested_size=size, num_samples=len(samples), num_real_samples=len(real))
     if not types:
@@ -361,13 +366,19 @@ def _contour_torch(poses: torch.Tensor, length_m: float, width_m: float) -> torc
 def tokenize_tracks(position: np.ndarray, heading: np.ndarray, valid: np.ndarray, types: np.ndarray,
                     vocab: MotionVocabulary, boundaries: np.ndarray, match: str = "contour", noise_topk: int = 0,
                     noise_prob: float = 1.0, rng: np.random.Generator | int | None = None,
-                    agent_chunk: int = 64) -> MotionTokens:
+                    agent_chunk: int = 64, candidates=None) -> MotionTokens:
     """Rolling matching of tracks ``position`` [N, T, 2+], ``heading`` [N, T], ``valid`` [N, T],
     ``types`` [N] on the token grid ``boundaries`` [S + 1] (see the module docstring).
 
     Vectorised over agents (per type, in chunks of ``agent_chunk`` against the whole vocabulary);
     the loop is over the S token steps, which depend on each other. Tracks of type OTHER get no
     valid token. Scenes can be batched by concatenating their tracks (same boundaries).
+
+    ``candidates`` (closed-loop training, :mod:`smart_marl.catk`): a callable
+    ``candidates(k, partial) -> allowed [N, Vmax] bool or None`` called before step ``k`` with the
+    :class:`MotionTokens` filled up to step ``k - 1`` (later steps are zeros). Where a row of
+    ``allowed`` has a true entry, token ``k`` is the closest to the track among the allowed tokens
+    (no noise); ``nearest_ids`` stays the closest of the whole vocabulary.
     """
     if match not in ("contour", "end"):
         raise ValueError(f"match must be 'contour' or 'end', got {match!r}")
@@ -386,8 +397,11 @@ def tokenize_tracks(position: np.ndarray, heading: np.ndarray, valid: np.ndarray
     start = np.zeros((n, s, 3), np.float64)
     reached = np.zeros((n, s + 1, 3), np.float64)
     reached_valid = np.zeros((n, s + 1), bool)
-    vocab_t = {t: (torch.from_numpy(v.contour[:, 1:].reshape(v.size, FRAMES_PER_TOKEN, 8)), v) for t, v in vocab.types.items()}
+    vocab_t = {t: (torch.from_numpy(np.ascontiguousarray(v.contour[:, 1:].reshape(v.size, -1, 2))), v) for t, v in vocab.types.items()}
+    partial = MotionTokens(ids=ids, valid=tok_valid, start_pose=start, reached=reached, reached_valid=reached_valid,
+                           types=types, boundaries=boundaries, nearest_ids=nearest)  # views of the arrays being filled
     for k in range(s):
+        allowed = candidates(k, partial) if candidates is not None else None
         b0, b1 = int(boundaries[k]), int(boundaries[k + 1])
         frames = np.arange(b0 + 1, b1 + 1)
         ok = valid[:, b0] & valid[:, b1] & is_motion
@@ -402,13 +416,19 @@ def tokenize_tracks(position: np.ndarray, heading: np.ndarray, valid: np.ndarray
                 w = valid[r][:, frames].astype(np.float64)  # [n, 5]
                 if match == "end":
                     w[:, :-1] = 0.0
-                tc = _contour_torch(torch.from_numpy(target.astype(np.float32)), v.length_m, v.width_m).reshape(len(r), 1, FRAMES_PER_TOKEN, 8)
-                d = (tc - vc[None]).view(len(r), v.size, FRAMES_PER_TOKEN, 4, 2).square().sum(-1).sqrt().mean(-1)  # [n, V, 5]
+                tc = _contour_torch(torch.from_numpy(target.astype(np.float32)), v.length_m, v.width_m)  # [n, 5, 4, 2]
+                d = point_distance_matrices(tc.reshape(len(r), -1, 2), vc)  # [5 * 4, n, V] corner distances
+                d = d.view(FRAMES_PER_TOKEN, 4, len(r), v.size).mean(1)  # [5, n, V] mean corner distance per frame
                 wt = torch.from_numpy((w / w.sum(1, keepdims=True)).astype(np.float32))
-                dist = (d * wt[:, None, :]).sum(-1)  # [n, V] mean corner distance over the valid frames
+                dist = (d * wt.t()[:, :, None]).sum(0)  # [n, V] mean corner distance over the valid frames
                 best = dist.argmin(-1).numpy()
                 choice = best.copy()
-                if noise_topk > 1:
+                if allowed is not None:
+                    allow = torch.from_numpy(np.ascontiguousarray(allowed[r, : v.size]))
+                    restricted = allow.any(-1).numpy()
+                    closest_allowed = dist.masked_fill(~allow, float("inf")).argmin(-1).numpy()
+                    choice = np.where(restricted, closest_allowed, best)
+                elif noise_topk > 1:
                     kk = min(noise_topk, v.size)
                     top = torch.topk(dist, kk, dim=-1, largest=False).indices.numpy()  # [n, kk]
                     pick = top[np.arange(len(r)), rng.integers(0, kk, len(r))]

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from ..scenario import POLYGON_FEATURES, LinkType, MapFeatureType, RoadMap, TrafficLights
-from .kdisks import kdisks
+from .kdisks import kdisks, point_distance_matrices
 from .motion import VOCABULARY_VERSION, hash_arrays
 
 __all__ = [
@@ -177,7 +177,7 @@ def match_road_pieces(local_points: np.ndarray, vocab: RoadVocabulary, noise_top
     ids = np.zeros(k, np.int64)
     for c0 in range(0, k, chunk):
         xc = x[c0 : c0 + chunk]
-        d = (xc[:, None] - v[None]).square().sum(-1).sqrt().mean(-1)  # [c, V]
+        d = point_distance_matrices(xc, v).mean(0)  # [c, V] mean point distance
         best = d.argmin(-1)
         nearest[c0 : c0 + len(xc)] = best.numpy()
         dist_best[c0 : c0 + len(xc)] = d.gather(1, best[:, None])[:, 0].numpy()

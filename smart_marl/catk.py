@@ -1,0 +1,168 @@
+"""Training stage, closed-loop targets: CAT-K ("closest among top-K", Zhang et al., CVPR 2025).
+
+Teacher forcing trains SMART on the logged token sequences (with token noise); in closed loop the
+model then meets states of its own making. CAT-K fine-tunes it on its own rollouts kept near the
+log: the history is the logged one (rolling matching, no noise) and, from the scene's current
+frame on, every token step of every agent is taken *among the model's K most likely tokens* as the
+one whose placed poses come closest to the logged ones (the tokenizer's mean corner distance over
+the token's frames). The training targets are, as in teacher forcing, the nearest token of the
+whole vocabulary from the pose the sequence reached, so they lead back toward the log.
+
+What comes in: scenes (Scenario), their road arrays (:func:`~smart_marl.model.batch.scene_road`)
+and the current model. What goes out: per scene the :class:`~smart_marl.tokens.MotionTokens` of
+the CAT-K rollout, which :func:`~smart_marl.model.batch.scene_tensors` turns into a training
+batch like any other. The rollout runs the model's KV-cached step (:meth:`SMART.start_cache
+<smart_marl.model.SMART.start_cache>`, ``step``, ``next_token_logits``) in eval mode without gradients,
+all scenes of a batch at once, interleaved with the tokenizer's step loop (its ``candidates`` hook).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from .model.batch import RoadArrays
+from .model.motionnet import NUM_MOTION_TYPES
+from .model.smart import RoadInputs
+from .scenario import Scenario
+from .tokens import FRAMES_PER_TOKEN, MotionTokens, MotionVocabulary, token_boundaries, tokenize_tracks
+
+
+def first_future_step(scenario: Scenario) -> int:
+    """The index of the first token that starts at or after the scene's current frame."""
+    return int(scenario.current_frame) // FRAMES_PER_TOKEN
+
+
+def _agent_shapes(scenario: Scenario, rows: np.ndarray) -> np.ndarray:
+    """Median (length, width, height) [M, 3] of tracks ``rows`` over their valid frames (as the batch builder)."""
+    tr = scenario.tracks
+    size = np.where(tr.valid[rows][..., None], tr.size[rows], np.nan)
+    with np.errstate(all="ignore"):
+        return np.nan_to_num(np.nanmedian(size, axis=1)).astype(np.float32) if len(rows) else np.zeros((0, 3), np.float32)
+
+
+@torch.no_grad()
+def catk_tokens(model, scenes: Sequence[Scenario], roads: Sequence[RoadArrays], vocab: MotionVocabulary, top_k: int,
+                device: torch.device | str = "cpu") -> list[MotionTokens]:
+    """CAT-K token sequences of ``scenes`` (see the module docstring) under ``model``.
+
+    ``roads[i]`` are scene i's road pieces. Scenes that share a token grid (same current frame
+    modulo 5 and frame count, as every 9.1 s scene) run as one batch through the model. Returns
+    one :class:`MotionTokens` per scene, in order, with a row per track like
+    :func:`~smart_marl.tokens.tokenize_motion`.
+    """
+    if top_k < 1:
+        raise ValueError(f"CAT-K needs top_k >= 1, got {top_k}")
+    device = torch.device(device)
+    out: list[MotionTokens | None] = [None] * len(scenes)
+    groups: dict[tuple, list[int]] = defaultdict(list)
+    for i, sc in enumerate(scenes):
+        groups[(int(sc.current_frame), int(sc.num_frames))].append(i)
+    was_training = model.training
+    model.eval()
+    try:
+        for idx in groups.values():
+            for i, tokens in zip(idx, _catk_group(model, [scenes[i] for i in idx], [roads[i] for i in idx], vocab, top_k, device)):
+                out[i] = tokens
+    finally:
+        model.train(was_training)
+    return out  # type: ignore[return-value]
+
+
+def _catk_group(model, scenes: list[Scenario], roads: list[RoadArrays], vocab: MotionVocabulary, top_k: int,
+                device: torch.device) -> list[MotionTokens]:
+    """Scenes on one token grid: their tracks concatenated into one rolling matching, the model
+    stepped once per token step for all scenes (group g = scene g, slots = its motion agents)."""
+    cfg = model.config
+    sc0 = scenes[0]
+    bounds = token_boundaries(sc0.current_frame, sc0.num_frames)
+    kc = first_future_step(sc0)
+    motion_types = np.array([int(t) for t in vocab.types])
+    # slots: per scene, the motion-type tracks with at least one valid token, in track order
+    slot_rows, offsets = [], []
+    for sc in scenes:
+        tr = sc.tracks
+        ok = tr.valid[:, bounds[:-1]] & tr.valid[:, bounds[1:]]
+        slot_rows.append(np.flatnonzero(np.isin(tr.types, motion_types) & ok.any(1)))
+    g, n = len(scenes), max(max((len(r) for r in slot_rows), default=0), 1)
+    total = 0
+    flat_of_row = []  # per scene: row of the concatenated tracks -> flat slot g * n + j (or -1)
+    for b, sc in enumerate(scenes):
+        m = np.full(sc.num_tracks, -1, np.int64)
+        m[slot_rows[b]] = b * n + np.arange(len(slot_rows[b]))
+        flat_of_row.append(m)
+        offsets.append(total)
+        total += sc.num_tracks
+    slot_of_row = torch.from_numpy(np.concatenate(flat_of_row))  # [N_total]
+    has_slot = slot_of_row >= 0
+    agent_type = torch.zeros(g, n, dtype=torch.long)
+    agent_shape = torch.zeros(g, n, 3)
+    for b, (sc, rows) in enumerate(zip(scenes, slot_rows)):
+        agent_type[b, : len(rows)] = torch.from_numpy(sc.tracks.types[rows].astype(np.int64))
+        agent_shape[b, : len(rows)] = torch.from_numpy(_agent_shapes(sc, rows))
+    # road: every piece of each scene, encoded once (no piece is hidden: this is not the road task)
+    rmax = max(max(len(rd.token) for rd in roads), 1)
+    p = cfg.road_piece_points
+
+    def pad(arrays, size, fill=0):
+        o = np.full((len(arrays), *size), fill, dtype=np.asarray(arrays[0]).dtype)
+        for i, a in enumerate(arrays):
+            o[(i, *[slice(0, k) for k in np.shape(a)])] = a
+        return torch.from_numpy(o).to(device)
+
+    road_pose = pad([rd.pose.astype(np.float32) for rd in roads], (rmax, 3))
+    road_valid = pad([np.ones(len(rd.token), bool) for rd in roads], (rmax,), False)
+    road_points = pad([rd.local.astype(np.float32).reshape(-1, p, 2) for rd in roads], (rmax, p, 2))
+    road_x = model.encode_road(RoadInputs(road_points, road_pose, pad([rd.type_id for rd in roads], (rmax,)),
+                                          pad([rd.light for rd in roads], (rmax,)), road_valid))  # (G, R, d)
+    cache = model.start_cache(road_x, road_pose, road_valid, torch.arange(g, device=device), agent_type.to(device),
+                              agent_shape.to(device))
+    sizes = list(cfg.motion_vocab_sizes)
+    vmax = max(sizes)
+    flat_type = agent_type.reshape(-1).to(device)
+
+    def candidates(k: int, partial: MotionTokens):
+        if k == 0:
+            return None
+        # feed token k - 1 of every slot: its features give the distribution of token k
+        sel = slot_of_row[has_slot]
+        tok = torch.zeros(g * n, dtype=torch.long)
+        start = torch.zeros(g * n, 3)
+        end = torch.zeros(g * n, 3)
+        valid = torch.zeros(g * n, dtype=torch.bool)
+        tok[sel] = torch.from_numpy(partial.ids[has_slot.numpy(), k - 1])
+        start[sel] = torch.from_numpy(partial.start_pose[has_slot.numpy(), k - 1]).float()
+        end[sel] = torch.from_numpy(partial.reached[has_slot.numpy(), k]).float()
+        valid[sel] = torch.from_numpy(partial.valid[has_slot.numpy(), k - 1])
+        rows, feats = model.step(cache, tok.view(g, n).to(device), start.view(g, n, 3).to(device), end.view(g, n, 3).to(device),
+                                 valid.view(g, n).to(device))
+        if k < kc or rows.numel() == 0:
+            return None  # history: the logged tokens
+        types = flat_type[rows]
+        logits = model.next_token_logits(feats, types)  # (Q, Vmax), each row under its type's head
+        allowed_slots = torch.zeros(g * n, vmax, dtype=torch.bool)
+        for t in range(NUM_MOTION_TYPES):
+            sel_t = types == t
+            if not sel_t.any():
+                continue
+            top = logits[sel_t, : sizes[t]].topk(min(top_k, sizes[t]), dim=-1).indices.cpu()
+            allowed_slots[rows[sel_t].cpu()[:, None], top] = True
+        allowed = np.zeros((len(slot_of_row), vmax), bool)
+        allowed[has_slot.numpy()] = allowed_slots[slot_of_row[has_slot]].numpy()
+        return allowed
+
+    pos = np.concatenate([sc.tracks.position for sc in scenes])
+    heading = np.concatenate([sc.tracks.heading for sc in scenes])
+    valid = np.concatenate([sc.tracks.valid for sc in scenes])
+    types = np.concatenate([sc.tracks.types for sc in scenes])
+    mt = tokenize_tracks(pos, heading, valid, types, vocab, bounds, candidates=candidates)
+    per_scene = []
+    for b, sc in enumerate(scenes):
+        r = slice(offsets[b], offsets[b] + sc.num_tracks)
+        per_scene.append(MotionTokens(ids=mt.ids[r], valid=mt.valid[r], start_pose=mt.start_pose[r], reached=mt.reached[r],
+                                      reached_valid=mt.reached_valid[r], types=mt.types[r], boundaries=mt.boundaries,
+                                      nearest_ids=mt.nearest_ids[r]))
+    return per_scene
