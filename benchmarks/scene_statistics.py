@@ -38,7 +38,8 @@ def _is_91_at_10hz(scenario) -> bool:
     return scenario.num_frames == 91 and bool(np.allclose(np.diff(scenario.timestamps_s), 0.1, atol=1e-3))
 
 
-def collect(name: str, paths: list[str], keep=None, max_scenes: int | None = None) -> tuple[dict, int, float]:
+def collect(name: str, paths: list[str], keep=None, max_scenes: int | None = None,
+            bootstrap: int = 0) -> tuple[dict, int, float]:
     """(summary, scenes, seconds) of the scenes under ``paths`` that ``keep`` accepts, deduplicated by id."""
     acc = StatisticsAccumulator()
     seen: set[str] = set()
@@ -50,7 +51,7 @@ def collect(name: str, paths: list[str], keep=None, max_scenes: int | None = Non
         acc.add(scenario)
         if max_scenes and acc.scenes >= max_scenes:
             break
-    return acc.summary(), acc.scenes, time.perf_counter() - started
+    return acc.summary(bootstrap=bootstrap), acc.scenes, time.perf_counter() - started
 
 
 def _fmt(x: float) -> str:
@@ -63,11 +64,12 @@ def _fmt(x: float) -> str:
 def cell(kind: str, numbers: dict | None) -> str:
     if numbers is None:
         return "-"
+    ci = f" ({_fmt(numbers['lo'])}-{_fmt(numbers['hi'])})" if "lo" in numbers else ""
     if kind == "distribution":
-        return f"{_fmt(numbers['p50'])} [{_fmt(numbers['p10'])}, {_fmt(numbers['p90'])}] mean {_fmt(numbers['mean'])}"
+        return f"{_fmt(numbers['p50'])} [{_fmt(numbers['p10'])}, {_fmt(numbers['p90'])}] mean {_fmt(numbers['mean'])}{ci}"
     if kind == "share":
-        return f"{numbers['share']:.3f}"
-    return f"{numbers['rate']:.3f}"
+        return f"{numbers['share']:.3f}{ci}"
+    return f"{numbers['rate']:.3f}{ci}"
 
 
 def markdown_table(results: dict[str, tuple[dict, int]]) -> str:
@@ -80,7 +82,8 @@ def markdown_table(results: dict[str, tuple[dict, int]]) -> str:
         row = [cell(kind, results[n][0].get(stat)) for n in names]
         lines.append(f"| {stat} | " + " | ".join(row) + " |")
     lines.append("")
-    lines.append("Distributions: p50 [p10, p90] and mean; shares and rates: one number. "
+    lines.append("Distributions: p50 [p10, p90] and mean; shares and rates: one number; in parentheses a 90% "
+                 "interval of the mean, share or rate from resampling the scenes. "
                  "Definitions: smart_marl/sources/scene_stats.py.")
     return "\n".join(lines)
 
@@ -93,6 +96,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--other", action="store_true",
                         help="add a column of the shared real scenes that are not 91 frames at 10 Hz")
     parser.add_argument("--max-scenes", type=int, default=0, help="at most this many scenes per set (0: all)")
+    parser.add_argument("--bootstrap", type=int, default=1000,
+                        help="scene resamplings for the 90%% intervals (0: none)")
     parser.add_argument("--markdown", help="also write the table to this file")
     args = parser.parse_args(argv)
 
@@ -112,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
 
     results: dict[str, tuple[dict, int]] = {}
     for name, paths, keep in sets:
-        summary, scenes, seconds = collect(name, paths, keep, args.max_scenes or None)
+        summary, scenes, seconds = collect(name, paths, keep, args.max_scenes or None, args.bootstrap)
         results[name] = (summary, scenes)
         for stat, numbers in summary.items():
             kind = STATISTICS[stat][0]

@@ -120,6 +120,24 @@ def test_a_lane_change_between_parallel_lanes_is_counted_once():
     assert count == 1 and minutes == pytest.approx(9.1 / 60)
 
 
+def test_a_lane_change_across_lanes_cut_into_pieces_is_counted_once():
+    """WOMD cuts lanes into short pieces: the same lane change where both lanes change piece."""
+    lanes = []
+    for y in (0.0, 3.5):
+        for x0 in range(-50, 200, 25):
+            x = np.linspace(x0, x0 + 25, 26)
+            lanes.append(np.stack([x, np.full_like(x, y)], -1))
+    xy = straight(0, 0, 10.0)
+    s_frac = np.clip((t_s - 3.0) / 3.0, 0, 1)
+    xy[:, 1] = 3.5 * (3 * s_frac ** 2 - 2 * s_frac ** 3)  # crosses y = 1.75 at 4.5 s, x = 45, mid-piece
+    h = np.arctan2(np.gradient(xy[:, 1]), np.gradient(xy[:, 0]))
+    matched = match_lanes(xy, h, lanes)
+    assert len(set(matched.tolist())) > 4  # many pieces driven
+    assert count_lane_changes(matched, xy, lanes) == 1
+    shifted = xy + np.array([5.0, 0.0])  # the switch (x = 50) now falls on a piece boundary of both lanes
+    assert count_lane_changes(match_lanes(shifted, h, lanes), shifted, lanes) == 1
+
+
 def test_keeping_the_lane_or_following_a_successor_is_no_lane_change():
     a = np.stack([np.linspace(-50, 40, 91), np.zeros(91)], -1)
     b = np.stack([np.linspace(40, 200, 161), np.zeros(161)], -1)  # a's successor
@@ -192,3 +210,14 @@ def test_summary_reduces_each_kind():
     assert summary["vehicle_stopped_time_share"]["share"] == 0.0
     assert summary["lane_changes_per_vehicle_minute"]["rate"] == 0.0
     assert summary["lane_changes_per_vehicle_minute"]["exposure"] == pytest.approx(2 * 9.1 / 60)
+
+
+def test_bootstrap_interval_brackets_the_share_and_collapses_when_scenes_agree():
+    acc = StatisticsAccumulator()
+    for speed in (10.0, 10.0, 10.0):
+        acc.add(make_scene([straight(0, 0, speed)]))
+    share = acc.summary(bootstrap=200)["vehicle_stopped_time_share"]
+    assert share["share"] == share["lo"] == share["hi"] == 0.0
+    acc.add(make_scene([straight(0, 0, 0.0)], heading=np.zeros((1, T))))  # a fourth scene, all stopped
+    share = acc.summary(bootstrap=500)["vehicle_stopped_time_share"]
+    assert share["share"] == pytest.approx(0.25) and share["lo"] <= 0.25 <= share["hi"] and share["hi"] - share["lo"] > 0.2

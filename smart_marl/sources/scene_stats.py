@@ -30,10 +30,12 @@ Conventions (the same for every source, so that the columns compare):
   none. Sampled every 5 frames. On curves a straight corridor misses some leaders.
 * **Lane changes** are found from the geometry of the lane centre lines only (GPUDrive/Nocturne
   maps have no lane topology): each moving vehicle frame is matched to the nearest lane centre line
-  within :data:`LANE_MATCH_M` whose direction is within 30 degrees of the heading; runs of the same
-  lane shorter than 1 s are dropped; a change from lane a to lane b counts as a lane change when,
-  where the vehicle switched, b runs alongside a (directions within 15 degrees) and 2-6 m away
-  from it (a successor lane starts where its predecessor ends: 0 m; diverging lanes part slowly).
+  within :data:`LANE_MATCH_M` whose direction is within 30 degrees of the heading; a switch from
+  lane a to lane b moves the vehicle one lane to the side when, where it switched, b runs
+  alongside a (directions within 15 degrees) 2-6 m to its side (a successor lane
+  starts where its predecessor ends: 0 m; diverging lanes part slowly); lane positions held less
+  than 1 s are dropped (a brief swerve). Lanes cut into short pieces (WOMD's, and SUMO's with
+  ``max_lane_piece_m``) count the same as whole ones.
 * The **yaw rate** is the wrapped heading difference of consecutive valid frames over 0.1 s,
   averaged over 5 frames, on moving frames; **turning** is a yaw rate above 0.1 rad/s.
 * **Density** and the map counts are taken within :data:`NEAR_SDC_M` (50 m) of the self-driving
@@ -267,50 +269,49 @@ def match_lanes(xy: np.ndarray, heading: np.ndarray, lanes: list[np.ndarray], ma
     return out
 
 
-def _point_to_lane(q: np.ndarray, lane: np.ndarray):
-    """(distance, unit direction at the foot, whether the foot is strictly inside the polyline) of a
-    point [2] to a lane centre line [n, 2]."""
+def _foot_on_lane(q: np.ndarray, lane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(nearest point, unit direction there) of a lane centre line [n, 2] to a point [2]."""
     starts, ends = lane[:-1], lane[1:]
     dist, t = _project(q[None], starts, ends)
     k = int(dist[0].argmin())
     seg = ends[k] - starts[k]
-    unit = seg / max(np.linalg.norm(seg), 1e-12)
-    inside = not ((k == 0 and t[0, k] <= 0.0) or (k == len(starts) - 1 and t[0, k] >= 1.0))
-    return float(dist[0, k]), unit, inside
+    return starts[k] + t[0, k] * seg, seg / max(float(np.linalg.norm(seg)), 1e-12)
 
 
 def count_lane_changes(lane_index: np.ndarray, xy: np.ndarray, lanes: list[np.ndarray], min_run_frames: int = 10,
                        min_sep_m: float = 2.0, max_sep_m: float = 6.0,
                        max_heading_diff_rad: float = np.radians(15.0)) -> int:
     """Lane changes in one vehicle's sequence of matched lanes [T] (-1: unmatched or not counted) with
-    its positions [T, 2]: see the module docstring."""
-    runs = []  # (lane, first frame) of runs of at least min_run_frames
+    its positions [T, 2] (see the module docstring). Each switch from lane a to lane b moves the
+    vehicle's lane position one to the left or right when b runs alongside a (directions within
+    ``max_heading_diff_rad``) ``min_sep_m``-``max_sep_m`` to its side, measured across a's direction
+    between the vehicle's nearest points on a and b; any other switch (a successor, which starts where
+    its predecessor ends, a lane cut into pieces as WOMD's are, diverging lanes) leaves it. Lane
+    positions held less than ``min_run_frames`` matched frames (a brief swerve) are dropped; the lane
+    changes are the steps between the positions that remain."""
+    position, current, previous = [], 0, -1
+    for t in np.flatnonzero(np.asarray(lane_index) >= 0):
+        k = int(lane_index[t])
+        if previous >= 0 and k != previous:
+            foot_a, unit_a = _foot_on_lane(xy[t], lanes[previous])
+            foot_b, unit_b = _foot_on_lane(xy[t], lanes[k])
+            if float(unit_a @ unit_b) >= np.cos(max_heading_diff_rad):
+                d = foot_b - foot_a
+                side = float(unit_a[0] * d[1] - unit_a[1] * d[0])  # > 0: b is on a's left
+                if min_sep_m <= abs(side) <= max_sep_m:
+                    current += 1 if side > 0 else -1
+        position.append(current)
+        previous = k
+    kept = []  # lane positions held at least min_run_frames
     t = 0
-    n = len(lane_index)
-    while t < n:
+    while t < len(position):
         u = t
-        while u < n and lane_index[u] == lane_index[t]:
+        while u < len(position) and position[u] == position[t]:
             u += 1
-        if lane_index[t] >= 0 and u - t >= min_run_frames:
-            if runs and runs[-1][0] == lane_index[t]:
-                pass  # the same lane again after a short interruption
-            else:
-                runs.append((int(lane_index[t]), t))
+        if u - t >= min_run_frames and not (kept and kept[-1] == position[t]):
+            kept.append(position[t])
         t = u
-    changes = 0
-    for (a, _), (b, first) in zip(runs[:-1], runs[1:]):
-        q = xy[first]
-        _, unit_b, _ = _point_to_lane(q, lanes[b])
-        # the foot of q on b, then how far lane a is from it, beside it
-        starts, ends = lanes[b][:-1], lanes[b][1:]
-        dist, tt = _project(q[None], starts, ends)
-        k = int(dist[0].argmin())
-        foot_b = starts[k] + tt[0, k] * (ends[k] - starts[k])
-        sep, unit_a, inside = _point_to_lane(foot_b, lanes[a])
-        parallel = float(unit_a @ unit_b) >= np.cos(max_heading_diff_rad)
-        if inside and parallel and min_sep_m <= sep <= max_sep_m:
-            changes += 1
-    return changes
+    return int(sum(abs(b - a) for a, b in zip(kept[:-1], kept[1:])))
 
 
 def lane_widths_m(lanes: list[np.ndarray], spacing_m: float = 2.0, min_m: float = 1.5, max_m: float = 6.0,
@@ -524,28 +525,49 @@ class StatisticsAccumulator:
             self.samples.setdefault(name, []).append(values)
         self.scenes += 1
 
-    def summary(self) -> dict[str, dict[str, float]]:
+    def summary(self, bootstrap: int = 0, seed: int = 0) -> dict[str, dict[str, float]]:
         """Statistic name -> numbers: ``n`` (items) and p10/p50/p90/mean for a distribution, ``share``
-        for a share, ``rate`` (and ``exposure``) for a rate. Statistics without samples are left out."""
+        for a share, ``rate`` (and ``exposure``) for a rate. Statistics without samples are left out.
+
+        With ``bootstrap`` > 0, also ``lo`` and ``hi``: a 90% interval of the mean, share or rate
+        from that many resamplings of the scenes (with replacement; items of one scene are not
+        independent, so the scene is the unit): how far a number may move with other scenes."""
         out: dict[str, dict[str, float]] = {}
+        rng = np.random.default_rng(seed)
         for name, (kind, _) in STATISTICS.items():
-            parts = self.samples.get(name)
+            parts = [np.asarray(p) for p in self.samples.get(name, []) if len(p)]
             if not parts:
                 continue
             values = np.concatenate(parts)
-            if len(values) == 0:
-                continue
             if kind == "distribution":
                 values = values.astype(np.float64)
                 p10, p50, p90 = np.percentile(values, [10, 50, 90])
                 out[name] = {"n": int(len(values)), "p10": float(p10), "p50": float(p50), "p90": float(p90),
                              "mean": float(values.mean())}
+                num = np.array([p.astype(np.float64).sum() for p in parts])
+                den = np.array([len(p) for p in parts], np.float64)
+                key = "mean"
             elif kind == "share":
                 out[name] = {"n": int(len(values)), "share": float(values.astype(bool).mean())}
+                num = np.array([p.astype(bool).sum() for p in parts], np.float64)
+                den = np.array([len(p) for p in parts], np.float64)
+                key = "share"
             else:
                 exposure = float(values[:, 1].sum())
                 out[name] = {"n": int(len(values)), "exposure": exposure,
                              "rate": float(values[:, 0].sum() / exposure) if exposure > 0 else float("nan")}
+                num = np.array([p[:, 0].sum() for p in parts])
+                den = np.array([p[:, 1].sum() for p in parts])
+                key = "rate"
+            if bootstrap > 0:
+                pick = rng.integers(0, len(parts), (bootstrap, len(parts)))
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    resampled = num[pick].sum(axis=1) / den[pick].sum(axis=1)
+                resampled = resampled[np.isfinite(resampled)]
+                if len(resampled):
+                    lo, hi = np.percentile(resampled, [5, 95])
+                    out[name].update(lo=float(lo), hi=float(hi), scenes=len(parts))
+            assert key in out[name]
         return out
 
 
