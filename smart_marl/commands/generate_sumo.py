@@ -26,6 +26,9 @@ def register(subparsers) -> None:
     p.add_argument("--no-bicycles", action="store_true", help="no bicycles in the simulations")
     p.add_argument("--sublane", action="store_true",
                    help="SUMO's sub-lane model for lateral motion (about 2.5x slower)")
+    p.add_argument("--legacy", action="store_true",
+                   help="the first generator's traffic (SumoConfig.legacy(): the embedded prior's training data) "
+                        "instead of the defaults tuned toward real traffic")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -37,8 +40,9 @@ def run(args) -> int:
     if args.scenes < 1 or args.workers < 1 or args.scenes_per_sim < 1:
         print("smart-marl generate-sumo: error: --scenes, --workers and --scenes-per-sim must be at least 1", file=sys.stderr)
         return 2
-    config = SumoConfig(scenes_per_sim=args.scenes_per_sim, radius_m=args.radius, pedestrians=not args.no_pedestrians,
-                        bicycles=not args.no_bicycles, sublane=args.sublane)
+    make_config = SumoConfig.legacy if args.legacy else SumoConfig
+    config = make_config(scenes_per_sim=args.scenes_per_sim, radius_m=args.radius, pedestrians=not args.no_pedestrians,
+                         bicycles=not args.no_bicycles, sublane=args.sublane)
     try:
         report = generate_to_dir(args.out, args.scenes, seed=args.seed, config=config, workers=args.workers,
                                  fmt=args.format, progress=not args.quiet)
