@@ -62,7 +62,7 @@ class SumoConfig:
     sublane: bool = False  # SUMO's sub-lane model (--lateral-resolution): 2.5x slower than the default
     lateral_resolution_m: float = 0.8
     lane_change_duration_s: tuple[float, float] = (2.0, 4.5)  # without sub-lanes: continuous lane changes
-    demand_scale: float = 1.0  # multiplies the random departure rates
+    demand_scale: float = 2.5  # multiplies the random departure rates (2.5: WOMD-like vehicles per scene and leader shares)
     # --- the traffic's character (legacy() lists the first generator's values)
     length_scale: float = 2.0  # multiplies every block length of the random networks (1: 60-180 m grid blocks)
     kind_weights: tuple[float, float, float] = (0.45, 0.2, 0.35)  # grid, spider, rand
@@ -94,7 +94,7 @@ LEGACY_TRAFFIC: dict[str, Any] = dict(
     length_scale=1.0, kind_weights=(0.45, 0.2, 0.35), junction_weights=(0.5, 0.25, 0.1, 0.07, 0.08), speed_weights=None,
     tls_guess_probability=0.4, lane_width_m=None, routes="trips", straight_probability=0.7, driver_sigma=(0.05, 0.7),
     driver_accel_mps2=(1.8, 3.5), driver_decel_mps2=(3.5, 5.5), car_follow_weights=(0.5, 0.3, 0.2),
-    lc_speed_gain=(0.3, 3.0), max_lane_piece_m=None)
+    lc_speed_gain=(0.3, 3.0), max_lane_piece_m=None, demand_scale=1.0)
 """The :class:`SumoConfig` fields that differ between the first generator and the tuned defaults."""
 
 
