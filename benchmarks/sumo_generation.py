@@ -4,7 +4,8 @@ Prints one JSON line per worker count: scenes per second (wall clock) and agent-
 CPU-second (valid agent frames x 0.1 s of the written scenes, over the CPU time of this process
 and its children: the worker processes, netgenerate), the median over ``--repeats`` runs with the
 seeds 0, 1, 2... (each run simulates different random networks; 1 and 2 workers see the same ones).
-Usage: python benchmarks/sumo_generation.py [--scenes 16] [--repeats 3] [--workers 1 2]
+Usage: python benchmarks/sumo_generation.py [--scenes 16] [--repeats 3] [--workers 1 2] [--legacy]
+(``--legacy``: the first generator's traffic, SumoConfig.legacy(), for a before/after comparison).
 Needs the sumo extra: pip install "smart-marl[sumo]".
 """
 
@@ -32,8 +33,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--scenes-per-sim", type=int, default=8)
+    parser.add_argument("--legacy", action="store_true", help="the first generator's traffic (SumoConfig.legacy())")
     args = parser.parse_args()
-    config = SumoConfig(scenes_per_sim=args.scenes_per_sim)
+    config = (SumoConfig.legacy if args.legacy else SumoConfig)(scenes_per_sim=args.scenes_per_sim)
     for workers in args.workers:
         rates, agent_rates, agents = [], [], []
         for repeat in range(args.repeats):
@@ -45,7 +47,7 @@ def main() -> None:
             agent_rates.append(report.agent_seconds / cpu)
             agents.append(report.agent_seconds / max(report.scenes, 1) / 9.1)
         print(json.dumps({
-            "benchmark": "sumo_generation", "workers": workers, "scenes": args.scenes, "repeats": args.repeats,
+            "benchmark": "sumo_generation", "traffic": "legacy" if args.legacy else "tuned", "workers": workers, "scenes": args.scenes, "repeats": args.repeats,
             "scenes_per_s": round(statistics.median(rates), 3),
             "agent_seconds_per_cpu_s": round(statistics.median(agent_rates), 1),
             "mean_valid_agents_per_frame": round(statistics.mean(agents), 1), "cpu_count": os.cpu_count(),

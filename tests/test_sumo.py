@@ -18,7 +18,8 @@ pytest.importorskip("shapely", reason="the SUMO source needs shapely (smart-marl
 from smart_marl.scenario import AgentType, LaneType, LinkType, MapFeatureType, Scenario, SignalState, wrap_angle  # noqa: E402
 from smart_marl.sources.sumo import SumoConfig, generate_scenes, simulate_scenes  # noqa: E402
 
-SMALL = SumoConfig(scenes_per_sim=4, warmup_s=20.0, scene_spacing_s=3.0)
+SMALL_FIELDS = dict(scenes_per_sim=4, warmup_s=20.0, scene_spacing_s=3.0)
+SMALL = SumoConfig(**SMALL_FIELDS)
 
 # physical bounds per type: speed (m/s), |acceleration| (m/s^2), |yaw rate| (rad/s), displacement per frame (m)
 BOUNDS = {
@@ -48,10 +49,11 @@ def test_networks_vary_between_simulations(scenes):
 
 
 def test_every_lane_has_a_polyline_and_a_speed_limit(scenes):
+    assert sum(len(s.road_map.indices_of(MapFeatureType.LANE)) for s in scenes) > 20 * len(scenes)
     for s in scenes:
         rm = s.road_map
         lanes = rm.indices_of(MapFeatureType.LANE)
-        assert len(lanes) > 20
+        assert len(lanes) >= 4  # a scene on a long road far from junctions holds few lane pieces
         assert np.all(np.diff(rm.point_offsets)[lanes] >= 2)
         assert np.all(rm.speed_limit_mph[lanes] > 5) and np.all(rm.speed_limit_mph[lanes] < 80)
         assert set(np.unique(rm.subtypes[lanes])) <= {LaneType.SURFACE_STREET, LaneType.BIKE_LANE}
@@ -131,16 +133,18 @@ def test_road_edges_enclose_the_lanes(scenes):
 
 
 def test_crosswalks_exist_when_pedestrians_walk(scenes):
+    with_crosswalks = 0
     for s in scenes:
         assert s.metadata["network"]["crossings"]
         crosswalks = s.road_map.indices_of(MapFeatureType.CROSSWALK)
-        assert len(crosswalks) > 0
+        with_crosswalks += len(crosswalks) > 0  # every junction has them; a scene far from junctions has none
         for i in crosswalks:
             poly = s.road_map.feature_points(i)[:, :2]
             assert len(poly) >= 4
             x, y = poly[:, 0], poly[:, 1]
             area = 0.5 * abs(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1)))
             assert 5.0 < area < 200.0  # a few metres wide, a road wide
+    assert with_crosswalks >= len(scenes) // 2
 
 
 def test_traffic_lights_control_map_lanes_at_their_start(scenes):
@@ -324,3 +328,52 @@ def test_a_simulation_sumo_refuses_yields_no_scene_with_a_warning(monkeypatch):
     monkeypatch.setattr(sumo_sim, "run_simulation", refuse)
     with pytest.warns(UserWarning, match="simulation 3 .* failed and yields no scene"):
         assert sumo_sim.simulate_scenes(7, 3) == []
+
+
+# ------------------------------------------------------------------------------- tuned vs first generator
+def test_legacy_config_draws_the_first_generators_networks():
+    """SumoConfig.legacy() keeps the first generator's random draws: the network of seed 1001,
+    simulation 0 is the one that generator recorded in the scenes' metadata (the embedded prior's data)."""
+    from smart_marl.sources.sumo_sim import network_spec, sim_seed
+
+    recorded = {"kind": "rand", "params": {"iterations": 47, "min-distance": 74.6, "max-distance": 137.8,
+                                           "min-angle": 35.1, "bidi-probability": 0.85},
+                "lanes": 2, "random_lanenumber": True, "speed_mps": 13.89, "junction_type": "traffic_light",
+                "tls_guess": False, "sidewalks": True, "crossings": True, "bikelanes": True, "perturb_m": 0.0,
+                "rotation_rad": -0.4067, "seed": 742415235}
+    rng = np.random.default_rng(sim_seed(1001, 0))
+    assert network_spec(rng, SumoConfig.legacy()).to_metadata() == recorded
+    tuned = network_spec(np.random.default_rng(sim_seed(1001, 0)), SumoConfig())
+    assert tuned.params["min-distance"] == pytest.approx(2 * 74.6, abs=0.1)  # same draw, blocks twice as long
+    assert 3.2 <= tuned.lane_width_m <= 3.8
+
+
+def test_random_walk_goes_straight_on_and_stops_at_a_dead_end():
+    from smart_marl.sources.sumo_sim import EdgeGraph, random_walk
+
+    # a -> b (straight) or c (left); b -> d (straight) or e (right); d and e are dead ends; c -> a would loop
+    graph = EdgeGraph(length_m={k: 100.0 for k in "abcde"},
+                      successors={"a": [("b", 0.05), ("c", 1.5)], "b": [("d", -0.02), ("e", -1.5)],
+                                  "c": [("a", 1.5)], "d": [], "e": []})
+    rng = np.random.default_rng(0)
+    assert random_walk(graph, "a", rng, 1.0, 1e4) == ["a", "b", "d"]
+    assert random_walk(graph, "a", rng, 0.0, 1e4) == ["a", "c"]  # always turns; c's only way on is back to a
+    assert random_walk(graph, "a", rng, 1.0, 50.0) == ["a", "b"]  # ends after max_length_m
+    routes = [tuple(random_walk(graph, "a", np.random.default_rng(k), 0.8, 1e4)) for k in range(400)]
+    straight = sum(r[:2] == ("a", "b") for r in routes) / len(routes)
+    assert 0.74 < straight < 0.86
+
+
+def test_tuned_defaults_slow_fewer_moving_vehicles_than_the_first_generator(scenes):
+    """The point of the tuning (benchmarks/scene_statistics.py has the full table): on the same seeds,
+    fewer of the vehicles moving faster than 5 m/s at the current frame lose half their speed within 8 s
+    than with the first generator's traffic, and moving vehicles spend less time stopped."""
+    from smart_marl.sources.scene_stats import summarize
+
+    legacy = simulate_scenes(0, 0, SumoConfig.legacy(**SMALL_FIELDS)) + simulate_scenes(0, 1, SumoConfig.legacy(**SMALL_FIELDS))
+    tuned, _ = summarize(scenes)
+    old, _ = summarize(legacy)
+    key = "fast_vehicle_slows_50pct_8s_share"
+    assert tuned[key]["n"] >= 30 and old[key]["n"] >= 30
+    assert tuned[key]["share"] < old[key]["share"]
+    assert tuned["vehicle_stopped_time_share_of_movers"]["share"] < old["vehicle_stopped_time_share_of_movers"]["share"]

@@ -13,13 +13,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..scenario import DT_S
+
 NUM_HISTORY_STEPS = 11
 """Logged steps before the simulation (indices 0-10; the current step is 10)."""
 CURRENT_STEP = 10
 NUM_SIMULATION_STEPS = 80
 NUM_STEPS = NUM_HISTORY_STEPS + NUM_SIMULATION_STEPS
 NUM_ROLLOUTS = 32
-STEP_S = 0.1
+STEP_S = DT_S  # the metrics' time step is the scenes' frame step
 
 FEATURES = (
     "linear_speed", "linear_acceleration", "angular_speed", "angular_acceleration",

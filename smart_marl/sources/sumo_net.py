@@ -52,7 +52,7 @@ from typing import Any
 
 import numpy as np
 
-from ..scenario import LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadLineType, RoadMap, SignalState
+from ..scenario import LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadLineType, RoadMap, SignalState, wrap_angle
 
 MPH_PER_MPS = 2.2369362920544
 QUANTUM = 2.0 ** -16
@@ -116,6 +116,7 @@ class NetworkSpec:
     perturb_m: float  # node position perturbation (normal sigma): varied angles and block lengths
     rotation_rad: float  # rotation of the whole network in the source frame
     seed: int
+    lane_width_m: float | None = None  # None: netgenerate's default (3.2 m)
 
     def netgenerate_args(self, out_path: str) -> list[str]:
         args = [f"--{self.kind}"]
@@ -129,6 +130,8 @@ class NetworkSpec:
                  "--no-turnarounds", "--output-file", out_path, "--no-warnings", "--xml-validation", "never"]
         if self.random_lanenumber:
             args.append("--random-lanenumber")
+        if self.lane_width_m is not None:
+            args += ["--default.lanewidth", f"{self.lane_width_m:.2f}"]
         if self.tls_guess:
             args += ["--tls.guess", "--tls.guess.threshold", "70"]
         if self.sidewalks:
@@ -142,37 +145,60 @@ class NetworkSpec:
         return args
 
     def to_metadata(self) -> dict[str, Any]:
-        return asdict(self)
+        """The spec as JSON-able values (the optional fields only when set, as the first generator wrote it)."""
+        out = asdict(self)
+        if out["lane_width_m"] is None:
+            del out["lane_width_m"]
+        return out
 
 
-def random_network_spec(rng: np.random.Generator, pedestrians: bool = True, bicycles: bool = True) -> NetworkSpec:
-    """A random network: topology, sizes and rules drawn from ``rng``."""
-    kind = str(rng.choice(["grid", "spider", "rand"], p=[0.45, 0.2, 0.35]))
+JUNCTION_TYPES = ("traffic_light", "priority", "priority_stop", "allway_stop", "right_before_left")
+NETWORK_KINDS = ("grid", "spider", "rand")
+SPEEDS_MPS = (8.33, 11.11, 13.89, 16.67, 19.44)
+
+
+def random_network_spec(rng: np.random.Generator, pedestrians: bool = True, bicycles: bool = True,
+                        length_scale: float = 1.0, kind_weights=(0.45, 0.2, 0.35),
+                        junction_weights=(0.5, 0.25, 0.1, 0.07, 0.08), speed_weights=None,
+                        tls_guess_probability: float = 0.4, lane_width_m: tuple[float, float] | None = None) -> NetworkSpec:
+    """A random network: topology, sizes and rules drawn from ``rng``. ``length_scale`` multiplies
+    every block length (grid blocks, spider rings, random-network edge lengths); the weights are the
+    probabilities of :data:`NETWORK_KINDS`, :data:`JUNCTION_TYPES` and :data:`SPEEDS_MPS` (the
+    network's default speed limit; None: uniform); ``lane_width_m``: a range to draw the lane width
+    from (None: netgenerate's 3.2 m, and no draw). The defaults are the first generator's, whose
+    draws they repeat exactly (``SumoConfig.legacy()``)."""
+    k = float(length_scale)
+    kind = str(rng.choice(list(NETWORK_KINDS), p=list(kind_weights)))
     if kind == "grid":
         params = {"x-number": int(rng.integers(3, 6)), "y-number": int(rng.integers(2, 5)),
-                  "x-length": round(float(rng.uniform(60, 180)), 1), "y-length": round(float(rng.uniform(60, 180)), 1),
-                  "attach-length": round(float(rng.uniform(40, 120)), 1)}
+                  "x-length": round(float(rng.uniform(60 * k, 180 * k)), 1),
+                  "y-length": round(float(rng.uniform(60 * k, 180 * k)), 1),
+                  "attach-length": round(float(rng.uniform(40 * k, 120 * k)), 1)}
         perturb = float(rng.choice([0.0, rng.uniform(1, 8)]))
     elif kind == "spider":
         params = {"arm-number": int(rng.integers(4, 8)), "circle-number": int(rng.integers(2, 4)),
-                  "space-radius": round(float(rng.uniform(60, 140)), 1), "omit-center": bool(rng.random() < 0.5)}
+                  "space-radius": round(float(rng.uniform(60 * k, 140 * k)), 1), "omit-center": bool(rng.random() < 0.5)}
         perturb = float(rng.choice([0.0, rng.uniform(1, 5)]))
     else:
-        params = {"iterations": int(rng.integers(20, 60)), "min-distance": round(float(rng.uniform(60, 90)), 1),
-                  "max-distance": round(float(rng.uniform(120, 220)), 1), "min-angle": round(float(rng.uniform(35, 60)), 1),
+        params = {"iterations": int(rng.integers(20, 60)), "min-distance": round(float(rng.uniform(60 * k, 90 * k)), 1),
+                  "max-distance": round(float(rng.uniform(120 * k, 220 * k)), 1),
+                  "min-angle": round(float(rng.uniform(35, 60)), 1),
                   "bidi-probability": round(float(rng.uniform(0.8, 1.0)), 2)}
         perturb = 0.0
     lanes = int(rng.choice([1, 2, 3, 4], p=[0.25, 0.4, 0.25, 0.1]))
-    junction_type = str(rng.choice(["traffic_light", "priority", "priority_stop", "allway_stop", "right_before_left"],
-                                   p=[0.5, 0.25, 0.1, 0.07, 0.08]))
-    return NetworkSpec(
+    junction_type = str(rng.choice(list(JUNCTION_TYPES), p=list(junction_weights)))
+    spec = dict(
         kind=kind, params=params, lanes=lanes, random_lanenumber=bool(lanes > 1 and rng.random() < 0.5),
-        speed_mps=round(float(rng.choice([8.33, 11.11, 13.89, 16.67, 19.44])), 2), junction_type=junction_type,
-        tls_guess=bool(junction_type != "traffic_light" and rng.random() < 0.4),
+        speed_mps=round(float(rng.choice(list(SPEEDS_MPS), p=None if speed_weights is None else list(speed_weights))), 2),
+        junction_type=junction_type,
+        tls_guess=bool(junction_type != "traffic_light" and rng.random() < tls_guess_probability),
         sidewalks=bool(pedestrians), crossings=bool(pedestrians),
         bikelanes=bool(bicycles and rng.random() < 0.6), perturb_m=round(perturb, 2),
         rotation_rad=round(float(rng.uniform(-math.pi, math.pi)), 4), seed=int(rng.integers(1, 2**31 - 1)),
     )
+    if lane_width_m is not None:
+        spec["lane_width_m"] = round(float(rng.uniform(*lane_width_m)), 2)
+    return NetworkSpec(**spec)
 
 
 def build_network(spec: NetworkSpec, out_path: str | os.PathLike) -> Path:
@@ -183,6 +209,18 @@ def build_network(spec: NetworkSpec, out_path: str | os.PathLike) -> Path:
     if result.returncode != 0 or not out_path.exists():
         raise RuntimeError(f"netgenerate failed ({result.returncode}) for {spec}: {result.stderr.strip()[-2000:]}")
     return out_path
+
+
+def _direction(shape, at_end: bool) -> float:
+    a, b = (shape[-2], shape[-1]) if at_end else (shape[0], shape[1])
+    return math.atan2(b[1] - a[1], b[0] - a[0])
+
+
+def turn_angle(from_edge, to_edge) -> float:
+    """The turn (radians, counter-clockwise positive, 0: straight on) from the end of one sumolib edge
+    to the start of the next, measured on their first lanes."""
+    turn = _direction(to_edge.getLanes()[0].getShape(), False) - _direction(from_edge.getLanes()[0].getShape(), True)
+    return wrap_angle(turn)
 
 
 def _sumo_home() -> str:
@@ -298,8 +336,9 @@ class NetworkMap:
         return RoadMap.from_features(features, all_links), kept_ids
 
 
-def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0) -> NetworkMap:
-    """Read a ``.net.xml`` into a :class:`NetworkMap` (see the module docstring for what becomes what)."""
+def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0, max_lane_piece_m: float | None = None) -> NetworkMap:
+    """Read a ``.net.xml`` into a :class:`NetworkMap` (see the module docstring for what becomes what);
+    with ``max_lane_piece_m``, lanes longer than that are cut into pieces (:func:`split_lanes`)."""
     import shapely
     from shapely.geometry import polygon as shapely_polygon
 
@@ -413,29 +452,42 @@ def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0) -> Netwo
 
     line_pts, line_types = road_lines(net, lanes, subtypes, rot)
     stop_pts = np.array([shapes[k][-1] for k in stop_sign_lanes], np.float64).reshape(-1, 3)
+    stop_ids = lane_ids[np.array(stop_sign_lanes, np.int64)] if stop_sign_lanes else np.zeros(0, np.int64)
     junction_types = sorted({n.getType() for n in net.getNodes()})
+    sumo_ids = [lane.getID() for lane in lanes]
+    speeds = np.array([lane.getSpeed() * MPH_PER_MPS for lane in lanes], np.float32)
+    widths = np.array([lane.getWidth() for lane in lanes])
+    parent = np.arange(len(lanes))
+    if max_lane_piece_m is not None:
+        edge_of = [lane.getEdge().getID() if lane.getEdge().getFunction() != "internal" else None for lane in lanes]
+        shapes, lane_ids, parent, lane_links, last_piece = split_lanes(shapes, lane_ids, edge_of, lane_links, max_lane_piece_m)
+        stop_ids = np.array([last_piece[int(i)] for i in stop_ids], np.int64)
+        sumo_ids = [sumo_ids[p] if k == 0 or parent[k - 1] != p else f"{sumo_ids[p]}#{k - np.flatnonzero(parent == p)[0]}"
+                    for k, p in enumerate(parent)]
+        lengths = np.array([len(s) for s in shapes], np.int64)
     return NetworkMap(
         lane_ids=lane_ids,
-        lane_sumo_ids=[lane.getID() for lane in lanes],
-        lane_subtypes=np.array(subtypes, np.int8),
-        lane_speed_mph=np.array([lane.getSpeed() * MPH_PER_MPS for lane in lanes], np.float32),
-        lane_widths_m=np.array([lane.getWidth() for lane in lanes]),
+        lane_sumo_ids=sumo_ids,
+        lane_subtypes=np.array(subtypes, np.int8)[parent],
+        lane_speed_mph=speeds[parent],
+        lane_widths_m=widths[parent],
         lane_points=np.concatenate(shapes) if shapes else np.zeros((0, 3)),
         lane_offsets=np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64),
         lane_links=lane_links,
         crosswalk_points=np.concatenate(cw_pts) if cw_pts else np.zeros((0, 3)),
         crosswalk_offsets=np.concatenate([[0], np.cumsum(cw_len)]).astype(np.int64),
         stop_sign_points=stop_pts,
-        stop_sign_lanes=lane_ids[np.array(stop_sign_lanes, np.int64)] if stop_sign_lanes else np.zeros(0, np.int64),
+        stop_sign_lanes=stop_ids,
         road_edges=rings,
         road_line_points=np.concatenate(line_pts) if line_pts else np.zeros((0, 3)),
         road_line_offsets=np.concatenate([[0], np.cumsum([len(q) for q in line_pts])]).astype(np.int64),
         road_line_subtypes=np.array(line_types, np.int8),
         signal_links=signal_links,
         signal_stop_points=signal_stop_points,
-        lane_index_of_sumo=index_of,
-        stats={"lanes": len(lanes), "crossings": len(cw_len), "traffic_lights": len(signal_links),
-               "stop_signs": len(stop_sign_lanes), "road_lines": len(line_types), "junction_types": junction_types,
+        lane_index_of_sumo={sid: int(np.flatnonzero(parent == k)[0]) for sid, k in index_of.items()},
+        stats={"lanes": len(lanes), "lane_pieces": len(shapes), "crossings": len(cw_len),
+               "traffic_lights": len(signal_links), "stop_signs": len(stop_sign_lanes), "road_lines": len(line_types),
+               "junction_types": junction_types,
                "edges": sum(1 for e in net.getEdges() if e.getFunction() == "")},
     )
 
@@ -474,6 +526,59 @@ def road_lines(net, lanes: list, subtypes: list[int], rotation: np.ndarray) -> t
         elif edge.getID() < opposite[0].getID():  # one centre line per two-way road
             add(road[-1], 1.0, RoadLineType.SOLID_DOUBLE_YELLOW)
     return points, kinds
+
+
+def split_lanes(shapes: list[np.ndarray], lane_ids: np.ndarray, edge_of: list[str | None], lane_links: np.ndarray,
+                max_piece_m: float):
+    """Cut the lanes of normal edges into pieces of at most ``max_piece_m`` (all lanes of an edge into
+    the same number of pieces, at the same fractions of their length, so that neighbours stay side by
+    side), as WOMD cuts its lanes: a lane's pieces follow each other by SUCCESSOR/PREDECESSOR links
+    (each piece ends on the point where the next starts), piece i of a lane neighbours piece i of its
+    neighbour, a lane's successors follow its last piece. The first piece keeps the lane's id; the
+    others get new ids after the largest. Internal (junction) lanes (``edge_of`` None) are not cut.
+
+    Returns (shapes, ids [P], parent lane index of each piece [P], links [E', 3], last piece id of each
+    original lane id)."""
+    lengths = [float(np.linalg.norm(np.diff(s[:, :2], axis=0), axis=1).sum()) for s in shapes]
+    count: dict[str, int] = {}
+    for k, edge in enumerate(edge_of):
+        if edge is not None:
+            count[edge] = max(count.get(edge, 1), int(math.ceil(lengths[k] / max_piece_m - 1e-9)))
+    next_id = int(lane_ids.max(initial=0)) + 1
+    out_shapes, out_ids, parent = [], [], []
+    pieces: dict[int, list[int]] = {}
+    for k, shape in enumerate(shapes):
+        n = count.get(edge_of[k], 1) if edge_of[k] is not None else 1
+        if n > 1:
+            arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(shape[:, :2], axis=0), axis=1))])
+            cuts = np.searchsorted(arc, arc[-1] * np.arange(1, n) / n)
+            cuts = np.unique(np.clip(cuts, 1, len(shape) - 2))
+            bounds = [0, *cuts.tolist(), len(shape) - 1]
+        else:
+            bounds = [0, len(shape) - 1]
+        ids = []
+        for i in range(len(bounds) - 1):
+            ids.append(int(lane_ids[k]) if i == 0 else next_id)
+            next_id += i > 0
+            out_shapes.append(shape[bounds[i]:bounds[i + 1] + 1])
+            parent.append(k)
+        out_ids += ids
+        pieces[int(lane_ids[k])] = ids
+    links = []
+    for a, b, kind in lane_links.tolist():
+        pa, pb = pieces[a], pieces[b]
+        if kind == LinkType.SUCCESSOR:
+            links.append((pa[-1], pb[0], kind))
+        elif kind == LinkType.PREDECESSOR:
+            links.append((pa[0], pb[-1], kind))
+        else:  # neighbours: piece by piece
+            links += [(x, y, kind) for x, y in zip(pa, pb)]
+    for ids in pieces.values():
+        links += [(x, y, LinkType.SUCCESSOR) for x, y in zip(ids[:-1], ids[1:])]
+        links += [(y, x, LinkType.PREDECESSOR) for x, y in zip(ids[:-1], ids[1:])]
+    last_piece = {lane: ids[-1] for lane, ids in pieces.items()}
+    return (out_shapes, np.asarray(out_ids, np.int64), np.asarray(parent, np.int64),
+            np.asarray(links, np.int64).reshape(-1, 3), last_piece)
 
 
 # SUMO signal characters -> SignalState (https://sumo.dlr.de/docs/Simulation/Traffic_Lights.html#signal_state_definitions)

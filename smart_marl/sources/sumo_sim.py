@@ -2,10 +2,16 @@
 
 Stage: the traffic half of the SUMO source (traffic simulator -> **Scenario**). For one simulation
 (:func:`simulate_scenes`): a random network (:mod:`.sumo_net`), random vehicle types with varied
-driver parameters (:func:`random_vehicle_types`), random trips for cars, trucks, buses, bicycles and
-pedestrians (:func:`write_demand`), a libsumo run at 0.1 s steps with a warm-up, every agent's
-state recorded per step (:class:`Recording`), then several 9.1 s scenes cut around moving
+driver parameters (:func:`random_vehicle_types`), routes for cars, trucks, buses and bicycles and
+walks for pedestrians (:func:`write_demand`), a libsumo run at 0.1 s steps with a warm-up, every
+agent's state recorded per step (:class:`Recording`), then several 9.1 s scenes cut around moving
 vehicles chosen as the self-driving car (:func:`cut_scene`).
+
+Routes: by default each vehicle follows a random walk over the network (:func:`random_walk`) that
+goes straight on at a junction with ``SumoConfig.straight_probability`` and otherwise turns, from a
+start drawn in proportion to road length, until a dead end (the network's fringe) or about 25 m per
+simulated second; ``routes="trips"`` (the first generator's) gives random origin-destination trips
+that SUMO routes by shortest path, which turn at most junctions of a small network.
 
 Conversions: SUMO gives a vehicle's front-bumper centre and an angle in degrees clockwise from
 north; a track holds the box centre (front minus half the length along the heading) and the
@@ -27,8 +33,8 @@ import numpy as np
 
 from ..scenario import DT_S, AgentType, SceneFrame, Scenario, TrafficLights, Tracks, wrap_angle
 from .sumo_net import (
-    SIGNAL_OF_CHAR, NetworkMap, build_network, network_map, quantize, random_network_spec,
-    require_sumo, rotation_matrix, sumo_binary,
+    SIGNAL_OF_CHAR, NetworkMap, NetworkSpec, build_network, network_map, quantize, random_network_spec,
+    require_sumo, rotation_matrix, sumo_binary, turn_angle,
 )
 
 SCENE_FRAMES = 91
@@ -38,7 +44,10 @@ SOURCE = "sumo"
 
 @dataclass(frozen=True)
 class SumoConfig:
-    """Everything that shapes the generated scenes (the defaults give WOMD-like scenes)."""
+    """Everything that shapes the generated scenes. The defaults are tuned toward real WOMD traffic
+    (``benchmarks/scene_statistics.py``: fewer junctions per kilometre, routes that mostly go straight
+    on, calmer drivers; see the README's SUMO section); :meth:`legacy` gives the first generator's
+    traffic, which the embedded prior was trained on."""
 
     scenes_per_sim: int = 8  # scenes cut from one simulation (different times, different egos)
     scene_spacing_s: float = 4.0  # time between the starts of two scenes of one simulation
@@ -52,10 +61,40 @@ class SumoConfig:
     sublane: bool = False  # SUMO's sub-lane model (--lateral-resolution): 2.5x slower than the default
     lateral_resolution_m: float = 0.8
     lane_change_duration_s: tuple[float, float] = (2.0, 4.5)  # without sub-lanes: continuous lane changes
-    demand_scale: float = 1.0  # multiplies the random departure rates
+    demand_scale: float = 2.5  # multiplies the random departure rates (2.5: WOMD-like vehicles per scene and leader shares)
+    # --- the traffic's character (legacy() lists the first generator's values)
+    length_scale: float = 2.0  # multiplies every block length of the random networks (1: 60-180 m grid blocks)
+    kind_weights: tuple[float, float, float] = (0.45, 0.2, 0.35)  # grid, spider, rand
+    junction_weights: tuple[float, ...] = (0.3, 0.5, 0.1, 0.08, 0.02)  # over sumo_net.JUNCTION_TYPES
+    speed_weights: tuple[float, ...] | None = (0.3, 0.3, 0.2, 0.15, 0.05)  # over sumo_net.SPEEDS_MPS; None: uniform
+    tls_guess_probability: float = 0.2  # share of unsignalised networks that get lights at busy junctions
+    lane_width_m: tuple[float, float] | None = (3.2, 3.8)  # lane width range; None: SUMO's 3.2 m
+    routes: str = "walk"  # "walk": random walks that mostly go straight on; "trips": random origin-destination trips
+    straight_probability: float = 0.9  # "walk": the chance of going straight on at a junction
+    driver_sigma: tuple[float, float] = (0.0, 0.4)  # Krauss/IDM driver imperfection (random dawdling)
+    driver_accel_mps2: tuple[float, float] = (1.8, 3.5)  # cars' maximum acceleration
+    driver_decel_mps2: tuple[float, float] = (2.5, 4.5)  # cars' comfortable deceleration
+    car_follow_weights: tuple[float, float, float] = (0.5, 0.3, 0.2)  # Krauss, IDM, EIDM
+    lc_speed_gain: tuple[float, float] = (0.1, 1.5)  # eagerness to change lanes for speed
+    max_lane_piece_m: float | None = 50.0  # map lanes longer than this are cut into linked pieces (WOMD-like); None: whole
+
+    @classmethod
+    def legacy(cls, **changes) -> "SumoConfig":
+        """The first generator's traffic (the embedded prior's training data): 60-180 m blocks, half of
+        the networks signalised, random origin-destination trips, sigma up to 0.7, decel 3.5-5.5 m/s^2.
+        The same seed gives the same scenes as that generator did. ``changes`` override fields."""
+        return cls(**{**LEGACY_TRAFFIC, **changes})
 
     def sim_duration_s(self) -> float:
         return self.warmup_s + (self.scenes_per_sim - 1) * self.scene_spacing_s + SCENE_FRAMES * DT_S + 0.5
+
+
+LEGACY_TRAFFIC: dict[str, Any] = dict(
+    length_scale=1.0, kind_weights=(0.45, 0.2, 0.35), junction_weights=(0.5, 0.25, 0.1, 0.07, 0.08), speed_weights=None,
+    tls_guess_probability=0.4, lane_width_m=None, routes="trips", straight_probability=0.7, driver_sigma=(0.05, 0.7),
+    driver_accel_mps2=(1.8, 3.5), driver_decel_mps2=(3.5, 5.5), car_follow_weights=(0.5, 0.3, 0.2),
+    lc_speed_gain=(0.3, 3.0), max_lane_piece_m=None, demand_scale=1.0)
+"""The :class:`SumoConfig` fields that differ between the first generator and the tuned defaults."""
 
 
 # ------------------------------------------------------------------------------------ demand
@@ -70,11 +109,11 @@ def random_vehicle_types(rng: np.random.Generator, config: SumoConfig) -> list[d
     lc_model = "SL2015" if config.sublane else "LC2013"
 
     def driver(kind: str) -> dict[str, str]:
-        d = {"sigma": _u(rng, 0.05, 0.7), "tau": _u(rng, 0.6, 1.6), "minGap": _u(rng, 1.2, 3.0),
+        d = {"sigma": _u(rng, *config.driver_sigma), "tau": _u(rng, 0.6, 1.6), "minGap": _u(rng, 1.2, 3.0),
              "speedFactor": _u(rng, 0.85, 1.2), "speedDev": _u(rng, 0.03, 0.2),
-             "carFollowModel": str(rng.choice(["Krauss", "IDM", "EIDM"], p=[0.5, 0.3, 0.2])),
+             "carFollowModel": str(rng.choice(["Krauss", "IDM", "EIDM"], p=list(config.car_follow_weights))),
              "laneChangeModel": lc_model, "lcStrategic": _u(rng, 0.3, 2.0), "lcCooperative": _u(rng, 0.2, 1.0),
-             "lcSpeedGain": _u(rng, 0.3, 3.0), "lcKeepRight": _u(rng, 0.2, 2.0), "lcAssertive": _u(rng, 1.0, 3.0),
+             "lcSpeedGain": _u(rng, *config.lc_speed_gain), "lcKeepRight": _u(rng, 0.2, 2.0), "lcAssertive": _u(rng, 1.0, 3.0),
              "lcImpatience": _u(rng, 0.0, 0.8), "emergencyDecel": "9.0"}
         if config.sublane:
             d["maxSpeedLat"] = _u(rng, 0.6, 1.4)
@@ -85,7 +124,7 @@ def random_vehicle_types(rng: np.random.Generator, config: SumoConfig) -> list[d
 
     for k in range(int(rng.integers(3, 7))):
         types.append({"id": f"car{k}", "vClass": "passenger", "length": _u(rng, 3.8, 5.2), "width": _u(rng, 1.7, 2.0),
-                      "height": _u(rng, 1.4, 1.9), "accel": _u(rng, 1.8, 3.5), "decel": _u(rng, 3.5, 5.5), **driver("car")})
+                      "height": _u(rng, 1.4, 1.9), "accel": _u(rng, *config.driver_accel_mps2), "decel": _u(rng, *config.driver_decel_mps2), **driver("car")})
     types.append({"id": "truck", "vClass": "truck", "length": _u(rng, 7.0, 12.0), "width": _u(rng, 2.3, 2.55),
                   "height": _u(rng, 3.0, 4.0), "accel": _u(rng, 0.8, 1.5), "decel": _u(rng, 3.0, 4.5), **driver("truck")})
     types.append({"id": "bus", "vClass": "bus", "length": _u(rng, 10.0, 13.0), "width": "2.5", "height": "3.2",
@@ -133,11 +172,21 @@ def write_demand(path: Path, net, types: list[dict[str, str]], rng: np.random.Ge
         # a burst at the start (the network fills quickly) then a Poisson stream
         n = int(rng.poisson(per_s * duration_s)) + int(per_s * 12)
         departs = np.sort(np.concatenate([rng.uniform(0, 3, int(per_s * 12)), rng.uniform(0, duration_s, n - int(per_s * 12))]))
+        graph = edge_graph(net, vclass) if kind == "veh" and config.routes == "walk" else None
+        if graph is not None:  # walks start anywhere along the roads: edges drawn in proportion to their length
+            weight = np.array([graph.length_m[e] for e in pool])
+            starts = rng.choice(len(pool), len(departs), p=weight / weight.sum())
         for k, depart in enumerate(departs):
             a, b = rng.choice(len(pool), 2, replace=False)
+            if graph is not None:
+                a = starts[k]
             vtype = type_ids[int(rng.integers(len(type_ids)))]
             vid = f"{vclass}{k}"
-            if kind == "veh":
+            if kind == "veh" and graph is not None:
+                route = " ".join(random_walk(graph, pool[a], rng, config.straight_probability, duration_s * 25.0))
+                rows.append((depart, f'<vehicle id="{vid}" type="{vtype}" depart="{depart:.1f}" departLane="best" '
+                                     f'departSpeed="max" departPos="random"><route edges="{route}"/></vehicle>'))
+            elif kind == "veh":
                 rows.append((depart, f'<trip id="{vid}" type="{vtype}" depart="{depart:.1f}" from="{pool[a]}" to="{pool[b]}" '
                                      f'departLane="best" departSpeed="max" departPos="random"/>'))
             else:
@@ -154,6 +203,55 @@ def write_demand(path: Path, net, types: list[dict[str, str]], rng: np.random.Ge
             f.write(f"  {row}\n")
         f.write("</routes>\n")
     return counts
+
+
+@dataclass
+class EdgeGraph:
+    """The edges a vehicle class may take after each edge, with the turn angle (radians, 0: straight on)."""
+
+    length_m: dict[str, float]
+    successors: dict[str, list[tuple[str, float]]]
+
+
+def edge_graph(net, vclass: str) -> EdgeGraph:
+    """The :class:`EdgeGraph` of a sumolib network for ``vclass``: a successor is reachable by a
+    connection whose lanes both allow the class; its turn is :func:`~.sumo_net.turn_angle`."""
+    lengths, successors = {}, {}
+    for edge in net.getEdges():
+        if edge.getFunction() != "":
+            continue
+        lengths[edge.getID()] = edge.getLength()
+        out = []
+        for to_edge, conns in edge.getOutgoing().items():
+            if to_edge.getFunction() != "":
+                continue
+            if any(c.getFromLane().allows(vclass) and c.getToLane().allows(vclass) for c in conns):
+                out.append((to_edge.getID(), turn_angle(edge, to_edge)))
+        successors[edge.getID()] = sorted(out)
+    return EdgeGraph(lengths, successors)
+
+
+def random_walk(graph: EdgeGraph, start: str, rng: np.random.Generator, straight_probability: float,
+                max_length_m: float, straight_rad: float = math.radians(35.0)) -> list[str]:
+    """A route from ``start``: at each junction the straight-on successor (the one that turns least,
+    if it turns less than ``straight_rad``) with probability ``straight_probability``, otherwise one of
+    the others; it ends at a dead end or after ``max_length_m``. No edge is taken twice."""
+    route, length, seen = [start], 0.0, {start}
+    while length < max_length_m:
+        options = [(e, turn) for e, turn in graph.successors.get(route[-1], []) if e not in seen]
+        if not options:
+            break
+        turns = np.abs([turn for _, turn in options])
+        straight = int(turns.argmin())
+        if turns[straight] < straight_rad and len(options) > 1:
+            others = [k for k in range(len(options)) if k != straight]
+            pick = straight if rng.random() < straight_probability else others[int(rng.integers(len(others)))]
+        else:
+            pick = int(rng.integers(len(options)))
+        route.append(options[pick][0])
+        seen.add(route[-1])
+        length += graph.length_m[route[-1]]
+    return route
 
 
 # ------------------------------------------------------------------------------------ recording
@@ -397,6 +495,14 @@ def cut_scene(rec: Recording, nmap: NetworkMap, start: int, ego: int, config: Su
     )
 
 
+def network_spec(rng: np.random.Generator, config: SumoConfig) -> NetworkSpec:
+    """The random network of one simulation, drawn from ``rng`` with the config's network knobs."""
+    return random_network_spec(rng, pedestrians=config.pedestrians, bicycles=config.bicycles,
+                               length_scale=config.length_scale, kind_weights=config.kind_weights,
+                               junction_weights=config.junction_weights, speed_weights=config.speed_weights,
+                               tls_guess_probability=config.tls_guess_probability, lane_width_m=config.lane_width_m)
+
+
 def sim_seed(seed: int, sim_index: int) -> int:
     """The seed of simulation ``sim_index`` of a run seeded with ``seed`` (independent of workers)."""
     return int(np.random.SeedSequence([int(seed), int(sim_index)]).generate_state(1)[0] & 0x7FFFFFFF)
@@ -414,11 +520,11 @@ def simulate_scenes(seed: int, sim_index: int, config: SumoConfig = SumoConfig()
     _, sumolib, _ = require_sumo()
     s = sim_seed(seed, sim_index)
     rng = np.random.default_rng(s)
-    spec = random_network_spec(rng, pedestrians=config.pedestrians, bicycles=config.bicycles)
+    spec = network_spec(rng, config)
     with tempfile.TemporaryDirectory(prefix="smart-marl-sumo-", dir=workdir) as tmp:
         tmp = Path(tmp)
         net_path = build_network(spec, tmp / "net.net.xml")
-        nmap = network_map(net_path, spec.rotation_rad)
+        nmap = network_map(net_path, spec.rotation_rad, config.max_lane_piece_m)
         net = sumolib.net.readNet(os.fspath(net_path))
         types = random_vehicle_types(rng, config)
         duration = config.sim_duration_s()
