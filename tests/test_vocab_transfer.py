@@ -1,0 +1,50 @@
+"""Warm start across motion vocabularies (smart_marl.model.transfer): a new token takes the head row of
+the old token nearest it, and the probability of an old token is split among the new tokens sharing it."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from smart_marl.model.checkpoint import Checkpoint
+from smart_marl.model.transfer import nearest_tokens, transfer_motion_vocabulary
+from smart_marl.tokens import MotionVocabulary
+from smart_marl.tokens.motion import TypeVocab
+from smart_marl.tokens.road import RoadVocabulary
+
+
+def test_nearest_tokens_picks_the_closest_contour():
+    old = torch.zeros(3, 6, 4, 2)
+    old[1] += 1.0
+    old[2] += 5.0
+    new = torch.stack([old[2] + 0.1, old[0] - 0.2, old[1] + 0.3, old[1] - 0.4])
+    assert nearest_tokens(old, new).tolist() == [2, 0, 1, 1]
+
+
+def test_transfer_to_a_vocabulary_holding_each_old_token_twice_splits_its_probability(womd_vocab, tiny_smart):
+    model = tiny_smart(womd_vocab)
+    order = {t: np.concatenate([np.arange(v.size)[::-1], np.arange(v.size)]) for t, v in womd_vocab.types.items()}
+    doubled = MotionVocabulary(types={t: TypeVocab.from_poses(v.poses[order[t]], v.length_m, v.width_m)
+                                      for t, v in womd_vocab.types.items()})
+    road = RoadVocabulary(points=np.zeros((8, 11, 2), np.float32), tolerance_m=0.0, requested_size=8)
+    new = transfer_motion_vocabulary(Checkpoint(model=model, motion_vocab=womd_vocab, road_vocab=road), doubled).model.eval()
+
+    features = torch.randn(50, model.config.hidden_dim, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        old_logits = model.motion_logits(features, None)
+        new_logits = new.motion_logits(features, None)
+    for t in range(3):
+        pick = torch.as_tensor(order[t])
+        torch.testing.assert_close(new_logits[t], old_logits[t][:, pick] - math.log(2))
+        # the two new tokens of an old one carry together exactly the old token's probability
+        p_old, p_new = old_logits[t].softmax(-1), new_logits[t].softmax(-1)
+        v = p_old.shape[1]
+        torch.testing.assert_close(p_new[:, :v].flip(-1) + p_new[:, v:], p_old)
+        # token inputs come from the contours: the new token embeds as its old twin
+        torch.testing.assert_close(new.motion_contours[t], model.motion_contours[t][pick])
+    shared = {k: v for k, v in model.state_dict().items() if not k.startswith("motion_contour")
+              and not k.startswith(tuple(f"motion_heads.{t}.{len(model.motion_heads[t]) - 1}." for t in range(3)))}
+    for k, v in shared.items():
+        torch.testing.assert_close(new.state_dict()[k], v)
