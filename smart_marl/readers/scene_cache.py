@@ -9,6 +9,7 @@ from ..cache import ShardReader, is_shard
 from ..scenario import Scenario
 
 NAME = "scene_cache"
+MULTI_SCENE = True  # several scenes per shard: errors name the scene index
 
 
 def sniff(path: str, head: bytes) -> bool:
