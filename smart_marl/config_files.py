@@ -145,8 +145,8 @@ def device_problem(name: Any) -> str | None:
 
     try:
         dev = torch.device(name)
-    except (RuntimeError, ValueError) as exc:
-        return f"{name!r} is not a torch device ({exc})"
+    except (RuntimeError, ValueError):
+        return f"{name!r} is not a torch device (cpu, cuda, cuda:N or mps)"
     if dev.type == "cpu":
         return None
     if dev.type == "cuda":

@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+from .arguments import output_dir
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("vocab", help="build motion and road token vocabularies from scenes",
@@ -27,7 +29,7 @@ def register(subparsers) -> None:
                    help="k-disks disk radius in metres, T or VEH/PED/CYC; 0 (default): the radius that covers every "
                         "snippet is searched; smaller: the tokens go to the common motions first (e.g. 0.05/0/0)")
     b.add_argument("--road-size", type=int, default=1024, help="road vocabulary size (0: no road vocabulary)")
-    b.add_argument("--out", required=True, type=Path, help="output folder")
+    b.add_argument("--out", required=True, type=lambda text: Path(output_dir(text)), help="output folder")
     b.add_argument("--seed", type=int, default=0, help="random seed of k-disks (default 0)")
     b.add_argument("--stride", type=int, default=1, help="frames between the starts of collected snippets")
     b.add_argument("--no-progress", action="store_true", help="no progress bars")
