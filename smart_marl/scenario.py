@@ -144,11 +144,11 @@ def as_integers(value: Any, dtype=np.int64, what: str = "value") -> np.ndarray:
         if kind == "f":
             bad = ~np.isfinite(array) | (array != np.round(array))
             if bad.any():
-                raise ScenarioValidationError(f"{what}: {array.reshape(-1)[np.flatnonzero(bad.reshape(-1))[0]]!r} is not a whole number")
+                raise ScenarioValidationError(f"{what}: {array.reshape(-1)[np.flatnonzero(bad.reshape(-1))[0]].item()!r} is not a whole number")
         info = np.iinfo(dtype)
         low, high = array.min(), array.max()
         if low < info.min or high > info.max:
-            raise ScenarioValidationError(f"{what}: {low if low < info.min else high} is outside the range of {dtype} "
+            raise ScenarioValidationError(f"{what}: {(low if low < info.min else high).item()!r} is outside the range of {dtype} "
                                           f"[{info.min}, {info.max}]")
     return array.astype(dtype)
 
@@ -182,7 +182,7 @@ def as_mask(value: Any, what: str = "value") -> np.ndarray:
         raise ScenarioValidationError(f"{what}: expected booleans, got values of type {_kind_name(array)}")
     bad = (array != 0) & (array != 1)
     if bad.any():
-        raise ScenarioValidationError(f"{what}: {array.reshape(-1)[np.flatnonzero(bad.reshape(-1))[0]]!r} is neither 0/false nor 1/true")
+        raise ScenarioValidationError(f"{what}: {array.reshape(-1)[np.flatnonzero(bad.reshape(-1))[0]].item()!r} is neither 0/false nor 1/true")
     return array != 0
 
 

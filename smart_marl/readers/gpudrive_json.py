@@ -352,7 +352,8 @@ def _read_objects(objects: list, path: str) -> dict[str, Any]:
     valid_heading = heading[valid]
     radians = has_ids and (valid_heading.size == 0 or float(np.abs(valid_heading).max()) <= 2 * math.pi + 1e-3)
     heading_rad = heading if radians else np.radians(heading)
-    heading_rad = np.where(valid, (heading_rad + np.pi) % (2 * np.pi) - np.pi, 0.0)
+    with np.errstate(invalid="ignore"):  # invalid frames may hold anything (checked finite on valid ones above)
+        heading_rad = np.where(valid, (heading_rad + np.pi) % (2 * np.pi) - np.pi, 0.0)
     size = np.repeat(np.stack([length, width, height], axis=-1)[:, None, :], num_frames, axis=1)
     experts = [int(i) for i, o in zip(ids, objects) if o.get("mark_as_expert")] if any(
         "mark_as_expert" in o for o in objects) else None
