@@ -18,8 +18,8 @@ from smart_marl.model.batch import SmartBatch, collate_scenes
 from smart_marl.model.checkpoint import load_checkpoint
 from smart_marl.model.losses import NextTokenLoss
 from smart_marl.model.smart import SMART, get_config, model_parameter_count
-from smart_marl.train import (DistInfo, TokenizedScenes, TrainError, build_vocabularies, evaluate, load_train_config, make_optimizer,
-                              make_scheduler, open_scenes, train, train_step)
+from smart_marl.train import (DistInfo, TokenizedScenes, TrainError, build_vocabularies, evaluate, load_train_config, open_scenes,
+                              train, train_step)
 from smart_marl.tokens.vocab_io import save_motion_vocabulary, save_road_vocabulary
 
 from test_model import random_batch, tiny_config

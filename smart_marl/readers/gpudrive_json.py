@@ -54,7 +54,7 @@ import numpy as np
 
 from ..errors import ScenarioReadError, ScenarioValidationError, naming
 from ..scenario import (
-    DT_S, AgentType, MapFeatureType, RoadMap, Scenario, SignalState, TrafficLights, Tracks, as_floats, as_int, as_integers,
+    DT_S, AgentType, MapFeatureType, RoadMap, Scenario, SignalState, TrafficLights, Tracks, as_int, as_integers,
     choose_frame,
 )
 
