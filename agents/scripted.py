@@ -34,6 +34,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import torch
 
+from smart_marl.errors import SmartMarlError
+
 DT_S = 0.1
 FRAMES_PER_TOKEN = 5
 HEADING_WEIGHT_M_PER_RAD = 2.0
@@ -154,6 +156,10 @@ def nearest_tokens(token_poses: torch.Tensor, vocab_size: int, current_pose: tor
 MANOEUVRES = ("brake", "stop", "cut_in", "hold", "path", "tokens")
 
 
+class ManoeuvreError(SmartMarlError, ValueError):
+    """A :class:`Manoeuvre` of an unknown kind."""
+
+
 @dataclass
 class Manoeuvre:
     """One controlled agent's scripted manoeuvre from ``at_s`` (seconds after the episode's start)
@@ -173,7 +179,7 @@ class Manoeuvre:
 
     def __post_init__(self) -> None:
         if self.kind not in MANOEUVRES:
-            raise ValueError(f"Manoeuvre kind must be one of {MANOEUVRES}, got {self.kind!r}")
+            raise ManoeuvreError(f"Manoeuvre kind must be one of {MANOEUVRES}, got {self.kind!r}")
 
     def path(self, pose: np.ndarray, speed_mps: float, num_frames: int) -> np.ndarray:
         """Target poses [num_frames, 3] after the onset, from ``pose`` [3] at ``speed_mps``."""

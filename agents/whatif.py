@@ -71,7 +71,8 @@ from typing import Any, Sequence, Union
 import numpy as np
 import torch
 
-from smart_marl.errors import SmartMarlError
+from smart_marl.config_files import integer, number, optional
+from smart_marl.errors import SmartMarlError, check_regular_file
 from smart_marl.scenario import AgentType, Scenario, SignalState, TrafficLights, Tracks, wrap_angle
 
 from . import scripted
@@ -213,6 +214,106 @@ KINDS = {"remove": Remove, "insert": Insert, "brake": Brake, "stop": Stop, "cut_
          "stalled_vehicle": StalledVehicle, "jaywalker": Jaywalker, "traffic_light": TrafficLightOverride}
 _KIND_OF = {cls: kind for kind, cls in KINDS.items()}
 
+MAX_STEPS = 64
+"""Most token steps (0.5 s each: 32 s) a what-if rolls out; ``smart-marl whatif --steps`` refuses more."""
+
+
+# ---------------------------------------------------------------------------- value checks
+# Every key of every kind has a rule (smart_marl.config_files' rules, or the ones below) that a
+# script's values must pass when it is loaded, before a scene is read or a rollout runs.
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_)) and math.isfinite(v)
+
+
+def _agent_ref(v):
+    if isinstance(v, str) and v:
+        return None
+    return None if isinstance(v, (int, np.integer)) and not isinstance(v, bool) else f"must be a track id or 'sdc', got {v!r}"
+
+
+def _agent_refs(v):
+    return _agent_ref(v) if not isinstance(v, (list, tuple)) else next((f"[{k}] {p}" for k, p in ((k, _agent_ref(x))
+                                                                        for k, x in enumerate(v)) if p), None)
+
+
+def _points(widths: tuple[int, ...], count: int | None = None):
+    """A list of points, each a list of ``widths`` finite numbers (all of one width); ``count``: exactly that many."""
+    def rule(v):
+        rows = v if isinstance(v, (list, tuple)) else None
+        if not rows or not all(isinstance(r, (list, tuple)) for r in rows):
+            return f"must be a list of [x, y{', heading' if 3 in widths else ''}] points, got {v!r}"
+        if len({len(r) for r in rows}) != 1 or len(rows[0]) not in widths:
+            return f"must be points of {' or '.join(map(str, widths))} numbers each (a rectangular list), got {v!r}"
+        if not all(_is_number(x) for r in rows for x in r):
+            return f"must hold finite numbers only, got {v!r}"
+        if count is not None and len(rows) != count:
+            return f"must be {count} point(s), got {len(rows)}"
+        return None
+    return rule
+
+
+def _vector(n: int, positive: bool = False):
+    """``n`` finite numbers (positive ones with ``positive``)."""
+    def rule(v):
+        if not (isinstance(v, (list, tuple)) and len(v) == n and all(_is_number(x) for x in v)) or (positive and min(v) <= 0):
+            return f"must be {n} finite{' positive' if positive else ''} numbers, got {v!r}"
+        return None
+    return rule
+
+
+def _tokens(v):
+    if not isinstance(v, (list, tuple)) or not v or not all(isinstance(t, (int, np.integer)) and not isinstance(t, bool) and t >= 0
+                                                             for t in v):
+        return f"must be a non-empty list of token ids (integers >= 0), got {v!r}"
+    return None
+
+
+def _choice(*options):
+    return lambda v: None if v in options else f"must be one of {', '.join(map(str, options))}, got {v!r}"
+
+
+def _lanes(v):
+    if v == "all" or (isinstance(v, (int, np.integer)) and not isinstance(v, bool)):
+        return None
+    if isinstance(v, (list, tuple)) and v and all(isinstance(x, (int, np.integer)) and not isinstance(x, bool) for x in v):
+        return None
+    return f"must be 'all' or lane ids (integers), got {v!r}"
+
+
+_SIGNAL_NAMES = tuple(s.name.lower() for s in SignalState)
+_PLACEMENT = {"frame": _choice("source", "local"), "relative_to": optional(_agent_ref)}
+_AT = {"at_s": number(0.0)}
+_EDIT_RULES = {
+    Remove: {"agents": _agent_refs, **_AT},
+    Insert: {"type": _choice("vehicle", "pedestrian", "cyclist"), "trajectory": optional(_points((2, 3))),
+             "path": optional(_points((2,))), "speed_mps": number(0.0), "wait_s": number(0.0), "tokens": optional(_tokens),
+             "pose": optional(_vector(3)), "id": optional(integer()), "size_m": optional(_vector(3, positive=True)),
+             "then": _choice("release", "hold")},
+    Brake: {"agent": _agent_ref, **_AT, "decel_mps2": number(0.0, low_open=True)},
+    CutIn: {"agent": _agent_ref, **_AT, "lateral_m": number(), "duration_s": number(0.0, low_open=True),
+            "speed_mps": optional(number(0.0))},
+    Follow: {"agent": _agent_ref, **_AT, "path": optional(_points((2,))), "speed_mps": optional(number(0.0)),
+             "tokens": optional(_tokens), "then": _choice("release", "hold")},
+    StalledVehicle: {"agent": optional(_agent_ref), "pose": optional(_vector(3)), "id": optional(integer()),
+                     "size_m": optional(_vector(3, positive=True))},
+    Jaywalker: {"start": _vector(2), "end": _vector(2), "speed_mps": number(0.0, low_open=True), "wait_s": number(0.0),
+                "id": optional(integer())},
+    TrafficLightOverride: {"lanes": _lanes, "state": lambda v: _choice(*_SIGNAL_NAMES)(str(v).lower()), **_AT},
+}
+_EDIT_RULES[Stop] = _EDIT_RULES[Brake]
+
+
+def check_edit(edit, path=None, index: int | None = None) -> None:
+    """:class:`WhatIfError` naming the file, the edit and the key whose value is not what the kind
+    takes (``at_s: soon``, a ragged path, ``decel_mps2: .inf``...)."""
+    kind = _KIND_OF.get(type(edit))
+    if kind is None:
+        raise WhatIfError(path, f"not a what-if edit: {type(edit).__name__}", index)
+    for key, rule in {**_PLACEMENT, **_EDIT_RULES[type(edit)]}.items():
+        problem = rule(getattr(edit, key))
+        if problem:
+            raise WhatIfError(path, f"{kind}: {key} {problem}", index)
+
 
 @dataclass
 class WhatIf:
@@ -245,7 +346,9 @@ class WhatIf:
             bad = set(e) - names - {"kind"}
             if bad:
                 raise WhatIfError(path, f"{kind}: unknown keys {sorted(bad)} (allowed: {', '.join(sorted(names))})", i)
-            out.append(cls_(**{k: v for k, v in e.items() if k != "kind"}))
+            edit = cls_(**{k: v for k, v in e.items() if k != "kind"})
+            check_edit(edit, path, i)
+            out.append(edit)
         return cls(edits=out, name=str(data.get("name", Path(path).stem if path else "what-if")),
                    description=str(data.get("description", "")), path=path)
 
@@ -253,16 +356,17 @@ class WhatIf:
 def load_script(path: str | os.PathLike) -> WhatIf:
     """Read a what-if YAML (or JSON) script."""
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():
         raise WhatIfError(p, "no such script file")
+    check_regular_file(p, lambda name, problem: WhatIfError(name, problem))
     try:
         import yaml
     except ImportError as exc:  # pragma: no cover - pyyaml is in the whatif extra
         raise WhatIfError(p, "reading YAML scripts needs pyyaml (pip install 'smart-marl[whatif]')") from exc
     try:
         data = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as exc:
-        raise WhatIfError(p, f"not valid YAML: {exc}") from exc
+    except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
+        raise WhatIfError(p, f"not valid YAML: {type(exc).__name__}: {exc}") from exc
     return WhatIf.from_dict(data, str(p))
 
 
@@ -296,8 +400,7 @@ class Prepared:
 
 
 def _step_of(at_s: float, path, i) -> int:
-    if at_s is None or not np.isfinite(at_s) or at_s < 0:
-        raise WhatIfError(path, f"at_s must be >= 0 seconds, got {at_s}", i)
+    """The token step an edit at ``at_s`` seconds (checked finite and >= 0 by :func:`check_edit`) starts at."""
     return int(round(float(at_s) / TOKEN_S))
 
 
@@ -408,9 +511,8 @@ def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
     next_id = int(scene.tracks.ids.max()) + 1 if scene.num_tracks else 1
     horizon = scene.num_frames - scene.current_frame  # frames of script a new track stores
     for i, e in enumerate(whatif.edits):
-        kind = _KIND_OF.get(type(e))
-        if kind is None:
-            raise WhatIfError(path, f"not a what-if edit: {type(e).__name__}", i)
+        check_edit(e, path, i)
+        kind = _KIND_OF[type(e)]
         if kind == "remove":
             idx = [_track_index(scene, a, path, i) for a in (e.agents if isinstance(e.agents, (list, tuple)) else [e.agents])]
             ids = [int(scene.tracks.ids[k]) for k in idx]
@@ -425,8 +527,6 @@ def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
             k = _track_index(scene, e.agent, path, i)
             tid = int(scene.tracks.ids[k])
             step = _step_of(e.at_s, path, i)
-            if not e.decel_mps2 > 0:
-                raise WhatIfError(path, f"decel_mps2 must be > 0, got {e.decel_mps2}", i)
             a = float(e.decel_mps2)
             scripts.append(_Script(tid, step, make_path=lambda pose, v, a=a, n=horizon: scripted.brake_path(pose, v, a, n), then="hold"))
             affected[tid], onset[tid] = kind, step
@@ -435,8 +535,6 @@ def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
             k = _track_index(scene, e.agent, path, i)
             tid = int(scene.tracks.ids[k])
             step = _step_of(e.at_s, path, i)
-            if not e.duration_s > 0:
-                raise WhatIfError(path, f"duration_s must be > 0, got {e.duration_s}", i)
             lat, dur, spd = float(e.lateral_m), float(e.duration_s), e.speed_mps
             n = int(math.ceil(dur / DT_S))
             n = FRAMES_PER_TOKEN * int(math.ceil(n / FRAMES_PER_TOKEN))
@@ -450,6 +548,7 @@ def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
             if (e.path is None) == (e.tokens is None):
                 raise WhatIfError(path, "follow needs exactly one of 'path' or 'tokens'", i)
             if e.tokens is not None:
+                _check_tokens(scene, k, e.tokens, motion_vocab, path, i)
                 scripts.append(_Script(tid, step, tokens=[int(t) for t in e.tokens], then=_then(e.then, path, i)))
             else:
                 wp = _to_local(scene, e, e.path, path, i)[:, :2]
@@ -564,6 +663,18 @@ def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
             raise WhatIfError(path, f"kind {kind} not handled", i)
     return Prepared(scene=scene, scripts=scripts, removals=removals, lights=lights, affected=affected, followers=followers,
                     onset_step=onset, approaching=approaching)
+
+
+def _check_tokens(scene: Scenario, index: int, tokens, motion_vocab, path, i) -> None:
+    """Tokens an existing agent is to take must be in its type's vocabulary (checked before any rollout)."""
+    atype = AgentType(int(scene.tracks.types[index]))
+    if atype == AgentType.OTHER:
+        raise WhatIfError(path, f"agent {int(scene.tracks.ids[index])} is of type other, which has no motion tokens", i)
+    if motion_vocab is not None:
+        size = motion_vocab[atype].size
+        bad = [int(t) for t in tokens if not 0 <= int(t) < size]
+        if bad:
+            raise WhatIfError(path, f"tokens {bad[:5]} are outside the {atype.name.lower()} vocabulary [0, {size})", i)
 
 
 def _then(value: str, path, i) -> str:
@@ -779,8 +890,10 @@ def run_whatif(prior, scene: Scenario, whatif: WhatIf, num_rollouts: int = 8, se
     """The what-if and its unperturbed baseline (same seed, same number of rollouts) on one scene,
     and the comparison table (:func:`compare`). ``prior``: a SMART model, Checkpoint, checkpoint
     path, or None for the embedded prior."""
+    if isinstance(num_steps, bool) or not isinstance(num_steps, int) or not 1 <= num_steps <= MAX_STEPS:
+        raise WhatIfError(whatif.path, f"num_steps must be 1..{MAX_STEPS} token steps of 0.5 s, got {num_steps!r}")
     model, vocab = resolve_prior(prior, device)
-    prepared = prepare(scene, whatif, vocab)
+    prepared = prepare(scene, whatif, vocab)  # every edit checked against the scene and the vocabulary before any rollout
     base_prep = Prepared(scene=scene, scripts=[], removals=[], lights=[], affected={}, followers={}, onset_step={})
     baseline = simulate(model, vocab, base_prep, num_rollouts, seed, num_steps, top_k, temperature, device, scripted_on=False)
     perturbed = simulate(model, vocab, prepared, num_rollouts, seed, num_steps, top_k, temperature, device)

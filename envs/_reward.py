@@ -33,6 +33,8 @@ import numpy as np
 from smart_marl.geometry import (
     Z_STRETCH, RoadEdgeSegments, box_corners_float32, box_distance_bounds, boxes_overlap, is_offroad, pairwise_distance,
 )
+
+from .errors import EnvConfigError, EnvConfigTypeError
 from smart_marl.scenario import AgentType
 
 REWARD_TERMS = ("progress", "goal_reached", "collision", "offroad", "comfort", "prior_log_likelihood")
@@ -62,9 +64,9 @@ class RewardConfig:
             known = {f.name for f in fields(cls)}
             unknown = sorted(set(value) - known)
             if unknown:
-                raise ValueError(f"unknown reward term(s) {unknown}; known: {sorted(known)}")
+                raise EnvConfigError(f"unknown reward term(s) {unknown}; known: {sorted(known)}")
             return cls(**value)
-        raise TypeError(f"reward must be a RewardConfig, a dict of weights or None, got {type(value).__name__}")
+        raise EnvConfigTypeError(f"reward must be a RewardConfig, a dict of weights or None, got {type(value).__name__}")
 
     def weights(self) -> np.ndarray:
         return np.array([getattr(self, t) for t in REWARD_TERMS], np.float64)
