@@ -51,6 +51,9 @@ def _run(argv, capsys) -> tuple[int, str, str]:
     (["eval", "--scenes", "SRC", "--policy", "random", "--format", "nosuch"], "--format"),
     (["eval", "--scenes", "SRC", "--policy", "random", "--any-rollout-count"], "--any-rollout-count"),
     (["info", "EMPTY"], "no scene file in this folder"),
+    (["whatif", "SRC", "--script", "SRC", "--out", "FILE"], "--out"),
+    (["whatif", "SRC", "--script", "SRC", "--out", "OUT", "--steps", "1000"], "--steps: at most 64"),
+    (["whatif", "SRC", "--script", "SRC", "--out", "OUT", "--rollouts", "0"], "--rollouts"),
 ], ids=lambda a: " ".join(a) if isinstance(a, list) else None)
 def test_bad_arguments_exit_2_with_one_error_line_before_any_work(argv, names, tmp_path, capsys):
     (tmp_path / "FILE").write_text("a file, not a folder")
