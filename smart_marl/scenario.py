@@ -136,8 +136,8 @@ def as_integers(value: Any, dtype=np.int64, what: str = "value") -> np.ndarray:
     except (TypeError, ValueError) as exc:  # ragged nested lists
         raise ScenarioValidationError(f"{what}: not an array of integers ({exc})") from None
     kind = array.dtype.kind
-    if kind == "b":
-        return array.astype(dtype)
+    if kind == "b" or (kind in "iu" and np.can_cast(array.dtype, dtype, "safe")):
+        return array.astype(dtype, copy=False)  # every value fits: nothing to check, no copy when the dtype is already right
     if kind not in "iuf":
         raise ScenarioValidationError(f"{what}: expected integers, got values of type {_kind_name(array)}")
     if array.size:
@@ -150,7 +150,7 @@ def as_integers(value: Any, dtype=np.int64, what: str = "value") -> np.ndarray:
         if low < info.min or high > info.max:
             raise ScenarioValidationError(f"{what}: {(low if low < info.min else high).item()!r} is outside the range of {dtype} "
                                           f"[{info.min}, {info.max}]")
-    return array.astype(dtype)
+    return array.astype(dtype, copy=False)
 
 
 def as_int(value: Any, what: str = "value") -> int:
@@ -169,7 +169,7 @@ def as_floats(value: Any, dtype=np.float64, what: str = "value") -> np.ndarray:
     if array.dtype.kind not in "biuf":
         raise ScenarioValidationError(f"{what}: expected numbers, got values of type {_kind_name(array)}")
     with np.errstate(over="ignore"):
-        return array.astype(dtype)
+        return array.astype(dtype, copy=False)
 
 
 def as_mask(value: Any, what: str = "value") -> np.ndarray:
@@ -325,6 +325,8 @@ class Tracks:
         for name in ("position", "heading", "velocity", "size"):
             values = getattr(self, name)
             finite = np.isfinite(values)
+            if finite.all():  # the common case: one reduction
+                continue
             if finite.ndim == 3:
                 finite = finite.all(axis=-1)
             bad = self.valid & ~finite
@@ -334,8 +336,8 @@ class Tracks:
                     f"Tracks.{name} is not finite on {int(bad.sum())} valid frame(s), "
                     f"first at track {int(i)} (id {int(self.ids[i])}) frame {int(f)}"
                 )
-        negative = self.valid & (self.size < 0).any(axis=-1)
-        if negative.any():
+        negative = self.valid & (self.size < 0).any(axis=-1) if (self.size < 0).any() else None
+        if negative is not None and negative.any():
             i, f = np.argwhere(negative)[0]
             raise ScenarioValidationError(
                 f"Tracks.size is negative on {int(negative.sum())} valid frame(s), first at track {int(i)} "

@@ -59,7 +59,10 @@ def _mutated_array(data, node: Any) -> Any:
         kind = data.draw(st.sampled_from(["nan", "huge", "non_whole", "strings", "objects", "drop_row", "flatten", "negate",
                                           "empty", "bools"]), label="array mutation")
     if kind in ("nan", "huge", "negate", "non_whole") and a.size:
-        a = a.astype(np.float64) if kind in ("nan", "non_whole") or a.dtype.kind == "b" else a
+        if kind in ("nan", "non_whole") or a.dtype.kind == "b":
+            a = a.astype(np.float64)
+        elif kind == "negate" and a.dtype.kind == "u":
+            a = a.astype(np.int64)
         i = data.draw(st.integers(0, a.size - 1), label="element")
         flat = a.reshape(-1)
         if kind == "nan":

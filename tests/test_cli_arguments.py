@@ -10,21 +10,11 @@ import numpy as np
 import pytest
 
 from smart_marl.cache import write_shard
-from smart_marl.cli import main
 from smart_marl.readers import read_scenario
+from test_commands_consistency import _exit_code as _run  # (exit code, stdout, stderr) of the command line
 
 WOMD = "womd_tfrecord/motion_data_one_scenario.tfrecord"
 SUBMISSION = "womd_tfrecord/sim_agents_test_submission.binproto"
-
-
-def _run(argv, capsys) -> tuple[int, str, str]:
-    """(exit code, stdout, stderr) of the command line."""
-    try:
-        code = main(argv)
-    except SystemExit as exc:
-        code = exc.code
-    captured = capsys.readouterr()
-    return int(code or 0), captured.out, captured.err
 
 
 @pytest.mark.parametrize("argv, names", [
