@@ -42,6 +42,8 @@ SUBMISSION = "womd_tfrecord/sim_agents_test_submission.binproto"
     (["eval", "--scenes", "SRC", "--policy", "random", "--any-rollout-count"], "--any-rollout-count"),
     (["info", "EMPTY"], "no scene file in this folder"),
     (["whatif", "SRC", "--script", "SRC", "--out", "FILE"], "--out"),
+    (["finetune", "--config", "tiny", "--out", "FILE"], "--out"),
+    (["finetune", "--config", "tiny", "--device", "bogus"], "--device"),
     (["whatif", "SRC", "--script", "SRC", "--out", "OUT", "--steps", "1000"], "--steps: at most 64"),
     (["whatif", "SRC", "--script", "SRC", "--out", "OUT", "--rollouts", "0"], "--rollouts"),
 ], ids=lambda a: " ".join(a) if isinstance(a, list) else None)
