@@ -44,6 +44,8 @@ SUBMISSION = "womd_tfrecord/sim_agents_test_submission.binproto"
     (["whatif", "SRC", "--script", "SRC", "--out", "FILE"], "--out"),
     (["finetune", "--config", "tiny", "--out", "FILE"], "--out"),
     (["finetune", "--config", "tiny", "--device", "bogus"], "--device"),
+    (["finetune", "--config", "tiny", "lr=abc", "--print-config"], "fine-tuning config: lr must be a finite number"),
+    (["finetune", "--config", "tiny", "iterations=0", "--print-config"], "fine-tuning config: iterations must be at least 1"),
     (["whatif", "SRC", "--script", "SRC", "--out", "OUT", "--steps", "1000"], "--steps: at most 64"),
     (["whatif", "SRC", "--script", "SRC", "--out", "OUT", "--rollouts", "0"], "--rollouts"),
 ], ids=lambda a: " ".join(a) if isinstance(a, list) else None)
