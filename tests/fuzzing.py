@@ -31,7 +31,7 @@ WRONG_VALUES: list[Any] = [
 ]
 """What a field may be replaced by: wrong types, non-finite and huge numbers, containers."""
 
-BUDGETS = {"default": dict(max_examples=12, derandomize=True), "long": dict(max_examples=250, derandomize=False)}
+BUDGETS = {"default": dict(max_examples=20, derandomize=True), "long": dict(max_examples=250, derandomize=False)}
 """Examples per fuzz target: the default run's fixed-seed budget, and the slow run's."""
 
 
