@@ -56,7 +56,8 @@ import sys
 for name in {optional!r}:
     sys.modules[name] = None  # importing it now raises ImportError
 from envs import smart_traffic_v0
-env = smart_traffic_v0.parallel_env(scenarios="embedded", prior="embedded", controlled="sdc", background="log", horizon_steps=2)
+env = smart_traffic_v0.parallel_env(scenarios="embedded", prior="embedded", controlled="sdc", background="log", horizon_steps=2,
+                                    terminate_on=())  # no event ends it early: exactly horizon_steps steps
 obs, infos = env.reset(seed=0)
 steps = 0
 while env.agents:

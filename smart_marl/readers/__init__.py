@@ -67,7 +67,7 @@ def detect_format(path: str | os.PathLike) -> str:
     for module in _formats():
         try:
             verdict = module.sniff(path, head)
-        except Exception as exc:  # noqa: BLE001 - a sniffer choking on a hostile head is not a match
+        except Exception as exc:  # noqa: BLE001 - a sniffer choking on a hostile head: named, not a traceback
             raise ScenarioReadError(path, f"cannot tell its format ({module.NAME} check failed: {type(exc).__name__}: {exc})") from exc
         if verdict:
             return module.NAME
