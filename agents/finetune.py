@@ -59,9 +59,10 @@ from torchrl.modules import MultiAgentMLP, ProbabilisticActor
 from torchrl.objectives import ValueEstimators
 
 from envs import smart_traffic_v0
-from smart_marl.config_files import apply_overrides, read_config_file
+from smart_marl.config_files import (apply_overrides, check_fields, device_problem, flag, integer, number, optional,
+                                     output_dir_problem, read_config_file, text)
 from smart_marl.embedded import SAMPLES_DIR
-from smart_marl.errors import SmartMarlError
+from smart_marl.errors import SmartMarlError, UsageError
 from smart_marl.model.checkpoint import EMBEDDED, CheckpointError
 from smart_marl.model.checkpoint import load_prior as load_smart_prior
 from smart_marl.readers import read_scenarios
@@ -80,6 +81,10 @@ PRIOR_KEY = (GROUP, "observation", "prior_logits")
 
 class FinetuneError(SmartMarlError, ValueError):
     """A fine-tuning run that cannot start: bad config, no usable scene, no prior."""
+
+
+class FinetuneConfigError(FinetuneError, UsageError):
+    """A config key or value that is not a valid FinetuneConfig (the command line exits with 2)."""
 
 
 @dataclass
@@ -159,15 +164,39 @@ def load_finetune_config(config: str | Mapping[str, Any] | None = None, override
             raise FinetuneError(f"unknown fine-tuning config {config!r}: neither a file nor a named config ({', '.join(named_configs())})")
         values.update(read_config_file(p, "fine-tuning", FinetuneError))
     values = {k: v for k, v in values.items() if not k.startswith("_")}  # "_comment" and the like
-    values = apply_overrides(values, overrides, FinetuneConfig, "reward", "reward", "fine-tuning", FinetuneError)
-    if "terminate_on" in values:
+    values = apply_overrides(values, overrides, FinetuneConfig, "reward", "reward", "fine-tuning", FinetuneConfigError)
+    if isinstance(values.get("terminate_on"), (list, tuple)):
         values["terminate_on"] = tuple(values["terminate_on"])
     cfg = FinetuneConfig(**values)
+    check_fields(cfg, _FINETUNE_RULES, "fine-tuning", FinetuneConfigError)
     if cfg.critic not in ("mappo", "ippo"):
-        raise FinetuneError(f"critic must be 'mappo' or 'ippo', got {cfg.critic!r}")
-    if cfg.frames_per_batch < cfg.minibatch_size or cfg.minibatch_size < 1:
-        raise FinetuneError(f"minibatch_size ({cfg.minibatch_size}) must be in 1..frames_per_batch ({cfg.frames_per_batch})")
+        raise FinetuneConfigError(f"critic must be 'mappo' or 'ippo', got {cfg.critic!r}")
+    if cfg.frames_per_batch < cfg.minibatch_size:
+        raise FinetuneConfigError(f"minibatch_size ({cfg.minibatch_size}) must be in 1..frames_per_batch ({cfg.frames_per_batch})")
     return cfg
+
+
+def _scenes_rule(value) -> str | None:
+    if isinstance(value, str) or (isinstance(value, list) and value and all(isinstance(v, str) for v in value)):
+        return None
+    return f"must be a path, a list of paths or 'embedded', got {value!r}"
+
+
+_FINETUNE_RULES = {
+    "scenes": _scenes_rule, "num_scenes": integer(1), "prior": text, "controlled": text, "moving_min_route_m": number(0.0),
+    "max_agents": integer(1), "background": text, "horizon_steps": integer(1),
+    "reward": lambda v: None if isinstance(v, dict) and all(number()(w) is None for w in v.values())
+    else f"must map reward terms to finite weights, got {v!r}",
+    "terminate_on": lambda v: None if isinstance(v, tuple) and all(isinstance(e, str) for e in v) else f"must be a list of event names, got {v!r}",
+    "top_k": optional(integer(1)), "temperature": number(0.0, low_open=True), "residual": flag, "hidden": integer(1), "depth": integer(1),
+    "obs_scale": number(0.0, low_open=True), "critic": text, "beta": number(0.0), "gamma": number(0.0, 1.0),
+    "lmbda": number(0.0, 1.0), "clip_epsilon": number(0.0, low_open=True), "entropy_coeff": number(0.0),
+    "critic_coeff": number(0.0), "normalize_advantage": flag, "lr": number(0.0, low_open=True), "max_grad_norm": number(0.0),
+    "frames_per_batch": integer(1), "iterations": integer(1), "ppo_epochs": integer(1), "minibatch_size": integer(1),
+    "eval_episodes": integer(0), "eval_seed": integer(), "out_dir": lambda v: text(v) or output_dir_problem(v),
+    "checkpoint_every": integer(1), "seed": integer(), "device": device_problem, "tensorboard": flag, "torch_threads": integer(0),
+}
+"""What each FinetuneConfig field takes (the env checks ``controlled``, ``background`` and the reward terms by name)."""
 
 
 # ---------------------------------------------------------------------------------- the env

@@ -22,6 +22,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import torch
 
+from envs.errors import NoPriorLogitsError
 from smart_marl.rollout import sample_tokens
 
 
@@ -42,7 +43,7 @@ def prior_logits_of(agent: str, observations: Mapping, infos: Mapping) -> np.nda
     obs = observations.get(agent) if observations else None
     if isinstance(obs, Mapping) and "prior_logits" in obs:
         return np.asarray(obs["prior_logits"], np.float32)
-    raise KeyError(f"no prior logits for {agent}: the env needs a prior (prior=PATH or a model); "
+    raise NoPriorLogitsError(f"no prior logits for {agent}: the env needs a prior (prior=PATH or a model); "
                    f"they are in infos[agent]['prior_logits'] and in the 'dict' observation")
 
 

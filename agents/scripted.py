@@ -34,6 +34,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import torch
 
+from smart_marl.errors import SmartMarlError
 from smart_marl.scenario import DT_S, wrap_angle
 from smart_marl.tokens import FRAMES_PER_TOKEN, TOKEN_S
 from smart_marl.tokens.motion import match_token_path, path_heading_weight
@@ -113,6 +114,10 @@ def polyline_path(waypoints: np.ndarray, speed_mps: float, num_frames: int, wait
 MANOEUVRES = ("brake", "stop", "cut_in", "hold", "path", "tokens")
 
 
+class ManoeuvreError(SmartMarlError, ValueError):
+    """A :class:`Manoeuvre` of an unknown kind."""
+
+
 @dataclass
 class Manoeuvre:
     """One controlled agent's scripted manoeuvre from ``at_s`` (seconds after the episode's start)
@@ -132,7 +137,7 @@ class Manoeuvre:
 
     def __post_init__(self) -> None:
         if self.kind not in MANOEUVRES:
-            raise ValueError(f"Manoeuvre kind must be one of {MANOEUVRES}, got {self.kind!r}")
+            raise ManoeuvreError(f"Manoeuvre kind must be one of {MANOEUVRES}, got {self.kind!r}")
 
     def path(self, pose: np.ndarray, speed_mps: float, num_frames: int) -> np.ndarray:
         """Target poses [num_frames, 3] after the onset, from ``pose`` [3] at ``speed_mps``."""

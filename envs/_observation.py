@@ -38,6 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import EnvConfigError
+
 from smart_marl.scenario import SignalState
 
 PAST_OFFSETS_FRAMES = (5, 10, 15, 20)  # 0.5 s .. 2.0 s ago
@@ -61,7 +63,7 @@ class ObservationConfig:
 
     def __post_init__(self) -> None:
         if self.kind not in ("vector", "dict"):
-            raise ValueError(f"observation kind must be 'vector' or 'dict', got {self.kind!r}")
+            raise EnvConfigError(f"observation kind must be 'vector' or 'dict', got {self.kind!r}")
 
 
 def observation_layout(cfg: ObservationConfig) -> list[tuple[str, int, int]]:

@@ -35,6 +35,7 @@ from smart_marl.scenario import DT_S, AgentType
 from smart_marl.tokens import FRAMES_PER_TOKEN
 
 from ._scene import SceneStatic
+from .errors import EnvConfigError, EnvConfigTypeError
 
 REWARD_TERMS = ("progress", "goal_reached", "collision", "offroad", "comfort", "prior_log_likelihood")
 TERMINATION_EVENTS = ("collision", "offroad", "goal")
@@ -62,9 +63,9 @@ class RewardConfig:
             known = {f.name for f in fields(cls)}
             unknown = sorted(set(value) - known)
             if unknown:
-                raise ValueError(f"unknown reward term(s) {unknown}; known: {sorted(known)}")
+                raise EnvConfigError(f"unknown reward term(s) {unknown}; known: {sorted(known)}")
             return cls(**value)
-        raise TypeError(f"reward must be a RewardConfig, a dict of weights or None, got {type(value).__name__}")
+        raise EnvConfigTypeError(f"reward must be a RewardConfig, a dict of weights or None, got {type(value).__name__}")
 
     def weights(self) -> np.ndarray:
         return np.array([getattr(self, t) for t in REWARD_TERMS], np.float64)

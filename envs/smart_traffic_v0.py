@@ -62,7 +62,6 @@ from pettingzoo.utils import wrappers
 from pettingzoo.utils.conversions import parallel_to_aec_wrapper
 
 from smart_marl.embedded import sample_scenarios
-from smart_marl.errors import SmartMarlError
 from smart_marl.model.checkpoint import CheckpointError, load_prior
 from smart_marl.readers import read_scenarios
 from smart_marl.render import BevRenderer, EpisodeRecorder
@@ -71,13 +70,10 @@ from smart_marl.scenario import DT_S, AgentType, Scenario
 from smart_marl.tokens import FRAMES_PER_TOKEN, MotionVocabulary
 
 from ._dynamics import BACKGROUNDS, Motion, move, release
+from .errors import ActionError, ActionTypeError, EnvConfigError, EnvError, EnvStateError, UnknownAgentError
 from ._observation import HISTORY_FRAMES, ObservationConfig, build_observations, observation_size
 from ._reward import REWARD_TERMS, TERMINATION_EVENTS, RewardConfig, StepReward, route_progress_m, step_reward
 from ._scene import SceneStatic, scene_static
-
-
-class EnvConfigError(SmartMarlError, ValueError):
-    """A bad argument to the environment (scenes, prior, controlled agents, background...)."""
 
 
 # ----------------------------------------------------------------------------- construction
@@ -249,7 +245,7 @@ class SmartTrafficEnv(ParallelEnv):
 
     def _agent_type_of_name(self, agent: str) -> int:
         if agent not in self._obs_spaces and agent not in self._act_spaces and agent not in self.possible_agents:
-            raise KeyError(f"unknown agent {agent!r}: the agents of this episode are {self.possible_agents[:8]}"
+            raise UnknownAgentError(f"unknown agent {agent!r}: the agents of this episode are {self.possible_agents[:8]}"
                            f"{' ...' if len(self.possible_agents) > 8 else ''}")
         return int(AgentType[agent.rsplit("_", 1)[0].upper()])
 
@@ -418,28 +414,30 @@ class SmartTrafficEnv(ParallelEnv):
     def _check_actions(self, actions: dict) -> np.ndarray:
         """Validated token ids [C] of the live agents (-1 for done ones)."""
         if not self.agents:
-            raise RuntimeError("step() after every agent is done: call reset() to start a new episode")
+            raise EnvStateError("step() after every agent is done: call reset() to start a new episode")
         if not isinstance(actions, dict):
-            raise TypeError(f"actions must be a dict {{agent name: token id}}, got {type(actions).__name__}")
+            raise ActionTypeError(f"actions must be a dict {{agent name: token id}}, got {type(actions).__name__}")
         unknown = [a for a in actions if a not in self._agent_track]
         if unknown:
-            raise KeyError(f"unknown agent(s) {unknown[:5]}: the agents of this episode are {self.possible_agents[:8]}"
+            raise UnknownAgentError(f"unknown agent(s) {unknown[:5]}: the agents of this episode are {self.possible_agents[:8]}"
                            f"{' ...' if len(self.possible_agents) > 8 else ''}")
         missing = [a for a in self.agents if a not in actions]
         if missing:
-            raise ValueError(f"no action for live agent(s) {missing[:5]}: every agent in env.agents needs a token id")
+            raise ActionError(f"no action for live agent(s) {missing[:5]}: every agent in env.agents needs a token id")
         tokens = np.full(len(self.possible_agents), -1, np.int64)
         live = set(self.agents)
         for i, a in enumerate(self.possible_agents):
             if a not in live:
                 continue  # done agents: their actions are ignored
             act = np.asarray(actions[a])
-            if act.size != 1 or not (np.issubdtype(act.dtype, np.integer) or (np.issubdtype(act.dtype, np.floating) and float(act) == int(act))):
-                raise ValueError(f"action of {a} must be one integer token id, got {actions[a]!r}")
+            whole = act.size == 1 and (np.issubdtype(act.dtype, np.integer) or (
+                np.issubdtype(act.dtype, np.floating) and bool(np.isfinite(act).all()) and float(act.reshape(())).is_integer()))
+            if not whole:  # NaN, inf, a fraction, a string, a vector...
+                raise ActionError(f"action of {a} must be one integer token id, got {actions[a]!r}")
             tok = int(act.reshape(()))
             v = self.vocab_sizes[int(self.static.types[self._agent_track[a]])]
             if not 0 <= tok < v:
-                raise ValueError(f"action {tok} of {a} is outside its vocabulary: token ids are 0..{v - 1}")
+                raise ActionError(f"action {tok} of {a} is outside its vocabulary: token ids are 0..{v - 1}")
             tokens[i] = tok
         return tokens
 
@@ -539,7 +537,7 @@ class SmartTrafficEnv(ParallelEnv):
             gymnasium.logger.warn("render() without a render_mode: pass render_mode='rgb_array' or 'human' to parallel_env()")
             return None
         if not hasattr(self, "pose"):
-            raise RuntimeError("render() before reset()")
+            raise EnvStateError("render() before reset()")
         frame = self._render_frame()
         if self.render_mode == "rgb_array":
             return frame
@@ -563,7 +561,7 @@ class SmartTrafficEnv(ParallelEnv):
     def save_recording(self) -> Path:
         """Write the recorded frames (see :meth:`start_recording`) and stop recording; returns the path."""
         if self._recorder is None:
-            raise RuntimeError("save_recording() without start_recording()")
+            raise EnvStateError("save_recording() without start_recording()")
         path = self._recorder.write()
         self._recorder = None
         return path
@@ -605,5 +603,5 @@ def env(**kwargs):
     return wrappers.OrderEnforcingWrapper(raw_env(**kwargs))
 
 
-__all__ = ["BACKGROUNDS", "EnvConfigError", "ObservationConfig", "RewardConfig", "SmartTrafficEnv",
+__all__ = ["BACKGROUNDS", "EnvError", "EnvConfigError", "UnknownAgentError", "ActionError", "EnvStateError", "ObservationConfig", "RewardConfig", "SmartTrafficEnv",
            "env", "parallel_env", "raw_env"]

@@ -21,20 +21,21 @@ import json
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
 from tqdm import tqdm
 
-from .errors import ScenarioReadError, SmartMarlError
+from .errors import ScenarioReadError, SmartMarlError, UsageError
 from .readers import expand_paths, read_scenarios
 from .readers.scene_cache import (
-    MANIFEST, MANIFEST_KIND, SHARD_SUFFIX, ShardReader, atomic_write, is_cache_dir, read_manifest, scene_entry, write_manifest,
-    write_shard,
+    MANIFEST, MANIFEST_KIND, SHARD_SUFFIX, ShardReader, atomic_write, is_cache_dir, load_manifest, read_manifest, scene_entry,
+    shard_name_problem, write_manifest, write_shard,
 )
 from .scenario import Scenario
+from .workers import worker_pool
 
 __all__ = [
     "MANIFEST", "MANIFEST_KIND", "SHARD_SUFFIX", "PreprocessError", "PreprocessReport", "SceneCache", "ShardReader",
@@ -48,12 +49,14 @@ class SceneCache:
 
     ``SceneCache(dir)[i]`` is the i-th scene of the manifest; ``shard_paths()`` lists the shard
     files. Safe to hand to DataLoader workers: open shards are not pickled, each process opens its
-    own.
+    own. The manifest is checked when the cache is opened (shard entries must be plain file names
+    inside the folder) and against the shards when they are read (each shard holds as many scenes
+    as the manifest lists, with the same scenario ids); a mismatch raises :class:`ScenarioReadError`.
     """
 
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)
-        self.manifest = read_manifest(self.root)
+        self.manifest = read_manifest(self.root)  # checked: shard entries are plain file names with scenario ids
         self.scenes: list[dict[str, Any]] = [s for shard in self.manifest["shards"] for s in shard["scenes"]]
         self._locations = [(k, j) for k, shard in enumerate(self.manifest["shards"]) for j in range(len(shard["scenes"]))]
         self._readers: dict[int, ShardReader] = {}
@@ -66,12 +69,25 @@ class SceneCache:
     def __len__(self) -> int:
         return len(self._locations)
 
-    def __getitem__(self, i: int) -> Scenario:
-        k, j = self._locations[i]
+    def _reader(self, k: int) -> ShardReader:
         reader = self._readers.get(k)
         if reader is None:
-            reader = self._readers[k] = ShardReader(self.root / self.manifest["shards"][k]["file"])
-        return reader[j]
+            shard = self.manifest["shards"][k]
+            reader = ShardReader(self.root / shard["file"])
+            if len(reader) != len(shard["scenes"]):
+                reader.close()
+                raise ScenarioReadError(reader.path, f"holds {len(reader)} scenes, the manifest lists {len(shard['scenes'])}")
+            self._readers[k] = reader
+        return reader
+
+    def __getitem__(self, i: int) -> Scenario:
+        k, j = self._locations[i]
+        scenario = self._reader(k)[j]
+        listed = self.manifest["shards"][k]["scenes"][j]["scenario_id"]
+        if scenario.scenario_id != listed:
+            raise ScenarioReadError(self._readers[k].path, f"holds scene {scenario.scenario_id!r} where the manifest lists "
+                                                           f"{listed!r}", record=j)
+        return scenario
 
     def __iter__(self) -> Iterator[Scenario]:
         for i in range(len(self)):
@@ -134,17 +150,23 @@ def _process_file(path: str, out: str, scenes_per_shard: int, reader_format: str
     return {"status": "ok", "input": path, "marker": marker}
 
 
-def _load_marker(out_dir: Path, path: str) -> dict[str, Any] | None:
+def _load_marker(out_dir: Path, path: str, check_stamp: bool = True) -> dict[str, Any] | None:
+    """The marker of a converted input, or None when there is none or it cannot be used (the input
+    changed since, a shard is gone, the marker is not what preprocess writes): convert it again."""
     marker_path = out_dir / "parts" / f"{_input_key(path)}.json"
     if not marker_path.is_file():
         return None
     try:
         marker = json.loads(marker_path.read_text())
-    except ValueError:
+        shards = marker["shards"]
+        if not (isinstance(shards, list) and all(isinstance(sh, dict) and shard_name_problem(sh.get("file")) is None
+                                                 and isinstance(sh.get("scenes"), list) for sh in shards)):
+            return None
+        if check_stamp and marker.get("stamp") != _input_stamp(path):
+            return None  # the input changed since: convert it again
+    except (ValueError, KeyError, TypeError, AttributeError, RecursionError, OSError):
         return None
-    if marker.get("stamp") != _input_stamp(path):
-        return None  # the input changed since: convert it again
-    if not all((out_dir / shard["file"]).is_file() for shard in marker["shards"]):
+    if not all((out_dir / shard["file"]).is_file() for shard in shards):
         return None
     return marker
 
@@ -160,25 +182,67 @@ class PreprocessError(SmartMarlError):
     """An input file was bad and ``skip_bad`` was off."""
 
 
+class CacheConflictError(PreprocessError, UsageError):
+    """``out`` already holds a cache of other inputs (and ``append`` was not asked for), or is not a folder."""
+
+
+def _previous_run(out_dir: Path) -> tuple[list[str], list[dict]]:
+    """(the inputs whose scenes the cache already in ``out_dir`` holds, in order; its skipped
+    entries); nothing when there is no cache."""
+    manifest_path = out_dir / MANIFEST
+    if not manifest_path.is_file():
+        return [], []
+    manifest = load_manifest(manifest_path)
+    if not (isinstance(manifest, dict) and manifest.get("kind") == MANIFEST_KIND):
+        raise CacheConflictError(f"--out {out_dir}: it holds a {MANIFEST} that is not a scene cache's; choose another folder")
+    shards = manifest.get("shards") if isinstance(manifest.get("shards"), list) else []
+    with_scenes = [sh.get("input") for sh in shards if isinstance(sh, dict) and isinstance(sh.get("input"), str)]
+    skipped = manifest.get("skipped") if isinstance(manifest.get("skipped"), list) else []
+    return (list(dict.fromkeys(with_scenes)),
+            [e for e in skipped if isinstance(e, dict) and isinstance(e.get("input"), str)])
+
+
 def preprocess(sources: Iterable[str | os.PathLike] | str, out: str | os.PathLike, workers: int = 1,
                scenes_per_shard: int = 64, skip_bad: bool = False, reader_format: str | None = None,
-               progress: bool = True) -> PreprocessReport:
+               progress: bool = True, append: bool = False) -> PreprocessReport:
     """Convert every scene file under ``sources`` into a scene cache at ``out``.
 
     Resumable: inputs whose marker exists (and whose size and mtime did not change) are not read
     again. A bad input stops the run with :class:`PreprocessError` (what was finished stays, so a
     rerun continues) unless ``skip_bad``, which reports it, records it in the manifest and goes on.
+    A cache already in ``out`` that holds scenes of inputs not among ``sources`` is never silently
+    replaced: :class:`CacheConflictError`, unless ``append``, which keeps those scenes and adds these.
     """
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise UsageError(f"workers must be an integer >= 1, got {workers!r}")
+    if isinstance(scenes_per_shard, bool) or not isinstance(scenes_per_shard, int) or scenes_per_shard < 1:
+        raise UsageError(f"scenes_per_shard must be an integer >= 1, got {scenes_per_shard!r}")
     started = time.perf_counter()
     out_dir = Path(out)
-    (out_dir / "parts").mkdir(parents=True, exist_ok=True)
-    for stale in list(out_dir.glob(".*.tmp-*")) + list((out_dir / "parts").glob(".*.tmp-*")):
-        stale.unlink()  # left by a killed run
+    if out_dir.exists() and not out_dir.is_dir():
+        raise CacheConflictError(f"--out {out_dir}: exists and is not a folder")
     inputs = expand_paths(sources if not isinstance(sources, (str, os.PathLike)) else [sources])
     if not inputs:
         raise ScenarioReadError(os.fspath(out), "no input scene files found")
-    report = PreprocessReport(files=len(inputs))
+    previous, previous_skipped = _previous_run(out_dir)
+    ours = {os.path.abspath(p) for p in inputs}
+    others = [p for p in previous if p not in ours]
+    if others and not append:
+        raise CacheConflictError(f"--out {out_dir} already holds a scene cache of {len(others)} other input(s) (first: "
+                                 f"{others[0]}); pass --append to add these inputs to it, or choose another folder")
+    (out_dir / "parts").mkdir(parents=True, exist_ok=True)
+    for stale in list(out_dir.glob(".*.tmp-*")) + list((out_dir / "parts").glob(".*.tmp-*")):
+        stale.unlink()  # left by a killed run
     markers: dict[str, dict] = {}
+    kept = []  # inputs of the cache that this run keeps as they are (append)
+    for path in others:
+        marker = _load_marker(out_dir, path, check_stamp=os.path.exists(path))
+        if marker is None:
+            raise CacheConflictError(f"--out {out_dir}: the cache's input {path} has no usable record in parts/ (its "
+                                     f"shards are gone?); rebuild the cache in a new folder")
+        markers[path] = marker
+        kept.append(path)
+    report = PreprocessReport(files=len(inputs))
     todo = []
     for path in inputs:
         marker = _load_marker(out_dir, path)
@@ -186,7 +250,9 @@ def preprocess(sources: Iterable[str | os.PathLike] | str, out: str | os.PathLik
             todo.append(path)
         else:
             markers[path] = marker
-    report.files_done_before = len(markers)
+    report.files_done_before = len(markers) - len(kept)
+    if append:
+        report.skipped.extend(e for e in previous_skipped if e["input"] not in ours)
 
     bar = tqdm(total=len(inputs), initial=len(markers), unit="file", desc="preprocess", disable=not progress,
                file=sys.stderr)
@@ -213,7 +279,7 @@ def preprocess(sources: Iterable[str | os.PathLike] | str, out: str | os.PathLik
                 if not handle(_process_file(path, os.fspath(out_dir), scenes_per_shard, reader_format)):
                     break
         else:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
+            with worker_pool(workers) as pool:
                 futures = [pool.submit(_process_file, p, os.fspath(out_dir), scenes_per_shard, reader_format) for p in todo]
                 for future in as_completed(futures):
                     if not handle(future.result()):
@@ -222,7 +288,7 @@ def preprocess(sources: Iterable[str | os.PathLike] | str, out: str | os.PathLik
                         break
     finally:
         bar.close()
-        _write_manifest(out_dir, inputs, markers, report.skipped)
+        _write_manifest(out_dir, kept + inputs, markers, report.skipped)
     for marker in markers.values():
         report.shards += len(marker["shards"])
         report.scenes += sum(len(s["scenes"]) for s in marker["shards"])

@@ -2,7 +2,8 @@
 
 Every subcommand module exposes ``register(subparsers)``, which adds its parser and sets
 ``func`` (called with the parsed args, returning an exit code). Exit codes: 0 success, 1 the job
-failed on bad input (the message names the file and record), 2 bad arguments.
+failed on bad input (the message names the file and record), 2 bad arguments (argparse's checks
+and the :class:`~smart_marl.errors.UsageError` of a value check, one ``error:`` line).
 
 The commands of :mod:`smart_marl.commands` are listed below; commands of other packages (``agents``'
 ``finetune`` and ``whatif``) are found through the ``smart_marl.commands`` entry-point group
@@ -18,7 +19,7 @@ from importlib.metadata import entry_points
 
 from .commands import demo, generate_sumo, info, models, preprocess, train, vocab
 from .commands import eval as eval_command
-from .errors import SmartMarlError
+from .errors import SmartMarlError, UsageError
 
 # Modules that add subcommands, in the order --help lists them (entry-point commands follow, by name).
 _COMMAND_MODULES = (info, preprocess, demo, train, models, generate_sumo, vocab, eval_command)
@@ -43,6 +44,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
+    except UsageError as exc:  # a bad argument or config value found after parsing
+        print(f"smart-marl {args.command}: error: {exc}", file=sys.stderr)
+        return 2
     except SmartMarlError as exc:
         print(f"smart-marl {args.command}: error: {exc}", file=sys.stderr)
         return 1

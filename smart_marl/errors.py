@@ -1,18 +1,30 @@
-"""Errors raised when a scene or a file is not what it should be.
+"""Errors raised when a scene, a file or an argument is not what it should be.
 
-Every reader raises :class:`ScenarioReadError` naming the file, the record inside it (when the
-format has records) and what is wrong, so that a user can find the bad input and nothing is dropped
-silently. :class:`ScenarioValidationError` is raised by :class:`smart_marl.Scenario` itself when the
-arrays it is given do not agree; readers wrap it into a :class:`ScenarioReadError`.
+Every error this package raises on bad input is a :class:`SmartMarlError` (keeping a builtin base,
+``ValueError``, ``KeyError``..., where callers may catch one). Every reader raises
+:class:`ScenarioReadError` naming the file, the record inside it (when the format has records) and
+what is wrong, so that a user can find the bad input and nothing is dropped silently.
+:class:`ScenarioValidationError` is raised by :class:`smart_marl.Scenario` itself when the arrays it
+is given do not agree; readers wrap it into a :class:`ScenarioReadError`. :class:`UsageError` is a
+bad argument or config value: the command line exits with 2 on it (1 on every other
+:class:`SmartMarlError`).
+
+:func:`check_regular_file` is the one check every reader of user files runs before opening one: a
+FIFO, a device or a socket given as input would block or stream forever.
 """
 
 from __future__ import annotations
 
 import os
+import stat
 
 
 class SmartMarlError(Exception):
     """Base class of the errors this package raises on bad input."""
+
+
+class UsageError(SmartMarlError, ValueError):
+    """A bad command-line argument or config value (the command line exits with 2 and prints it on one line)."""
 
 
 class ScenarioValidationError(SmartMarlError, ValueError):
@@ -42,3 +54,27 @@ class ScenarioReadError(SmartMarlError, ValueError):
 
 class UnknownFormatError(ScenarioReadError):
     """No reader recognises the file."""
+
+
+def regular_file_problem(path: str | os.PathLike) -> str | None:
+    """Why ``path`` cannot be read as an input file (missing, a folder, a FIFO, a device...), or None."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        return f"cannot open: {exc.strerror or exc}"
+    if stat.S_ISREG(mode):
+        return None
+    if stat.S_ISDIR(mode):
+        return "is a folder, not a file"
+    kind = ("a FIFO" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode)
+            else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file")
+    return f"is {kind}, not a regular file (it would block or never end)"
+
+
+def check_regular_file(path: str | os.PathLike, error=None) -> None:
+    """Raise ``error(path, problem)`` (default :class:`ScenarioReadError`) unless ``path`` is a regular file."""
+    problem = regular_file_problem(path)
+    if problem is not None:
+        raise (error or ScenarioReadError)(path, problem)
+
+

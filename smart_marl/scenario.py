@@ -128,17 +128,89 @@ def _readonly(array: np.ndarray) -> np.ndarray:
     return view
 
 
-def _coerce(owner: Any, name: str, dtype: np.dtype, ndim: int | None = None) -> None:
-    """Coerce ``owner.name`` to a read-only array of ``dtype`` (frozen dataclass friendly)."""
-    value = getattr(owner, name)
+def as_integers(value: Any, dtype=np.int64, what: str = "value") -> np.ndarray:
+    """``value`` as an array of the integer ``dtype``, refusing what a cast would silently change:
+    non-numbers (strings, None), floats that are not whole or not finite (id 12.7 is not id 12) and
+    values outside the dtype's range (a difficulty of 1000 is not an int8)."""
+    dtype = np.dtype(dtype)
     try:
-        array = np.asarray(value, dtype=dtype)
+        array = np.asarray(value)
+    except (TypeError, ValueError) as exc:  # ragged nested lists
+        raise ScenarioValidationError(f"{what}: not an array of integers ({exc})") from None
+    kind = array.dtype.kind
+    if kind == "b" or (kind in "iu" and np.can_cast(array.dtype, dtype, "safe")):
+        return array.astype(dtype, copy=False)  # every value fits: nothing to check, no copy when the dtype is already right
+    if kind not in "iuf":
+        raise ScenarioValidationError(f"{what}: expected integers, got values of type {_kind_name(array)}")
+    if array.size:
+        if kind == "f":
+            bad = ~np.isfinite(array) | (array != np.round(array))
+            if bad.any():
+                raise ScenarioValidationError(f"{what}: {array.reshape(-1)[np.flatnonzero(bad.reshape(-1))[0]].item()!r} is not a whole number")
+        info = np.iinfo(dtype)
+        low, high = array.min(), array.max()
+        if low < info.min or high > info.max:
+            raise ScenarioValidationError(f"{what}: {(low if low < info.min else high).item()!r} is outside the range of {dtype} "
+                                          f"[{info.min}, {info.max}]")
+    return array.astype(dtype, copy=False)
+
+
+def as_int(value: Any, what: str = "value") -> int:
+    """One integer (an int, a numpy integer or a whole float; not a bool, a string or None)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ScenarioValidationError(f"{what}: expected an integer, got {value!r} ({type(value).__name__})")
+    return int(as_integers(value, np.int64, what))
+
+
+def as_floats(value: Any, dtype=np.float64, what: str = "value") -> np.ndarray:
+    """``value`` as a float array; strings, None and other non-numbers are refused (never parsed)."""
+    try:
+        array = np.asarray(value)
     except (TypeError, ValueError) as exc:
-        raise ScenarioValidationError(f"{type(owner).__name__}.{name}: cannot convert to {np.dtype(dtype)}: {exc}")
+        raise ScenarioValidationError(f"{what}: not an array of numbers ({exc})") from None
+    if array.dtype.kind not in "biuf":
+        raise ScenarioValidationError(f"{what}: expected numbers, got values of type {_kind_name(array)}")
+    with np.errstate(over="ignore"):
+        return array.astype(dtype, copy=False)
+
+
+def as_mask(value: Any, what: str = "value") -> np.ndarray:
+    """A boolean mask: booleans, or numbers that are exactly 0 or 1 (float validity masks); strings
+    such as ``"False"`` are refused (they are not false)."""
+    array = np.asarray(value)
+    if array.dtype.kind == "b":
+        return array
+    if array.dtype.kind not in "iuf":
+        raise ScenarioValidationError(f"{what}: expected booleans, got values of type {_kind_name(array)}")
+    bad = (array != 0) & (array != 1)
+    if bad.any():
+        raise ScenarioValidationError(f"{what}: {array.reshape(-1)[np.flatnonzero(bad.reshape(-1))[0]].item()!r} is neither 0/false nor 1/true")
+    return array != 0
+
+
+def _kind_name(array: np.ndarray) -> str:
+    if array.dtype.kind == "O" and array.size:
+        return ", ".join(sorted({type(v).__name__ for v in array.reshape(-1)[:1000]}))
+    return {"U": "str", "S": "bytes", "O": "object"}.get(array.dtype.kind, str(array.dtype))
+
+
+def _coerce(owner: Any, name: str, dtype: np.dtype, ndim: int | None = None) -> None:
+    """Coerce ``owner.name`` to a read-only array of ``dtype`` (frozen dataclass friendly); integer
+    and float fields refuse what a cast would silently change (see :func:`as_integers`)."""
+    value = getattr(owner, name)
+    what = f"{type(owner).__name__}.{name}"
+    kind = np.dtype(dtype).kind
+    if kind in "iu":
+        array = as_integers(value, dtype, what)
+    elif kind == "f":
+        array = as_floats(value, dtype, what)
+    else:
+        try:
+            array = np.asarray(value, dtype=dtype)
+        except (TypeError, ValueError) as exc:
+            raise ScenarioValidationError(f"{what}: cannot convert to {np.dtype(dtype)}: {exc}") from None
     if ndim is not None and array.ndim != ndim:
-        raise ScenarioValidationError(
-            f"{type(owner).__name__}.{name}: expected {ndim} dimensions, got shape {array.shape}"
-        )
+        raise ScenarioValidationError(f"{what}: expected {ndim} dimensions, got shape {array.shape}")
     object.__setattr__(owner, name, _readonly(array))
 
 
@@ -179,6 +251,14 @@ class SceneFrame:
     y: float = 0.0
     z: float = 0.0
     heading: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("x", "y", "z", "heading"):
+            value = getattr(self, name)
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                    or not math.isfinite(value):
+                raise ScenarioValidationError(f"SceneFrame.{name} must be a finite number, got {value!r}")
+            object.__setattr__(self, name, float(value))
 
     def to_source(self, xyz: np.ndarray) -> np.ndarray:
         """Local points [..., 2 or 3] -> source points, float64."""
@@ -247,6 +327,8 @@ class Tracks:
         for name in ("position", "heading", "velocity", "size"):
             values = getattr(self, name)
             finite = np.isfinite(values)
+            if finite.all():  # the common case: one reduction
+                continue
             if finite.ndim == 3:
                 finite = finite.all(axis=-1)
             bad = self.valid & ~finite
@@ -256,6 +338,13 @@ class Tracks:
                     f"Tracks.{name} is not finite on {int(bad.sum())} valid frame(s), "
                     f"first at track {int(i)} (id {int(self.ids[i])}) frame {int(f)}"
                 )
+        negative = self.valid & (self.size < 0).any(axis=-1) if (self.size < 0).any() else None
+        if negative is not None and negative.any():
+            i, f = np.argwhere(negative)[0]
+            raise ScenarioValidationError(
+                f"Tracks.size is negative on {int(negative.sum())} valid frame(s), first at track {int(i)} "
+                f"(id {int(self.ids[i])}) frame {int(f)}: {self.size[i, f].tolist()}"
+            )
 
     @property
     def num_tracks(self) -> int:
@@ -481,8 +570,9 @@ class Scenario:
             object.__setattr__(self, "predict_difficulty", np.zeros(len(self.predict_indices), np.int8))
         _coerce(self, "predict_difficulty", np.int8, 1)
         _coerce(self, "objects_of_interest", np.int64, 1)
-        object.__setattr__(self, "current_frame", int(self.current_frame))
-        object.__setattr__(self, "sdc_index", int(self.sdc_index))
+        object.__setattr__(self, "current_frame", as_int(self.current_frame, "Scenario.current_frame"))
+        object.__setattr__(self, "sdc_index", as_int(self.sdc_index, "Scenario.sdc_index"))
+        _check(isinstance(self.metadata, Mapping), f"Scenario.metadata must be a mapping, got {type(self.metadata).__name__}")
         object.__setattr__(self, "metadata", dict(self.metadata))
         n, t = self.tracks.num_tracks, self.tracks.num_frames
         _check(self.timestamps_s.shape == (t,), f"Scenario.timestamps_s has shape {self.timestamps_s.shape}, tracks have {t} frames")
@@ -669,6 +759,26 @@ class Scenario:
 
     @classmethod
     def from_arrays(cls, arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any], validate: bool = True) -> "Scenario":
+        """Inverse of :meth:`to_arrays`. ``validate=False`` trusts the arrays (only for arrays this
+        process made itself); with ``validate`` every missing, extra or ill-typed entry raises
+        :class:`ScenarioValidationError`."""
+        if not validate:
+            parts, kwargs = cls._split_arrays(arrays, meta)
+            kwargs["current_frame"] = int(kwargs["current_frame"])
+            kwargs["sdc_index"] = int(kwargs["sdc_index"])
+            kwargs["metadata"] = dict(kwargs["metadata"])
+            return _trusted(cls, tracks=_trusted(Tracks, **parts["tracks"]), road_map=_trusted(RoadMap, **parts["road_map"]),
+                            traffic_lights=_trusted(TrafficLights, **parts["traffic_lights"]), **kwargs)
+        try:
+            _check(isinstance(meta, Mapping) and isinstance(meta.get("frame"), Mapping), "the scene's meta and frame must be mappings")
+            parts, kwargs = cls._split_arrays(arrays, meta)
+            return cls(tracks=Tracks(**parts["tracks"]), road_map=RoadMap(**parts["road_map"]),
+                       traffic_lights=TrafficLights(**parts["traffic_lights"]), **kwargs)
+        except (KeyError, TypeError) as exc:  # a missing or unknown entry
+            raise ScenarioValidationError(f"the arrays and meta do not make a Scenario: {type(exc).__name__}: {exc}") from None
+
+    @staticmethod
+    def _split_arrays(arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any]):
         parts: dict[str, dict[str, np.ndarray]] = {"tracks": {}, "road_map": {}, "traffic_lights": {}}
         top = {}
         for key, value in arrays.items():
@@ -682,14 +792,7 @@ class Scenario:
             sdc_index=meta["sdc_index"], frame=SceneFrame(**meta["frame"]), metadata=meta.get("metadata", {}),
             **top,
         )
-        if validate:
-            return cls(tracks=Tracks(**parts["tracks"]), road_map=RoadMap(**parts["road_map"]),
-                       traffic_lights=TrafficLights(**parts["traffic_lights"]), **kwargs)
-        kwargs["current_frame"] = int(kwargs["current_frame"])
-        kwargs["sdc_index"] = int(kwargs["sdc_index"])
-        kwargs["metadata"] = dict(kwargs["metadata"])
-        return _trusted(cls, tracks=_trusted(Tracks, **parts["tracks"]), road_map=_trusted(RoadMap, **parts["road_map"]),
-                        traffic_lights=_trusted(TrafficLights, **parts["traffic_lights"]), **kwargs)
+        return parts, kwargs
 
 
 def choose_frame(scenario_positions: np.ndarray, valid: np.ndarray, sdc_index: int, current_frame: int,

@@ -46,9 +46,10 @@ from tqdm import tqdm
 
 from .cache import SceneCache, is_cache_dir
 from .catk import catk_tokens
-from .config_files import apply_overrides, read_config_file
+from .config_files import (apply_overrides, check_fields, device_problem, flag, integer, number, optional, output_dir_problem,
+                           read_config_file, text)
 from .cpu_memory import keep_freed_memory
-from .errors import SmartMarlError
+from .errors import SmartMarlError, UsageError
 from .model.batch import RoadArrays, SmartBatch, collate_scenes, scene_road, scene_tensors
 from .model.checkpoint import (VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
                                save_checkpoint)
@@ -65,6 +66,10 @@ from .tokens.vocab_io import load_motion_vocabulary, load_road_vocabulary, save_
 
 class TrainError(SmartMarlError, ValueError):
     """A training run that cannot start: bad config, no data, mismatched vocabulary."""
+
+
+class TrainConfigError(TrainError, UsageError):
+    """A config key or value that is not a valid TrainConfig (the command line exits with 2)."""
 
 
 @dataclass
@@ -126,11 +131,43 @@ def load_train_config(config: str | Mapping[str, Any] | None = None, overrides: 
             values["model"] = config
         else:
             raise TrainError(f"unknown config {config!r}: neither a file nor a model config name ({', '.join(NAMED_CONFIGS)})")
-    values = apply_overrides(values, overrides, TrainConfig, "model_overrides", "model", "training", TrainError)
+    values = apply_overrides(values, overrides, TrainConfig, "model_overrides", "model", "training", TrainConfigError)
     cfg = TrainConfig(**values)
-    if isinstance(cfg.model, str) and cfg.model not in NAMED_CONFIGS:
-        raise TrainError(f"unknown model config {cfg.model!r}; known: {', '.join(NAMED_CONFIGS)}")
+    check_train_config(cfg)
     return cfg
+
+
+def _betas(value) -> str | None:
+    if not (isinstance(value, (list, tuple)) and len(value) == 2) or any(number(0.0, 1.0, high_open=True)(b) for b in value):
+        return f"must be two numbers in [0, 1), got {value!r}"
+    return None
+
+
+_TRAIN_RULES = {
+    "model_overrides": lambda v: None if isinstance(v, dict) else f"must be a mapping, got {v!r}",
+    "data": text, "val_data": optional(text), "out_dir": lambda v: text(v) or output_dir_problem(v),
+    "motion_vocab": optional(text), "road_vocab": optional(text), "vocab_scenes": integer(1), "vocab_seed": integer(),
+    "batch_size": integer(1), "num_workers": integer(0), "max_steps": integer(1), "lr": number(0.0, low_open=True),
+    "weight_decay": number(0.0), "betas": _betas, "warmup_steps": integer(0), "grad_clip": number(0.0),
+    "dropout": number(0.0, 1.0, high_open=True), "label_smoothing": number(0.0, 1.0, high_open=True),
+    "token_noise_topk": integer(0), "catk_top_k": integer(0), "cache_scenes": integer(0), "road_mask_prob": number(0.0, 1.0),
+    "road_keep_radius_m": optional(lambda v: number()(v) or (None if v == -1 or v >= 0 else f"must be -1 or >= 0, got {v}")),
+    "log_every": integer(1), "val_every": integer(0), "val_scenes": integer(0), "ckpt_every": integer(0), "seed": integer(),
+    "device": lambda v: None if v == "auto" else device_problem(v), "amp": flag, "init": optional(text),
+    "tensorboard": flag, "progress": flag,
+}
+"""What each TrainConfig field takes (``model`` is checked against the named configs)."""
+
+
+def check_train_config(cfg: TrainConfig) -> None:
+    """:class:`TrainConfigError` naming the first field whose value a run cannot use (``lr=abc``,
+    ``batch_size=0``, ``max_steps=-1``, a ``device`` this machine has not, an ``out_dir`` that is a file...)."""
+    if isinstance(cfg.model, str):
+        if cfg.model not in NAMED_CONFIGS:
+            raise TrainConfigError(f"unknown model config {cfg.model!r}; known: {', '.join(NAMED_CONFIGS)}")
+    elif not isinstance(cfg.model, dict):
+        raise TrainConfigError(f"training config: model must be a config name or a mapping of SMART fields, got {cfg.model!r}")
+    check_fields(cfg, _TRAIN_RULES, "training", TrainConfigError)
 
 
 # --------------------------------------------------------------------------------------- data
@@ -398,7 +435,14 @@ class TrainResult:
 
 
 def _rng_state() -> dict[str, Any]:
-    state = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+    """Every RNG's state as tensors and numbers only, so that the training state loads with
+    ``torch.load(weights_only=True)`` (:func:`~smart_marl.model.checkpoint.load_train_state`)."""
+    _, keys, pos, has_gauss, cached_gaussian = np.random.get_state()
+    version, internal, gauss_next = random.getstate()
+    state = {"torch": torch.get_rng_state(),
+             "numpy": {"keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(pos), "has_gauss": int(has_gauss),
+                       "cached_gaussian": float(cached_gaussian)},
+             "python": {"version": int(version), "internal": torch.tensor(internal, dtype=torch.int64), "gauss_next": gauss_next}}
     if torch.cuda.is_available():
         state["cuda"] = torch.cuda.get_rng_state_all()
     return state
@@ -406,8 +450,12 @@ def _rng_state() -> dict[str, Any]:
 
 def _set_rng_state(state: dict[str, Any]) -> None:
     torch.set_rng_state(state["torch"])
-    np.random.set_state(state["numpy"])
-    random.setstate(state["python"])
+    numpy_state = state["numpy"]
+    np.random.set_state(("MT19937", numpy_state["keys"].numpy().astype(np.uint32), numpy_state["pos"],
+                         numpy_state["has_gauss"], numpy_state["cached_gaussian"]))
+    python_state = state["python"]
+    random.setstate((python_state["version"], tuple(int(v) for v in python_state["internal"].tolist()),
+                     python_state["gauss_next"]))
     if "cuda" in state and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])
 
@@ -445,6 +493,7 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
           on_step: Callable[[int], None] | None = None) -> TrainResult:
     """Run (or resume) a training run in ``cfg.out_dir``; see the module docstring. ``on_step(step)``
     is called at the end of every step (after its log rows and checkpoint)."""
+    check_train_config(cfg)
     device = resolve_device(cfg.device)
     info = init_distributed(device)
     if device.type == "cuda":

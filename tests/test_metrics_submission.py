@@ -74,9 +74,11 @@ def test_eval_command_scores_a_written_policy_submission_identically(tmp_path, c
     assert main(["eval", "--scenes", scenes, "--policy", "random", "--rollouts", "4", "--seed", "1", "--json",
                  "--rules", "2024", "--write-submission", str(sub)]) == 0
     first = json.loads(capsys.readouterr().out)
-    assert main(["eval", "--scenes", scenes, "--submission", str(sub), "--json", "--rules", "2024"]) == 0
+    assert main(["eval", "--scenes", scenes, "--submission", str(sub), "--json", "--rules", "2024", "--any-rollout-count"]) == 0
     second = json.loads(capsys.readouterr().out)
-    assert set(first) == {"meta_metric", "kinematic", "interactive", "map_based", "min_ade", "likelihoods", "num_scenarios", "rules"}
+    assert set(first) == {"meta_metric", "kinematic", "interactive", "map_based", "min_ade", "likelihoods", "num_scenarios", "rules",
+                          "skipped"}
+    assert first["skipped"] == []
     assert first["rules"] == "2024" and first["num_scenarios"] == 1 and "traffic_light_violation" not in first["likelihoods"]
     for k in ("meta_metric", "kinematic", "interactive", "map_based", "min_ade"):
         assert second[k] == pytest.approx(first[k], abs=1e-12)

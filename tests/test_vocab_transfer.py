@@ -48,3 +48,16 @@ def test_transfer_to_a_vocabulary_holding_each_old_token_twice_splits_its_probab
               and not k.startswith(tuple(f"motion_heads.{t}.{len(model.motion_heads[t]) - 1}." for t in range(3)))}
     for k, v in shared.items():
         torch.testing.assert_close(new.state_dict()[k], v)
+
+
+def test_vocab_transfer_command_writes_a_checkpoint_that_loads_with_the_new_vocabulary(tiny_prior, womd_vocab, tmp_path, capsys):
+    from smart_marl.cli import main
+    from smart_marl.model.checkpoint import load_checkpoint
+    from smart_marl.tokens import save_motion_vocabulary
+
+    npz, _ = save_motion_vocabulary(womd_vocab, tmp_path / "motion_32")
+    assert main(["vocab", "transfer", str(tiny_prior), "--motion-vocab", str(npz), "--out", str(tmp_path / "moved")]) == 0
+    ck = load_checkpoint(tmp_path / "moved.json", motion_vocab=womd_vocab)
+    assert tuple(ck.model.config.motion_vocab_sizes) == tuple(womd_vocab[t].size for t in range(3))
+    assert ck.meta["data"]["transferred_from"].endswith(".json")
+    assert '"motion_sizes"' in capsys.readouterr().out

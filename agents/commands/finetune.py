@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import sys
 
+from smart_marl.commands.arguments import device, output_dir
 from smart_marl.config_files import apply_command_flags
 
 
@@ -28,8 +29,8 @@ def register(subparsers) -> None:
                     "the same scenes and seeds instead (overrides apply to the checkpoint's config).")
     p.add_argument("--config", default=None, help="fine-tuning config file (.json/.toml) or a named config (tiny, default)")
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides, values parsed as JSON when they parse")
-    p.add_argument("--out", default=None, metavar="DIR", help="the run's folder (default: the config's out_dir)")
-    p.add_argument("--device", default=None, help="torch device for the policy and its updates (default: the config's, cpu)")
+    p.add_argument("--out", default=None, type=output_dir, metavar="DIR", help="the run's folder (default: the config's out_dir)")
+    p.add_argument("--device", default=None, type=device, help="torch device for the policy and its updates (default: the config's, cpu)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default: the config's); with --evaluate, the first evaluation seed")
     p.add_argument("--evaluate", default=None, metavar="CHECKPOINT", help="compare this policy checkpoint with the prior and exit")
     p.add_argument("--episodes", type=int, default=None, help="with --evaluate: seeds per scene (default: the config's eval_episodes)")

@@ -10,15 +10,13 @@ Registered through the ``smart_marl.commands`` entry point (see :mod:`agents.com
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
-import torch
-
-from smart_marl.errors import SmartMarlError
+from smart_marl.commands.arguments import device, output_dir, positive_int
+from smart_marl.errors import SmartMarlError, UsageError
 from smart_marl.readers import read_scenarios
 
-from ..whatif import format_table, load_script, render_comparison, run_whatif, write_table_csv
+from ..whatif import MAX_STEPS, format_table, load_script, render_comparison, run_whatif, write_table_csv
 
 
 def register(subparsers) -> None:
@@ -28,12 +26,12 @@ def register(subparsers) -> None:
                     "without it (same seeds) and write a side-by-side animation and a table of what changed.")
     p.add_argument("scene", metavar="SCENE", help="a scene file, folder or glob (the first scene, or --scenario-id)")
     p.add_argument("--script", required=True, metavar="FILE", help="the what-if script (.yaml)")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
+    p.add_argument("--out", required=True, type=output_dir, metavar="DIR", help="output folder (created if missing)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the rollouts (default 0)")
-    p.add_argument("--rollouts", type=int, default=8, help="rollouts per run (default 8)")
-    p.add_argument("--steps", type=int, default=16, help="token steps of 0.5 s (default 16: 8 s)")
+    p.add_argument("--rollouts", type=positive_int, default=8, help="rollouts per run (default 8)")
+    p.add_argument("--steps", type=positive_int, default=16, help="token steps of 0.5 s (default 16: 8 s; at most 64)")
     p.add_argument("--checkpoint", metavar="C", default=None, help="SMART checkpoint (default: the embedded prior)")
-    p.add_argument("--device", default="cpu", help="torch device the model runs on (default cpu)")
+    p.add_argument("--device", default="cpu", type=device, help="torch device the model runs on (default cpu)")
     p.add_argument("--scenario-id", default=None, help="pick this scene when SCENE holds several")
     p.add_argument("--animation", choices=("gif", "mp4", "none"), default="gif", help="animation format (default gif)")
     p.add_argument("--no-realism", action="store_true", help="skip the realism metric (faster)")
@@ -41,16 +39,9 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    if args.rollouts < 1 or args.steps < 1:
-        print("smart-marl whatif: error: --rollouts and --steps must be at least 1", file=sys.stderr)
-        return 2
-    try:
-        torch.device(args.device)
-    except RuntimeError as exc:
-        print(f"smart-marl whatif: error: --device {args.device}: {exc}", file=sys.stderr)
-        return 2
-
-    script = load_script(args.script)
+    if args.steps > MAX_STEPS:
+        raise UsageError(f"argument --steps: at most {MAX_STEPS} token steps (32 s), got {args.steps}")
+    script = load_script(args.script)  # every edit's values checked here, before the scene is read
     scene = None
     for sc in read_scenarios(args.scene):
         if args.scenario_id is None or sc.scenario_id == args.scenario_id:

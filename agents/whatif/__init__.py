@@ -71,16 +71,16 @@ The package, one module per job, in the order they run:
 
 from .compare import WhatIfResult, agent_min_distance_m, colliding_agents, compare, run_whatif
 from .edits import (
-    KINDS, Brake, CutIn, Follow, Insert, Jaywalker, Placement, Remove, StalledVehicle, Stop, TrafficLightOverride, WhatIf,
-    WhatIfError, load_script,
+    KINDS, MAX_STEPS, Brake, CutIn, Follow, Insert, Jaywalker, Placement, Remove, StalledVehicle, Stop, TrafficLightOverride,
+    WhatIf, WhatIfError, check_edit, load_script,
 )
 from .output import format_table, render_comparison, write_table_csv
 from .prepare import Prepared, prepare
 from .simulate import SimRollouts, override_road_lights, simulate
 
 __all__ = [
-    "KINDS", "Brake", "CutIn", "Follow", "Insert", "Jaywalker", "Placement", "Prepared", "Remove", "SimRollouts",
+    "KINDS", "MAX_STEPS", "Brake", "CutIn", "Follow", "Insert", "Jaywalker", "Placement", "Prepared", "Remove", "SimRollouts",
     "StalledVehicle", "Stop", "TrafficLightOverride", "WhatIf", "WhatIfError", "WhatIfResult", "agent_min_distance_m",
-    "colliding_agents", "compare", "format_table", "load_script", "override_road_lights", "prepare", "render_comparison",
+    "check_edit", "colliding_agents", "compare", "format_table", "load_script", "override_road_lights", "prepare", "render_comparison",
     "run_whatif", "simulate", "write_table_csv",
 ]

@@ -21,7 +21,7 @@ from smart_marl.model.checkpoint import EMBEDDED, load_prior
 from smart_marl.scenario import AgentType, Scenario
 from smart_marl.tokens import FRAMES_PER_TOKEN
 
-from .edits import WhatIf
+from .edits import MAX_STEPS, WhatIf, WhatIfError
 from .prepare import Prepared, prepare
 from .simulate import SimRollouts, simulate
 
@@ -40,8 +40,10 @@ def run_whatif(prior, scene: Scenario, whatif: WhatIf, num_rollouts: int = 8, se
     """The what-if and its unperturbed baseline (same seed, same number of rollouts) on one scene,
     and the comparison table (:func:`compare`). ``prior``: a SMART model, Checkpoint, checkpoint
     path, or None for the embedded prior."""
+    if isinstance(num_steps, bool) or not isinstance(num_steps, int) or not 1 <= num_steps <= MAX_STEPS:
+        raise WhatIfError(whatif.path, f"num_steps must be 1..{MAX_STEPS} token steps of 0.5 s, got {num_steps!r}")
     model, vocab = load_prior(EMBEDDED if prior is None else prior, device)
-    prepared = prepare(scene, whatif, vocab)
+    prepared = prepare(scene, whatif, vocab)  # every edit checked against the scene and the vocabulary before any rollout
     base_prep = Prepared(scene=scene, scripts=[], removals=[], lights=[], affected={}, followers={}, onset_step={})
     baseline = simulate(model, vocab, base_prep, num_rollouts, seed, num_steps, top_k, temperature, device, scripted_on=False)
     perturbed = simulate(model, vocab, prepared, num_rollouts, seed, num_steps, top_k, temperature, device)

@@ -13,7 +13,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence, Union
 
-from smart_marl.errors import SmartMarlError
+import math
+
+import numpy as np
+
+from smart_marl.config_files import integer, number, optional
+from smart_marl.errors import SmartMarlError, check_regular_file
+from smart_marl.scenario import SignalState
 
 AgentRef = Union[int, str]
 
@@ -145,6 +151,106 @@ KINDS = {"remove": Remove, "insert": Insert, "brake": Brake, "stop": Stop, "cut_
          "stalled_vehicle": StalledVehicle, "jaywalker": Jaywalker, "traffic_light": TrafficLightOverride}
 KIND_OF = {cls: kind for kind, cls in KINDS.items()}
 
+MAX_STEPS = 64
+"""Most token steps (0.5 s each: 32 s) a what-if rolls out; ``smart-marl whatif --steps`` refuses more."""
+
+
+# ---------------------------------------------------------------------------- value checks
+# Every key of every kind has a rule (smart_marl.config_files' rules, or the ones below) that a
+# script's values must pass when it is loaded, before a scene is read or a rollout runs.
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_)) and math.isfinite(v)
+
+
+def _agent_ref(v):
+    if isinstance(v, str) and v:
+        return None
+    return None if isinstance(v, (int, np.integer)) and not isinstance(v, bool) else f"must be a track id or 'sdc', got {v!r}"
+
+
+def _agent_refs(v):
+    return _agent_ref(v) if not isinstance(v, (list, tuple)) else next((f"[{k}] {p}" for k, p in ((k, _agent_ref(x))
+                                                                        for k, x in enumerate(v)) if p), None)
+
+
+def _points(widths: tuple[int, ...], count: int | None = None):
+    """A list of points, each a list of ``widths`` finite numbers (all of one width); ``count``: exactly that many."""
+    def rule(v):
+        rows = v if isinstance(v, (list, tuple)) else None
+        if not rows or not all(isinstance(r, (list, tuple)) for r in rows):
+            return f"must be a list of [x, y{', heading' if 3 in widths else ''}] points, got {v!r}"
+        if len({len(r) for r in rows}) != 1 or len(rows[0]) not in widths:
+            return f"must be points of {' or '.join(map(str, widths))} numbers each (a rectangular list), got {v!r}"
+        if not all(_is_number(x) for r in rows for x in r):
+            return f"must hold finite numbers only, got {v!r}"
+        if count is not None and len(rows) != count:
+            return f"must be {count} point(s), got {len(rows)}"
+        return None
+    return rule
+
+
+def _vector(n: int, positive: bool = False):
+    """``n`` finite numbers (positive ones with ``positive``)."""
+    def rule(v):
+        if not (isinstance(v, (list, tuple)) and len(v) == n and all(_is_number(x) for x in v)) or (positive and min(v) <= 0):
+            return f"must be {n} finite{' positive' if positive else ''} numbers, got {v!r}"
+        return None
+    return rule
+
+
+def _tokens(v):
+    if not isinstance(v, (list, tuple)) or not v or not all(isinstance(t, (int, np.integer)) and not isinstance(t, bool) and t >= 0
+                                                             for t in v):
+        return f"must be a non-empty list of token ids (integers >= 0), got {v!r}"
+    return None
+
+
+def _choice(*options):
+    return lambda v: None if v in options else f"must be one of {', '.join(map(str, options))}, got {v!r}"
+
+
+def _lanes(v):
+    if v == "all" or (isinstance(v, (int, np.integer)) and not isinstance(v, bool)):
+        return None
+    if isinstance(v, (list, tuple)) and v and all(isinstance(x, (int, np.integer)) and not isinstance(x, bool) for x in v):
+        return None
+    return f"must be 'all' or lane ids (integers), got {v!r}"
+
+
+_SIGNAL_NAMES = tuple(s.name.lower() for s in SignalState)
+_PLACEMENT = {"frame": _choice("source", "local"), "relative_to": optional(_agent_ref)}
+_AT = {"at_s": number(0.0)}
+_EDIT_RULES = {
+    Remove: {"agents": _agent_refs, **_AT},
+    Insert: {"type": _choice("vehicle", "pedestrian", "cyclist"), "trajectory": optional(_points((2, 3))),
+             "path": optional(_points((2,))), "speed_mps": number(0.0), "wait_s": number(0.0), "tokens": optional(_tokens),
+             "pose": optional(_vector(3)), "id": optional(integer()), "size_m": optional(_vector(3, positive=True)),
+             "then": _choice("release", "hold")},
+    Brake: {"agent": _agent_ref, **_AT, "decel_mps2": number(0.0, low_open=True)},
+    CutIn: {"agent": _agent_ref, **_AT, "lateral_m": number(), "duration_s": number(0.0, low_open=True),
+            "speed_mps": optional(number(0.0))},
+    Follow: {"agent": _agent_ref, **_AT, "path": optional(_points((2,))), "speed_mps": optional(number(0.0)),
+             "tokens": optional(_tokens), "then": _choice("release", "hold")},
+    StalledVehicle: {"agent": optional(_agent_ref), "pose": optional(_vector(3)), "id": optional(integer()),
+                     "size_m": optional(_vector(3, positive=True))},
+    Jaywalker: {"start": _vector(2), "end": _vector(2), "speed_mps": number(0.0, low_open=True), "wait_s": number(0.0),
+                "id": optional(integer())},
+    TrafficLightOverride: {"lanes": _lanes, "state": lambda v: _choice(*_SIGNAL_NAMES)(str(v).lower()), **_AT},
+}
+_EDIT_RULES[Stop] = _EDIT_RULES[Brake]
+
+
+def check_edit(edit, path=None, index: int | None = None) -> None:
+    """:class:`WhatIfError` naming the file, the edit and the key whose value is not what the kind
+    takes (``at_s: soon``, a ragged path, ``decel_mps2: .inf``...)."""
+    kind = KIND_OF.get(type(edit))
+    if kind is None:
+        raise WhatIfError(path, f"not a what-if edit: {type(edit).__name__}", index)
+    for key, rule in {**_PLACEMENT, **_EDIT_RULES[type(edit)]}.items():
+        problem = rule(getattr(edit, key))
+        if problem:
+            raise WhatIfError(path, f"{kind}: {key} {problem}", index)
+
 
 @dataclass
 class WhatIf:
@@ -177,7 +283,9 @@ class WhatIf:
             bad = set(e) - names - {"kind"}
             if bad:
                 raise WhatIfError(path, f"{kind}: unknown keys {sorted(bad)} (allowed: {', '.join(sorted(names))})", i)
-            out.append(cls_(**{k: v for k, v in e.items() if k != "kind"}))
+            edit = cls_(**{k: v for k, v in e.items() if k != "kind"})
+            check_edit(edit, path, i)
+            out.append(edit)
         return cls(edits=out, name=str(data.get("name", Path(path).stem if path else "what-if")),
                    description=str(data.get("description", "")), path=path)
 
@@ -185,16 +293,17 @@ class WhatIf:
 def load_script(path: str | os.PathLike) -> WhatIf:
     """Read a what-if YAML (or JSON) script."""
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():
         raise WhatIfError(p, "no such script file")
+    check_regular_file(p, lambda name, problem: WhatIfError(name, problem))
     try:
         import yaml
     except ImportError as exc:  # pragma: no cover - pyyaml is in the whatif extra
         raise WhatIfError(p, "reading YAML scripts needs pyyaml (pip install 'smart-marl[whatif]')") from exc
     try:
         data = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as exc:
-        raise WhatIfError(p, f"not valid YAML: {exc}") from exc
+    except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
+        raise WhatIfError(p, f"not valid YAML: {type(exc).__name__}: {exc}") from exc
     return WhatIf.from_dict(data, str(p))
 
 

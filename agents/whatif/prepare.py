@@ -20,7 +20,7 @@ from smart_marl.scenario import DT_S, AgentType, Scenario, SignalState, TrafficL
 from smart_marl.tokens import FRAMES_PER_TOKEN, TOKEN_S, compose_poses
 
 from .. import scripted
-from .edits import KIND_OF, AgentRef, Placement, WhatIf, WhatIfError
+from .edits import KIND_OF, AgentRef, Placement, WhatIf, WhatIfError, check_edit
 
 DEFAULT_SIZE_M = {"vehicle": (4.6, 2.0, 1.6), "pedestrian": (0.8, 0.8, 1.8), "cyclist": (1.8, 0.7, 1.7)}
 FOLLOWER_REACH_M = 60.0
@@ -60,8 +60,7 @@ class Prepared:
 
 
 def _step_of(at_s: float, path, i) -> int:
-    if at_s is None or not np.isfinite(at_s) or at_s < 0:
-        raise WhatIfError(path, f"at_s must be >= 0 seconds, got {at_s}", i)
+    """The token step an edit at ``at_s`` seconds (checked finite and >= 0 by :func:`check_edit`) starts at."""
     return int(round(float(at_s) / TOKEN_S))
 
 
@@ -170,9 +169,8 @@ def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
     next_id = int(scene.tracks.ids.max()) + 1 if scene.num_tracks else 1
     horizon = scene.num_frames - scene.current_frame  # frames of script a new track stores
     for i, e in enumerate(whatif.edits):
-        kind = KIND_OF.get(type(e))
-        if kind is None:
-            raise WhatIfError(path, f"not a what-if edit: {type(e).__name__}", i)
+        check_edit(e, path, i)
+        kind = KIND_OF[type(e)]
         if kind == "remove":
             idx = [_track_index(scene, a, path, i) for a in (e.agents if isinstance(e.agents, (list, tuple)) else [e.agents])]
             ids = [int(scene.tracks.ids[k]) for k in idx]
@@ -187,8 +185,6 @@ def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
             k = _track_index(scene, e.agent, path, i)
             tid = int(scene.tracks.ids[k])
             step = _step_of(e.at_s, path, i)
-            if not e.decel_mps2 > 0:
-                raise WhatIfError(path, f"decel_mps2 must be > 0, got {e.decel_mps2}", i)
             a = float(e.decel_mps2)
             scripts.append(Script(tid, step, make_path=lambda pose, v, a=a, n=horizon: scripted.brake_path(pose, v, a, n), then="hold"))
             affected[tid], onset[tid] = kind, step
@@ -197,8 +193,6 @@ def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
             k = _track_index(scene, e.agent, path, i)
             tid = int(scene.tracks.ids[k])
             step = _step_of(e.at_s, path, i)
-            if not e.duration_s > 0:
-                raise WhatIfError(path, f"duration_s must be > 0, got {e.duration_s}", i)
             lat, dur, spd = float(e.lateral_m), float(e.duration_s), e.speed_mps
             n = int(math.ceil(dur / DT_S))
             n = FRAMES_PER_TOKEN * int(math.ceil(n / FRAMES_PER_TOKEN))
@@ -212,6 +206,7 @@ def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
             if (e.path is None) == (e.tokens is None):
                 raise WhatIfError(path, "follow needs exactly one of 'path' or 'tokens'", i)
             if e.tokens is not None:
+                _check_tokens(scene, k, e.tokens, motion_vocab, path, i)
                 scripts.append(Script(tid, step, tokens=[int(t) for t in e.tokens], then=_then(e.then, path, i)))
             else:
                 wp = _to_local(scene, e, e.path, path, i)[:, :2]
@@ -326,6 +321,18 @@ def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
             raise WhatIfError(path, f"kind {kind} not handled", i)
     return Prepared(scene=scene, scripts=scripts, removals=removals, lights=lights, affected=affected, followers=followers,
                     onset_step=onset, approaching=approaching)
+
+
+def _check_tokens(scene: Scenario, index: int, tokens, motion_vocab, path, i) -> None:
+    """Tokens an existing agent is to take must be in its type's vocabulary (checked before any rollout)."""
+    atype = AgentType(int(scene.tracks.types[index]))
+    if atype == AgentType.OTHER:
+        raise WhatIfError(path, f"agent {int(scene.tracks.ids[index])} is of type other, which has no motion tokens", i)
+    if motion_vocab is not None:
+        size = motion_vocab[atype].size
+        bad = [int(t) for t in tokens if not 0 <= int(t) < size]
+        if bad:
+            raise WhatIfError(path, f"tokens {bad[:5]} are outside the {atype.name.lower()} vocabulary [0, {size})", i)
 
 
 def _then(value: str, path, i) -> str:

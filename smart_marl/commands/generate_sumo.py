@@ -4,10 +4,10 @@
 from __future__ import annotations
 
 import os
-import sys
 
-from ..errors import SmartMarlError
+from ..errors import SmartMarlError, UsageError
 from ..sources.sumo import SumoConfig, SumoUnavailableError, generate_to_dir
+from .arguments import output_dir, positive_int
 
 
 def register(subparsers) -> None:
@@ -16,14 +16,14 @@ def register(subparsers) -> None:
         description="Simulate random road networks with varied traffic (cars, trucks, buses, bicycles, pedestrians) "
                     "in SUMO and cut 9.1 s scenes (91 frames at 10 Hz, current frame 10) around moving vehicles, "
                     "written straight into a scene cache (default) or as WOMD TFRecords. Same seed, same scenes.")
-    p.add_argument("--scenes", type=int, required=True, help="number of scenes to generate")
-    p.add_argument("--out", required=True, help="output folder (created if missing)")
-    p.add_argument("--workers", type=int, default=max(1, min(4, os.cpu_count() or 1)),
+    p.add_argument("--scenes", type=positive_int, required=True, help="number of scenes to generate")
+    p.add_argument("--out", required=True, type=output_dir, help="output folder (created if missing)")
+    p.add_argument("--workers", type=positive_int, default=max(1, min(4, os.cpu_count() or 1)),
                    help="parallel processes, one SUMO simulation each")
     p.add_argument("--seed", type=int, default=0, help="random seed of the networks and traffic (default 0)")
     p.add_argument("--format", choices=("cache", "womd"), default="cache",
                    help="cache: scene-cache shards + manifest.json; womd: WOMD scenario TFRecords")
-    p.add_argument("--scenes-per-sim", type=int, default=8, help="scenes cut from each simulation")
+    p.add_argument("--scenes-per-sim", type=positive_int, default=8, help="scenes cut from each simulation")
     p.add_argument("--radius", type=float, default=80.0, help="agents within this many metres of the SDC are kept")
     p.add_argument("--no-pedestrians", action="store_true", help="no pedestrians in the simulations")
     p.add_argument("--no-bicycles", action="store_true", help="no bicycles in the simulations")
@@ -39,12 +39,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    if args.scenes < 1 or args.workers < 1 or args.scenes_per_sim < 1:
-        print("smart-marl generate-sumo: error: --scenes, --workers and --scenes-per-sim must be at least 1", file=sys.stderr)
-        return 2
     if args.demand_scale is not None and not args.demand_scale > 0:
-        print(f"smart-marl generate-sumo: error: --demand-scale must be > 0, got {args.demand_scale}", file=sys.stderr)
-        return 2
+        raise UsageError(f"argument --demand-scale: must be > 0, got {args.demand_scale}")
     make_config = SumoConfig.legacy if args.legacy else SumoConfig
     demand = {} if args.demand_scale is None else {"demand_scale": args.demand_scale}
     config = make_config(scenes_per_sim=args.scenes_per_sim, radius_m=args.radius, pedestrians=not args.no_pedestrians,

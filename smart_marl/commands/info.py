@@ -5,8 +5,9 @@ from __future__ import annotations
 import json
 import sys
 
-from ..errors import ScenarioReadError
+from ..errors import ScenarioReadError, UsageError
 from ..readers import detect_format, expand_paths, read_scenarios
+from .arguments import reader_formats
 
 
 def register(subparsers) -> None:
@@ -16,7 +17,7 @@ def register(subparsers) -> None:
                                           "successors, road edges, crosswalks, traffic-light frames.")
     p.add_argument("paths", nargs="+", metavar="PATH", help="a scene file, a folder, a glob or a scene-cache folder")
     p.add_argument("--json", action="store_true", help="one JSON object per line")
-    p.add_argument("--format", default=None, help="force a reader instead of detecting the format per file")
+    p.add_argument("--format", default=None, choices=reader_formats(), help="force a reader instead of detecting the format per file")
     p.set_defaults(func=run)
 
 
@@ -39,6 +40,8 @@ def run(args) -> int:
             print(f"smart-marl info: error: {exc}", file=sys.stderr)
             failures += 1
             continue
+        if not files:
+            raise UsageError(f"{root}: no scene file in this folder (names like *.tfrecord*, *.pkl, *.json, *.parquet, *.smsc)")
         for path in files:
             try:
                 fmt = args.format or detect_format(path)

@@ -10,6 +10,7 @@ import json
 
 from ..config_files import apply_command_flags
 from ..train import load_train_config, train
+from .arguments import device_or_auto, output_dir
 
 
 def register(subparsers) -> None:
@@ -22,9 +23,10 @@ def register(subparsers) -> None:
     p.add_argument("--config", required=True, help="training config file (.json/.toml) or a model config name")
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides, values parsed as JSON when they parse")
     p.add_argument("--init", default=None, metavar="CHECKPOINT", help="start from these weights (fine-tuning)")
-    p.add_argument("--out", default=None, metavar="DIR", help="run folder (the config's out_dir; default runs/smart)")
+    p.add_argument("--out", default=None, type=output_dir, metavar="DIR", help="run folder (the config's out_dir; default runs/smart)")
     p.add_argument("--seed", type=int, default=None, help="random seed (the config's seed; default 0)")
-    p.add_argument("--device", default=None, help="torch device (the config's device; default auto: cuda when available)")
+    p.add_argument("--device", default=None, type=device_or_auto,
+                   help="torch device (the config's device; default auto: cuda when available)")
     p.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
     p.set_defaults(func=run)
 

@@ -12,11 +12,15 @@ from pathlib import Path
 
 import numpy as np
 
+from ..model.checkpoint import load_checkpoint, save_checkpoint
+from ..model.transfer import transfer_motion_vocabulary
 from ..readers import expand_paths, read_scenarios
 from ..tokens import (
-    build_motion_vocabulary, build_road_vocabulary, collect_snippets, road_pieces, save_motion_vocabulary, save_road_vocabulary,
+    build_motion_vocabulary, build_road_vocabulary, collect_snippets, load_motion_vocabulary, road_pieces, save_motion_vocabulary,
+    save_road_vocabulary,
 )
 from ..tokens.motion import MOTION_TYPES
+from .arguments import output_dir
 
 
 def register(subparsers) -> None:
@@ -35,11 +39,20 @@ def register(subparsers) -> None:
                    help="k-disks disk radius in metres, T or VEH/PED/CYC; 0 (default): the radius that covers every "
                         "snippet is searched; smaller: the tokens go to the common motions first (e.g. 0.05/0/0)")
     b.add_argument("--road-size", type=int, default=1024, help="road vocabulary size (0: no road vocabulary)")
-    b.add_argument("--out", required=True, type=Path, help="output folder")
+    b.add_argument("--out", required=True, type=lambda text: Path(output_dir(text)), help="output folder")
     b.add_argument("--seed", type=int, default=0, help="random seed of k-disks (default 0)")
     b.add_argument("--stride", type=int, default=1, help="frames between the starts of collected snippets")
     b.add_argument("--no-progress", action="store_true", help="no progress bars")
     b.set_defaults(func=run_build)
+    t = sub.add_parser("transfer", help="a checkpoint moved onto another motion vocabulary (warm start for training)",
+                       description="Write a copy of CHECKPOINT that speaks the motion vocabulary --motion-vocab: the same "
+                                   "weights, each new token's head row taken from the old token nearest it (its bias lowered "
+                                   "by log of the new tokens sharing that old one; smart_marl.model.transfer). Train from it "
+                                   "with `smart-marl train ... motion_vocab=V road_vocab=<its road vocabulary> --init OUT.json`.")
+    t.add_argument("checkpoint", metavar="CHECKPOINT", help="a checkpoint's .json, or 'embedded'")
+    t.add_argument("--motion-vocab", required=True, metavar="V", help="the new motion vocabulary (.npz)")
+    t.add_argument("--out", required=True, type=Path, metavar="NAME", help="the new checkpoint (writes NAME.json, .safetensors...)")
+    t.set_defaults(func=run_transfer)
 
 
 def run_build(args) -> int:
@@ -95,4 +108,14 @@ def run_build(args) -> int:
         npz, js = save_road_vocabulary(road, args.out / f"road_{args.road_size}")
         print(json.dumps({"kind": "road", "path": str(npz), "size": road.size, "content_hash": road.content_hash(),
                           "tolerance_m": round(road.tolerance_m, 5)}), flush=True)
+    return 0
+
+
+def run_transfer(args) -> int:
+    ck = load_checkpoint(args.checkpoint)
+    moved = transfer_motion_vocabulary(ck, load_motion_vocabulary(args.motion_vocab))
+    meta = save_checkpoint(args.out, moved.model, moved.motion_vocab, moved.road_vocab, step=0,
+                           data={"transferred_from": str(ck.path), "motion_vocab": moved.motion_vocab.content_hash()})
+    print(json.dumps({"checkpoint": str(meta), "from": str(ck.path), "motion_sizes": moved.motion_vocab.sizes(),
+                      "road_vocab": str(meta.with_name(meta.stem + ".road_vocab.npz"))}), flush=True)
     return 0

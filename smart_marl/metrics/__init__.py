@@ -17,11 +17,12 @@ from __future__ import annotations
 
 from .config import FEATURES, RULES, get_rules
 from .features import Features, compute_features
-from .inputs import LoggedScene, RolloutError, Rollouts, align_rollouts, is_vehicle, logged_scene, metric_frame_rollouts
+from .inputs import (LoggedScene, RolloutError, Rollouts, SceneNotScorableError, align_rollouts, is_vehicle, logged_scene,
+                     metric_frame_rollouts)
 from .likelihood import ScenarioMetrics, aggregate, score_features
 
 __all__ = [
-    "FEATURES", "RULES", "get_rules", "Features", "compute_features", "LoggedScene", "RolloutError", "Rollouts",
+    "FEATURES", "RULES", "get_rules", "Features", "compute_features", "LoggedScene", "RolloutError", "Rollouts", "SceneNotScorableError",
     "align_rollouts", "logged_scene", "metric_frame_rollouts", "ScenarioMetrics", "aggregate", "score_features", "score_rollouts",
     "score_scenario",
 ]

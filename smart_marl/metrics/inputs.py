@@ -35,6 +35,13 @@ class RolloutError(SmartMarlError, ValueError):
     """Simulated rollouts that do not fit the scene (wrong steps, missing or extra agents)."""
 
 
+class SceneNotScorableError(RolloutError):
+    """A scene the realism metrics cannot score, whatever the rollouts: not 91 frames with the
+    current frame at 10, or no evaluated agent (no self-driving car and no track to predict), or an
+    evaluated agent not valid at the current frame. ``smart-marl eval`` skips such a scene with a
+    warning naming it."""
+
+
 @dataclass(frozen=True)
 class LaneMap:
     """Surface-street lanes padded as the official traffic-light code pads them.
@@ -174,16 +181,19 @@ def lane_map(polylines: list[np.ndarray], ids: list[int], pad_point_xy: np.ndarr
 def logged_scene(scenario: Scenario) -> LoggedScene:
     """The metrics' logged inputs of a (WOMD-like, 91-step) scenario."""
     if scenario.num_frames != NUM_STEPS or scenario.current_frame != CURRENT_STEP:
-        raise RolloutError(
+        raise SceneNotScorableError(
             f"scenario {scenario.scenario_id}: the sim-agents metrics need {NUM_STEPS} frames with the current frame "
             f"at {CURRENT_STEP} (got {scenario.num_frames} frames, current {scenario.current_frame})"
         )
     sim = simulated_agent_indices(scenario)
     ev_tracks = evaluated_track_indices(scenario)
+    if len(ev_tracks) == 0:
+        raise SceneNotScorableError(f"scenario {scenario.scenario_id}: no agent to evaluate (the scene has no self-driving car and "
+                                    f"no track to predict; the metrics score exactly those)")
     pos_of_track = {int(t): k for k, t in enumerate(sim)}
     missing = [int(scenario.tracks.ids[t]) for t in ev_tracks if int(t) not in pos_of_track]
     if missing:
-        raise RolloutError(f"scenario {scenario.scenario_id}: evaluated agents {missing} are not valid at the current step")
+        raise SceneNotScorableError(f"scenario {scenario.scenario_id}: evaluated agents {missing} are not valid at the current step")
     tr = scenario.tracks
     edges, _ = _polylines(scenario, MapFeatureType.ROAD_EDGE)
     lanes, lane_ids = _polylines(scenario, MapFeatureType.LANE, int(LaneType.SURFACE_STREET))

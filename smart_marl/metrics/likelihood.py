@@ -15,6 +15,7 @@ import numpy as np
 
 from .config import Rules, get_rules
 from .features import Features, kinematic_validity
+from .inputs import SceneNotScorableError
 
 
 def histogram_bins(values: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -79,6 +80,8 @@ def score_features(log: Features, sim: Features, rules: Rules | str, scenario_id
     rules = get_rules(rules) if isinstance(rules, str) else rules
     f = rules.features
     valid = log.valid[0]  # [E, 80] logged validity
+    if valid.shape[0] == 0:  # every likelihood would be a mean over nothing: NaN
+        raise SceneNotScorableError(f"scenario {scenario_id}: no agent to evaluate")
     speed_valid, accel_valid = kinematic_validity(valid)
     lik: dict[str, float] = {}
 
@@ -123,6 +126,9 @@ def aggregate(scenarios: list[ScenarioMetrics], rules: Rules | str) -> dict:
     rules = get_rules(rules) if isinstance(rules, str) else rules
     if not scenarios:
         raise ValueError("no scenarios to aggregate")
+    for s in scenarios:
+        if not all(np.isfinite(v) for v in (s.meta_metric, *s.likelihoods.values())):
+            raise ValueError(f"scenario {s.scenario_id}: non-finite realism metrics; they would make the average NaN")
     names = list(rules.features)
     lik = {n: float(np.mean([s.likelihoods[n] for s in scenarios])) for n in names}
     out = {"rules": rules.name, "num_scenarios": len(scenarios),

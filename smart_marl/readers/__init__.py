@@ -8,6 +8,12 @@ scenes or a directory of thousands of files is never held in memory at once.
 Each format lives in its own module exposing ``NAME`` (the format's name), ``sniff(path, head)``
 (does this file look like mine? ``head`` is the file's first bytes) and ``read(path)`` (a generator
 of Scenarios). Errors are :class:`smart_marl.errors.ScenarioReadError`, naming file and record.
+
+Whatever a file holds, reading it yields Scenarios or raises a :class:`ScenarioReadError` naming the
+file (and the scene's index in it): the readers name what they check, and :func:`read_scenarios`
+turns anything a reader did not foresee (a wrongly typed field deep in a structure, a recursion
+limit, a declared size the memory cannot hold) into one naming the file, with the original error
+chained. Only regular files are opened (a FIFO given as input would block forever).
 """
 
 from __future__ import annotations
@@ -19,7 +25,7 @@ import os
 from pathlib import Path
 from typing import Iterable, Iterator
 
-from ..errors import ScenarioReadError, UnknownFormatError
+from ..errors import ScenarioReadError, SmartMarlError, UnknownFormatError, UsageError, check_regular_file
 from ..scenario import Scenario
 from .scene_cache import is_cache_dir, shard_paths
 
@@ -29,6 +35,10 @@ _FORMAT_MODULES = ("scene_cache", "womd", "scenarionet", "smart_pkl", "gpudrive_
 # In a directory, only names like these are taken as scene files (README.md, .binproto... are not).
 _SCENE_NAME_HINTS = (".smsc", ".tfrecord", "tfrecord-", ".pkl", ".pickle", ".json", ".parquet")
 _SNIFF_BYTES = 4096
+
+
+class UnknownFormatNameError(UsageError):
+    """``format=`` names no reader."""
 
 
 def _formats():
@@ -42,6 +52,7 @@ def format_names() -> list[str]:
 
 
 def _head(path: str) -> bytes:
+    check_regular_file(path)
     try:
         with open(path, "rb") as f:
             return f.read(_SNIFF_BYTES)
@@ -54,7 +65,10 @@ def detect_format(path: str | os.PathLike) -> str:
     path = os.fspath(path)
     head = _head(path)
     for module in _formats():
-        verdict = module.sniff(path, head)
+        try:
+            verdict = module.sniff(path, head)
+        except Exception as exc:  # noqa: BLE001 - a sniffer choking on a hostile head: named, not a traceback
+            raise ScenarioReadError(path, f"cannot tell its format ({module.NAME} check failed: {type(exc).__name__}: {exc})") from exc
         if verdict:
             return module.NAME
     raise UnknownFormatError(
@@ -105,10 +119,34 @@ def read_scenarios(path_or_glob, format: str | None = None) -> Iterator[Scenario
     """
     modules = {m.NAME: m for m in _formats()}
     if format is not None and format not in modules:
-        raise ValueError(f"unknown format {format!r}; known: {', '.join(modules)}")
+        raise UnknownFormatNameError(f"unknown format {format!r}; known: {', '.join(modules)}")
     for path in expand_paths(path_or_glob):
         name = format or detect_format(path)
-        yield from modules[name].read(path)
+        check_regular_file(path)
+        yield from _guarded(modules[name], path)
+
+
+def _guarded(module, path: str) -> Iterator[Scenario]:
+    """``module.read(path)``, with every error that does not already name the file turned into a
+    :class:`ScenarioReadError` that does (``record``: the index of the scene being read, in formats
+    with several scenes per file)."""
+    count = 0
+    where = lambda: count if getattr(module, "MULTI_SCENE", False) else None  # noqa: E731
+    try:
+        for scenario in module.read(path):
+            yield scenario
+            count += 1
+    except ScenarioReadError:
+        raise
+    except SmartMarlError as exc:
+        raise ScenarioReadError(path, str(exc), record=where()) from exc
+    except RecursionError as exc:
+        raise ScenarioReadError(path, "nested too deeply to read", record=where()) from exc
+    except MemoryError as exc:
+        raise ScenarioReadError(path, "does not fit in memory (a declared size larger than the data?)", record=where()) from exc
+    except Exception as exc:  # noqa: BLE001 - whatever a hostile file provokes, the error names the file
+        raise ScenarioReadError(path, f"the {module.NAME} reader failed on it: {type(exc).__name__}: {exc}",
+                                record=where()) from exc
 
 
 def read_scenario(path: str | os.PathLike, index: int = 0, format: str | None = None) -> Scenario:

@@ -41,10 +41,10 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from ..errors import ScenarioReadError
+from ..errors import ScenarioReadError, check_regular_file
 from ..scenario import (
     DT_S, AgentType, LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadLineType, RoadMap, Scenario,
-    TrafficLights, Tracks, choose_frame, wrap_angle,
+    TrafficLights, Tracks, as_floats, as_int, as_integers, choose_frame, wrap_angle,
 )
 from .common import load_json_object, read_errors
 
@@ -101,6 +101,14 @@ _OPTIONAL_COLUMNS = ("scenario_id", "object_category", "track_category", "focal_
                      "slice_id", "num_timestamps")
 _FOCAL, _SCORED = 3, 2
 
+MAX_FRAMES = 2000
+"""Most frames a scenario may declare (200 s; AV2 scenarios have 110). A larger ``timestep`` or
+``num_timestamps`` is refused before anything of that size is allocated."""
+
+MAX_FRAMES_PER_ROW = 64
+"""The track x frame grid may be at most this many times the number of rows the file holds (AV2
+files: about 2), so a few rows cannot declare a grid the memory cannot hold."""
+
 
 def sniff(path: str, head: bytes) -> bool:
     """A parquet file (magic ``PAR1``)."""
@@ -133,8 +141,9 @@ def read(path: str | os.PathLike) -> Iterator[Scenario]:
 def read_av2(path: str, map_path: str | os.PathLike | None = None) -> Scenario:
     pq = _parquet()
     map_path = Path(map_path) if map_path is not None else map_path_for(path)
-    if not map_path.is_file():
+    if not map_path.exists():
         raise ScenarioReadError(path, f"the map file is missing: expected {map_path}")
+    check_regular_file(map_path)
     try:
         parquet = pq.ParquetFile(path)
         names = set(parquet.schema_arrow.names)
@@ -205,6 +214,10 @@ def _single(columns: dict[str, np.ndarray], name: str, path: str):
 
 # ---------------------------------------------------------------------------------------- tracks
 def _read_tracks(columns: dict[str, np.ndarray], path: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    for name in ("track_id", "object_type"):
+        if columns[name].dtype.kind not in "OUS" or not all(isinstance(v, str) for v in columns[name][:1]):
+            raise ScenarioReadError(path, f"column {name} holds {columns[name].dtype} values, expected strings",
+                                    record=f"column {name}")
     raw_ids = columns["track_id"].astype(str)
     unique, first_row, inverse = np.unique(raw_ids, return_index=True, return_inverse=True)
     order = np.argsort(first_row, kind="stable")  # tracks in the order of their first row
@@ -224,20 +237,32 @@ def _read_tracks(columns: dict[str, np.ndarray], path: str) -> tuple[dict[str, A
     if len(np.unique(ids)) != n:
         raise ScenarioReadError(path, "two track ids map to the same integer", record="column track_id")
 
-    timestep = columns["timestep"].astype(np.int64)
+    with read_errors(path, "column timestep"):
+        timestep = as_integers(columns["timestep"], np.int64, "timestep")
     if len(timestep) and timestep.min() < 0:
         row = int(np.argmin(timestep))
         raise ScenarioReadError(path, f"negative timestep {int(timestep[row])}", record=f"row {row}")
+    if len(timestep) and timestep.max() >= MAX_FRAMES:
+        row = int(np.argmax(timestep))
+        raise ScenarioReadError(path, f"timestep {int(timestep[row])} is beyond the {MAX_FRAMES} frames a scenario may have",
+                                record=f"row {row}")
     num_frames = int(timestep.max()) + 1 if len(timestep) else 0
     declared = _single(columns, "num_timestamps", path)
     if declared is not None:
-        if int(declared) < num_frames:
+        with read_errors(path, "column num_timestamps"):
+            declared = as_int(declared, "num_timestamps")
+        if declared < num_frames:
             row = int(np.argmax(timestep))
-            raise ScenarioReadError(path, f"timestep {num_frames - 1} beyond num_timestamps {int(declared)}",
-                                    record=f"row {row}")
-        num_frames = int(declared)
+            raise ScenarioReadError(path, f"timestep {num_frames - 1} beyond num_timestamps {declared}", record=f"row {row}")
+        if declared > MAX_FRAMES:
+            raise ScenarioReadError(path, f"num_timestamps {declared} is more than the {MAX_FRAMES} frames a scenario may have",
+                                    record="column num_timestamps")
+        num_frames = declared
     if num_frames == 0:
         raise ScenarioReadError(path, "no rows")
+    if n * num_frames > max(MAX_FRAMES_PER_ROW * len(timestep), 1 << 16):
+        raise ScenarioReadError(path, f"{len(timestep)} rows cannot fill {n} tracks x {num_frames} frames (declared sizes "
+                                      f"larger than the data)", record="column num_timestamps")
 
     valid = np.zeros((n, num_frames), bool)
     valid[track_of_row, timestep] = True
@@ -252,7 +277,8 @@ def _read_tracks(columns: dict[str, np.ndarray], path: str) -> tuple[dict[str, A
     heading = np.zeros((n, num_frames))
     for name, target, index in (("position_x", position, 0), ("position_y", position, 1),
                                 ("velocity_x", velocity, 0), ("velocity_y", velocity, 1), ("heading", heading, None)):
-        values = columns[name].astype(np.float64)
+        with read_errors(path, f"column {name}"):
+            values = as_floats(columns[name], np.float64, name)
         bad = ~np.isfinite(values)
         if bad.any():
             row = int(np.flatnonzero(bad)[0])
@@ -269,8 +295,9 @@ def _read_tracks(columns: dict[str, np.ndarray], path: str) -> tuple[dict[str, A
     size = np.repeat(box[:, None, :], num_frames, axis=1)
 
     category_col = "object_category" if "object_category" in columns else "track_category" if "track_category" in columns else None
-    category = (columns[category_col].astype(np.int64)[first_row[order]] if category_col
-                else np.zeros(n, np.int64))
+    with read_errors(path, f"column {category_col}"):
+        category = (as_integers(columns[category_col], np.int64, category_col)[first_row[order]] if category_col
+                    else np.zeros(n, np.int64))
     focal_str = _single(columns, "focal_track_id", path)
     focal = np.flatnonzero(category == _FOCAL)
     if focal_str is not None and str(focal_str) in set(id_strings):
@@ -295,9 +322,9 @@ def _read_tracks(columns: dict[str, np.ndarray], path: str) -> tuple[dict[str, A
 # ------------------------------------------------------------------------------------------- map
 def _xyz(points: Any, map_path: Path, record: str) -> np.ndarray:
     try:
-        out = np.array([(p["x"], p["y"], p.get("z", 0.0)) for p in points], np.float64).reshape(-1, 3)
-    except (KeyError, TypeError, ValueError, AttributeError) as exc:
-        raise ScenarioReadError(map_path, f"malformed points: {exc!r}", record=record) from exc
+        out = as_floats([(p["x"], p["y"], p.get("z", 0.0)) for p in points], np.float64, "points").reshape(-1, 3)
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:  # ScenarioValidationError is a ValueError
+        raise ScenarioReadError(map_path, f"malformed points: {exc}", record=record) from exc
     if len(out) == 0:
         raise ScenarioReadError(map_path, "no points", record=record)
     if not np.isfinite(out).all():
@@ -324,6 +351,20 @@ def lane_centerline(left: np.ndarray, right: np.ndarray, spacing_m: float = CENT
     return 0.5 * (resample_polyline(left, num_points) + resample_polyline(right, num_points))
 
 
+def _map_id(value: Any, map_path: Path, record: str) -> int:
+    """A map id: an integer (or the decimal string of a JSON object key), never a truncated float."""
+    if isinstance(value, str) and value.lstrip("-").isdecimal():
+        value = int(value)
+    with read_errors(map_path, record):
+        return as_int(value, "id")
+
+
+def _text(value: Any, map_path: Path, record: str, field: str) -> str | None:
+    if value is not None and not isinstance(value, str):
+        raise ScenarioReadError(map_path, f"'{field}' is {value!r}, expected a string", record=record)
+    return value
+
+
 def _read_map(map_path: Path) -> dict[str, Any]:
     data = load_json_object(map_path)
     for key in ("lane_segments", "drivable_areas", "pedestrian_crossings"):
@@ -338,24 +379,29 @@ def _read_map(map_path: Path) -> dict[str, Any]:
     seen_lines: set[bytes] = set()
     for key, lane in data["lane_segments"].items():
         record = f"lane_segments[{key}]"
+        if not isinstance(lane, dict):
+            raise ScenarioReadError(map_path, f"is a {type(lane).__name__}, expected an object", record=record)
         for field in ("id", "left_lane_boundary", "right_lane_boundary"):
             if field not in lane:
                 raise ScenarioReadError(map_path, f"missing field '{field}'", record=record)
-        lane_id = int(lane["id"])
+        lane_id = _map_id(lane["id"], map_path, record)
         left = _xyz(lane["left_lane_boundary"], map_path, record + ".left_lane_boundary")
         right = _xyz(lane["right_lane_boundary"], map_path, record + ".right_lane_boundary")
         ids.append(lane_id)
         types.append(MapFeatureType.LANE)
-        subtypes.append(_LANE_TYPES.get(lane.get("lane_type"), LaneType.UNDEFINED))
+        subtypes.append(_LANE_TYPES.get(_text(lane.get("lane_type"), map_path, record, "lane_type"), LaneType.UNDEFINED))
         interp.append(bool(lane.get("is_intersection", False)))
         pts.append(lane_centerline(left, right))
-        links += [(lane_id, int(s), LinkType.SUCCESSOR) for s in lane.get("successors") or []]
-        links += [(lane_id, int(p), LinkType.PREDECESSOR) for p in lane.get("predecessors") or []]
+        for field, link in (("successors", LinkType.SUCCESSOR), ("predecessors", LinkType.PREDECESSOR)):
+            others = lane.get(field) or []
+            if not isinstance(others, list):
+                raise ScenarioReadError(map_path, f"'{field}' is a {type(others).__name__}, expected a list", record=record)
+            links += [(lane_id, _map_id(other, map_path, f"{record}.{field}"), link) for other in others]
         for side, link in (("left", LinkType.LEFT_NEIGHBOR), ("right", LinkType.RIGHT_NEIGHBOR)):
             neighbour = lane.get(f"{side}_neighbor_id")
             if neighbour is not None:
-                links.append((lane_id, int(neighbour), link))
-            mark = lane.get(f"{side}_lane_mark_type", "NONE")
+                links.append((lane_id, _map_id(neighbour, map_path, f"{record}.{side}_neighbor_id"), link))
+            mark = _text(lane.get(f"{side}_lane_mark_type", "NONE"), map_path, record, f"{side}_lane_mark_type")
             if mark == "NONE":
                 continue
             boundary = left if side == "left" else right
@@ -368,12 +414,12 @@ def _read_map(map_path: Path) -> dict[str, Any]:
 
     for key, area in (data.get("drivable_areas") or {}).items():
         record = f"drivable_areas[{key}]"
-        if "area_boundary" not in area:
+        if not isinstance(area, dict) or "area_boundary" not in area:
             raise ScenarioReadError(map_path, "missing field 'area_boundary'", record=record)
         outline = _xyz(area["area_boundary"], map_path, record + ".area_boundary")
         if len(outline) > 1 and not np.array_equal(outline[0], outline[-1]):
             outline = np.concatenate([outline, outline[:1]])
-        ids.append(int(area.get("id", key)))
+        ids.append(_map_id(area.get("id", key), map_path, record))
         types.append(MapFeatureType.ROAD_EDGE)
         subtypes.append(RoadEdgeType.BOUNDARY)
         interp.append(False)
@@ -382,11 +428,11 @@ def _read_map(map_path: Path) -> dict[str, Any]:
     for key, crossing in (data.get("pedestrian_crossings") or {}).items():
         record = f"pedestrian_crossings[{key}]"
         for field in ("edge1", "edge2"):
-            if field not in crossing:
+            if not isinstance(crossing, dict) or field not in crossing:
                 raise ScenarioReadError(map_path, f"missing field '{field}'", record=record)
         e1 = _xyz(crossing["edge1"], map_path, record + ".edge1")
         e2 = _xyz(crossing["edge2"], map_path, record + ".edge2")
-        ids.append(int(crossing.get("id", key)))
+        ids.append(_map_id(crossing.get("id", key), map_path, record))
         types.append(MapFeatureType.CROSSWALK)
         subtypes.append(0)
         interp.append(False)

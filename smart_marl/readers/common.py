@@ -29,7 +29,7 @@ def read_errors(path: str | os.PathLike, record: Any = None, prefix: str = "") -
 
 def load_json_object(path: str | os.PathLike) -> dict:
     """The top-level JSON object of a file (a read error when it is unreadable, not UTF-8 text, not
-    JSON, or a JSON value other than an object)."""
+    JSON, nested too deeply, or a JSON value other than an object)."""
     try:
         with open(path, "rb") as f:
             data = json.load(f)
@@ -37,6 +37,8 @@ def load_json_object(path: str | os.PathLike) -> dict:
         raise ScenarioReadError(path, f"invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from exc
     except UnicodeDecodeError as exc:
         raise ScenarioReadError(path, f"not UTF-8 text: {exc}") from exc
+    except RecursionError as exc:
+        raise ScenarioReadError(path, "JSON nested too deeply to read") from exc
     except OSError as exc:
         raise ScenarioReadError(path, f"cannot read: {exc.strerror or exc}") from exc
     if not isinstance(data, dict):
@@ -44,17 +46,21 @@ def load_json_object(path: str | os.PathLike) -> dict:
     return data
 
 
+def is_json_number(value: Any) -> bool:
+    """A JSON number (int or float; not a bool, not a numeric string)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def json_point(point: Any, path: str, record: str, with_z: bool = True) -> tuple[float, float, float | None]:
     """(x, y, z) of one JSON point object (z None when it has none or ``with_z`` is off); a read error
-    naming ``record`` when it is not an object with numeric x and y."""
+    naming ``record`` when it is not an object with numeric x and y (and z, when present)."""
     if not isinstance(point, dict):
         raise ScenarioReadError(path, f"is a {type(point).__name__}, expected an object with x, y", record=record)
     for axis in ("x", "y"):
         if axis not in point:
             raise ScenarioReadError(path, f"missing field '{axis}'", record=record)
-    try:
-        x, y = float(point["x"]), float(point["y"])
-        z = float(point["z"]) if with_z and "z" in point else None
-    except (TypeError, ValueError) as exc:
-        raise ScenarioReadError(path, f"a coordinate is not a number: {exc}", record=record) from exc
-    return x, y, z
+    bad = [axis for axis in ("x", "y", "z") if axis in point and not is_json_number(point[axis])]
+    if bad:
+        raise ScenarioReadError(path, f"coordinate {bad[0]} is {point[bad[0]]!r}, not a number", record=record)
+    z = float(point["z"]) if with_z and "z" in point else None
+    return float(point["x"]), float(point["y"]), z

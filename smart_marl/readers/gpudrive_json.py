@@ -53,9 +53,10 @@ import numpy as np
 
 from ..errors import ScenarioReadError
 from ..scenario import (
-    DT_S, AgentType, MapFeatureType, RoadMap, Scenario, SignalState, TrafficLights, Tracks, choose_frame, wrap_angle,
+    DT_S, AgentType, MapFeatureType, RoadMap, Scenario, SignalState, TrafficLights, Tracks, as_int, as_integers,
+    choose_frame, wrap_angle,
 )
-from .common import json_point, load_json_object, read_errors
+from .common import is_json_number, json_point, load_json_object, read_errors
 
 NAME = "gpudrive_json"
 
@@ -162,21 +163,26 @@ def scenario_from_json(data: dict[str, Any], path: str = "<memory>") -> Scenario
     flavour = _flavour(data, objects, roads, track["has_z"] or road["has_z"])
 
     current_frame = WOMD_CURRENT_FRAME if num_frames > WOMD_CURRENT_FRAME else num_frames - 1
-    sdc_index = int(metadata_in.get("sdc_track_index", -1))
+    with read_errors(path, "metadata"):
+        sdc_index = as_int(metadata_in.get("sdc_track_index", -1), "sdc_track_index")
     if not -1 <= sdc_index < len(objects):
         raise ScenarioReadError(path, f"sdc_track_index {sdc_index} outside [0, {len(objects)})", record="metadata")
     predict, difficulty = [], []
-    for k, entry in enumerate(metadata_in.get("tracks_to_predict", []) or []):
-        try:
-            index = int(entry["track_index"] if isinstance(entry, dict) else entry)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ScenarioReadError(path, f"bad entry {entry!r}", record=f"metadata.tracks_to_predict[{k}]") from exc
+    to_predict = metadata_in.get("tracks_to_predict", []) or []
+    if not isinstance(to_predict, list):
+        raise ScenarioReadError(path, f"tracks_to_predict is a {type(to_predict).__name__}, expected a list", record="metadata")
+    for k, entry in enumerate(to_predict):
+        record = f"metadata.tracks_to_predict[{k}]"
+        if isinstance(entry, dict) and "track_index" not in entry:
+            raise ScenarioReadError(path, f"bad entry {entry!r}: no track_index", record=record)
+        with read_errors(path, record):
+            index = as_int(entry["track_index"] if isinstance(entry, dict) else entry, "track_index")
+            difficulty.append(as_int(entry.get("difficulty", 0), "difficulty") if isinstance(entry, dict) else 0)
         if not 0 <= index < len(objects):
-            raise ScenarioReadError(path, f"track_index {index} outside [0, {len(objects)})",
-                                    record=f"metadata.tracks_to_predict[{k}]")
+            raise ScenarioReadError(path, f"track_index {index} outside [0, {len(objects)})", record=record)
         predict.append(index)
-        difficulty.append(int(entry.get("difficulty", 0)) if isinstance(entry, dict) else 0)
-    interest = np.asarray(metadata_in.get("objects_of_interest", []) or [], dtype=np.int64)
+    with read_errors(path, "metadata.objects_of_interest"):
+        interest = as_integers(metadata_in.get("objects_of_interest", []) or [], np.int64, "objects_of_interest").reshape(-1)
 
     frame = choose_frame(track["position"], track["valid"], sdc_index, current_frame,
                          fallback=road["points"] if len(road["points"]) else None)
@@ -184,6 +190,9 @@ def scenario_from_json(data: dict[str, Any], path: str = "<memory>") -> Scenario
     position = np.where(track["valid"][..., None], track["position"] - origin, 0.0)
 
     lights = _read_traffic_lights(data.get("tl_states"), num_frames, origin, path)
+    if data.get("scenario_id") is not None and not isinstance(data["scenario_id"], (str, int)):
+        raise ScenarioReadError(path, f"scenario_id is a {type(data['scenario_id']).__name__}, expected a string",
+                                record="scenario_id")
     scenario_id = data.get("scenario_id") or _strip_json(data.get("name")) or Path(path).stem
     meta: dict[str, Any] = {
         "source_path": os.path.abspath(path) if path != "<memory>" else path,
@@ -210,7 +219,7 @@ def scenario_from_json(data: dict[str, Any], path: str = "<memory>") -> Scenario
             traffic_lights=lights,
             sdc_index=sdc_index,
             predict_indices=np.asarray(predict, np.int64),
-            predict_difficulty=np.asarray(difficulty, np.int8),
+            predict_difficulty=np.asarray(difficulty, np.int64),
             objects_of_interest=interest,
             frame=frame,
             metadata=meta,
@@ -261,18 +270,17 @@ def _read_objects(objects: list, path: str) -> dict[str, Any]:
     position = np.zeros((n, num_frames, 3), np.float64)
     try:
         if has_z:
-            position[:] = np.array(list(map(_XYZ, all_pos)), np.float64).reshape(n, num_frames, 3)
+            position[:] = _numbers(list(map(_XYZ, all_pos))).reshape(n, num_frames, 3)
         else:
-            position[..., :2] = np.array(list(map(_XY, all_pos)), np.float64).reshape(n, num_frames, 2)
+            position[..., :2] = _numbers(list(map(_XY, all_pos))).reshape(n, num_frames, 2)
     except (KeyError, TypeError, ValueError):
         position, has_z = _points_slow(objects, "position", num_frames, path)
     try:
-        velocity = np.array(list(map(_XY, chain.from_iterable(o["velocity"] for o in objects))),
-                            np.float64).reshape(n, num_frames, 2)
+        velocity = _numbers(list(map(_XY, chain.from_iterable(o["velocity"] for o in objects)))).reshape(n, num_frames, 2)
     except (KeyError, TypeError, ValueError):
         velocity = _points_slow(objects, "velocity", num_frames, path, dims=2)[0][..., :2]
     try:
-        heading = np.array([o["heading"] for o in objects], np.float64).reshape(n, num_frames)
+        heading = _numbers([o["heading"] for o in objects]).reshape(n, num_frames)
     except (TypeError, ValueError) as exc:
         raise ScenarioReadError(path, f"'heading' holds a non-number: {exc}", record=_first_bad(objects, "heading")) from exc
     valid = np.array([o["valid"] for o in objects], dtype=None if n else bool).reshape(n, num_frames)
@@ -281,24 +289,22 @@ def _read_objects(objects: list, path: str) -> dict[str, Any]:
             for f, v in enumerate(obj["valid"]):
                 if not isinstance(v, bool):
                     raise ScenarioReadError(path, f"valid[{f}] is {v!r}, expected true/false", record=f"objects[{i}]")
+    for i, obj in enumerate(objects):
+        if not isinstance(obj["type"], str):
+            raise ScenarioReadError(path, f"'type' is {obj['type']!r}, expected a string", record=f"objects[{i}]")
     types = np.array([_AGENT_TYPES.get(o["type"], AgentType.OTHER) for o in objects], np.int8)
     try:
-        length = np.array([o["length"] for o in objects], np.float64)
-        width = np.array([o["width"] for o in objects], np.float64)
-        height = np.array([o.get("height", DEFAULT_HEIGHT_M[AgentType(int(t))]) for o, t in zip(objects, types)], np.float64)
+        length = _numbers([o["length"] for o in objects])
+        width = _numbers([o["width"] for o in objects])
+        height = _numbers([o.get("height", DEFAULT_HEIGHT_M[AgentType(int(t))]) for o, t in zip(objects, types)])
+        if length.shape != (n,) or width.shape != (n,) or height.shape != (n,):
+            raise ValueError("one number per object expected")
     except (TypeError, ValueError) as exc:
-        raise ScenarioReadError(path, f"a box size is not a number: {exc}") from exc
+        raise ScenarioReadError(path, f"a box size (length, width, height) is not a number: {exc}",
+                                record=_first_bad(objects, "length", "width", "height")) from exc
 
     has_ids = n > 0 and all("id" in o for o in objects)
-    if n and not has_ids and any("id" in o for o in objects):
-        i = next(i for i, o in enumerate(objects) if "id" not in o)
-        raise ScenarioReadError(path, "missing field 'id' (other objects have one)", record=f"objects[{i}]")
-    ids = np.array([o["id"] for o in objects], np.int64) if has_ids else np.arange(n, dtype=np.int64)
-    if len(np.unique(ids)) != n:
-        uniq, counts = np.unique(ids, return_counts=True)
-        dup = int(uniq[counts > 1][0])
-        raise ScenarioReadError(path, f"track id {dup} is used by more than one object",
-                                record=f"objects[{int(np.flatnonzero(ids == dup)[1])}]")
+    ids = _unique_ids(objects, path, "objects", "object", "track id")
 
     # NaN / inf on valid frames: name the object, the field and the frame
     for name, values in (("position", position), ("velocity", velocity), ("heading", heading)):
@@ -316,7 +322,8 @@ def _read_objects(objects: list, path: str) -> dict[str, Any]:
     valid_heading = heading[valid]
     radians = has_ids and (valid_heading.size == 0 or float(np.abs(valid_heading).max()) <= 2 * math.pi + 1e-3)
     heading_rad = heading if radians else np.radians(heading)
-    heading_rad = np.where(valid, wrap_angle(heading_rad), 0.0)
+    with np.errstate(invalid="ignore"):  # invalid frames may hold anything (checked finite on valid ones above)
+        heading_rad = np.where(valid, wrap_angle(heading_rad), 0.0)
     size = np.repeat(np.stack([length, width, height], axis=-1)[:, None, :], num_frames, axis=1)
     experts = [int(i) for i, o in zip(ids, objects) if o.get("mark_as_expert")] if any(
         "mark_as_expert" in o for o in objects) else None
@@ -325,6 +332,34 @@ def _read_objects(objects: list, path: str) -> dict[str, Any]:
         "heading": heading_rad, "heading_unit": "radians" if radians else "degrees",
         "velocity": np.where(valid[..., None], velocity, 0.0), "size": size, "experts": experts,
     }
+
+
+def _numbers(values: list) -> np.ndarray:
+    """Numbers (nested lists of them) as float64; ValueError for strings, None or anything else."""
+    a = np.array(values)
+    if a.dtype.kind not in "iuf" and not (a.size == 0 and a.dtype.kind in "fO"):
+        raise ValueError(f"expected numbers, found values of type {a.dtype}")
+    return a.astype(np.float64)
+
+
+def _unique_ids(items: list, path: str, key: str, noun: str, id_name: str) -> np.ndarray:
+    """The ``id`` of every item of ``items`` (the JSON list ``key``) as int64, or 0..n-1 when no item
+    has one; a read error naming the item when only some have one, one is not an integer, or two share one."""
+    n = len(items)
+    has_ids = n > 0 and all("id" in o for o in items)
+    if n and not has_ids and any("id" in o for o in items):
+        i = next(i for i, o in enumerate(items) if "id" not in o)
+        raise ScenarioReadError(path, f"missing field 'id' (other {noun}s have one)", record=f"{key}[{i}]")
+    with read_errors(path, key):
+        ids = as_integers([o["id"] for o in items], np.int64, f"{noun} id") if has_ids else np.arange(n, dtype=np.int64)
+    if ids.shape != (n,):
+        raise ScenarioReadError(path, f"a {noun} id is not one integer", record=key)
+    if len(np.unique(ids)) != n:
+        uniq, counts = np.unique(ids, return_counts=True)
+        dup = int(uniq[counts > 1][0])
+        raise ScenarioReadError(path, f"{id_name} {dup} is used by more than one {noun}",
+                                record=f"{key}[{int(np.flatnonzero(ids == dup)[1])}]")
+    return ids
 
 
 def _points_slow(objects: list, key: str, num_frames: int, path: str, dims: int = 3) -> tuple[np.ndarray, bool]:
@@ -341,12 +376,15 @@ def _points_slow(objects: list, key: str, num_frames: int, path: str, dims: int 
     return out, has_z
 
 
-def _first_bad(objects: list, key: str) -> str:
+def _first_bad(objects: list, *keys: str) -> str:
     for i, obj in enumerate(objects):
-        try:
-            np.asarray(obj[key], np.float64)
-        except (TypeError, ValueError):
-            return f"objects[{i}]"
+        for key in keys:
+            if key not in obj:
+                continue
+            try:
+                _numbers(obj[key])
+            except (TypeError, ValueError):
+                return f"objects[{i}].{key}"
     return "objects"
 
 
@@ -363,7 +401,7 @@ def _read_roads(roads: list, path: str) -> dict[str, Any]:
         for key in ("type", "geometry"):
             if key not in road:
                 raise ScenarioReadError(path, f"missing field '{key}'", record=record)
-        kind = _ROAD_TYPES.get(road["type"])
+        kind = _ROAD_TYPES.get(road["type"]) if isinstance(road["type"], str) else None
         if kind is None:
             raise ScenarioReadError(path, f"unknown road type {road['type']!r} (known: {', '.join(_ROAD_TYPES)})",
                                     record=record)
@@ -378,27 +416,15 @@ def _read_roads(roads: list, path: str) -> dict[str, Any]:
             if first <= code < first + count:
                 subtypes[i] = code - first
 
-    has_ids = f > 0 and all("id" in r for r in roads)
-    if f and not has_ids and any("id" in r for r in roads):
-        i = next(i for i, r in enumerate(roads) if "id" not in r)
-        raise ScenarioReadError(path, "missing field 'id' (other roads have one)", record=f"roads[{i}]")
-    try:
-        ids = np.array([r["id"] for r in roads], np.int64) if has_ids else np.arange(f, dtype=np.int64)
-    except (TypeError, ValueError, OverflowError) as exc:
-        raise ScenarioReadError(path, f"a road id is not an integer: {exc}", record="roads") from exc
-    if len(np.unique(ids)) != f:
-        uniq, counts = np.unique(ids, return_counts=True)
-        dup = int(uniq[counts > 1][0])
-        raise ScenarioReadError(path, f"road id {dup} is used by more than one road",
-                                record=f"roads[{int(np.flatnonzero(ids == dup)[1])}]")
+    ids = _unique_ids(roads, path, "roads", "road", "road id")
 
     all_points = list(chain.from_iterable(r["geometry"] for r in roads))
     has_z = bool(all_points) and isinstance(all_points[0], dict) and "z" in all_points[0]
     try:
         if has_z:
-            points = np.array(list(map(_XYZ, all_points)), np.float64).reshape(-1, 3)
+            points = _numbers(list(map(_XYZ, all_points))).reshape(-1, 3)
         else:
-            xy = np.array(list(map(_XY, all_points)), np.float64).reshape(-1, 2)
+            xy = _numbers(list(map(_XY, all_points))).reshape(-1, 2)
             points = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
     except (KeyError, TypeError, ValueError):
         points, has_z = _road_points_slow(roads, path)
@@ -454,13 +480,16 @@ def _read_traffic_lights(tl_states: Any, num_frames: int, origin: np.ndarray, pa
             if key not in entry:
                 raise ScenarioReadError(path, f"missing field '{key}'", record=record)
         names, frames = entry["state"], entry["time_index"]
+        if not all(isinstance(entry[k], list) for k in ("state", "time_index", "x", "y")):
+            raise ScenarioReadError(path, "state, time_index, x and y must be lists", record=record)
         if len(names) != len(frames):
             raise ScenarioReadError(path, f"{len(names)} states but {len(frames)} time indices", record=record)
         codes = [_signal_state(s) for s in names]
         if any(c is None for c in codes):
             bad = names[[c is None for c in codes].index(True)]
             raise ScenarioReadError(path, f"unknown signal state {bad!r}", record=record)
-        frames = np.asarray(frames, np.int64)
+        with read_errors(path, record):
+            frames = as_integers(frames, np.int64, "time_index").reshape(-1)
         if frames.size and (frames.min() < 0 or frames.max() >= num_frames):
             raise ScenarioReadError(path, f"time_index outside [0, {num_frames})", record=record)
         states[frames, col] = np.asarray(codes, np.int8)
@@ -468,7 +497,10 @@ def _read_traffic_lights(tl_states: Any, num_frames: int, origin: np.ndarray, pa
         if not entry["x"]:
             raise ScenarioReadError(path, "no stop point", record=record)
         z = entry.get("z") or [0.0]
-        stop_points.append((float(entry["x"][0]), float(entry["y"][0]), float(z[0])))
+        point = (entry["x"][0], entry["y"][0], z[0] if isinstance(z, list) else z)
+        if not all(is_json_number(v) for v in point):
+            raise ScenarioReadError(path, f"stop point {point!r} is not three numbers", record=record)
+        stop_points.append(tuple(float(v) for v in point))
     if len(set(lane_ids)) != len(lane_ids):
         raise ScenarioReadError(path, "a lane appears twice", record="tl_states")
     with read_errors(path, "tl_states"):

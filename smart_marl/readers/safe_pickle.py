@@ -11,9 +11,11 @@ The allow-lists below were taken from what the real files use (``pickletools``):
   numpy scalars, ``collections.defaultdict`` with ``builtins.int`` as factory (format 1.2 and the
   nuScenes conversions), plus the plain-container builtins protocol 2 pickles need.
 * SMART preprocessed pickles (dicts of torch tensors written with ``pickle.dump``):
-  ``torch._utils._rebuild_tensor_v2``, ``torch.storage._load_from_bytes`` (replaced by a loader that
-  calls ``torch.load(..., weights_only=True)``), ``collections.OrderedDict`` and numpy scalars. torch
-  is imported only when such a file is read (:func:`smart_pickle_globals`).
+  ``torch._utils._rebuild_tensor_v2`` (replaced by :func:`_rebuild_tensor_checked`, which refuses a
+  view that reaches past its storage: torch would grow the storage with uninitialised memory),
+  ``torch.storage._load_from_bytes`` (replaced by a loader that calls
+  ``torch.load(..., weights_only=True)``), ``collections.OrderedDict`` and numpy scalars. torch is
+  imported only when such a file is read (:func:`smart_pickle_globals`).
 
 numpy's reconstruction functions are taken from numpy's own ``__reduce__`` output rather than
 imported by name, so pickles written by numpy 1 (``numpy.core``) and numpy 2 (``numpy._core``)
@@ -30,7 +32,7 @@ from typing import IO, Any, Mapping, Union
 
 import numpy as np
 
-from ..errors import ScenarioReadError
+from ..errors import ScenarioReadError, check_regular_file
 
 Allowed = Union[set, frozenset, Mapping]
 """A set of ``(module, name)`` pairs (resolved by import), or a mapping from such pairs to the object
@@ -68,14 +70,41 @@ def _load_storage_from_bytes(data: bytes):
     return torch.load(io.BytesIO(data), weights_only=True)
 
 
-def smart_pickle_globals() -> dict[tuple[str, str], Any]:
-    """What SMART preprocessed pickles may import (imports torch)."""
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _rebuild_tensor_checked(storage, storage_offset, size, stride, requires_grad=False, backward_hooks=None,
+                            metadata=None):
+    """Stand-in for ``torch._utils._rebuild_tensor_v2`` that rebuilds only a plain view inside its
+    storage: integer offset, sizes and strides (none negative), every element it addresses within
+    the storage's elements, no backward hooks and no tensor metadata. Raises ValueError otherwise
+    (the unpickler turns it into a ScenarioReadError naming the file)."""
+    import torch
     import torch._utils
 
+    if not isinstance(storage, torch.storage.TypedStorage):
+        raise ValueError(f"a tensor is rebuilt from a {type(storage).__name__}, not a torch storage")
+    if not (isinstance(size, tuple) and isinstance(stride, tuple) and len(size) == len(stride)
+            and all(_is_int(v) and v >= 0 for v in (*size, *stride)) and _is_int(storage_offset) and storage_offset >= 0):
+        raise ValueError(f"a tensor view has an invalid offset {storage_offset!r}, size {size!r} or stride {stride!r}")
+    if backward_hooks or metadata or not isinstance(requires_grad, bool):
+        raise ValueError("a tensor carries backward hooks, metadata or a non-boolean requires_grad")
+    elements = storage._size()  # (the public size() warns that TypedStorage is deprecated)
+    if all(size):  # an empty view addresses nothing
+        last = storage_offset + sum((n - 1) * s for n, s in zip(size, stride))
+        if last >= elements:
+            raise ValueError(f"a tensor view of size {list(size)}, stride {list(stride)} at offset {storage_offset} reaches "
+                             f"element {last} of a storage of {elements} elements")
+    return torch._utils._rebuild_tensor_v2(storage, storage_offset, size, stride, requires_grad, collections.OrderedDict())
+
+
+def smart_pickle_globals() -> dict[tuple[str, str], Any]:
+    """What SMART preprocessed pickles may import (imports torch)."""
     return {
         **NUMPY_GLOBALS,
         ("collections", "OrderedDict"): collections.OrderedDict,
-        ("torch._utils", "_rebuild_tensor_v2"): torch._utils._rebuild_tensor_v2,
+        ("torch._utils", "_rebuild_tensor_v2"): _rebuild_tensor_checked,
         ("torch.storage", "_load_from_bytes"): _load_storage_from_bytes,
     }
 
@@ -110,6 +139,7 @@ def load_restricted(path_or_file: str | os.PathLike | IO[bytes], allowed: Allowe
     )
     if isinstance(path_or_file, (str, os.PathLike)):
         name = os.fspath(path_or_file)
+        check_regular_file(name)
         try:
             with open(name, "rb") as f:
                 return _load(f, allowed_map, name)
@@ -124,8 +154,9 @@ def _load(f: IO[bytes], allowed: Mapping[tuple[str, str], Any], name: str) -> An
         return _RestrictedUnpickler(f, allowed, name).load()
     except ScenarioReadError:
         raise
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError,
-            KeyError, RuntimeError, MemoryError, UnicodeDecodeError) as exc:
+    except RecursionError as exc:
+        raise ScenarioReadError(name, "not a valid pickle: nested too deeply") from exc
+    except Exception as exc:  # noqa: BLE001 - UnpicklingError, EOFError, ValueError... all name the file
         raise ScenarioReadError(name, f"not a valid pickle: {type(exc).__name__}: {exc}") from exc
 
 

@@ -58,6 +58,9 @@ from ..scenario import (
     SignalState,
     TrafficLights,
     Tracks,
+    as_floats,
+    as_int,
+    as_mask,
     choose_frame,
 )
 from .common import read_errors
@@ -141,10 +144,15 @@ def _need(mapping: Any, key: str, path: str, record: str) -> Any:
 
 
 def _as_float(value: Any, path: str, record: str) -> np.ndarray:
-    try:
-        return np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ScenarioReadError(path, f"not numeric: {exc}", record) from exc
+    with read_errors(path, record):
+        return as_floats(value, np.float64, "not numeric")
+
+
+def _number(value: Any, path: str, record: str, what: str) -> float:
+    a = _as_float(value, path, record)
+    if a.shape != () or not np.isfinite(a):
+        raise ScenarioReadError(path, f"{what} is {value!r}, expected one finite number", record)
+    return float(a)
 
 
 def _per_frame(value: Any, num_frames: int, path: str, record: str, width: int | None = None) -> np.ndarray:
@@ -209,8 +217,9 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
     tracks_in = _need(data, "tracks", path, "scene")
     features_in = _need(data, "map_features", path, "scene")
     lights_in = data.get("dynamic_map_states") or {}
-    if not isinstance(meta, Mapping) or not isinstance(tracks_in, Mapping) or not isinstance(features_in, Mapping):
-        raise ScenarioReadError(path, "metadata, tracks and map_features must be dicts", "scene")
+    if not isinstance(meta, Mapping) or not isinstance(tracks_in, Mapping) or not isinstance(features_in, Mapping) \
+            or not isinstance(lights_in, Mapping):
+        raise ScenarioReadError(path, "metadata, tracks, map_features and dynamic_map_states must be dicts", "scene")
 
     track_keys = list(tracks_in.keys())
     if not track_keys:
@@ -219,14 +228,19 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
 
     # ---- frames
     first_state = _need(tracks_in[track_keys[0]], "state", path, f"tracks/{track_keys[0]}")
-    num_frames = int(np.shape(_need(first_state, "position", path, f"tracks/{track_keys[0]}/state"))[0])
+    first_position = _as_float(_need(first_state, "position", path, f"tracks/{track_keys[0]}/state"), path,
+                               f"tracks/{track_keys[0]}/state/position")
+    if first_position.ndim == 0:
+        raise ScenarioReadError(path, "position is a single number, expected one row per frame", f"tracks/{track_keys[0]}/state")
+    num_frames = int(first_position.shape[0])
     ts = meta.get("ts")
-    ts = None if ts is None else np.asarray(ts, dtype=np.float64).reshape(-1)
+    ts = None if ts is None else _as_float(ts, path, "metadata/ts").reshape(-1)
     timestamps = ts if ts is not None and ts.shape == (num_frames,) and np.isfinite(ts).all() else DT_S * np.arange(num_frames)
     current = meta.get("current_time_index")
     if current is None:
         current = DEFAULT_CURRENT_FRAME if num_frames > DEFAULT_CURRENT_FRAME else 0
-    current = int(current)
+    with read_errors(path, "metadata"):
+        current = as_int(current, "current_time_index")
     if not 0 <= current < num_frames:
         raise ScenarioReadError(path, f"current_time_index {current} outside [0, {num_frames})", "metadata")
 
@@ -243,10 +257,11 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
         track = tracks_in[key]
         state = _need(track, "state", path, record)
         srec = record + "/state"
-        valid_raw = np.asarray(_need(state, "valid", path, srec))
+        with read_errors(path, srec):
+            valid_raw = as_mask(_need(state, "valid", path, srec), "valid")
         if valid_raw.shape not in ((num_frames,), (num_frames, 1)):
             raise ScenarioReadError(path, f"valid has shape {valid_raw.shape}, expected ({num_frames},)", srec)
-        valid[i] = valid_raw.reshape(num_frames) != 0
+        valid[i] = valid_raw.reshape(num_frames)
         position[i] = _per_frame(_need(state, "position", path, srec), num_frames, path, srec + "/position", 3)
         heading[i] = _per_frame(_need(state, "heading", path, srec), num_frames, path, srec + "/heading")
         if "velocity" in state:
@@ -277,13 +292,20 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
     sdc_index = index_of_key.get(str(sdc_key), -1) if sdc_key is not None else -1
 
     predict, difficulty = [], []
-    for key, info in (meta.get("tracks_to_predict") or {}).items():
+    to_predict = meta.get("tracks_to_predict") or {}
+    if not isinstance(to_predict, Mapping):
+        raise ScenarioReadError(path, f"tracks_to_predict is a {type(to_predict).__name__}, expected a dict", "metadata")
+    for key, info in to_predict.items():
         tid = str(info.get("track_id", key)) if isinstance(info, Mapping) else str(key)
         if tid not in index_of_key:
             raise ScenarioReadError(path, f"track to predict {tid} is not among the tracks", "metadata/tracks_to_predict")
         predict.append(index_of_key[tid])
-        difficulty.append(int(info.get("difficulty", 0)) if isinstance(info, Mapping) else 0)
-    interest = np.array([track_ids.get(k) for k in (meta.get("objects_of_interest") or [])], np.int64)
+        with read_errors(path, f"metadata/tracks_to_predict/{key}"):
+            difficulty.append(as_int(info.get("difficulty", 0), "difficulty") if isinstance(info, Mapping) else 0)
+    interest_in = meta.get("objects_of_interest") or []
+    if not isinstance(interest_in, (list, tuple, np.ndarray)):
+        raise ScenarioReadError(path, f"objects_of_interest is a {type(interest_in).__name__}, expected a list", "metadata")
+    interest = np.array([track_ids.get(k) for k in interest_in], np.int64)
 
     # ---- map
     feature_keys = list(features_in.keys())
@@ -302,9 +324,9 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
             subtype = int(_LANE_TYPES.get(type_name, LaneType.UNDEFINED))
             pts = _need(feat, "polyline", path, record)
             if feat.get("speed_limit_mph") is not None:
-                speed_mph = float(feat["speed_limit_mph"])
+                speed_mph = _number(feat["speed_limit_mph"], path, record, "speed_limit_mph")
             elif feat.get("speed_limit_kmh") is not None:
-                speed_mph = float(feat["speed_limit_kmh"]) / _KMH_PER_MPH
+                speed_mph = _number(feat["speed_limit_kmh"], path, record, "speed_limit_kmh") / _KMH_PER_MPH
             interpolating = bool(feat.get("interpolating", False))
             for field, link in (("exit_lanes", LinkType.SUCCESSOR), ("entry_lanes", LinkType.PREDECESSOR)):
                 links.extend((fid, feature_ids.get(other), int(link)) for other in feat.get(field) or ())
@@ -414,7 +436,7 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
             ),
             sdc_index=sdc_index,
             predict_indices=np.array(predict, np.int64),
-            predict_difficulty=np.array(difficulty, np.int8),
+            predict_difficulty=np.array(difficulty, np.int64),
             objects_of_interest=interest,
             frame=frame,
             metadata=metadata,

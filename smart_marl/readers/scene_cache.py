@@ -11,7 +11,9 @@ every input and every input that was skipped as bad (:func:`write_manifest`, :fu
 
 from __future__ import annotations
 
+import functools
 import json
+import math
 import mmap
 import os
 import struct
@@ -21,10 +23,12 @@ from typing import Any, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from ..errors import ScenarioReadError
-from ..scenario import Scenario
+from ..errors import ScenarioReadError, check_regular_file
+from ..scenario import RoadMap, Scenario, TrafficLights, Tracks
+from .common import read_errors
 
 NAME = "scene_cache"
+MULTI_SCENE = True  # several scenes per shard: errors name the scene index
 MAGIC = b"SMSC0001"
 SHARD_SUFFIX = ".smsc"
 MANIFEST = "manifest.json"
@@ -73,16 +77,47 @@ def write_shard(path: str | os.PathLike, scenarios: Sequence[Scenario]) -> int:
     return len(prefix) + offset
 
 
+@functools.lru_cache(maxsize=1)
+def _array_dtypes() -> dict[str, str]:
+    """The name and little-endian dtype of every array a shard stores per scene (what
+    :meth:`Scenario.to_arrays` gives, taken from an empty scene so scenario.py stays their one home)."""
+    empty = Scenario(scenario_id="-", source="-", timestamps_s=np.zeros(1), current_frame=0,
+                     tracks=Tracks(ids=np.zeros(0, np.int64), types=np.zeros(0, np.int8), position=np.zeros((0, 1, 3)),
+                                   heading=np.zeros((0, 1)), velocity=np.zeros((0, 1, 2)), size=np.zeros((0, 1, 3)),
+                                   valid=np.zeros((0, 1), bool)),
+                     road_map=RoadMap.empty(), traffic_lights=TrafficLights.empty(1))
+    return {name: a.dtype.newbyteorder("<").str for name, a in empty.to_arrays()[0].items()}
+
+
+def _is_count(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
 class ShardReader:
-    """The Scenarios of one shard, read through a memory map (zero-copy array views)."""
+    """The Scenarios of one shard, read through a memory map (zero-copy array views).
+
+    Nothing in the header is trusted: every scene must list exactly the arrays a Scenario stores,
+    each with its own dtype, a shape, and an offset and byte count that agree with the shape and lie
+    inside the file; the scene is then validated as any reader's (:class:`Scenario`). A tampered
+    shard raises :class:`ScenarioReadError` naming the file and the scene's index."""
 
     def __init__(self, path: str | os.PathLike):
         self.path = os.fspath(path)
+        check_regular_file(self.path)
         try:
             self._file = open(self.path, "rb")
             self._map = mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ)
         except (OSError, ValueError) as exc:
+            if getattr(self, "_file", None) is not None:
+                self._file.close()
             raise ScenarioReadError(self.path, f"cannot open shard: {exc}") from exc
+        try:
+            self._entries, self._data_start = self._read_header()
+        except ScenarioReadError:
+            self.close()
+            raise
+
+    def _read_header(self) -> tuple[list, int]:
         if self._map[: len(MAGIC)] != MAGIC:
             raise ScenarioReadError(self.path, "not a smart-marl scene-cache shard (bad magic)")
         start = len(MAGIC) + 8
@@ -92,33 +127,55 @@ class ShardReader:
         if start + header_len > len(self._map):
             raise ScenarioReadError(self.path, f"truncated shard: header of {header_len} bytes runs past the end")
         try:
-            self._entries = json.loads(bytes(self._map[start : start + header_len]))["scenes"]
-        except (ValueError, KeyError) as exc:
-            raise ScenarioReadError(self.path, f"corrupt shard header: {exc}") from exc
-        self._data_start = start + header_len
+            entries = json.loads(bytes(self._map[start : start + header_len]))["scenes"]
+        except (ValueError, KeyError, TypeError, RecursionError) as exc:
+            raise ScenarioReadError(self.path, f"corrupt shard header: {type(exc).__name__}: {exc}") from exc
+        if not isinstance(entries, list):
+            raise ScenarioReadError(self.path, "corrupt shard header: 'scenes' is not a list")
+        return entries, start + header_len
 
     def __len__(self) -> int:
         return len(self._entries)
 
+    def _array(self, i: int, name: str, spec: Any) -> np.ndarray:
+        want = _array_dtypes()[name]
+        if not (isinstance(spec, list) and len(spec) == 4):
+            raise ScenarioReadError(self.path, f"array {name!r}: corrupt index entry {spec!r}", record=i)
+        dtype, shape, offset, nbytes = spec
+        if dtype != want:
+            raise ScenarioReadError(self.path, f"array {name!r} has dtype {dtype!r}, expected {want!r}", record=i)
+        if not (isinstance(shape, list) and all(_is_count(d) for d in shape) and _is_count(offset) and _is_count(nbytes)):
+            raise ScenarioReadError(self.path, f"array {name!r}: shape {shape!r}, offset {offset!r} or size {nbytes!r} "
+                                               f"is not made of non-negative integers", record=i)
+        itemsize = np.dtype(want).itemsize
+        count = math.prod(shape)
+        if count * itemsize != nbytes:
+            raise ScenarioReadError(self.path, f"array {name!r}: {nbytes} bytes do not hold shape {shape} of {want}", record=i)
+        if self._data_start + offset + nbytes > len(self._map):
+            raise ScenarioReadError(self.path, f"truncated shard: array {name!r} runs past the end of the file", record=i)
+        return np.frombuffer(self._map, dtype=np.dtype(want), count=count, offset=self._data_start + offset).reshape(shape)
+
     def __getitem__(self, i: int) -> Scenario:
         entry = self._entries[i]
-        arrays = {}
-        for name, (dtype, shape, offset, nbytes) in entry["arrays"].items():
-            count = int(np.prod(shape)) if shape else 1
-            try:
-                arrays[name] = np.frombuffer(self._map, dtype=np.dtype(dtype), count=count,
-                                             offset=self._data_start + offset).reshape(shape)
-            except ValueError as exc:
-                raise ScenarioReadError(self.path, f"truncated or corrupt array {name!r}: {exc}", record=i) from exc
-        # Arrays were validated when the shard was written; skip re-validation on the hot path.
-        return Scenario.from_arrays(arrays, entry["meta"], validate=False)
+        if not (isinstance(entry, dict) and isinstance(entry.get("arrays"), dict) and isinstance(entry.get("meta"), dict)):
+            raise ScenarioReadError(self.path, "corrupt shard header: a scene without 'meta' and 'arrays'", record=i)
+        names = set(entry["arrays"])
+        if names != set(_array_dtypes()):
+            odd = sorted(names ^ set(_array_dtypes()))
+            raise ScenarioReadError(self.path, f"the scene's arrays are not a Scenario's (missing or unknown: {odd[:5]})", record=i)
+        arrays = {name: self._array(i, name, spec) for name, spec in entry["arrays"].items()}
+        with read_errors(self.path, i):
+            return Scenario.from_arrays(arrays, entry["meta"], validate=True)
 
     def __iter__(self) -> Iterator[Scenario]:
         for i in range(len(self)):
             yield self[i]
 
     def close(self) -> None:
-        self._map.close()
+        try:
+            self._map.close()
+        except BufferError:
+            pass  # arrays of a scene still view the map (e.g. one that failed its checks): it closes when they go
         self._file.close()
 
 
@@ -127,24 +184,56 @@ def is_shard(head: bytes) -> bool:
 
 
 # --------------------------------------------------------------------------------------- manifest
+def load_manifest(path: str | os.PathLike) -> Any:
+    """The JSON content of a manifest file (not yet checked), a named error when it does not parse."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (ValueError, RecursionError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        raise ScenarioReadError(path, f"corrupt manifest: {type(exc).__name__}: {exc}") from exc
+
+
 def is_cache_dir(path: str | os.PathLike) -> bool:
     manifest = Path(path) / MANIFEST
     if not manifest.is_file():
         return False
     try:
-        return json.loads(manifest.read_text()).get("kind") == MANIFEST_KIND
-    except ValueError:
+        data = load_manifest(manifest)
+    except ScenarioReadError:
         return False
+    return isinstance(data, dict) and data.get("kind") == MANIFEST_KIND
+
+
+def shard_name_problem(name: Any) -> str | None:
+    """Why a manifest's shard entry does not name a shard file inside the cache folder, or None."""
+    if not isinstance(name, str) or not name:
+        return f"shard file {name!r} is not a file name"
+    if name != os.path.basename(name) or name in (".", "..") or os.path.isabs(name) or "\\" in name:
+        return f"shard file {name!r} is not a plain file name inside the cache folder"
+    if not name.endswith(SHARD_SUFFIX):
+        return f"shard file {name!r} does not end in {SHARD_SUFFIX}"
+    return None
 
 
 def read_manifest(root: str | os.PathLike) -> dict[str, Any]:
-    """The manifest of a cache folder (a clear error when it is not one)."""
+    """The manifest of a cache folder, checked: a clear error when it is not one, or when a shard
+    entry is not a plain file name inside the folder with a list of scenes (each with a scenario_id)."""
     manifest_path = Path(root) / MANIFEST
     if not manifest_path.is_file():
         raise ScenarioReadError(root, f"not a scene cache: no {MANIFEST} (run `smart-marl preprocess`)")
-    manifest = json.loads(manifest_path.read_text())
-    if manifest.get("kind") != MANIFEST_KIND:
+    manifest = load_manifest(manifest_path)
+    if not isinstance(manifest, dict) or manifest.get("kind") != MANIFEST_KIND:
         raise ScenarioReadError(manifest_path, "not a smart-marl scene-cache manifest")
+    shards = manifest.get("shards")
+    if not isinstance(shards, list):
+        raise ScenarioReadError(manifest_path, "corrupt manifest: 'shards' is not a list")
+    for k, shard in enumerate(shards):
+        if not (isinstance(shard, dict) and isinstance(shard.get("scenes"), list)
+                and all(isinstance(e, dict) and isinstance(e.get("scenario_id"), str) for e in shard["scenes"])):
+            raise ScenarioReadError(manifest_path, "corrupt manifest: a shard entry needs 'file' and 'scenes' "
+                                                   "(each with a scenario_id)", record=f"shards[{k}]")
+        problem = shard_name_problem(shard.get("file"))
+        if problem:
+            raise ScenarioReadError(manifest_path, problem, record=f"shards[{k}]")
     return manifest
 
 

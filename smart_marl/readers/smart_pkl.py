@@ -58,6 +58,10 @@ from ..scenario import (
     SignalState,
     TrafficLights,
     Tracks,
+    as_floats,
+    as_int,
+    as_integers,
+    as_mask,
     choose_frame,
     wrap_angle,
 )
@@ -128,11 +132,26 @@ def _array(mapping: Any, key: Any, path: str, record: str, shape: tuple, dtype=N
     value = _field(mapping, key, path, record)
     if hasattr(value, "detach"):
         value = value.detach().cpu().numpy()
-    a = np.asarray(value) if dtype is None else np.asarray(value, dtype=dtype)
+    with read_errors(path, record):
+        what = f"{key}"
+        a = (np.asarray(value) if dtype is None else as_mask(value, what) if dtype is bool
+             else as_integers(value, dtype, what) if np.dtype(dtype).kind in "iu" else as_floats(value, dtype, what))
     if a.ndim != len(shape) or any(s is not None and s != g for s, g in zip(shape, a.shape)):
         want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
         raise ScenarioReadError(path, f"{key} has shape {list(a.shape)}, expected {want}", record)
     return a
+
+
+def _count(mapping: Any, path: str, record: str) -> int:
+    """A ``num_nodes`` field: a non-negative integer (a tensor of one, or a plain number)."""
+    value = _field(mapping, "num_nodes", path, record)
+    if hasattr(value, "detach") and value.numel() == 1:
+        value = value.item()
+    with read_errors(path, record):
+        n = as_int(value, "num_nodes")
+    if n < 0:
+        raise ScenarioReadError(path, f"num_nodes is {n}", record)
+    return n
 
 
 def scenario_from_dict(data: Any, path: str) -> Scenario:
@@ -143,25 +162,20 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
 
     # ---- agents
     agent = _field(data, "agent", path, "scene")
-    n = int(_field(agent, "num_nodes", path, "agent"))
+    n = _count(agent, path, "agent")
     position = _array(agent, "position", path, "agent", (n, None, 3), np.float64)  # [N, T, 3]
     t = position.shape[1]
     heading = _array(agent, "heading", path, "agent", (n, t), np.float64)
     velocity = _array(agent, "velocity", path, "agent", (n, t, None), np.float64)[..., :2]
     shape = _array(agent, "shape", path, "agent", (n, t, 3), np.float64)
-    vector_valid = _array(agent, "valid_mask", path, "agent", (n, t)).astype(bool)
+    vector_valid = _array(agent, "valid_mask", path, "agent", (n, t), bool)
     types = _array(agent, "type", path, "agent", (n,), np.int64)
     category = _array(agent, "category", path, "agent", (n,), np.int64)
-    raw_ids = _field(agent, "id", path, "agent")
-    if len(raw_ids) != n:
-        raise ScenarioReadError(path, f"id has {len(raw_ids)} entries, num_nodes is {n}", "agent")
-    ids_f = np.asarray(raw_ids, np.float64)
-    if not (np.isfinite(ids_f).all() and np.all(ids_f == np.round(ids_f))):
-        raise ScenarioReadError(path, "agent ids are not whole numbers", "agent")
-    ids = ids_f.astype(np.int64)
+    ids = _array(agent, "id", path, "agent", (n,), np.int64)  # stored as floats: whole numbers only
     if np.any((types < 0) | (types >= len(_AGENT_TYPE))):
         raise ScenarioReadError(path, f"agent type outside 0..{len(_AGENT_TYPE) - 1}", "agent")
-    sdc_index = int(_field(agent, "av_index", path, "agent"))
+    with read_errors(path, "agent"):
+        sdc_index = as_int(_field(agent, "av_index", path, "agent"), "av_index")
     if not -1 <= sdc_index < n:
         raise ScenarioReadError(path, f"av_index {sdc_index} outside [0, {n})", "agent")
 
@@ -178,11 +192,11 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
 
     # ---- map points grouped per polygon (stable: the stored order within a polygon)
     polygon = _field(data, "map_polygon", path, "scene")
-    num_polygons = int(_field(polygon, "num_nodes", path, "map_polygon"))
+    num_polygons = _count(polygon, path, "map_polygon")
     polygon_type = _array(polygon, "type", path, "map_polygon", (num_polygons,), np.int64)
     light_type = _array(polygon, "light_type", path, "map_polygon", (num_polygons,), np.int64)
     point = _field(data, "map_point", path, "scene")
-    p = int(_field(point, "num_nodes", path, "map_point"))
+    p = _count(point, path, "map_point")
     pt_pos = _array(point, "position", path, "map_point", (p, 3), np.float64)
     pt_orient = _array(point, "orientation", path, "map_point", (p,), np.float64)
     pt_mag = _array(point, "magnitude", path, "map_point", (p,), np.float64)

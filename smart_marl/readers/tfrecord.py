@@ -6,7 +6,10 @@ Stage: the bottom of the WOMD reader (``smart_marl.readers.womd``); it hands on 
 A record is ``uint64 length (little-endian) | uint32 masked CRC32C(length bytes) | payload |
 uint32 masked CRC32C(payload)``, masked CRC = ``((crc >> 15) | (crc << 17)) + 0xa282ead8 mod 2**32``.
 Both CRCs are checked on reading; a bad or truncated record raises
-:class:`~smart_marl.errors.ScenarioReadError` naming the file and the record index.
+:class:`~smart_marl.errors.ScenarioReadError` naming the file and the record index. A record's
+declared length is checked before its payload is read: against what the file can still hold (the
+bytes left in a plain file; :data:`GZIP_MAX_RATIO` times the compressed bytes of a GZIP file) and
+against :data:`MAX_RECORD_BYTES`, so a few bytes declaring a huge record allocate nothing.
 
 CRC32C (Castagnoli) uses the C-accelerated ``crc32c`` package when it is installed (GB/s) and a
 table-driven numpy implementation otherwise (about 100 MB/s: the buffer is cut into many lanes that
@@ -22,9 +25,13 @@ from typing import BinaryIO, Iterable, Iterator
 
 import numpy as np
 
-from ..errors import ScenarioReadError
+from ..errors import ScenarioReadError, check_regular_file
 
 GZIP_MAGIC = b"\x1f\x8b"
+MAX_RECORD_BYTES = 1 << 28
+"""Largest record read by default (256 MiB; WOMD scenario records are a few MB)."""
+GZIP_MAX_RATIO = 1032
+"""DEFLATE expands at most about 1032:1, so a GZIP file of n bytes holds at most 1032 n bytes."""
 _MASK_DELTA = 0xA282EAD8
 _POLY_REFLECTED = 0x82F63B78  # CRC32C (Castagnoli), bit-reversed
 
@@ -161,6 +168,7 @@ def is_gzip(head: bytes) -> bool:
 
 
 def _open(path: str) -> BinaryIO:
+    check_regular_file(path)
     try:
         raw = open(path, "rb")
     except OSError as exc:
@@ -191,11 +199,23 @@ def header_looks_like_tfrecord(head: bytes) -> bool:
     return masked_crc32c(head[:8]) == length_crc
 
 
-def iter_records(path: str | os.PathLike, check_crc: bool = True, max_record_bytes: int = 1 << 34) -> Iterator[bytes]:
+def _capacity(stream: BinaryIO) -> tuple[int, bool]:
+    """(the most bytes the file can still hold, whether that bound is exact): the bytes left in a
+    plain file, or GZIP_MAX_RATIO times the size of a compressed one."""
+    inner = getattr(stream, "fileobj", None)
+    raw = inner if inner is not None else stream
+    size = os.fstat(raw.fileno()).st_size
+    if inner is not None:
+        return GZIP_MAX_RATIO * size, False
+    return size - stream.tell(), True
+
+
+def iter_records(path: str | os.PathLike, check_crc: bool = True, max_record_bytes: int = MAX_RECORD_BYTES) -> Iterator[bytes]:
     """Yield the payload of every record of a TFRecord file (plain or GZIP), one at a time.
 
-    Raises ScenarioReadError(path, problem, record=i) on a truncated record or a CRC mismatch (the
-    length CRC or the data CRC, named in the problem).
+    Raises ScenarioReadError(path, problem, record=i) on a truncated record, a CRC mismatch (the
+    length CRC or the data CRC, named in the problem) or a declared length the file cannot hold or
+    above ``max_record_bytes``.
     """
     path = os.fspath(path)
     stream = _open(path)
@@ -216,7 +236,13 @@ def iter_records(path: str | os.PathLike, check_crc: bool = True, max_record_byt
             if check_crc and masked_crc32c(header[:8]) != length_crc:
                 raise ScenarioReadError(path, "length CRC mismatch (corrupt header or not a TFRecord file)", record=index)
             if length > max_record_bytes:
-                raise ScenarioReadError(path, f"record length {length} bytes is implausible", record=index)
+                raise ScenarioReadError(path, f"record length {length} bytes is implausible (more than {max_record_bytes})",
+                                        record=index)
+            capacity, exact = _capacity(stream)
+            if length + 4 > capacity:
+                what = (f"only {capacity} bytes are left in the file" if exact
+                        else f"a GZIP file of {capacity // GZIP_MAX_RATIO} bytes cannot hold that much")
+                raise ScenarioReadError(path, f"truncated record: it declares {length} payload bytes but {what}", record=index)
             try:
                 body = _read_exact(stream, length + 4)
             except (OSError, EOFError, gzip.BadGzipFile) as exc:

@@ -59,6 +59,7 @@ from . import tfrecord
 from .common import read_errors
 
 NAME = "womd"
+MULTI_SCENE = True  # records are scenes: errors name the record
 SOURCE = "womd"
 
 # WOMD Track.ObjectType -> AgentType (0 unset and 4 other -> OTHER)
@@ -399,7 +400,7 @@ def scenario_from_proto(message, path: str = "<bytes>", record: int = 0) -> Scen
         traffic_lights=traffic_lights,
         sdc_index=sdc,
         predict_indices=np.array([r.track_index for r in predict], dtype=np.int64),
-        predict_difficulty=np.array([r.difficulty for r in predict], dtype=np.int8),
+        predict_difficulty=np.array([r.difficulty for r in predict], dtype=np.int64),  # int8 range checked by Scenario
         objects_of_interest=np.array(message.objects_of_interest, dtype=np.int64),
         frame=frame,
         metadata=metadata,

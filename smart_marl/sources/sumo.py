@@ -27,7 +27,7 @@ from __future__ import annotations
 import os
 import sys
 import time
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
@@ -37,6 +37,7 @@ from tqdm import tqdm
 from ..readers.scene_cache import MANIFEST, SHARD_SUFFIX, scene_entry, write_manifest, write_shard
 from ..readers.womd import write_womd_tfrecord
 from ..scenario import DT_S, Scenario
+from ..workers import worker_pool
 from .sumo_net import INSTALL_HINT, SumoUnavailableError, require_sumo
 from .sumo_sim import SCENE_FRAMES, SumoConfig, simulate_scenes
 
@@ -52,7 +53,7 @@ def _simulations(seed: int, config: SumoConfig, workers: int, remaining) -> Iter
         while True:
             yield sim, simulate_scenes(seed, sim, config)
             sim += 1
-    pool = ProcessPoolExecutor(max_workers=workers)
+    pool = worker_pool(workers)
     pending: dict[int, Future] = {}
     sim = 0
     try:

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ScenarioReadError
+from ..errors import ScenarioReadError, SmartMarlError, regular_file_problem
 from ..readers.safe_pickle import NUMPY_GLOBALS, load_restricted
 from ..scenario import AgentType
 from ..version import __version__
@@ -43,7 +43,7 @@ VERSION = VOCABULARY_VERSION
 _KEY_TYPES = {v: k for k, v in TYPE_KEYS.items()}
 
 
-class VocabularyFileError(ValueError):
+class VocabularyFileError(SmartMarlError, ValueError):
     """A vocabulary file that is missing, of another format or version, or inconsistent."""
 
     def __init__(self, path: str | os.PathLike, problem: str):
@@ -70,12 +70,17 @@ def _write(path, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> tuple[P
 def _read(path, kind: str) -> tuple[dict[str, np.ndarray], dict[str, Any], Path]:
     npz, js = vocabulary_paths(path)
     for p in (npz, js):
-        if not p.is_file():
+        if not p.exists():
             raise VocabularyFileError(p, "no such file (a vocabulary is NAME.npz plus NAME.json)")
+        problem = regular_file_problem(p)
+        if problem:
+            raise VocabularyFileError(p, problem)
     try:
         meta = json.loads(js.read_text())
-    except json.JSONDecodeError as exc:
+    except (ValueError, RecursionError) as exc:  # JSONDecodeError, UnicodeDecodeError
         raise VocabularyFileError(js, f"not JSON: {exc}") from exc
+    if not isinstance(meta, dict):
+        raise VocabularyFileError(js, f"holds a JSON {type(meta).__name__}, not a vocabulary description")
     if meta.get("format") != FORMAT:
         raise VocabularyFileError(js, f"format is {meta.get('format')!r}, expected {FORMAT!r}")
     if meta.get("version") != VERSION:
@@ -85,9 +90,25 @@ def _read(path, kind: str) -> tuple[dict[str, np.ndarray], dict[str, Any], Path]
     try:
         with np.load(npz, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as exc:
-        raise VocabularyFileError(npz, f"cannot read the arrays: {exc}") from exc
+    except Exception as exc:  # noqa: BLE001 - OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error...
+        raise VocabularyFileError(npz, f"cannot read the arrays: {type(exc).__name__}: {exc}") from exc
     return arrays, meta, js
+
+
+def _numbers_problem(info: Any, integers: tuple[str, ...], reals: tuple[str, ...]) -> str | None:
+    """What is wrong with the numeric fields of a vocabulary's JSON (``integers`` >= 0 when present,
+    ``reals`` finite and >= 0 and required), or None."""
+    if not isinstance(info, dict):
+        return f"expected an object, got {type(info).__name__}"
+    for key in integers:
+        value = info.get(key, 0)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            return f"{key} is {value!r}, expected an integer >= 0"
+    for key in reals:
+        value = info.get(key)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
+            return f"{key} is {value!r}, expected a finite number >= 0"
+    return None
 
 
 def save_motion_vocabulary(vocab: MotionVocabulary, path: str | os.PathLike) -> tuple[Path, Path]:
@@ -116,14 +137,23 @@ def load_motion_vocabulary(path: str | os.PathLike, expected_hash: str | None = 
     """Read and validate a motion vocabulary; ``expected_hash`` (from a checkpoint) must match if given."""
     arrays, meta, js = _read(path, "motion")
     types = {}
-    for name, info in meta.get("types", {}).items():
+    entries = meta.get("types", {})
+    if not isinstance(entries, dict):
+        raise VocabularyFileError(js, "'types' is not an object keyed by agent type")
+    for name, info in entries.items():
         try:
             t = AgentType[name.upper()]
             key = info["key"]
             poses, contour = arrays[f"{key}.poses"], arrays[f"{key}.contour"]
-        except KeyError as exc:
+        except (KeyError, TypeError) as exc:
             raise VocabularyFileError(js, f"type {name!r}: missing {exc}") from exc
+        problem = _numbers_problem(info, ("size", "requested_size", "num_samples", "num_real_samples"),
+                                   ("box_length_m", "box_width_m", "tolerance_m"))
+        if problem:
+            raise VocabularyFileError(js, f"type {name}: {problem}")
         v = int(info["size"])
+        if poses.dtype.kind != "f" or contour.dtype.kind != "f":
+            raise VocabularyFileError(js, f"type {name}: poses and contours must be floats, got {poses.dtype} / {contour.dtype}")
         if poses.shape != (v, POSES_PER_TOKEN, 3) or contour.shape != (v, POSES_PER_TOKEN, 4, 2):
             raise VocabularyFileError(js, f"type {name}: poses {poses.shape} / contour {contour.shape} disagree with size {v}")
         if not (np.isfinite(poses).all() and np.isfinite(contour).all()):
@@ -162,8 +192,13 @@ def load_road_vocabulary(path: str | os.PathLike, expected_hash: str | None = No
     """Read and validate a road vocabulary; ``expected_hash`` (from a checkpoint) must match if given."""
     arrays, meta, js = _read(path, "road")
     points = arrays.get("points")
-    if points is None or points.ndim != 3 or points.shape[0] != meta.get("size") or points.shape[2] != 2:
+    problem = _numbers_problem(meta, ("size", "requested_size", "num_samples"), ("tolerance_m", "max_piece_length_m"))
+    if problem:
+        raise VocabularyFileError(js, problem)
+    if points is None or points.ndim != 3 or points.shape[0] != meta.get("size") or points.shape[2] != 2 or points.dtype.kind != "f":
         raise VocabularyFileError(js, f"points {None if points is None else points.shape} disagree with size {meta.get('size')}")
+    if not np.isfinite(points).all():
+        raise VocabularyFileError(js, "points are not all finite")
     vocab = RoadVocabulary(points=points, tolerance_m=float(meta["tolerance_m"]), requested_size=int(meta.get("requested_size", len(points))),
                            max_piece_length_m=float(meta["max_piece_length_m"]), num_samples=int(meta.get("num_samples", 0)),
                            seed=meta.get("seed"), provenance=meta.get("provenance", {}))
@@ -199,6 +234,6 @@ def load_reference_motion_vocabulary(path: str | os.PathLike) -> MotionVocabular
             if ref.shape != v.contour.shape or np.abs(ref - v.contour).max() > 1e-2:
                 raise VocabularyFileError(path, f"token_all[{key!r}] is not the {length} x {width} m box at traj")
             types[t] = v
-    except (ScenarioReadError, KeyError, TypeError) as exc:
+    except (ScenarioReadError, KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
         raise VocabularyFileError(path, f"not a SMART reference vocabulary pickle: {exc}") from exc
     return MotionVocabulary(types=types, method="reference", provenance={"source": str(path), "note": "rainmaker22/SMART published vocabulary, built from all of WOMD"})

@@ -1,0 +1,60 @@
+"""Argument types the subcommands share: each refuses a bad value while the command line is parsed
+(exit code 2 and one ``error:`` line naming the argument), before any work starts.
+
+``type=positive_int`` (``--workers``, ``--scenes-per-shard``...), ``type=output_dir`` (``--out``:
+anything but an existing file), ``type=device`` (``--device``: a torch device this machine has;
+``device_or_auto`` also takes ``auto``) and :func:`reader_formats` (the ``choices`` of ``--format``).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from ..config_files import device_problem, output_dir_problem
+from ..readers import format_names
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def output_dir(text: str) -> str:
+    """A folder to write into: missing (it is created) or an existing folder, never an existing file."""
+    problem = output_dir_problem(text)
+    if problem:
+        raise argparse.ArgumentTypeError(problem)
+    return text
+
+
+def _device(text: str, allow_auto: bool) -> str:
+    if allow_auto and text == "auto":
+        return text
+    problem = device_problem(text)
+    if problem:
+        raise argparse.ArgumentTypeError(problem)
+    return text
+
+
+def device(text: str) -> str:
+    """A torch device this machine has: ``cpu``, ``cuda``, ``cuda:1``, ``mps``."""
+    return _device(text, allow_auto=False)
+
+
+def device_or_auto(text: str) -> str:
+    """:func:`device`, or ``auto`` (cuda when available, else cpu)."""
+    return _device(text, allow_auto=True)
+
+
+def reader_formats() -> list[str]:
+    """The names ``--format`` takes: one per scene reader."""
+    return format_names()
+
+
+__all__ = ["positive_int", "output_dir", "device", "device_or_auto", "reader_formats"]
