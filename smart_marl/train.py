@@ -34,6 +34,7 @@ import os
 import random
 import sys
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Sequence
@@ -531,6 +532,11 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
             raise VocabularyMismatchError(cfg.init, "its vocabularies are not this run's (pass the checkpoint's vocabulary files "
                                                     "as motion_vocab=/road_vocab=, or train from scratch)")
         model.load_state_dict(ck.model.state_dict())
+        differ = {k: (v, model_cfg.to_dict().get(k)) for k, v in ck.model.config.to_dict().items()
+                  if k != "dropout" and model_cfg.to_dict().get(k) != v}
+        if differ:  # same weight shapes, other behaviour (e.g. road_types): say so, the run's config wins
+            warnings.warn(f"{cfg.init}: the run's model config differs from the checkpoint's in {sorted(differ)} "
+                          f"(checkpoint, run: {differ}); pass model.KEY=VALUE to keep the checkpoint's", stacklevel=2)
     model.to(device)
     loss_module = NextTokenLoss(model, cfg.label_smoothing)
     optimizer = make_optimizer(model, cfg)

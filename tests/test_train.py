@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 import time
+import warnings
 from pathlib import Path
 
 import pytest
@@ -189,3 +190,21 @@ def test_models_command_prints_every_named_config_with_its_parameter_count(capsy
     assert [r["name"] for r in rows] == ["smart-1m", "smart-7m", "smart-26m", "smart-101m"]
     for r in rows:
         assert abs(r["parameters"] / r["paper_parameters"] - 1) < 0.1
+
+
+def test_fine_tuning_warns_when_the_run_config_differs_from_the_checkpoints(shared_data, tmp_path):
+    """With init=, the run's model config wins; a field that changes behaviour but not the weights'
+    shapes (road_types here) must not change silently."""
+    vocab = _vocab_files(shared_data, tmp_path, 8, 16)
+    small = {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
+             "map_neighbours": 4, "road_neighbours": 4, "agent_neighbours": 4}
+    base = {"data": str(shared_data / GPUDRIVE / TWO_SCENES[0]), **vocab, "batch_size": 1, "num_workers": 0, "max_steps": 1,
+            "log_every": 1, "val_every": 0, "ckpt_every": 0, "tensorboard": False, "progress": False}
+    first = train(load_train_config({**base, "model_overrides": {**small, "road_types": "sumo"}, "out_dir": str(tmp_path / "a")}))
+    init = str(first.checkpoint)
+    with pytest.warns(UserWarning, match=r"differs from the checkpoint's in \['road_types'\]"):
+        train(load_train_config({**base, "model_overrides": small, "init": init, "out_dir": str(tmp_path / "b")}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the same config: no warning
+        train(load_train_config({**base, "model_overrides": {**small, "road_types": "sumo"}, "init": init,
+                                 "out_dir": str(tmp_path / "c")}))
