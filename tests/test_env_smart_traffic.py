@@ -343,7 +343,7 @@ def test_embedded_prior_and_sample_scenes_run_an_episode():
     assert env.agents == [first.tracks.names()[first.sdc_index]]
     agent = env.agents[0]
     logits = infos[agent]["prior_logits"]
-    assert env.action_space(agent).n == 512 == len(logits) and np.isfinite(logits).all()
+    assert env.action_space(agent).n == 1024 == len(logits) and np.isfinite(logits).all()  # 1024: the embedded vehicle tokens
     steps = 0
     while env.agents:
         obs, rewards, terms, truncs, infos = env.step({a: int(np.argmax(infos[a]["prior_logits"])) for a in env.agents})

@@ -33,22 +33,22 @@ from smart_marl.rollout import rollout
 WOMD_SCENE = "womd_tfrecord/motion_data_one_scenario.tfrecord"
 SETTINGS = dict(num_rollouts=2, num_steps=4, top_k=5, seed=7)
 
-PINS = {
+PINS = {  # regenerated when the embedded prior was replaced (issue 13: the v3 prior, 1024 vehicle tokens)
     "womd-637f20cafde22ff8": {
         "simulated": 50,
-        "tokens_sha256": "b137aa3d2600d5a20d2e79bce412e7a26e3d9255b353c16b79850c225130f474",
-        "first_tokens": [[[2, 2, 2, 2], [2, 2, 2, 2], [2, 2, 2, 0], [0, 317, 25, 317]],
-                         [[2, 0, 317, 0], [2, 2, 2, 2], [2, 2, 2, 2], [2, 0, 317, 2]]],
-        "log_prob_sum": -637.4083306863904,
-        "path_length_m": 895.8242345614293,
+        "tokens_sha256": "eaee5faf29792565b7fb4aa7b704baa85c7d58012ce89aab449e168eb4b05d84",
+        "first_tokens": [[[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [0, 1, 1, 1]],
+                         [[1, 0, 1, 359], [1, 1, 1, 1], [1, 1, 1, 1], [1, 0, 1, 1]]],
+        "log_prob_sum": -782.0386544018984,
+        "path_length_m": 910.8619120403278,
     },
     "sumo-sample-0": {
         "simulated": 22,
-        "tokens_sha256": "3c7586a5c255fb484994db35988a5dbd2411c182d9d6df78b431217182226d48",
-        "first_tokens": [[[478, 237, 422, 4], [0, 0, 0, 0], [0, 0, 0, 0], [497, 326, 0, 0]],
-                         [[478, 7, 478, 28], [0, 0, 0, 0], [18, 0, 0, 0], [0, 0, 0, 0]]],
-        "log_prob_sum": -136.44149862974882,
-        "path_length_m": 58.81072727951164,
+        "tokens_sha256": "90f54f1ebbe92c311ee6ed9bd24c412f546c0ea22b7b214c47c097a6595703ec",
+        "first_tokens": [[[19, 19, 17, 987], [5, 5, 5, 5], [5, 5, 5, 5], [254, 5, 5, 254]],
+                         [[19, 68, 987, 19], [5, 254, 5, 5], [23, 23, 254, 5], [5, 5, 5, 5]]],
+        "log_prob_sum": -167.4817026257515,
+        "path_length_m": 42.17401253382655,
     },
 }
 
