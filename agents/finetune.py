@@ -590,10 +590,11 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
 
 # ------------------------------------------------------------------------------- evaluation
 def evaluation_policies(cfg: FinetuneConfig, env, net: PolicyLogits | None) -> dict[str, SampledPolicy]:
-    """The evaluation's rows: the expert (log-following), the prior top-k (as it drives), the prior's
-    full softmax and, with ``net``, the fine-tuned policy."""
+    """The evaluation's rows: the expert (log-following), the prior at the reference's top-k (and at
+    the background's, when it differs), the prior's full softmax and, with ``net``, the fine-tuned
+    policy."""
     policies = {LogFollowingPolicy.name: LogFollowingPolicy(env)}
-    for k in (cfg.top_k, None):
+    for k in dict.fromkeys((cfg.reference_top_k, cfg.top_k, None)):
         p = PriorPolicy(top_k=k, temperature=cfg.temperature)
         policies[p.name] = p
     if net is not None:
