@@ -12,7 +12,8 @@ and a picture (PNG): realism of the controlled agents (sim-agents meta-metric, t
 agents as the evaluated ones, one rollout per seed) against collision + offroad rate, and against
 goal rate, one point per beta, the prior and the expert marked.
 
-Rerun on another prior with one command (about an hour of CPU at the defaults, see the README):
+Rerun on another prior with one command (about an hour of CPU at the defaults, see the README;
+``--reuse EARLIER.jsonl`` keeps an earlier run's rows and makes only the runs it lacks):
 
     .venv/bin/python benchmarks/finetune_tradeoff.py --prior PATH/TO/CHECKPOINT.json \\
         --out docs/images/finetune_tradeoff.png > runs/finetune_tradeoff.jsonl
@@ -103,6 +104,9 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", default="docs/images/finetune_tradeoff.png", help="the picture (PNG)")
     ap.add_argument("--run-dir", default=None, help="fine-tuning runs' folder (default: a temporary one)")
+    ap.add_argument("--reuse", default=None, metavar="JSONL", help="the output of an earlier run with the same prior, "
+                    "held-out scenes, seeds and reference: its baseline and fine-tuned rows are kept (marked reused), "
+                    "only the runs it lacks are made")
     args = ap.parse_args()
 
     from agents.evaluate import evaluate_policies
@@ -129,18 +133,32 @@ def main() -> int:
           "held_out_scenes": [s.scenario_id for s in scenes], "seeds": seeds, "reference": env.reference,
           "config": cfg.to_dict(), "torch": torch.__version__})
 
+    reused_base, reused_tuned = {}, {}
+    if args.reuse:
+        for line in Path(args.reuse).read_text().splitlines():
+            d = json.loads(line)
+            if d["kind"] == "setup" and (d["prior"], d["held_out_scenes"], d["seeds"], d["reference"]) != (
+                    args.prior, [s.scenario_id for s in scenes], seeds, env.reference):
+                print(f"--reuse {args.reuse}: another prior, held-out scenes, seeds or reference", file=sys.stderr)
+                return 2
+            if d["kind"] in ("baseline", "finetuned"):
+                row = {k: v for k, v in d.items() if k not in ("kind", "policy", "reused")}
+                (reused_base if d["kind"] == "baseline" else reused_tuned)[d["policy"]] = row
+
     # the baselines: independent of beta, run once on the same scenes and seeds
-    policies = evaluation_policies(cfg, env, None)
-    for k in args.compare_k:
-        if k and k != cfg.reference_top_k:
-            p = PriorPolicy(top_k=k, temperature=cfg.temperature)
-            policies[p.name] = p
-    t = time.perf_counter()
-    result = evaluate_policies(env, policies, idx, seeds, rules=cfg.eval_rules)
-    baselines = result["rows"]
+    if reused_base:
+        baselines = reused_base
+    else:
+        policies = evaluation_policies(cfg, env, None)
+        for k in args.compare_k:
+            if k and k != cfg.reference_top_k:
+                p = PriorPolicy(top_k=k, temperature=cfg.temperature)
+                policies[p.name] = p
+        t = time.perf_counter()
+        baselines = evaluate_policies(env, policies, idx, seeds, rules=cfg.eval_rules)["rows"]
+        emit({"kind": "timing", "what": "baselines", "seconds": time.perf_counter() - t})
     for name, row in baselines.items():
-        emit({"kind": "baseline", "policy": name, **row})
-    emit({"kind": "timing", "what": "baselines", "seconds": time.perf_counter() - t})
+        emit({"kind": "baseline", "policy": name, **row, **({"reused": True} if reused_base else {})})
 
     runs = [(f"fine-tuned beta={b:g}", b, {}) for b in args.betas]
     if args.loglik_weight:
@@ -148,6 +166,10 @@ def main() -> int:
                      {"prior_log_likelihood": args.loglik_weight}))
     tuned = {}
     for name, beta, reward in runs:
+        if name in reused_tuned:
+            tuned[name] = reused_tuned[name]
+            emit({"kind": "finetuned", "policy": name, **reused_tuned[name], "reused": True})
+            continue
         t = time.perf_counter()
         run_cfg = load_finetune_config(cfg.to_dict(), {"beta": beta, "reward": reward,
                                                        "out_dir": str(run_dir / name.replace(" ", "_").replace("=", ""))})

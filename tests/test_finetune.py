@@ -284,6 +284,10 @@ def test_with_a_large_beta_the_kl_stays_near_zero_and_behaviour_matches_the_prio
 def test_config_names_overrides_and_errors(shared_data, prior_path):
     cfg = load_finetune_config("tiny", ["beta=0.5", "reward.collision=-2", "critic=ippo"])
     assert cfg.beta == 0.5 and cfg.reward == {"collision": -2} and cfg.critic == "ippo" and cfg.max_agents == 4
+    # a whole reward dict replaces the config's (a dict of overrides, as the trade-off sweep passes it, or key=value)
+    assert load_finetune_config(cfg.to_dict(), {"reward": {"prior_log_likelihood": 0.05}}).reward == {"prior_log_likelihood": 0.05}
+    assert load_finetune_config(cfg.to_dict(), ['reward={"goal_reached": 2}', "reward.comfort=-0.1"]).reward == {
+        "goal_reached": 2, "comfort": -0.1}
     assert load_finetune_config("default").iterations > cfg.iterations
     with pytest.raises(FinetuneError, match="unknown fine-tuning config key"):
         load_finetune_config("tiny", ["betta=1"])
