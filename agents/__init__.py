@@ -6,6 +6,6 @@ what-if scenarios (:mod:`agents.whatif`) and their commands (:mod:`agents.comman
 Imports go smart_marl <- envs <- agents. TorchRL is imported only by the fine-tuning modules
 (the ``rl`` extra), so ``PriorPolicy`` works with the env alone."""
 
-from .prior_policy import PriorPolicy, run_episode
+from .prior_policy import PriorPolicy, SampledPolicy, kl_to_prior, run_episode
 
-__all__ = ["PriorPolicy", "run_episode"]
+__all__ = ["PriorPolicy", "SampledPolicy", "kl_to_prior", "run_episode"]

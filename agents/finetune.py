@@ -18,23 +18,29 @@ The pipeline:
    agents, run side by side by a ``SerialEnv``;
 2. actor: logits over the motion vocabulary, ``prior_logits / T + f(obs)`` (``residual=True``,
    ``f`` a shared-parameter ``MultiAgentMLP`` whose last layer starts at 0, so training starts
-   exactly at the prior) or ``f(obs)`` alone; a ``ProbabilisticActor`` with a Categorical;
+   exactly at the reference) or ``f(obs)`` alone, restricted to the reference's support (the
+   prior's top ``reference_top_k`` tokens, the env's ``action_mask``); a ``ProbabilisticActor``
+   with a Categorical;
 3. critic: a ``MultiAgentMLP`` value, centralised (``critic="mappo"``: each agent's value sees
    every agent's observation) or decentralised (``"ippo"``);
 4. loss: :class:`agents.kl_ppo.PriorKLPPOLoss` = TorchRL's ``ClipPPOLoss`` + ``beta *
-   KL(pi || prior)``, agents that are done masked out of every term; GAE advantages;
+   KL(pi || reference)``, agents that are done masked out of every term; GAE advantages. The
+   reference is the prior as it drives: ``softmax(prior_logits / T)`` on its top
+   ``reference_top_k`` tokens, renormalised (``reference_top_k=None``: the full softmax);
 5. a TorchRL ``Collector``; PPO epochs over shuffled minibatches; logging
    (:class:`smart_marl.runlog.RunLog`); checkpoints;
-6. evaluation: the fine-tuned policy against the prior on the same scenes and seeds
-   (:func:`compare_policies`).
+6. evaluation on held-out scenes (not used for fine-tuning), as the literature does it:
+   :func:`evaluate_finetuned` runs the expert (log-following), the prior top-k, the prior's full
+   softmax and the fine-tuned policy for the full horizon without termination on the same scenes
+   and seeds and scores rates, progress, KL and the controlled agents' realism
+   (:mod:`agents.evaluate`).
 
 Logged per iteration (CSV and TensorBoard, names say what they are): ``return_per_agent_episode``,
 ``goal_rate``, ``collision_rate``, ``offroad_rate`` (per agent-episode that ended in the batch),
-``kl_to_prior`` (mean per agent-step of the batch, exact categorical KL), the PPO losses,
-``entropy`` and ``frames``. The realism of the controlled agents (sim-agents metrics) is not
-computed, neither here nor in :mod:`agents.evaluate`: it needs many full-length rollouts per scene,
-and these episodes remove an agent at its first collision, offroad or goal, so its trajectory is
-not the 8 s the metrics score. The KL to the prior is the realism proxy reported.
+``kl_to_prior`` (mean per agent-step of the batch, the exact categorical KL to the reference), the
+PPO losses, ``entropy`` and ``frames``. Training episodes remove an agent at its first collision,
+offroad or goal (``terminate_on``); the evaluation does not, so that every controlled agent drives
+the 8 s the realism metrics score.
 """
 
 from __future__ import annotations
@@ -66,12 +72,14 @@ from smart_marl.errors import SmartMarlError, UsageError
 from smart_marl.model.checkpoint import EMBEDDED, CheckpointError
 from smart_marl.model.checkpoint import load_prior as load_smart_prior
 from smart_marl.readers import read_scenarios
-from smart_marl.rollout import sample_tokens
+from smart_marl.rollout import top_k_mask
 from smart_marl.runlog import RunLog
 from smart_marl.scenario import AgentType
 
+from .evaluate import evaluate_policies
 from .kl_ppo import PriorKLPPOLoss
-from .prior_policy import PriorPolicy, evaluate_policy, kl_to_prior
+from .prior_policy import PriorPolicy, SampledPolicy, kl_to_prior
+from .scripted import LogFollowingPolicy
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "finetune"
 GROUP = "agents"
@@ -107,7 +115,9 @@ class FinetuneConfig:
     reward: dict = field(default_factory=dict)  # RewardConfig weights, e.g. {"collision": -1.0}
     terminate_on: tuple = ("collision", "offroad", "goal")
     top_k: int = 5  # the background's top-k sampling
-    temperature: float = 1.0  # the prior's temperature T (the reference is softmax(prior_logits / T))
+    temperature: float = 1.0  # the prior's temperature T
+    reference_top_k: int | None = 5  # the reference the policy starts from and is pulled toward: softmax(prior_logits / T)
+    # on the prior's top-k tokens, renormalised (the prior as it drives; also the policy's action mask); None: full softmax
     # policy and critic
     residual: bool = True  # logits = prior_logits / T + f(obs), f starting at 0
     hidden: int = 128
@@ -115,7 +125,7 @@ class FinetuneConfig:
     obs_scale: float = 0.1  # the observation (metres, m/s) times this before the MLPs
     critic: str = "mappo"  # "mappo" (centralised) or "ippo" (decentralised)
     # PPO and the prior KL
-    beta: float = 0.1  # KL(pi || prior) coefficient
+    beta: float = 0.1  # KL(pi || reference) coefficient
     gamma: float = 0.99
     lmbda: float = 0.95
     clip_epsilon: float = 0.2
@@ -128,9 +138,12 @@ class FinetuneConfig:
     iterations: int = 50
     ppo_epochs: int = 4
     minibatch_size: int = 64  # env steps per minibatch (x max_agents agent-steps)
-    # evaluation and bookkeeping
-    eval_episodes: int = 8  # seeds per scene in the final prior-vs-fine-tuned comparison (0: none)
+    # evaluation (held-out scenes, full horizon, no termination) and bookkeeping
+    eval_episodes: int = 8  # rollouts (seeds) per held-out scene for every policy (0: no evaluation); WOSAC uses 32
     eval_seed: int = 1000  # evaluation seeds are eval_seed, eval_seed + 1, ...
+    eval_scenes: str | list | None = None  # held-out scenes; None: the scenes of `scenes` after those used for fine-tuning
+    eval_num_scenes: int = 4  # the first N held-out scenes with a controllable agent
+    eval_rules: str = "2024"  # the sim-agents rules of the realism metrics ("2024" or "2025")
     out_dir: str = "runs/finetune"
     checkpoint_every: int = 10  # iterations (the last one is always saved)
     seed: int = 0
@@ -188,12 +201,13 @@ _FINETUNE_RULES = {
     "reward": lambda v: None if isinstance(v, dict) and all(number()(w) is None for w in v.values())
     else f"must map reward terms to finite weights, got {v!r}",
     "terminate_on": lambda v: None if isinstance(v, tuple) and all(isinstance(e, str) for e in v) else f"must be a list of event names, got {v!r}",
-    "top_k": optional(integer(1)), "temperature": number(0.0, low_open=True), "residual": flag, "hidden": integer(1), "depth": integer(1),
+    "top_k": optional(integer(1)), "temperature": number(0.0, low_open=True), "reference_top_k": optional(integer(1)), "residual": flag, "hidden": integer(1), "depth": integer(1),
     "obs_scale": number(0.0, low_open=True), "critic": text, "beta": number(0.0), "gamma": number(0.0, 1.0),
     "lmbda": number(0.0, 1.0), "clip_epsilon": number(0.0, low_open=True), "entropy_coeff": number(0.0),
     "critic_coeff": number(0.0), "normalize_advantage": flag, "lr": number(0.0, low_open=True), "max_grad_norm": number(0.0),
     "frames_per_batch": integer(1), "iterations": integer(1), "ppo_epochs": integer(1), "minibatch_size": integer(1),
-    "eval_episodes": integer(0), "eval_seed": integer(), "out_dir": lambda v: text(v) or output_dir_problem(v),
+    "eval_episodes": integer(0), "eval_seed": integer(), "eval_scenes": lambda v: None if v is None else _scenes_rule(v),
+    "eval_num_scenes": integer(1), "eval_rules": lambda v: None if v in ("2024", "2025") else f"must be '2024' or '2025', got {v!r}", "out_dir": lambda v: text(v) or output_dir_problem(v),
     "checkpoint_every": integer(1), "seed": integer(), "device": device_problem, "tensorboard": flag, "torch_threads": integer(0),
 }
 """What each FinetuneConfig field takes (the env checks ``controlled``, ``background`` and the reward terms by name)."""
@@ -223,44 +237,75 @@ def moving_vehicles(min_route_m: float):
     return select
 
 
-def scene_env(cfg: FinetuneConfig, scenes, model, vocab, render_mode: str | None = None):
-    """The PettingZoo env of the run's settings over ``scenes`` (a list of Scenario)."""
+def scene_env(cfg: FinetuneConfig, scenes, model, vocab, render_mode: str | None = None, terminate_on=None):
+    """The PettingZoo env of the run's settings over ``scenes`` (a list of Scenario);
+    ``terminate_on`` replaces the config's (``()`` for the evaluation)."""
     controlled = moving_vehicles(cfg.moving_min_route_m) if cfg.controlled == "moving_vehicles" else cfg.controlled
     return smart_traffic_v0.parallel_env(
         scenarios=list(scenes), prior=model, motion_vocab=vocab, controlled=controlled, max_agents=cfg.max_agents,
         background=cfg.background, horizon_steps=cfg.horizon_steps, reward=dict(cfg.reward) or None, observation="dict",
-        terminate_on=tuple(cfg.terminate_on), top_k=cfg.top_k, temperature=cfg.temperature, render_mode=render_mode)
+        terminate_on=tuple(cfg.terminate_on if terminate_on is None else terminate_on), top_k=cfg.top_k,
+        temperature=cfg.temperature, reference_top_k=cfg.reference_top_k, render_mode=render_mode)
 
 
-def select_scenes(cfg: FinetuneConfig, model, vocab) -> list:
-    """The first ``num_scenes`` scenes of ``cfg.scenes`` with exactly ``max_agents`` controlled
-    agents of one vocabulary size (TorchRL stacks the group's agents)."""
-    if not cfg.scenes:
-        raise FinetuneError("scenes: no scenes given (scenes=PATH)")
-    sources = [cfg.scenes] if isinstance(cfg.scenes, str) else list(cfg.scenes)
+def _scene_stream(spec, key: str):
+    """Every scene of ``spec`` (a path, a list of them, or "embedded": the package's samples), in order."""
+    if not spec:
+        raise FinetuneError(f"{key}: no scenes given ({key}=PATH)")
+    sources = [spec] if isinstance(spec, str) else list(spec)
     if EMBEDDED in sources:
         files = sorted(str(p) for p in SAMPLES_DIR.glob("*.smsc"))
         if not files:
-            raise FinetuneError(f"scenes='embedded': the package ships no sample scenes ({SAMPLES_DIR}); give scenes=PATH")
+            raise FinetuneError(f"{key}='embedded': the package ships no sample scenes ({SAMPLES_DIR}); give {key}=PATH")
         i = sources.index(EMBEDDED)
         sources[i : i + 1] = files
+    return (sc for src in sources for sc in read_scenarios(src))
+
+
+def _pick_scenes(cfg: FinetuneConfig, spec, key: str, count: int, model, vocab, exact: bool, exclude: set) -> tuple[list, list]:
+    """(the first ``count`` scenes of ``spec`` not in ``exclude`` (ids) whose controlled agents
+    share one vocabulary size and number exactly ``max_agents`` (``exact``) or at least one,
+    the skipped ones with why)."""
     chosen, skipped = [], []
-    for sc in (sc for src in sources for sc in read_scenarios(src)):
+    for sc in _scene_stream(spec, key):
+        if sc.scenario_id in exclude:
+            continue
         try:
             env = scene_env(cfg, [sc], None if cfg.background != "prior" else model, vocab)
         except SmartMarlError as exc:
             skipped.append(f"{sc.scenario_id} ({exc})")
             continue
         sizes = {env.action_space(a).n for a in env.possible_agents}
-        if len(env.possible_agents) == cfg.max_agents and len(sizes) == 1:
+        n = len(env.possible_agents)
+        if (n == cfg.max_agents if exact else n >= 1) and len(sizes) == 1:
             chosen.append(sc)
         else:
-            skipped.append(f"{sc.scenario_id} ({len(env.possible_agents)} controlled agents)")
-        if len(chosen) == cfg.num_scenes:
+            skipped.append(f"{sc.scenario_id} ({n} controlled agents)")
+        if len(chosen) == count:
             break
+    return chosen, skipped
+
+
+def select_scenes(cfg: FinetuneConfig, model, vocab) -> list:
+    """The first ``num_scenes`` scenes of ``cfg.scenes`` with exactly ``max_agents`` controlled
+    agents of one vocabulary size (TorchRL stacks the group's agents): the fine-tuning scenes."""
+    chosen, skipped = _pick_scenes(cfg, cfg.scenes, "scenes", cfg.num_scenes, model, vocab, True, set())
     if not chosen:
         raise FinetuneError(f"scenes: no scene of {cfg.scenes} has {cfg.max_agents} controllable agents "
                             f"(controlled={cfg.controlled!r}); skipped: {skipped[:5]}")
+    return chosen
+
+
+def held_out_scenes(cfg: FinetuneConfig, model, vocab, training: Sequence) -> list:
+    """The evaluation's scenes: the first ``eval_num_scenes`` of ``cfg.eval_scenes`` (default: the
+    scenes of ``cfg.scenes`` after the fine-tuning ones) that are not fine-tuning scenes
+    (``training``: Scenario objects or ids) and have 1 to ``max_agents`` controlled agents."""
+    exclude = {t if isinstance(t, str) else t.scenario_id for t in training}
+    spec = cfg.eval_scenes if cfg.eval_scenes else cfg.scenes
+    chosen, skipped = _pick_scenes(cfg, spec, "eval_scenes", cfg.eval_num_scenes, model, vocab, False, exclude)
+    if not chosen:
+        raise FinetuneError(f"eval_scenes: no held-out scene in {spec} (the {len(exclude)} fine-tuning scene(s) excluded) has a "
+                            f"controllable agent (controlled={cfg.controlled!r}); give eval_scenes=PATH; skipped: {skipped[:5]}")
     return chosen
 
 
@@ -280,12 +325,15 @@ def torchrl_env(cfg: FinetuneConfig, scenes, model, vocab):
 # ------------------------------------------------------------------------- actor and critic
 class PolicyLogits(nn.Module):
     """Logits over the motion vocabulary for every agent of the group: ``prior_logits / T + f(obs)``
-    (residual) or ``f(obs)``. observation [..., A, O], prior_logits [..., A, V] -> [..., A, V]."""
+    (residual) or ``f(obs)``, ``-inf`` outside the prior's ``top_k`` tokens (the reference's
+    support, :func:`smart_marl.rollout.top_k_mask`; None: every token). observation [..., A, O],
+    prior_logits [..., A, V] -> [..., A, V]."""
 
     def __init__(self, obs_dim: int, vocab_size: int, n_agents: int, hidden: int, depth: int, residual: bool = True,
-                 obs_scale: float = 0.1, temperature: float = 1.0) -> None:
+                 obs_scale: float = 0.1, temperature: float = 1.0, top_k: int | None = None) -> None:
         super().__init__()
         self.residual, self.obs_scale, self.temperature = bool(residual), float(obs_scale), float(temperature)
+        self.top_k = None if top_k is None else int(top_k)
         self.f = MultiAgentMLP(obs_dim, vocab_size, n_agents, centralized=False, share_params=True, depth=depth,
                                num_cells=hidden, activation_class=nn.Tanh)
         if self.residual:  # start exactly at the prior
@@ -297,7 +345,10 @@ class PolicyLogits(nn.Module):
 
     def forward(self, observation: torch.Tensor, prior_logits: torch.Tensor) -> torch.Tensor:
         delta = self.f(observation * self.obs_scale)
-        return prior_logits / self.temperature + delta if self.residual else delta
+        logits = prior_logits / self.temperature + delta if self.residual else delta
+        if self.top_k is None:
+            return logits
+        return logits.masked_fill(~top_k_mask(prior_logits, self.top_k), float("-inf"))
 
 
 class Critic(nn.Module):
@@ -315,7 +366,8 @@ class Critic(nn.Module):
 
 def build_modules(cfg: FinetuneConfig, obs_dim: int, vocab_size: int, n_agents: int):
     """(logits net, TorchRL ProbabilisticActor, TorchRL critic module)."""
-    net = PolicyLogits(obs_dim, vocab_size, n_agents, cfg.hidden, cfg.depth, cfg.residual, cfg.obs_scale, cfg.temperature)
+    net = PolicyLogits(obs_dim, vocab_size, n_agents, cfg.hidden, cfg.depth, cfg.residual, cfg.obs_scale, cfg.temperature,
+                       cfg.reference_top_k)
     actor = ProbabilisticActor(
         TensorDictModule(net, in_keys=[OBS_KEY, PRIOR_KEY], out_keys=[(GROUP, "logits")]),
         in_keys={"logits": (GROUP, "logits")}, out_keys=[(GROUP, "action")], distribution_class=torch.distributions.Categorical,
@@ -353,28 +405,27 @@ def load_policy(path: str | Path) -> tuple[FinetuneConfig, PolicyLogits, dict]:
     meta = json.loads(jpath.read_text())
     if meta.get("format") != "smart-marl-policy":
         raise FinetuneError(f"{jpath}: not a smart-marl policy checkpoint (format {meta.get('format')!r})")
-    cfg = load_finetune_config(meta["config"])
+    config = {k: v for k, v in meta["config"].items() if k in {f.name for f in dataclasses.fields(FinetuneConfig)}}
+    config.setdefault("reference_top_k", None)  # policies saved before the top-k reference were trained on the full softmax
+    cfg = load_finetune_config(config)
     net = PolicyLogits(meta["obs_dim"], meta["vocab_size"], meta["n_agents"], cfg.hidden, cfg.depth, cfg.residual, cfg.obs_scale,
-                       cfg.temperature)
+                       cfg.temperature, cfg.reference_top_k)
     weights = load_file(str(wpath))
     net.load_state_dict({k[len("actor."):]: v for k, v in weights.items() if k.startswith("actor.")})
     return cfg, net.eval(), meta
 
 
-class FinetunedPolicy:
+class FinetunedPolicy(SampledPolicy):
     """A fine-tuned actor acting directly on the PettingZoo env (dict observations), with the same
-    calling convention and sampler as :class:`agents.prior_policy.PriorPolicy`."""
+    calling convention and sampler as :class:`agents.prior_policy.PriorPolicy` (sampled with the
+    reference's top-k, so that at its start it draws exactly what the prior top-k draws)."""
 
     name = "fine-tuned"
-    top_k = None
-    temperature = 1.0
 
     def __init__(self, net: PolicyLogits, seed: int = 0) -> None:
+        super().__init__(seed)
         self.net = net.eval()
-        self.generator = torch.Generator().manual_seed(int(seed))
-
-    def reset(self, seed: int) -> None:
-        self.generator = torch.Generator().manual_seed(int(seed))
+        self.top_k = net.top_k
 
     @torch.no_grad()
     def logits(self, agents: list[str], observations: Mapping, infos: Mapping) -> torch.Tensor:
@@ -392,12 +443,8 @@ class FinetunedPolicy:
         dev = next(self.net.parameters()).device
         return self.net(torch.from_numpy(obs).to(dev), torch.from_numpy(prior).to(dev))[: len(agents)].cpu()
 
-    def __call__(self, observations: Mapping, infos: Mapping, agents: list[str] | None = None) -> dict[str, int]:
-        agents = list(observations) if agents is None else list(agents)
-        if not agents:
-            return {}
-        tokens, _ = sample_tokens(self.logits(agents, observations, infos), self.generator, top_k=None)
-        return {a: int(t) for a, t in zip(agents, tokens.tolist())}
+    def log_probs(self, agents: list[str], observations: Mapping, infos: Mapping) -> torch.Tensor:
+        return torch.log_softmax(self.logits(agents, observations, infos), -1)
 
 
 # ---------------------------------------------------------------------------------- logging
@@ -406,10 +453,10 @@ COLUMNS = ["iteration", "frames", "seconds", "return_per_agent_episode", "goal_r
            "clip_fraction"]
 
 
-def batch_stats(batch, temperature: float = 1.0) -> dict[str, float]:
+def batch_stats(batch, temperature: float = 1.0, reference_top_k: int | None = None) -> dict[str, float]:
     """Episode statistics of one collected batch [envs, T] (group [envs, T, A]): per agent-episode
     that ended in the batch, its return (the part of it inside the batch), goal / collision /
-    offroad rates; and the mean KL(pi || prior) per agent-step that acted."""
+    offroad rates; and the mean KL(pi || reference) per agent-step that acted."""
     acted = batch[GROUP, "mask"]  # [E, T, A] agents that took this step's action
     nxt = batch["next", GROUP]
     ended = acted & nxt["done"].squeeze(-1)
@@ -417,7 +464,7 @@ def batch_stats(batch, temperature: float = 1.0) -> dict[str, float]:
     reward = torch.where(acted, nxt["reward"].squeeze(-1), torch.zeros(()))
     info = nxt["info"]
     prior = batch[PRIOR_KEY]
-    kl = kl_to_prior(torch.log_softmax(batch[GROUP, "logits"], -1), prior, temperature)
+    kl = kl_to_prior(torch.log_softmax(batch[GROUP, "logits"], -1), prior, temperature, reference_top_k)
     valid = acted & prior.ne(0).any(-1)
     den = max(n, 1)
     return {
@@ -442,8 +489,8 @@ class FinetuneResult:
 
 def finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     """Run the whole pipeline (module docstring); ``on_iteration(row)`` is called after each
-    iteration's log row. With ``eval_episodes > 0`` the fine-tuned policy is compared with the prior
-    on the same scenes and seeds at the end (:func:`compare_policies`)."""
+    iteration's log row. With ``eval_episodes > 0`` the fine-tuned policy is evaluated on held-out
+    scenes at the end, next to the expert and the prior (:func:`evaluate_finetuned`)."""
     with warnings.catch_warnings():
         # the advantage is normalised over agents and steps together, on purpose
         warnings.filterwarnings("ignore", message="You requested advantage normalization")
@@ -475,9 +522,9 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     net, actor, critic = build_modules(cfg, obs_dim, vocab_size, n_agents)
     actor, critic = actor.to(device), critic.to(device)
 
-    # 4. loss: clipped PPO + beta * KL(pi || prior), GAE
+    # 4. loss: clipped PPO + beta * KL(pi || reference), GAE
     loss = PriorKLPPOLoss(actor, critic, beta=cfg.beta, prior_logits_key=PRIOR_KEY, agent_mask_key=(GROUP, "mask"),
-                          prior_temperature=cfg.temperature, clip_epsilon=cfg.clip_epsilon, entropy_bonus=cfg.entropy_coeff > 0,
+                          prior_temperature=cfg.temperature, reference_top_k=cfg.reference_top_k, clip_epsilon=cfg.clip_epsilon, entropy_bonus=cfg.entropy_coeff > 0,
                           entropy_coeff=cfg.entropy_coeff, critic_coeff=cfg.critic_coeff, normalize_advantage=cfg.normalize_advantage)
     loss.set_keys(reward=(GROUP, "reward"), action=(GROUP, "action"), sample_log_prob=(GROUP, "action_log_prob"),
                   value=(GROUP, "state_value"), done=(GROUP, "done"), terminated=(GROUP, "terminated"),
@@ -499,7 +546,7 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     mb_size = max(1, cfg.minibatch_size)
     for it, batch in enumerate(collector, start=1):
         frames += batch.numel()
-        stats = batch_stats(batch, cfg.temperature)
+        stats = batch_stats(batch, cfg.temperature, cfg.reference_top_k)
         with torch.no_grad():
             loss.value_estimator(batch, params=loss.critic_network_params, target_params=loss.target_critic_network_params)
         data = batch.reshape(-1)
@@ -536,36 +583,56 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     final = save_policy(ckpt_dir / "policy_last", cfg, net, critic.module, dims, len(history), history[-1])
     evaluation = None
     if cfg.eval_episodes > 0:
-        evaluation = compare_policies(cfg, net, scenes=scenes, model=model, vocab=vocab)
+        evaluation = evaluate_finetuned(cfg, net, training=scenes, model=model, vocab=vocab)
         (out_dir / "evaluation.json").write_text(json.dumps(evaluation, indent=1, default=float))
     return FinetuneResult(out_dir, final, history, evaluation, [sc.scenario_id for sc in scenes])
 
 
 # ------------------------------------------------------------------------------- evaluation
-def compare_policies(cfg, net, scenes=None, model=None, vocab=None, episodes: int | None = None,
-                     seed: int | None = None) -> dict:
-    """Prior, prior top-k and the fine-tuned actor ``net`` on the run's scenes and the same seeds.
-    Returns ``{"scenes": [...], "seeds": [...], "rows": {name: metrics}}``.
+def evaluation_policies(cfg: FinetuneConfig, env, net: PolicyLogits | None) -> dict[str, SampledPolicy]:
+    """The evaluation's rows: the expert (log-following), the prior at the reference's top-k (and at
+    the background's, when it differs), the prior's full softmax and, with ``net``, the fine-tuned
+    policy."""
+    policies = {LogFollowingPolicy.name: LogFollowingPolicy(env)}
+    for k in dict.fromkeys((cfg.reference_top_k, cfg.top_k, None)):
+        p = PriorPolicy(top_k=k, temperature=cfg.temperature)
+        policies[p.name] = p
+    if net is not None:
+        policies[FinetunedPolicy.name] = FinetunedPolicy(net)
+    return policies
 
-    Fairness: every policy runs the same episodes: scene ``i`` with env seed ``s`` (which seeds the
-    background prior's sampler) and policy seed ``s`` (which seeds the policy's sampler, the same
-    sampling function for every policy), for every scene and ``s`` in ``eval_seed .. eval_seed +
-    episodes - 1``. The rows: ``prior`` (:class:`~agents.prior_policy.PriorPolicy` sampling the full
-    softmax, the reference the KL is taken against: its KL is 0), ``prior top-k`` (the prior with the
-    background's top-k sampling, how SMART is usually driven) and ``fine-tuned`` (the actor, sampled).
-    """
+
+def evaluate_finetuned(cfg: FinetuneConfig, net: PolicyLogits | None, training=None, model=None, vocab=None,
+                       episodes: int | None = None, seed: int | None = None, baselines: bool = True) -> dict:
+    """The expert, the prior top-k, the prior's full softmax and the fine-tuned actor ``net`` on the
+    held-out scenes (:func:`held_out_scenes`; ``training``: the fine-tuning scenes, default those of
+    the config) with the same seeds ``eval_seed ..`` (``episodes`` of them), the full horizon and no
+    termination (:func:`agents.evaluate.evaluate_policies`, which says what every row holds).
+    ``baselines=False`` runs the fine-tuned policy alone (the baselines do not depend on beta)."""
     if model is None or vocab is None:
         model, vocab = load_prior(cfg.prior)
-    if scenes is None:
-        scenes = select_scenes(cfg, model, vocab)
+    if training is None:
+        training = select_scenes(cfg, model, vocab)
+    scenes = held_out_scenes(cfg, model, vocab, training)
     episodes = cfg.eval_episodes if episodes is None else int(episodes)
     seed0 = cfg.eval_seed if seed is None else int(seed)
     seeds = list(range(seed0, seed0 + max(episodes, 1)))
-    env = scene_env(cfg, scenes, model, vocab)
-    idx = list(range(len(scenes)))
-    rows = {
-        "prior": evaluate_policy(env, PriorPolicy(top_k=None, temperature=cfg.temperature), idx, seeds),
-        f"prior top-{cfg.top_k}": evaluate_policy(env, PriorPolicy(top_k=cfg.top_k, temperature=cfg.temperature), idx, seeds),
-        "fine-tuned": evaluate_policy(env, FinetunedPolicy(net), idx, seeds),
-    }
-    return {"scenes": [sc.scenario_id for sc in scenes], "seeds": seeds, "rows": rows}
+    env = scene_env(cfg, scenes, model, vocab, terminate_on=())
+    policies = evaluation_policies(cfg, env, net)
+    if not baselines:
+        policies = {FinetunedPolicy.name: policies[FinetunedPolicy.name]}
+    result = evaluate_policies(env, policies, list(range(len(scenes))), seeds, rules=cfg.eval_rules)
+    result["training_scenes"] = [t if isinstance(t, str) else t.scenario_id for t in training]
+    return result
+
+
+def evaluate_checkpoint(path, overrides: Sequence[str] = (), episodes: int | None = None, seed: int | None = None) -> dict:
+    """:func:`evaluate_finetuned` for a policy checkpoint, with its run's config (``key=value``
+    overrides, e.g. ``eval_scenes=OTHER`` to evaluate on other held-out scenes)."""
+    cfg, net, meta = load_policy(path)
+    if overrides:
+        cfg = load_finetune_config(cfg.to_dict(), overrides)
+    result = evaluate_finetuned(cfg, net, episodes=episodes, seed=seed)
+    result["checkpoint"] = str(path)
+    result["iteration"] = meta.get("iteration")
+    return result

@@ -1,4 +1,4 @@
-"""Fine-tuning stage, the objective: TorchRL's clipped PPO loss plus ``beta * KL(pi || prior)``.
+"""Fine-tuning stage, the objective: TorchRL's clipped PPO loss plus ``beta * KL(pi || reference)``.
 
 What comes in: a batch of multi-agent transitions (TensorDict keyed by group, e.g.
 ``("agents", "action")``) holding the prior's logits of every agent at every step (the env
@@ -10,9 +10,9 @@ PPO itself is not rewritten: :class:`PriorKLPPOLoss` subclasses
 :class:`torchrl.objectives.ClipPPOLoss`, keeps the distribution of the current policy that the
 parent builds for its importance weights, and adds the exact (analytic, categorical) KL
 
-    KL(pi || prior) = sum_v pi(v) (log pi(v) - log prior(v)),  prior = softmax(prior_logits / T)
+    KL(pi || ref) = sum_v pi(v) (log pi(v) - log ref(v)),  ref = softmax(prior_logits / T) on its top k tokens
 
-(:func:`agents.prior_policy.kl_to_prior`) averaged over the agents that acted (masked rows, and rows
+(renormalised there, ``reference_top_k=None``: the full softmax; :func:`agents.prior_policy.kl_to_prior`) averaged over the agents that acted (masked rows, and rows
 whose prior logits are all zero: agents the prior no longer simulates, are left out). The parent's
 own reductions use the same mask (``loss_mask_key``), so done agents contribute to no term.
 """
@@ -23,26 +23,32 @@ import torch
 from tensordict import NestedKey, TensorDictBase
 from torchrl.objectives import ClipPPOLoss
 
+from smart_marl.rollout import reference_name
+
 from .prior_policy import kl_to_prior
 
 
 class PriorKLPPOLoss(ClipPPOLoss):
-    """``ClipPPOLoss`` + ``beta * KL(pi || prior)``.
+    """``ClipPPOLoss`` + ``beta * KL(pi || reference)``.
 
     Extra keyword arguments: ``beta`` (the KL coefficient), ``prior_logits_key`` (where the prior's
     logits are), ``agent_mask_key`` (bool, True for agents that acted; also the mask of the parent's
-    losses), ``prior_temperature`` (the prior's sampling temperature T). Everything else goes to
-    :class:`~torchrl.objectives.ClipPPOLoss`.
+    losses), ``prior_temperature`` (the prior's sampling temperature T), ``reference_top_k`` (the
+    reference's k; None: the full softmax). ``loss.reference`` names the reference. Everything else
+    goes to :class:`~torchrl.objectives.ClipPPOLoss`.
     """
 
     def __init__(self, actor_network, critic_network, *, beta: float = 0.1,
                  prior_logits_key: NestedKey = ("agents", "observation", "prior_logits"),
-                 agent_mask_key: NestedKey | None = ("agents", "mask"), prior_temperature: float = 1.0, **kwargs) -> None:
+                 agent_mask_key: NestedKey | None = ("agents", "mask"), prior_temperature: float = 1.0,
+                 reference_top_k: int | None = None, **kwargs) -> None:
         super().__init__(actor_network, critic_network, **kwargs)
         self.register_buffer("beta", torch.tensor(float(beta)))
         self.prior_logits_key = prior_logits_key
         self.agent_mask_key = agent_mask_key
         self.prior_temperature = float(prior_temperature)
+        self.reference_top_k = None if reference_top_k is None else int(reference_top_k)
+        self.reference = reference_name(self.reference_top_k, self.prior_temperature)
         if agent_mask_key is not None:
             self.loss_mask_key = agent_mask_key
         self._current_dist = None
@@ -56,7 +62,7 @@ class PriorKLPPOLoss(ClipPPOLoss):
         """(KL(pi || prior) per row [...], bool mask of the rows that count [...]) from the policy's
         log-probabilities [..., V] and the batch's prior logits."""
         prior_logits = tensordict.get(self.prior_logits_key)
-        kl = kl_to_prior(policy_log_probs, prior_logits, self.prior_temperature)
+        kl = kl_to_prior(policy_log_probs, prior_logits, self.prior_temperature, self.reference_top_k)
         valid = prior_logits.ne(0).any(-1)
         if self.agent_mask_key is not None:
             valid = valid & tensordict.get(self.agent_mask_key).reshape(valid.shape)

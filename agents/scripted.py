@@ -23,7 +23,8 @@ Paths (all vectorised over the ``G`` rows):
 
 :mod:`agents.whatif` uses these inside the rollout engine (any agent, every rollout at once);
 :class:`ScriptedPolicy` uses them as a policy for the controlled agents of the PettingZoo env
-``envs.smart_traffic_v0`` (a :class:`Manoeuvre` per agent name).
+``envs.smart_traffic_v0`` (a :class:`Manoeuvre` per agent name); :class:`LogFollowingPolicy` drives
+them along their logged paths (the expert of :mod:`agents.evaluate`).
 """
 
 from __future__ import annotations
@@ -38,6 +39,8 @@ from smart_marl.errors import SmartMarlError
 from smart_marl.scenario import DT_S, wrap_angle
 from smart_marl.tokens import FRAMES_PER_TOKEN, TOKEN_S
 from smart_marl.tokens.motion import match_token_path, path_heading_weight
+
+from .prior_policy import SampledPolicy
 
 nearest_tokens = match_token_path  # the scripted agents' token choice (smart_marl.tokens.motion.match_token_path)
 
@@ -210,3 +213,46 @@ class ScriptedPolicy:
                                    torch.from_numpy(env.pose[track][None]), torch.from_numpy(seg[None]), path_heading_weight(atype))
             actions[name] = int(tok[0])
         return actions
+
+
+class LogFollowingPolicy(SampledPolicy):
+    """The expert: each controlled agent takes, every step, the token of its type whose placed
+    poses come closest to its logged path over the next two token steps
+    (:func:`nearest_tokens`, from the pose the env reports, so quantisation errors are corrected
+    at the next step). Frames the log misses hold the last logged pose before them (the agent
+    stops where its log ends). Deterministic: ``log_probs`` is one-hot on the chosen token."""
+
+    name = "expert (log)"
+    top_k = 1
+
+    def __init__(self, env, seed: int = 0) -> None:
+        super().__init__(seed)
+        self.env = env.unwrapped if hasattr(env, "unwrapped") else env
+
+    def tokens(self, agents: list[str]) -> np.ndarray:
+        """[A] the nearest token to each agent's logged path."""
+        env = self.env
+        tr = env.static.scenario.tracks
+        frames = env.frame + np.arange(1, 2 * FRAMES_PER_TOKEN + 1)
+        out = np.zeros(len(agents), np.int64)
+        for i, name in enumerate(agents):
+            track = env.static.name_to_track[name]
+            atype = int(env.static.types[track])
+            fi = np.minimum(frames, tr.num_frames - 1)
+            valid = tr.valid[track, fi] & (frames < tr.num_frames)
+            seg = np.concatenate([tr.position[track, fi, :2], tr.heading[track, fi, None]], -1).astype(np.float64)
+            last = env.pose[track].copy()
+            for j in range(len(frames)):  # frames the log misses hold the last pose
+                last = seg[j] if valid[j] else last
+                seg[j] = last
+            vocab = env.motion_vocab[atype]
+            out[i] = int(match_token_path(torch.from_numpy(vocab.poses.astype(np.float64)), vocab.size,
+                                          torch.from_numpy(env.pose[track][None]), torch.from_numpy(seg[None]),
+                                          path_heading_weight(atype))[0])
+        return out
+
+    def log_probs(self, agents: list[str], observations: Mapping, infos: Mapping) -> torch.Tensor:
+        v = max(self.env.action_space(a).n for a in agents)
+        out = torch.full((len(agents), v), float("-inf"))
+        out[torch.arange(len(agents)), torch.from_numpy(self.tokens(agents))] = 0.0
+        return out

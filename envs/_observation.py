@@ -28,7 +28,8 @@ time                  1           elapsed fraction of the horizon
 ====================  ==========  ===============================================================
 
 Invalid slots are all zeros. The ``"dict"`` observation wraps this vector as ``"observation"``
-and adds ``"action_mask"`` (every token of the agent's vocabulary is allowed: ones) and, when the
+and adds ``"action_mask"`` (the tokens the env's reference allows: every token of the agent's
+vocabulary, or the prior's top-k with ``reference_top_k``, set by the env) and, when the
 environment has a prior, ``"prior_logits"`` (the prior's logits of the agent's next token).
 """
 

@@ -33,9 +33,15 @@ A controlled agent that terminates (collision / offroad / goal, as ``terminate_o
 ``agents`` and is removed from the scene. Every agent still live at ``horizon_steps`` is truncated.
 Background agents replayed from the log are present on the frames where their log is valid.
 
+The reference: ``reference_top_k`` (None: the prior's full ``softmax(logits / temperature)``;
+k: that distribution restricted to its top k tokens and renormalised, the prior as it drives,
+:func:`smart_marl.rollout.reference_log_probs`). The ``"dict"`` observation's ``action_mask``
+is the reference's support (every token without a top-k), ``env.reference`` names it.
+
 ``infos[agent]`` (fixed keys and shapes, so TorchRL can stack them): ``prior_logits`` [V] and
-``prior_log_probs`` [V] (``log_softmax(logits / temperature)``) of the agent's *next* token (zeros
-once it is done), ``action_log_prob`` (the prior's log-probability of the token just taken),
+``prior_log_probs`` [V] (the reference's log-probabilities, ``-inf`` outside its top-k) of the
+agent's *next* token (zeros once it is done), ``reference_top_k`` (the reference's k, 0 for the
+full softmax), ``action_log_prob`` (the prior's full-softmax log-probability of the token just taken),
 ``collision``, ``offroad``, ``goal_reached`` (this step), ``route_progress_m`` and
 ``reward_terms`` [6] (see :mod:`envs._reward`). Without a prior the three prior keys are absent.
 
@@ -65,7 +71,7 @@ from smart_marl.embedded import sample_scenarios
 from smart_marl.model.checkpoint import CheckpointError, load_prior
 from smart_marl.readers import read_scenarios
 from smart_marl.render import BevRenderer, EpisodeRecorder
-from smart_marl.rollout import RolloutState
+from smart_marl.rollout import RolloutState, reference_log_probs, reference_name, top_k_mask
 from smart_marl.scenario import DT_S, AgentType, Scenario
 from smart_marl.tokens import FRAMES_PER_TOKEN, MotionVocabulary
 
@@ -165,7 +171,8 @@ class SmartTrafficEnv(ParallelEnv):
                  horizon_steps: int = 16, reward=None, observation="vector", render_mode: str | None = None,
                  max_agents: int | None = None, terminate_on: Sequence[str] = TERMINATION_EVENTS,
                  scene_order: str = "sequential", motion_vocab: MotionVocabulary | None = None, top_k: int = 5,
-                 temperature: float = 1.0, render_size_px: int = 400, render_radius_m: float = 50.0) -> None:
+                 temperature: float = 1.0, render_size_px: int = 400, render_radius_m: float = 50.0,
+                 reference_top_k: int | None = None) -> None:
         if background not in BACKGROUNDS:
             raise EnvConfigError(f"background must be one of {BACKGROUNDS}, got {background!r}")
         if int(horizon_steps) < 1:
@@ -202,6 +209,10 @@ class SmartTrafficEnv(ParallelEnv):
         self.terminate_on = frozenset(terminate_on)
         self.scene_order = scene_order
         self.top_k, self.temperature = int(top_k), float(temperature)
+        if reference_top_k is not None and int(reference_top_k) < 1:
+            raise EnvConfigError(f"reference_top_k must be None (the full softmax) or >= 1, got {reference_top_k}")
+        self.reference_top_k = None if reference_top_k is None else int(reference_top_k)
+        self.reference = reference_name(self.reference_top_k, self.temperature)
         self.render_size_px, self.render_radius_m = int(render_size_px), float(render_radius_m)
         self._statics: dict[int, SceneStatic] = {}
         self._prior_states: dict[int, RolloutState] = {}
@@ -375,6 +386,8 @@ class SmartTrafficEnv(ParallelEnv):
             d = {"observation": vec[i], "action_mask": np.ones(v, np.int8)}
             if self.model is not None:
                 d["prior_logits"] = self._agent_logits(k, v)
+                if self.reference_top_k and d["prior_logits"].any():
+                    d["action_mask"] = top_k_mask(torch.from_numpy(d["prior_logits"]), self.reference_top_k).numpy().astype(np.int8)
             out[a] = d
         return out
 
@@ -403,9 +416,11 @@ class SmartTrafficEnv(ParallelEnv):
                 logits = self._agent_logits(k, v)
                 info["prior_logits"] = logits
                 if logits.any():
-                    info["prior_log_probs"] = torch.log_softmax(torch.from_numpy(logits) / self.temperature, -1).numpy()
+                    info["prior_log_probs"] = reference_log_probs(torch.from_numpy(logits), self.reference_top_k,
+                                                                  self.temperature).numpy()
                 else:
                     info["prior_log_probs"] = np.zeros(v, np.float32)
+                info["reference_top_k"] = int(self.reference_top_k or 0)
                 info["action_log_prob"] = float(self._last_action_logp[k])
             out[a] = info
         return out
@@ -587,7 +602,7 @@ def parallel_env(scenarios="embedded", prior="embedded", controlled="sdc", backg
     :class:`~envs._reward.RewardConfig` or a dict of weights; ``observation``: "vector", "dict"
     or an :class:`~envs._observation.ObservationConfig`. Other keywords: ``terminate_on``,
     ``scene_order`` ("sequential" or "random" with the reset seed), ``motion_vocab`` (needed with
-    ``prior=None``), ``top_k``, ``temperature``, ``render_size_px``, ``render_radius_m``."""
+    ``prior=None``), ``top_k``, ``temperature``, ``reference_top_k``, ``render_size_px``, ``render_radius_m``."""
     return SmartTrafficEnv(scenarios=scenarios, prior=prior, controlled=controlled, background=background,
                            horizon_steps=horizon_steps, reward=reward, observation=observation, render_mode=render_mode,
                            max_agents=max_agents, **kwargs)

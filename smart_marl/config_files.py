@@ -58,14 +58,17 @@ def read_config_file(path: Path, what: str, error: type[Exception]) -> dict[str,
 def apply_overrides(values: dict[str, Any], overrides, fields_of: type, nested: str, prefix: str, what: str,
                     error: type[Exception]) -> dict[str, Any]:
     """``values`` (a config file's dict) with ``overrides`` applied: a mapping or ``"key=value"``
-    strings; ``"{prefix}.k=v"`` sets key ``k`` of the nested dict ``values[nested]``. Keys that are
-    not fields of the dataclass ``fields_of`` raise ``error`` listing the known ones."""
+    strings; ``"{prefix}.k=v"`` sets key ``k`` of the nested dict ``values[nested]``, ``nested`` itself
+    (``reward={...}``) replaces it. Keys that are not fields of the dataclass ``fields_of`` raise
+    ``error`` listing the known ones."""
     values = dict(values)
     items = overrides.items() if isinstance(overrides, Mapping) else (split_override(o, error) for o in overrides)
     group = dict(values.pop(nested, {}) or {})
     for key, val in items:
         if key.startswith(prefix + "."):
             group[key[len(prefix) + 1:]] = val
+        elif key == nested and isinstance(val, Mapping):
+            group = dict(val)
         else:
             values[key] = val
     values[nested] = group

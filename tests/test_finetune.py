@@ -1,7 +1,8 @@
-"""KL-regularised fine-tuning (agents/): the prior as a policy, the PPO + KL loss against an
-independent KL computation, the residual actor starting at the prior, a tiny fine-tuning run on
-real scenes that beats the prior on the same scenes and seeds, a large-beta run that stays at the
-prior, and the ``smart-marl finetune`` command.
+"""KL-regularised fine-tuning (agents/): the prior as a policy, the top-k reference and its exact KL,
+the PPO + KL loss against an independent KL computation, the residual actor starting at the
+reference, the evaluation (every policy on the same held-out scenes and seeds, realism of the
+controlled agents), a tiny fine-tuning run on real scenes that beats the prior on the same scenes
+and seeds, a large-beta run that stays at the prior, and the ``smart-marl finetune`` command.
 
 The prior is a small randomly initialised SMART model whose motion vocabulary is built from the
 two real WOMD scenes (as in tests/test_env_smart_traffic.py), saved as a checkpoint in a temporary
@@ -18,13 +19,14 @@ import torch
 pytest.importorskip("pettingzoo", reason="the env extra (pettingzoo) is not installed")
 pytest.importorskip("torchrl", reason="the rl extra (torchrl) is not installed")
 
-from agents import PriorPolicy, run_episode  # noqa: E402
+from agents import PriorPolicy, kl_to_prior, run_episode  # noqa: E402
+from agents.evaluate import evaluate_policies  # noqa: E402
 from agents.finetune import (  # noqa: E402
-    FinetuneError, FinetunedPolicy, PolicyLogits, build_modules, finetune, load_finetune_config, load_policy, load_prior,
-    scene_env, select_scenes,
+    FinetuneError, FinetunedPolicy, PolicyLogits, build_modules, finetune, held_out_scenes, load_finetune_config, load_policy,
+    load_prior, scene_env, select_scenes,
 )
 from agents.kl_ppo import PriorKLPPOLoss  # noqa: E402
-from smart_marl.rollout import sample_tokens  # noqa: E402
+from smart_marl.rollout import reference_log_probs, sample_tokens  # noqa: E402
 
 VOCAB = 32  # tokens per type of conftest's womd_vocab
 WOMD = "womd_tfrecord/*.tfrecord"  # the two real WOMD scenes (17 and 4 moving vehicles)
@@ -38,15 +40,20 @@ def prior_path(womd_vocab, save_tiny_prior):
     return save_tiny_prior(womd_vocab)
 
 
+GPUDRIVE = "gpudrive_json"  # held-out scenes of the tiny runs that fine-tune on both WOMD scenes
+
+
 def tiny(shared_data, prior_path, out_dir, **over) -> dict:
-    return {"scenes": str(shared_data / WOMD), "prior": str(prior_path), "out_dir": str(out_dir), "tensorboard": False, **over}
+    return {"scenes": str(shared_data / WOMD), "prior": str(prior_path), "out_dir": str(out_dir), "tensorboard": False,
+            "eval_scenes": str(shared_data / GPUDRIVE), "eval_num_scenes": 1, **over}
 
 
 @pytest.fixture(scope="module")
 def tiny_run(shared_data, prior_path, tmp_path_factory):
     """The named ``tiny`` config on the two real scenes: about one minute on one CPU thread (measured
-    59 s with a training run busy on the other core), shared by the two tests that use it."""
-    cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, tmp_path_factory.mktemp("tiny")))
+    59 s with a training run busy on the other core), shared by the two tests that use it; its
+    evaluation runs on one held-out GPUDrive scene, 2 seeds."""
+    cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, tmp_path_factory.mktemp("tiny"), eval_episodes=2))
     return cfg, finetune(cfg)
 
 
@@ -64,7 +71,46 @@ def test_prior_policy_samples_the_infos_logits_and_has_zero_kl(shared_data, prio
     assert list(actions) == env.agents and list(actions.values()) == expect.tolist()
     ep = run_episode(env, PriorPolicy(top_k=None), seed=3)
     assert sum(ep["steps"].values()) > 0
-    assert max(ep["kl_to_prior"].values()) < 1e-5  # the prior's KL to itself
+    assert max(ep["kl_to_full_prior"].values()) < 1e-5  # the prior's KL to itself
+    assert min(ep["kl_to_reference"].values()) == float("inf")  # the full softmax puts mass outside the top-5 reference
+    ep = run_episode(env, PriorPolicy(top_k=cfg.reference_top_k), seed=3)
+    assert max(ep["kl_to_reference"].values()) < 1e-5 < min(ep["kl_to_full_prior"].values())
+
+
+def test_top_k_reference_kl_is_exact_on_a_hand_made_case():
+    """Prior probabilities 4:3:2:1 (logits log 4 .. log 1, float64); the top-2 reference is (4/7, 3/7, 0, 0)."""
+    prior = torch.log(torch.tensor([[4.0, 3.0, 2.0, 1.0]], dtype=torch.float64))
+    half = torch.log(torch.tensor([[0.5, 0.5, 0.0, 0.0]], dtype=torch.float64))  # log 0 = -inf: tokens the policy never takes
+    expect = 0.5 * np.log(0.5 / (4 / 7)) + 0.5 * np.log(0.5 / (3 / 7))
+    assert float(kl_to_prior(half, prior, top_k=2)) == pytest.approx(expect, rel=1e-12)
+    # against the full softmax (0.4, 0.3, 0.2, 0.1) the same policy is further away
+    assert float(kl_to_prior(half, prior)) == pytest.approx(0.5 * np.log(0.5 / 0.4) + 0.5 * np.log(0.5 / 0.3), rel=1e-12)
+    # the reference itself: 0; mass on a token outside the top-2: infinite
+    assert float(kl_to_prior(reference_log_probs(prior, 2), prior, top_k=2)) == pytest.approx(0.0, abs=1e-15)
+    assert float(kl_to_prior(torch.log(torch.tensor([[0.5, 0.0, 0.5, 0.0]], dtype=torch.float64)), prior, top_k=2)) == float("inf")
+    # temperature 2: logits halved, probabilities ~ sqrt(4), sqrt(3) on the top-2
+    p = np.sqrt([4.0, 3.0]) / np.sqrt([4.0, 3.0]).sum()
+    assert float(kl_to_prior(half, prior, temperature=2.0, top_k=2)) == pytest.approx(float((0.5 * np.log(0.5 / p)).sum()), rel=1e-12)
+    # the gradient through a policy masked to the top-2 stays finite
+    logits = torch.tensor([[1.0, 0.5, float("-inf"), float("-inf")]], requires_grad=True)
+    kl_to_prior(torch.log_softmax(logits, -1), prior, top_k=2).sum().backward()
+    assert torch.isfinite(logits.grad).all() and logits.grad[0, :2].abs().sum() > 0
+
+
+def test_env_action_mask_and_infos_carry_the_top_k_reference(shared_data, prior_path):
+    cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, "unused", reference_top_k=3))
+    model, vocab = load_prior(cfg.prior)
+    env = scene_env(cfg, select_scenes(cfg, model, vocab), model, vocab)
+    obs, infos = env.reset(seed=1)
+    assert env.reference == "prior top-3"
+    for a in env.agents:
+        logits = torch.from_numpy(obs[a]["prior_logits"])
+        top3 = set(torch.topk(logits, 3).indices.tolist())
+        assert set(np.flatnonzero(obs[a]["action_mask"]).tolist()) == top3
+        logp = torch.from_numpy(infos[a]["prior_log_probs"])
+        assert set(torch.isfinite(logp).nonzero().flatten().tolist()) == top3
+        assert float(torch.logsumexp(logp, -1)) == pytest.approx(0.0, abs=1e-5)  # renormalised on the top-3
+        assert infos[a]["reference_top_k"] == 3
 
 
 def test_residual_actor_starts_exactly_at_the_prior_logits():
@@ -73,6 +119,20 @@ def test_residual_actor_starts_exactly_at_the_prior_logits():
     torch.testing.assert_close(net(obs, prior), prior / 0.5, rtol=0, atol=0)
     free = PolicyLogits(obs_dim=10, vocab_size=VOCAB, n_agents=3, hidden=16, depth=2, residual=False)
     assert not torch.allclose(free(obs, prior), prior)
+
+
+def test_residual_actor_with_a_top_k_reference_starts_at_it_and_samples_what_the_prior_top_k_samples():
+    net = PolicyLogits(obs_dim=10, vocab_size=VOCAB, n_agents=3, hidden=16, depth=2, residual=True, temperature=0.5, top_k=5)
+    obs, prior = torch.randn(5, 3, 10) * 30, torch.randn(5, 3, VOCAB)
+    logp = torch.log_softmax(net(obs, prior), -1)
+    torch.testing.assert_close(logp, reference_log_probs(prior, 5, 0.5), rtol=0, atol=1e-6)
+    assert float(kl_to_prior(logp, prior, 0.5, 5).abs().max()) < 1e-6
+    tuned, prior_top5 = FinetunedPolicy(net), PriorPolicy(top_k=5, temperature=0.5)
+    for seed in range(3):
+        tuned.reset(seed)
+        prior_top5.reset(seed)
+        a, b = tuned.sample(logp[seed]), prior_top5.sample(reference_log_probs(prior[seed], 5, 0.5))
+        assert a.tolist() == b.tolist()
 
 
 def test_prior_kl_loss_adds_beta_times_the_exact_kl_of_agents_that_acted():
@@ -105,7 +165,7 @@ def test_prior_kl_loss_adds_beta_times_the_exact_kl_of_agents_that_acted():
         with torch.no_grad():
             losses[beta] = loss(td.clone())
     logp = torch.log_softmax(net(td["agents", "observation", "observation"], prior), -1)
-    kl = (logp.exp() * (logp - torch.log_softmax(prior, -1))).sum(-1)
+    kl = torch.where(logp.exp() > 0, logp.exp() * (logp - torch.log_softmax(prior, -1)), torch.zeros(())).sum(-1)  # 0 log 0 = 0
     valid = mask & prior.ne(0).any(-1)
     expect = kl[valid].mean()
     assert float(losses[2.5]["loss_prior_kl"]) == pytest.approx(2.5 * float(expect), rel=1e-5)
@@ -113,22 +173,38 @@ def test_prior_kl_loss_adds_beta_times_the_exact_kl_of_agents_that_acted():
     assert float(losses[0.0]["loss_prior_kl"]) == 0.0
     assert float(losses[2.5]["loss_objective"]) == pytest.approx(float(losses[0.0]["loss_objective"]), rel=1e-6)
     assert float(expect) > 0.05
+    # the top-5 reference (the config's default; the actor is masked to it): renormalised on the prior's top 5
+    assert net.top_k == cfg.reference_top_k == 5
+    loss = PriorKLPPOLoss(actor, critic, beta=1.0, entropy_bonus=False, normalize_advantage=False, reference_top_k=5)
+    loss.set_keys(action=("agents", "action"), sample_log_prob=("agents", "action_log_prob"), value=("agents", "state_value"),
+                  advantage=("agents", "advantage"), value_target=("agents", "value_target"))
+    with torch.no_grad():
+        out = loss(td.clone())
+    top5 = torch.zeros_like(prior, dtype=torch.bool).scatter(-1, torch.topk(prior, 5).indices, True)
+    ref = torch.log_softmax(prior.masked_fill(~top5, float("-inf")), -1)
+    kl5 = torch.where(logp.exp() > 0, logp.exp() * (logp - ref), torch.zeros(())).sum(-1)
+    assert loss.reference == "prior top-5"
+    assert float(out["kl_to_prior"]) == pytest.approx(float(kl5[valid].mean()), rel=1e-5)
 
 
 # ------------------------------------------------------------------------------- the runs
-def test_tiny_finetuning_reaches_logged_goals_more_often_than_the_prior(tiny_run):
-    """Same two real scenes, same 8 seeds (background sampler and policy sampler), 64
-    agent-episodes per policy: the fine-tuned agents reach their logged goals more often (or
-    collide less), by at least 3 agent-episodes in 64, with the KL to the prior reported.
-    Measured: goal rate 0.016 -> 0.234, collision 0.250 -> 0.250, offroad 0.812 -> 0.375, return
-    1.38 -> 3.75 per agent-episode, KL 0.76 per step (deterministic on one thread)."""
+def test_tiny_finetuning_reaches_logged_goals_more_often_than_the_prior(tiny_run, prior_path):
+    """On the two real scenes it was trained on, same 8 seeds (background sampler and policy
+    sampler), 64 agent-episodes per policy, the training env (events end an agent's episode): the
+    fine-tuned agents reach their logged goals more often (or collide less) than the prior top-5
+    (the reference they started from), by at least 3 agent-episodes in 64, with the KL reported."""
     cfg, result = tiny_run
-    rows = result.evaluation["rows"]
-    prior, tuned = rows["prior"], rows["fine-tuned"]
+    model, vocab = load_prior(cfg.prior)
+    training = select_scenes(cfg, model, vocab)
+    assert [sc.scenario_id for sc in training] == result.scene_ids
+    env = scene_env(cfg, training, model, vocab)
+    _, net, _ = load_policy(result.checkpoint)
+    seeds = list(range(cfg.eval_seed, cfg.eval_seed + 8))
+    rows = evaluate_policies(env, {"prior top-5": PriorPolicy(top_k=5), "fine-tuned": FinetunedPolicy(net)}, [0, 1], seeds)["rows"]
+    prior, tuned = rows["prior top-5"], rows["fine-tuned"]
     print("\n" + json.dumps(rows, indent=1))
-    assert result.evaluation["seeds"] == list(range(cfg.eval_seed, cfg.eval_seed + cfg.eval_episodes))
-    assert prior["agent_episodes"] == tuned["agent_episodes"] == 2 * 4 * cfg.eval_episodes
-    assert prior["kl_to_prior"] < 1e-5 < tuned["kl_to_prior"]
+    assert prior["agent_episodes"] == tuned["agent_episodes"] == 2 * 4 * 8
+    assert prior["kl_to_reference"] < 1e-5 < tuned["kl_to_reference"] < float("inf")
     assert tuned["goal_rate"] >= prior["goal_rate"] + 0.05 or tuned["collision_rate"] <= prior["collision_rate"] - 0.05
     assert tuned["return"] > prior["return"]
     # the training log: every iteration, KL to the prior grows from 0 as the policy leaves it
@@ -148,13 +224,15 @@ def test_policy_checkpoint_round_trips_and_evaluate_command_prints_the_table(tin
     assert not torch.allclose(net(obs, prior), prior)  # trained weights, not the zero-initialised residual
     assert main(["finetune", "--evaluate", str(result.checkpoint), "--episodes", "1", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert set(out["rows"]) == {"prior", f"prior top-{cfg.top_k}", "fine-tuned"} and out["seeds"] == [cfg.eval_seed]
+    assert list(out["rows"]) == ["expert (log)", f"prior top-{cfg.top_k}", "prior full softmax", "fine-tuned"]
+    assert out["seeds"] == [cfg.eval_seed] and out["reference"] == "prior top-5"
+    assert not set(out["scenes"]) & set(out["training_scenes"])  # held-out scenes
     # the same scenes and seeds give the same episodes: a second evaluation reproduces every number
     assert main(["finetune", "--evaluate", str(result.checkpoint), "--episodes", "1", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["rows"] == out["rows"]
     assert main(["finetune", "--evaluate", str(result.checkpoint), "--episodes", "1"]) == 0
     table = capsys.readouterr().out
-    assert "goal rate" in table and "fine-tuned" in table and "KL/step" in table
+    assert "collision" in table and "fine-tuned" in table and "KL/step" in table and "realism" in table
 
 
 def test_a_short_run_collects_its_first_batch_at_the_prior_and_writes_its_files(shared_data, prior_path, tmp_path):
@@ -183,8 +261,8 @@ def test_with_a_large_beta_the_kl_stays_near_zero_and_behaviour_matches_the_prio
     result = finetune(cfg)
     assert max(r["kl_to_prior"] for r in result.history) < 1e-3
     rows = result.evaluation["rows"]
-    prior, tuned = rows["prior"], rows["fine-tuned"]
-    assert tuned["kl_to_prior"] < 1e-3
+    prior, tuned = rows["prior top-5"], rows["fine-tuned"]
+    assert tuned["kl_to_reference"] < 1e-3
     # episode rates agree up to sampling noise: 32 agent-episodes per policy whose trajectories part
     # after the first token drawn differently (binomial standard error ~0.07 at these rates)
     for key in ("goal_rate", "collision_rate", "offroad_rate"):
@@ -196,8 +274,8 @@ def test_with_a_large_beta_the_kl_stays_near_zero_and_behaviour_matches_the_prio
     tv = []
     for seed in range(4):
         obs, infos = env.reset(seed=seed, options={"scene_index": seed % 2})
-        p_prior = torch.softmax(PriorPolicy().logits(env.agents, obs, infos), -1)
-        p_tuned = torch.softmax(FinetunedPolicy(net).logits(env.agents, obs, infos), -1)
+        p_prior = PriorPolicy(top_k=5).log_probs(env.agents, obs, infos).exp()
+        p_tuned = FinetunedPolicy(net).log_probs(env.agents, obs, infos).exp()
         tv.append(0.5 * (p_prior - p_tuned).abs().sum(-1))
     assert float(torch.cat(tv).max()) < 0.05
 
@@ -206,6 +284,10 @@ def test_with_a_large_beta_the_kl_stays_near_zero_and_behaviour_matches_the_prio
 def test_config_names_overrides_and_errors(shared_data, prior_path):
     cfg = load_finetune_config("tiny", ["beta=0.5", "reward.collision=-2", "critic=ippo"])
     assert cfg.beta == 0.5 and cfg.reward == {"collision": -2} and cfg.critic == "ippo" and cfg.max_agents == 4
+    # a whole reward dict replaces the config's (a dict of overrides, as the trade-off sweep passes it, or key=value)
+    assert load_finetune_config(cfg.to_dict(), {"reward": {"prior_log_likelihood": 0.05}}).reward == {"prior_log_likelihood": 0.05}
+    assert load_finetune_config(cfg.to_dict(), ['reward={"goal_reached": 2}', "reward.comfort=-0.1"]).reward == {
+        "goal_reached": 2, "comfort": -0.1}
     assert load_finetune_config("default").iterations > cfg.iterations
     with pytest.raises(FinetuneError, match="unknown fine-tuning config key"):
         load_finetune_config("tiny", ["betta=1"])
@@ -221,3 +303,53 @@ def test_config_names_overrides_and_errors(shared_data, prior_path):
     cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, "unused", max_agents=40))
     with pytest.raises(FinetuneError, match="40 controllable agents"):
         select_scenes(cfg, *load_prior(cfg.prior))
+
+
+# ------------------------------------------------------------------------------- the evaluation
+class _Spy(PriorPolicy):
+    """The prior top-5, recording the (scene, seed) of every episode it drives."""
+
+    def __init__(self, env):
+        super().__init__(top_k=5)
+        self.env, self.episodes = env, []
+
+    def reset(self, seed):
+        super().reset(seed)
+        self.episodes.append((self.env.static.scenario.scenario_id, int(seed)))
+
+
+def test_evaluation_runs_every_policy_on_the_same_scenes_and_seeds(shared_data, prior_path):
+    """Every policy drives the same (scene, seed) episodes; two copies of one policy therefore give
+    identical rows, realism of the controlled agents included (the full 8 s, nobody removed)."""
+    cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, "unused", background="prior"))
+    model, vocab = load_prior(cfg.prior)
+    scenes = held_out_scenes(cfg, model, vocab, select_scenes(cfg, model, vocab))
+    env = scene_env(cfg, scenes, model, vocab, terminate_on=())
+    spies = {"a": _Spy(env), "b": _Spy(env), "full": PriorPolicy(top_k=None)}
+    result = evaluate_policies(env, spies, [0], [7, 8])
+    assert spies["a"].episodes == spies["b"].episodes == [(scenes[0].scenario_id, 7), (scenes[0].scenario_id, 8)]
+    assert result["rows"]["a"] == result["rows"]["b"]
+    a, full = result["rows"]["a"], result["rows"]["full"]
+    assert a["steps"] == a["agent_episodes"] * cfg.horizon_steps  # no termination: every agent drives the horizon
+    assert result["realism_scenes"] == [scenes[0].scenario_id] and 0 < a["meta_metric"] < 1 and a["min_ade"] >= 0
+    assert a != full and full["kl_to_reference"] == float("inf") and full["kl_to_full_prior"] < 1e-5
+
+
+def test_tiny_finetune_then_evaluate_on_held_out_scenes(shared_data, prior_path, tmp_path):
+    """Fine-tune on one WOMD scene, evaluate on a held-out GPUDrive scene: the four rows, the same
+    seeds for all, the KL of each row to the top-5 reference, realism of the controlled agents."""
+    cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, tmp_path, num_scenes=1, iterations=2, frames_per_batch=32,
+                                            minibatch_size=32, ppo_epochs=1, eval_episodes=2, checkpoint_every=2))
+    result = finetune(cfg)
+    ev = result.evaluation
+    assert json.loads((tmp_path / "evaluation.json").read_text())["rows"].keys() == ev["rows"].keys()
+    assert list(ev["rows"]) == ["expert (log)", "prior top-5", "prior full softmax", "fine-tuned"]
+    assert ev["training_scenes"] == result.scene_ids and len(ev["scenes"]) == 1 and ev["scenes"][0] not in result.scene_ids
+    assert ev["seeds"] == [cfg.eval_seed, cfg.eval_seed + 1] and ev["reference"] == "prior top-5"
+    rows = ev["rows"]
+    assert len({r["agent_episodes"] for r in rows.values()}) == 1
+    assert rows["prior top-5"]["kl_to_reference"] < 1e-5 < rows["fine-tuned"]["kl_to_reference"] < float("inf")
+    assert rows["prior full softmax"]["kl_to_full_prior"] < 1e-5 and rows["prior full softmax"]["kl_to_reference"] == float("inf")
+    for r in rows.values():
+        assert 0 < r["meta_metric"] < 1 and 0 <= r["collision_rate"] <= 1 and np.isfinite(r["progress_m"])
+    assert rows["expert (log)"]["min_ade"] < rows["prior full softmax"]["min_ade"]  # the log-follower stays near its log

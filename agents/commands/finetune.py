@@ -1,6 +1,7 @@
 """``smart-marl finetune --config FILE|NAME [key=value ...]``: KL-regularised PPO of controlled
-agents against the SMART prior (TorchRL); ``--evaluate CHECKPOINT`` compares a fine-tuned policy
-with the prior on the same scenes and seeds and prints a table.
+agents against the SMART prior (TorchRL); ``--evaluate CHECKPOINT`` runs the expert, the prior
+(top-k and full softmax) and a fine-tuned policy on held-out scenes with the same seeds and prints
+a table (rates, progress, KL, realism of the controlled agents).
 
 Stage: fine-tuning; the pipeline is :mod:`agents.finetune` and :mod:`agents.evaluate`. Registered
 through the ``smart_marl.commands`` entry point (see :mod:`agents.commands`). The command needs the
@@ -25,15 +26,18 @@ def register(subparsers) -> None:
                     "TorchRL) plus beta * KL(policy || SMART prior). The config is a JSON/TOML file of FinetuneConfig fields or a "
                     "named config (configs/finetune/: tiny, default); key=value overrides follow, e.g. scenes=DIR prior=CKPT "
                     "beta=0.1 iterations=50 out_dir=runs/ft. Writes finetune.csv, TensorBoard logs, policy checkpoints and, "
-                    "with eval_episodes > 0, evaluation.json. With --evaluate CHECKPOINT, compares that policy with the prior on "
-                    "the same scenes and seeds instead (overrides apply to the checkpoint's config).")
+                    "with eval_episodes > 0, evaluation.json (held-out scenes). With --evaluate CHECKPOINT, runs the expert "
+                    "(log-following), the prior top-k, the prior's full softmax and that policy on held-out scenes (eval_scenes; "
+                    "default: the scenes after the fine-tuning ones) with the same seeds, full horizon, no termination, and "
+                    "prints collision / offroad / goal rates, progress, KL and the controlled agents' realism (overrides apply "
+                    "to the checkpoint's config).")
     p.add_argument("--config", default=None, help="fine-tuning config file (.json/.toml) or a named config (tiny, default)")
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides, values parsed as JSON when they parse")
     p.add_argument("--out", default=None, type=output_dir, metavar="DIR", help="the run's folder (default: the config's out_dir)")
     p.add_argument("--device", default=None, type=device, help="torch device for the policy and its updates (default: the config's, cpu)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default: the config's); with --evaluate, the first evaluation seed")
-    p.add_argument("--evaluate", default=None, metavar="CHECKPOINT", help="compare this policy checkpoint with the prior and exit")
-    p.add_argument("--episodes", type=int, default=None, help="with --evaluate: seeds per scene (default: the config's eval_episodes)")
+    p.add_argument("--evaluate", default=None, metavar="CHECKPOINT", help="evaluate this policy checkpoint next to the expert and the prior on held-out scenes and exit")
+    p.add_argument("--episodes", type=int, default=None, help="with --evaluate: rollouts (seeds) per held-out scene (default: the config's eval_episodes)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     p.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
     p.set_defaults(func=run)
@@ -41,8 +45,8 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     try:  # the optional env and rl extras
-        from ..evaluate import evaluate_checkpoint, format_table
-        from ..finetune import finetune, load_finetune_config
+        from ..evaluate import format_table
+        from ..finetune import evaluate_checkpoint, finetune, load_finetune_config
     except ImportError as exc:
         print(f"smart-marl finetune: error: needs the env and rl extras (pip install 'smart-marl[env,rl]'): {exc}", file=sys.stderr)
         return 2

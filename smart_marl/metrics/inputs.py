@@ -178,15 +178,21 @@ def lane_map(polylines: list[np.ndarray], ids: list[int], pad_point_xy: np.ndarr
     return LaneMap(lane_ids, pts, valid)
 
 
-def logged_scene(scenario: Scenario) -> LoggedScene:
-    """The metrics' logged inputs of a (WOMD-like, 91-step) scenario."""
+def logged_scene(scenario: Scenario, evaluated_tracks: np.ndarray | None = None) -> LoggedScene:
+    """The metrics' logged inputs of a (WOMD-like, 91-step) scenario. ``evaluated_tracks``: track
+    indices to evaluate instead of the challenge's (the SDC and the tracks to predict), e.g. the
+    agents a policy controls; they must be valid at the current step."""
     if scenario.num_frames != NUM_STEPS or scenario.current_frame != CURRENT_STEP:
         raise SceneNotScorableError(
             f"scenario {scenario.scenario_id}: the sim-agents metrics need {NUM_STEPS} frames with the current frame "
             f"at {CURRENT_STEP} (got {scenario.num_frames} frames, current {scenario.current_frame})"
         )
     sim = simulated_agent_indices(scenario)
-    ev_tracks = evaluated_track_indices(scenario)
+    if evaluated_tracks is None:
+        ev_tracks = evaluated_track_indices(scenario)
+    else:
+        ev_tracks = np.unique(np.asarray(evaluated_tracks, np.int64))
+        ev_tracks = ev_tracks[np.argsort(scenario.tracks.ids[ev_tracks], kind="stable")]
     if len(ev_tracks) == 0:
         raise SceneNotScorableError(f"scenario {scenario.scenario_id}: no agent to evaluate (the scene has no self-driving car and "
                                     f"no track to predict; the metrics score exactly those)")

@@ -9,6 +9,11 @@ what a policy's KL to the prior and the likelihood of a rollout are measured wit
 Sampling draws from the ``k`` most likely tokens with their probabilities renormalised (the
 paper's top-k, k = 5); ``k <= 0`` or ``k >= V`` means the whole distribution. With a seeded
 generator on the CPU the draws are reproducible.
+
+:func:`reference_log_probs` is the distribution :func:`sample_tokens` draws from, as
+log-probabilities over the whole vocabulary (``-inf`` outside the top ``k``), and
+:func:`top_k_mask` its support: the one definition of "the prior as it drives" that the
+environment's action mask, a fine-tuned policy's mask and the KL to the prior all use.
 """
 
 from __future__ import annotations
@@ -42,3 +47,33 @@ def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int =
         tokens = torch.where(f >= 0, f, tokens)
     log_probs = logp.gather(1, tokens[:, None]).squeeze(1)
     return tokens.view(lead), log_probs.view(lead)
+
+
+def top_k_mask(logits: torch.Tensor, top_k: int | None) -> torch.Tensor:
+    """bool [..., V]: the ``top_k`` largest entries of each row of ``logits`` [..., V] (the tokens
+    :func:`sample_tokens` can draw; ``torch.topk``, so ties break as it breaks them). ``top_k``
+    None, <= 0 or >= V: every token."""
+    v = logits.shape[-1]
+    if top_k is None or top_k <= 0 or top_k >= v:
+        return torch.ones(logits.shape, dtype=torch.bool, device=logits.device)
+    idx = torch.topk(logits, int(top_k), dim=-1).indices
+    return torch.zeros(logits.shape, dtype=torch.bool, device=logits.device).scatter(-1, idx, True)
+
+
+def reference_log_probs(logits: torch.Tensor, top_k: int | None = None, temperature: float = 1.0) -> torch.Tensor:
+    """log-probabilities [..., V] of the distribution :func:`sample_tokens` samples with these
+    arguments: ``softmax(logits / temperature)`` restricted to the ``top_k`` tokens and
+    renormalised, ``-inf`` outside them (``top_k`` None: the full softmax)."""
+    if temperature <= 0:
+        raise ValueError(f"temperature must be > 0, got {temperature}")
+    scaled = logits / temperature
+    keep = top_k_mask(scaled, top_k)
+    return torch.log_softmax(scaled.masked_fill(~keep, float("-inf")), dim=-1)
+
+
+
+def reference_name(top_k: int | None, temperature: float = 1.0) -> str:
+    """How a reference distribution (or a prior policy) is named in tables, logs and the env:
+    ``"prior top-5"``, ``"prior full softmax"``, with ``" T=0.8"`` when the temperature is not 1."""
+    name = f"prior top-{int(top_k)}" if top_k else "prior full softmax"
+    return name if float(temperature) == 1.0 else f"{name} T={float(temperature):g}"
