@@ -517,3 +517,22 @@ def time_to_collision(ego_x, ego_y, ego_length, ego_width, ego_heading, ego_spee
                        np.minimum(gap / np.where(rel_speed > 0, rel_speed, 1.0), MAXIMUM_TIME_TO_COLLISION_S),
                        MAXIMUM_TIME_TO_COLLISION_S)
     return ttc
+
+
+def frame_steps(values: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame change of tracks ``values`` [A, T, D] with ``valid`` [A, T]: the central difference
+    (half the change over two frames) where both neighbouring frames are valid, the one-sided one where
+    one is, 0 where none is. Returns (steps [A, T, D] per frame, has_neighbour [A, T]); divide by the
+    frame time for a rate."""
+    valid = np.asarray(valid, bool)
+    prev_ok = np.zeros_like(valid)
+    prev_ok[:, 1:] = valid[:, 1:] & valid[:, :-1]
+    next_ok = np.zeros_like(valid)
+    next_ok[:, :-1] = valid[:, :-1] & valid[:, 1:]
+    fwd = np.zeros_like(values)
+    fwd[:, :-1] = values[:, 1:] - values[:, :-1]
+    bwd = np.zeros_like(values)
+    bwd[:, 1:] = values[:, 1:] - values[:, :-1]
+    steps = np.where((prev_ok & next_ok)[..., None], 0.5 * (fwd + bwd),
+                     np.where(next_ok[..., None], fwd, np.where(prev_ok[..., None], bwd, 0.0)))
+    return steps, prev_ok | next_ok

@@ -53,6 +53,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..geometry import frame_steps
 from ..scenario import DT_S, AgentType, LaneType, MapFeatureType, Scenario, wrap_angle
 
 STOPPED_MPS = 0.5
@@ -128,20 +129,8 @@ def speed_from_positions_mps(position_xy: np.ndarray, valid: np.ndarray, dt_s: f
     """Speed [A, T] from box centres [A, T, 2]: central differences where both neighbours are valid,
     one-sided where one is, then a centred moving average over ``smoothing_frames`` valid frames.
     0 where invalid (and where a frame has no valid neighbour)."""
-    xy = np.asarray(position_xy, np.float64)
-    valid = np.asarray(valid, bool)
-    prev_ok = np.zeros_like(valid)
-    prev_ok[:, 1:] = valid[:, 1:] & valid[:, :-1]
-    next_ok = np.zeros_like(valid)
-    next_ok[:, :-1] = valid[:, :-1] & valid[:, 1:]
-    fwd = np.zeros_like(xy)
-    fwd[:, :-1] = xy[:, 1:] - xy[:, :-1]
-    bwd = np.zeros_like(xy)
-    bwd[:, 1:] = xy[:, 1:] - xy[:, :-1]
-    step = np.where((prev_ok & next_ok)[..., None], 0.5 * (fwd + bwd),
-                    np.where(next_ok[..., None], fwd, np.where(prev_ok[..., None], bwd, 0.0)))
+    step, has = frame_steps(np.asarray(position_xy, np.float64), valid)
     raw = np.linalg.norm(step, axis=-1) / dt_s
-    has = prev_ok | next_ok
     return _masked_window_mean(raw, has, smoothing_frames)
 
 

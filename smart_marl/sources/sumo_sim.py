@@ -31,6 +31,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from ..geometry import frame_steps
 from ..scenario import DT_S, AgentType, SceneFrame, Scenario, TrafficLights, Tracks, wrap_angle
 from .sumo_net import (
     SIGNAL_OF_CHAR, NetworkMap, NetworkSpec, build_network, network_map, quantize, random_network_spec,
@@ -405,19 +406,7 @@ def smooth_walkers(xy: np.ndarray, valid: np.ndarray, heading: np.ndarray, windo
     frames (valid ones only), velocities are their central differences, headings follow the velocity
     (held while standing) and turn at most ``max_yaw_rate`` (rad/s). Returns (xy, velocity, heading)."""
     smooth = np.where(valid[..., None], _window_mean(xy, valid, window), 0.0)
-    prev_ok = valid.copy()
-    prev_ok[:, 1:] &= valid[:, :-1]
-    prev_ok[:, 0] = False
-    next_ok = valid.copy()
-    next_ok[:, :-1] &= valid[:, 1:]
-    next_ok[:, -1] = False
-    fwd = np.zeros_like(smooth)
-    fwd[:, :-1] = smooth[:, 1:] - smooth[:, :-1]
-    bwd = np.zeros_like(smooth)
-    bwd[:, 1:] = smooth[:, 1:] - smooth[:, :-1]
-    diff = np.where((prev_ok & next_ok)[..., None], 0.5 * (fwd + bwd),
-                    np.where(next_ok[..., None], fwd, np.where(prev_ok[..., None], bwd, 0.0)))
-    velocity = diff / DT_S
+    velocity = frame_steps(smooth, valid)[0] / DT_S
     speed = np.linalg.norm(velocity, axis=-1)
     target = np.where(speed > min_speed_mps, np.arctan2(velocity[..., 1], velocity[..., 0]), np.nan)
     out = heading.copy()
