@@ -81,6 +81,8 @@ class TrainConfig:
     model_overrides: dict = field(default_factory=dict)  # SmartConfig fields, e.g. {"hidden_dim": 32}
     data: str = ""  # scene cache folder, or files / folder / glob that read_scenarios reads
     val_data: str | None = None  # None: validate on the first training scenes, without noise
+    extra_data: str | None = None  # more scenes mixed into `data` (e.g. a few real scenes next to simulated ones)
+    extra_data_share: float = 0.1  # about this share of the samples come from extra_data (its scenes repeated)
     out_dir: str = "runs/smart"
     motion_vocab: str | None = None  # vocabulary file (NAME.npz/.json); None: build from the training scenes
     road_vocab: str | None = None
@@ -146,7 +148,8 @@ def _betas(value) -> str | None:
 
 _TRAIN_RULES = {
     "model_overrides": lambda v: None if isinstance(v, dict) else f"must be a mapping, got {v!r}",
-    "data": text, "val_data": optional(text), "out_dir": lambda v: text(v) or output_dir_problem(v),
+    "data": text, "val_data": optional(text), "extra_data": optional(text),
+    "extra_data_share": number(0.0, 1.0, low_open=True, high_open=True), "out_dir": lambda v: text(v) or output_dir_problem(v),
     "motion_vocab": optional(text), "road_vocab": optional(text), "vocab_scenes": integer(1), "vocab_seed": integer(),
     "batch_size": integer(1), "num_workers": integer(0), "max_steps": integer(1), "lr": number(0.0, low_open=True),
     "weight_decay": number(0.0), "betas": _betas, "warmup_steps": integer(0), "grad_clip": number(0.0),
@@ -181,6 +184,38 @@ def open_scenes(path: str) -> Sequence[Scenario]:
     if len(scenes) == 0:
         raise TrainError(f"{path}: the dataset is empty (no scene to train on)")
     return scenes
+
+
+class MixedScenes(Sequence):
+    """``main`` followed by ``extra`` repeated ``repeat`` times: a few scenes (real ones next to
+    thousands of simulated ones) get a chosen share of the samples without copying them. Index
+    ``i < len(main)`` is ``main[i]``, so validating on the first training scenes still sees ``main``."""
+
+    def __init__(self, main: Sequence[Scenario], extra: Sequence[Scenario], share: float) -> None:
+        if not 0.0 < share < 1.0:
+            raise TrainConfigError(f"extra_data_share must be in (0, 1), got {share}")
+        self.main, self.extra = main, extra
+        self.repeat = max(1, round(share / (1.0 - share) * len(main) / len(extra)))
+
+    @property
+    def share(self) -> float:
+        """The share of samples that actually come from ``extra``."""
+        return len(self.extra) * self.repeat / len(self)
+
+    def __len__(self) -> int:
+        return len(self.main) + len(self.extra) * self.repeat
+
+    def __getitem__(self, index: int) -> Scenario:
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"scene index {index} out of range for {len(self)} samples")
+        index %= len(self)
+        return self.main[index] if index < len(self.main) else self.extra[(index - len(self.main)) % len(self.extra)]
+
+
+def training_scenes(cfg: "TrainConfig") -> Sequence[Scenario]:
+    """The run's scenes: ``data``, with ``extra_data`` mixed in at ``extra_data_share`` when given."""
+    scenes = open_scenes(cfg.data)
+    return MixedScenes(scenes, open_scenes(cfg.extra_data), cfg.extra_data_share) if cfg.extra_data else scenes
 
 
 class TokenizedScenes(Dataset):
@@ -506,7 +541,7 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
     resuming = checkpoint_paths(last)["meta"].is_file()
     if info.is_main:
         out_dir.mkdir(parents=True, exist_ok=True)
-    scenes = scenes if scenes is not None else open_scenes(cfg.data)
+    scenes = scenes if scenes is not None else training_scenes(cfg)
     if len(scenes) == 0:
         raise TrainError(f"{cfg.data or 'the scenes given'}: the dataset is empty (no scene to train on)")
 
@@ -574,6 +609,8 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
     if log is not None and log.note and cfg.progress:
         print(f"note: {log.note}", file=sys.stderr)
     data_info = {"data": cfg.data, "val_data": cfg.val_data, "num_scenes": len(scenes),
+                 **({"extra_data": cfg.extra_data, "extra_scenes": len(scenes.extra), "extra_share": round(scenes.share, 4)}
+                    if isinstance(scenes, MixedScenes) else {}),
                  "motion_vocab": mv.content_hash(), "road_vocab": rv.content_hash()}
 
     def save(tag: str, metrics: dict) -> Path | None:

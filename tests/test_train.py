@@ -19,7 +19,7 @@ from smart_marl.model.batch import SmartBatch, collate_scenes
 from smart_marl.model.checkpoint import load_checkpoint
 from smart_marl.model.losses import NextTokenLoss
 from smart_marl.model.smart import SMART, get_config, model_parameter_count
-from smart_marl.train import (DistInfo, TokenizedScenes, TrainError, build_vocabularies, evaluate, load_train_config, open_scenes,
+from smart_marl.train import (DistInfo, MixedScenes, TokenizedScenes, TrainError, build_vocabularies, evaluate, load_train_config, open_scenes,
                               train, train_step)
 from smart_marl.tokens.vocab_io import save_motion_vocabulary, save_road_vocabulary
 
@@ -167,6 +167,35 @@ def test_run_killed_and_resumed_matches_an_uninterrupted_run(shared_data, tmp_pa
     b = load_checkpoint(tmp_path / "killed" / "checkpoints" / "final").model.state_dict()
     for k in a:
         assert torch.equal(a[k], b[k]), k
+
+
+# ------------------------------------------------------------------------- mixing real scenes in
+def test_mixed_scenes_give_the_extra_scenes_their_share_of_samples():
+    main, extra = [f"m{i}" for i in range(100)], ["x0", "x1", "x2", "x3"]
+    mixed = MixedScenes(main, extra, 0.2)
+    assert mixed.repeat == 6 and len(mixed) == 124  # 0.2 / 0.8 * 100 / 4 = 6.25 repeats -> 6
+    assert abs(mixed.share - 24 / 124) < 1e-12
+    assert [mixed[i] for i in range(100)] == main  # the first scenes are data's (validation reads them)
+    assert [mixed[i] for i in range(100, 124)] == extra * 6 and mixed[-1] == "x3"
+    with pytest.raises(IndexError, match="124"):
+        mixed[124]
+    assert MixedScenes(["m"], extra, 0.01).repeat == 1  # every extra scene is sampled at least once per epoch
+
+
+def test_a_run_records_the_mixed_in_data_and_rejects_a_bad_share(shared_data, tmp_path):
+    vocab = _vocab_files(shared_data, tmp_path, 8, 16)
+    cfg = {"data": str(shared_data / GPUDRIVE / TWO_SCENES[0]), "extra_data": str(shared_data / GPUDRIVE / TWO_SCENES[1]),
+           "extra_data_share": 0.5, **vocab, "batch_size": 1, "num_workers": 0, "max_steps": 1, "log_every": 1, "val_every": 0,
+           "ckpt_every": 0, "tensorboard": False, "progress": False, "out_dir": str(tmp_path / "run"),
+           "model_overrides": {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
+                               "map_neighbours": 4, "road_neighbours": 4, "agent_neighbours": 4}}
+    result = train(load_train_config(cfg))
+    data = json.loads(Path(result.checkpoint).read_text())["data"]
+    assert data["num_scenes"] == 2 and data["extra_scenes"] == 1 and data["extra_share"] == 0.5
+    assert data["extra_data"].endswith(TWO_SCENES[1])
+    for share in (0, 1, 1.5):
+        with pytest.raises(TrainError, match="extra_data_share"):
+            load_train_config(cfg, [f"extra_data_share={share}"])
 
 
 # ---------------------------------------------------------------------------------- errors
