@@ -20,7 +20,14 @@ How a rollout runs:
 3. Every step: each simulated agent's next token is drawn from its type's distribution
    (:func:`~smart_marl.rollout.sampling.sample_tokens`: top-k with renormalised probabilities and a
    temperature) or forced; the token's 6 poses (its contour's centre and heading) are placed at the
-   agent's current pose; the 5 new poses are the agent's next 10 Hz frames; the tokens go back in.
+   agent's current pose; its last pose is where the agent is 0.5 s later (the next token starts
+   there); the tokens go back in. The 10 Hz frames in between (``interpolation="spline"``, the
+   default) follow a cubic Hermite curve from the current pose to the token's end, whose tangent at
+   each end is the displacement over the previous token and over this one: the frames are smooth
+   across token boundaries (the token contours' own in-between poses come from other snippets, whose
+   speed and yaw rate jump at every boundary), use no later step (a state stepped one token at a time
+   gives the same frames as a whole rollout), and never change what the model sees.
+   ``interpolation="contour"`` keeps the token's own in-between poses.
    ``mode="cached"`` runs the new step through the model's KV-cached step
    (:meth:`SMART.step <smart_marl.model.SMART.step>`); ``mode="full"`` re-runs MotionNet over the
    whole history and every generated step (road encodings are reused in both modes: they do not
@@ -54,6 +61,9 @@ from ..tokens.road import RoadVocabulary
 from .sampling import sample_tokens
 
 MODES = ("cached", "full")
+INTERPOLATIONS = ("spline", "contour")
+MAX_LEAD = 2.8  # the start tangent of a token's curve is capped at this many times its displacement
+_HERMITE_S = torch.tensor([0.2, 0.4, 0.6, 0.8], dtype=torch.float64)  # the in-between frames of a token, as a fraction of it
 
 
 # ------------------------------------------------------------------------------ model inputs
@@ -166,10 +176,13 @@ class RolloutState:
     """
 
     def __init__(self, model, vocab: MotionVocabulary, scenes: Sequence[Scenario], num_rollouts: int, seed: int, top_k: int,
-                 temperature: float, device, mode: str, road_vocab: RoadVocabulary | None = None) -> None:
+                 temperature: float, device, mode: str, road_vocab: RoadVocabulary | None = None,
+                 interpolation: str = "spline") -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-        self.model, self.vocab, self.mode = model, vocab, mode
+        if interpolation not in INTERPOLATIONS:
+            raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}")
+        self.model, self.vocab, self.mode, self.interpolation = model, vocab, mode, interpolation
         self.scenes = list(scenes)
         self.top_k, self.temperature = int(top_k), float(temperature)
         self.device = torch.device(device)
@@ -221,6 +234,7 @@ class RolloutState:
         # ---- history through the model
         self.history = [hist_tokens, hist_valid, hist_start, hist_end]  # grows by one step per token step (full mode)
         self.pose = hist_end[:, :, -1].clone()  # (G, N, 3) where each slot's next token starts
+        self.previous_pose = torch.where(hist_valid[:, :, -1, None], hist_start[:, :, -1], self.pose)  # 0.5 s before it
         self.step_index = 0
         self._logits: torch.Tensor | None = None
         self.cache = None  # the model's KV cache (mode "cached")
@@ -234,15 +248,17 @@ class RolloutState:
     # ------------------------------------------------------------------------------- creation
     @classmethod
     def start(cls, model, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 1, seed: int = 0, top_k: int = 5,
-              temperature: float = 1.0, device="cpu", mode: str = "cached", motion_vocab: MotionVocabulary | None = None) -> "RolloutState":
+              temperature: float = 1.0, device="cpu", mode: str = "cached", motion_vocab: MotionVocabulary | None = None,
+              interpolation: str = "spline") -> "RolloutState":
         """Tokenize the scenes' histories and run them through the model. ``model``: a SMART model,
         a Checkpoint or a checkpoint path; ``motion_vocab`` overrides the vocabulary used to
-        tokenize the history and place tokens (by default the checkpoint's, or the model's contours)."""
+        tokenize the history and place tokens (by default the checkpoint's, or the model's contours);
+        ``interpolation`` draws the 10 Hz frames between token ends (module docstring)."""
         m, vocab = load_prior(model, device)
         scenes = [scenes] if isinstance(scenes, Scenario) else list(scenes)
         if not scenes:
             raise ValueError("no scenes to roll out")
-        return cls(m, motion_vocab or vocab, scenes, num_rollouts, seed, top_k, temperature, device, mode)
+        return cls(m, motion_vocab or vocab, scenes, num_rollouts, seed, top_k, temperature, device, mode, interpolation=interpolation)
 
     # ------------------------------------------------------------------------------ accessors
     @property
@@ -284,6 +300,7 @@ class RolloutState:
         called), those logits stay as they were; the new pose is seen from the following step on."""
         m = mask.to(self.device, torch.bool)
         self.pose = torch.where(m[..., None], pose.to(self.device, self.pose.dtype), self.pose)
+        self.previous_pose = torch.where(m[..., None], torch.nan, self.previous_pose)  # moved: no motion to continue
         if self._pending is not None and self._logits is None:
             tok, st, en, va = self._pending
             self._pending = (tok, st, torch.where(m[..., None], self.pose, en), va)
@@ -353,8 +370,11 @@ class RolloutState:
         local = self.token_poses[self.agent_type, tokens.clamp(min=0)]  # (G, N, 6, 3)
         placed = compose_torch(self.pose[:, :, None, :], local[:, :, 1:])  # (G, N, 5, 3)
         new_pose = torch.where(sim[..., None], placed[:, :, -1], self.pose)
+        if self.interpolation == "spline":
+            placed = torch.cat([hermite_frames(self.previous_pose, self.pose, new_pose), new_pose[:, :, None]], 2)
         placed = torch.where(sim[:, :, None, None], placed, self.pose[:, :, None, :])
         start = self.pose
+        self.previous_pose = torch.where(sim[..., None], self.pose, self.previous_pose)
         self._pending = (tokens.clamp(min=0), start, new_pose, sim.clone())
         if self.mode == "full":
             h = self.history
@@ -376,6 +396,29 @@ class RolloutState:
             forced = before_step(self, k, outs[-1] if outs else None) if before_step is not None else None
             outs.append(self.step(forced))
         return outs
+
+
+def hermite_frames(before: torch.Tensor, start: torch.Tensor, end: torch.Tensor) -> torch.Tensor:
+    """The 4 in-between 10 Hz poses [..., 4, 3] of a token from pose ``start`` to pose ``end`` [..., 3]:
+    a cubic Hermite curve in x, y and heading whose tangents are ``start - before`` (the previous
+    token's displacement; the token's own where ``before`` is NaN) and ``end - start``, so that
+    consecutive tokens join with continuous velocity and yaw rate. The start tangent is capped at
+    ``MAX_LEAD`` times the token's displacement (position and heading separately) so that the curve
+    never overshoots its end. Headings are unwrapped along the way and wrapped back."""
+    chord = torch.cat([end[..., :2] - start[..., :2], wrap_angle(end[..., 2:] - start[..., 2:])], -1)
+    lead = torch.cat([start[..., :2] - before[..., :2], wrap_angle(start[..., 2:] - before[..., 2:])], -1)
+    lead = torch.where(torch.isnan(lead), chord, lead)
+    # no overshoot: a tangent at most 2.8x the token's own displacement (the Fritsch-Carlson bound for
+    # a monotone cubic), in position and in heading, so that a token that stops or stops turning
+    # does not first run on and come back
+    limit_xy = MAX_LEAD * chord[..., :2].norm(dim=-1, keepdim=True)
+    lead_xy = lead[..., :2] * (limit_xy / lead[..., :2].norm(dim=-1, keepdim=True).clamp(min=1e-9)).clamp(max=1.0)
+    lead_h = torch.maximum(torch.minimum(lead[..., 2:], MAX_LEAD * chord[..., 2:].abs()), -MAX_LEAD * chord[..., 2:].abs())
+    lead = torch.cat([lead_xy, lead_h], -1)
+    s = _HERMITE_S.to(start.device, start.dtype)[:, None]  # (4, 1)
+    h10, h01, h11 = s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2
+    out = start[..., None, :] + h10 * lead[..., None, :] + h01 * chord[..., None, :] + h11 * chord[..., None, :]
+    return torch.cat([out[..., :2], wrap_angle(out[..., 2:])], -1)
 
 
 def compose_torch(origin: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
@@ -413,11 +456,12 @@ class RolloutResult:
 
 def rollout(model_or_checkpoint, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 32, num_steps: int = 16,
             top_k: int = 5, temperature: float = 1.0, seed: int = 0, device="cpu", mode: str = "cached",
-            motion_vocab: MotionVocabulary | None = None) -> RolloutResult:
+            motion_vocab: MotionVocabulary | None = None, interpolation: str = "spline") -> RolloutResult:
     """Generate ``num_rollouts`` joint futures of ``num_steps`` tokens (0.5 s each) for every scene
     in one batch (see the module docstring). Same seed, same rollouts (on the CPU)."""
     state = RolloutState.start(model_or_checkpoint, scenes, num_rollouts=num_rollouts, seed=seed, top_k=top_k,
-                               temperature=temperature, device=device, mode=mode, motion_vocab=motion_vocab)
+                               temperature=temperature, device=device, mode=mode, motion_vocab=motion_vocab,
+                               interpolation=interpolation)
     outs = state.run(num_steps)
     return collect_result(state, outs)
 
