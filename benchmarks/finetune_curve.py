@@ -163,7 +163,8 @@ def main() -> int:
     last = {k: float(np.mean([r[k] for r in h[-3:]])) for k in first}
     rows = result.evaluation["rows"]
     ref = result.evaluation["reference"]
-    emit({"kind": "summary", "scenes": result.scene_ids, "held_out_scenes": result.evaluation["scenes"], "reference": ref, "seconds": time.perf_counter() - t0, "frames": h[-1]["frames"],
+    emit({"kind": "summary", "scenes": result.scene_ids, "held_out_scenes": result.evaluation["scenes"], "reference": ref,
+          "seconds": time.perf_counter() - t0, "frames": h[-1]["frames"],
           "first3": first, "last3": last, "eval_seeds": result.evaluation["seeds"],
           "eval_delta_vs_reference": {k: rows["fine-tuned"][k] - rows[ref][k] for k in
                                       ("goal_rate", "collision_rate", "offroad_rate", "progress_m", "return", "meta_metric")},

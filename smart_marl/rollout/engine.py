@@ -368,7 +368,8 @@ class RolloutState:
         tokens, log_probs = tokens.view(g, n), log_probs.view(g, n)
         # place each token's poses at the slot's current pose
         local = self.token_poses[self.agent_type, tokens.clamp(min=0)]  # (G, N, 6, 3)
-        placed = compose_torch(self.pose[:, :, None, :], local[:, :, 1:])  # (G, N, 5, 3)
+        frames = slice(1, None) if self.interpolation == "contour" else slice(-1, None)  # spline: only the end is placed
+        placed = compose_torch(self.pose[:, :, None, :], local[:, :, frames])  # (G, N, 5 or 1, 3)
         new_pose = torch.where(sim[..., None], placed[:, :, -1], self.pose)
         if self.interpolation == "spline":
             placed = torch.cat([hermite_frames(self.previous_pose, self.pose, new_pose), new_pose[:, :, None]], 2)
@@ -416,8 +417,8 @@ def hermite_frames(before: torch.Tensor, start: torch.Tensor, end: torch.Tensor)
     lead_h = torch.maximum(torch.minimum(lead[..., 2:], MAX_LEAD * chord[..., 2:].abs()), -MAX_LEAD * chord[..., 2:].abs())
     lead = torch.cat([lead_xy, lead_h], -1)
     s = _HERMITE_S.to(start.device, start.dtype)[:, None]  # (4, 1)
-    h10, h01, h11 = s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2
-    out = start[..., None, :] + h10 * lead[..., None, :] + h01 * chord[..., None, :] + h11 * chord[..., None, :]
+    h10, h01_plus_h11 = s**3 - 2 * s**2 + s, 2 * s**2 - s**3  # Hermite basis; the end tangent is the chord itself
+    out = start[..., None, :] + h10 * lead[..., None, :] + h01_plus_h11 * chord[..., None, :]
     return torch.cat([out[..., :2], wrap_angle(out[..., 2:])], -1)
 
 
