@@ -7,12 +7,16 @@ speed in the prior's rollouts against the logged mean speed of the same agents a
 (both from 10 Hz position differences, over the agents logged at that frame); and the
 teacher-forced bias of the model's most likely next token (logged history as input): mean speed
 of the argmax token over the mean speed of the target token, for the same moving agents at every
-step.
+step; and for vehicles, the same by the speed of the input token, with the mean speed of the
+renormalised top-k distribution as well (does the model pull fast or slow vehicles toward the
+speeds of its training data?).
 
 Output (stdout, one JSON object per line)::
 
     {"kind": "horizon", "set": "real", "type": "vehicle", "t_s": 2.0, "rollout_mps": ..., "log_mps": ..., "ratio": ..., "agents": ...}
     {"kind": "teacher_forced", "set": "real", "type": "vehicle", "argmax_mps": ..., "target_mps": ..., "ratio": ..., "rows": ...}
+    {"kind": "teacher_forced_by_speed", "set": "real", "type": "vehicle", "input_mps": [15.0, null], "target_mps": ...,
+     "argmax_ratio": ..., "top_k_mean_ratio": ..., "rows": ...}
 
 A prior with no drift has ratios near 1 at every horizon (the log itself slows down where the
 traffic does, which the rollout should follow, not exceed).
@@ -46,6 +50,7 @@ SUMO_SAMPLES = ROOT / "smart_marl" / "samples"
 HORIZONS_S = (0.5, 1.0, 2.0, 4.0, 6.0, 8.0)
 MOVING_MPS = {AgentType.VEHICLE: 5.0, AgentType.PEDESTRIAN: 0.5, AgentType.CYCLIST: 2.0}
 NUM_FRAMES = 80  # 16 tokens of 5 frames
+SPEED_BINS_MPS = (0.0, 1.0, 5.0, 9.0, 12.0, 15.0, 1e9)  # vehicles' teacher-forced bias by input-token speed
 
 
 def _speeds_from_positions(xy: np.ndarray, start_xy: np.ndarray) -> np.ndarray:
@@ -77,8 +82,13 @@ def rollout_speeds(ck, scene, num_rollouts: int, top_k: int, temperature: float,
 
 
 @torch.no_grad()
-def teacher_forced_bias(ck, scene) -> dict:
-    """Per motion type: (sum of argmax-token speeds, sum of target-token speeds, rows) over the moving agents' steps."""
+def teacher_forced_bias(ck, scene, top_k: int = 5) -> tuple[dict, np.ndarray]:
+    """Teacher-forced speed bias of the model's next token on the logged history.
+
+    Returns ({type: (sum of argmax-token speeds, sum of target-token speeds, rows)} over the agents
+    moving at the current frame, every step; and, for vehicles by the speed of their input token
+    (:data:`SPEED_BINS_MPS`), per bin [sum of argmax-token speeds, sum of the top-k renormalised
+    mean speeds, sum of target-token speeds, rows] over every step with a logged input token)."""
     mv = ck.motion_vocab
     mt = tokenize_motion(scene, mv)
     d = scene_tensors(scene, mv, scene_road(scene, ck.road_vocab, ck.model.config.road_types), noise_topk=0, road_mask_prob=0.0, rng=0, motion_tokens=mt)
@@ -90,15 +100,28 @@ def teacher_forced_bias(ck, scene) -> dict:
     v_now = np.where(tr.valid[keep, cf] & tr.valid[keep, cf - 1],
                      np.linalg.norm(tr.position[keep, cf, :2] - tr.position[keep, cf - 1, :2], axis=-1) / 0.1, 0.0)
     out = {}
+    bins = np.zeros((len(SPEED_BINS_MPS) - 1, 4))
     for t in MOTION_TYPES:
-        moving = (tr.types[keep] == int(t)) & (v_now > MOVING_MPS[t])
-        rows = torch.from_numpy(moving)[:, None] & b.target_valid[0]
-        if not rows.any():
-            continue
         token_mps = torch.from_numpy(mv[t].poses[:, -1, :2]).norm(dim=-1) / 0.5
-        pred, tgt = logits[int(t)][0].argmax(-1)[rows], b.target_tokens[0][rows]
-        out[t] = (float(token_mps[pred].sum()), float(token_mps[tgt].sum()), int(rows.sum()))
-    return out
+        lg, tgt = logits[int(t)][0], b.target_tokens[0]
+        is_type = torch.from_numpy(tr.types[keep] == int(t))[:, None]
+        moving = torch.from_numpy(v_now > MOVING_MPS[t])[:, None] & is_type & b.target_valid[0]
+        if moving.any():
+            pred = lg.argmax(-1)[moving]
+            out[t] = (float(token_mps[pred].sum()), float(token_mps[tgt[moving]].sum()), int(moving.sum()))
+        if t != AgentType.VEHICLE:
+            continue
+        prev = torch.cat([torch.full_like(tgt[:, :1], -1), tgt[:, :-1]], 1)  # the input token of each step
+        rows = is_type & b.target_valid[0] & (prev >= 0)
+        top, idx = lg[rows].topk(top_k, -1)
+        cols = np.stack([token_mps[lg[rows].argmax(-1)].numpy(), (torch.softmax(top, -1) * token_mps[idx]).sum(-1).numpy(),
+                         token_mps[tgt[rows]].numpy()], 1)
+        which = np.digitize(token_mps[prev[rows]].numpy(), SPEED_BINS_MPS[1:-1])
+        for i in range(len(bins)):
+            sel = which == i
+            bins[i, :3] += cols[sel].sum(0)
+            bins[i, 3] += sel.sum()
+    return out, bins
 
 
 def scene_sets(specs: list[str] | None) -> dict[str, list]:
@@ -133,6 +156,7 @@ def main(argv=None) -> None:
             scenes = scenes[: args.max_scenes]
         roll = {t: [np.zeros(NUM_FRAMES), np.zeros(NUM_FRAMES), np.zeros(NUM_FRAMES), 0] for t in MOTION_TYPES}
         tf = {t: np.zeros(3) for t in MOTION_TYPES}
+        tf_bins = np.zeros((len(SPEED_BINS_MPS) - 1, 4))
         for scene in scenes:
             for t, (r, lg, n, m) in rollout_speeds(ck, scene, args.rollouts, args.top_k, args.temperature, args.seed).items():
                 acc = roll[t]
@@ -140,8 +164,10 @@ def main(argv=None) -> None:
                 acc[1] += lg
                 acc[2] += n
                 acc[3] += m
-            for t, v in teacher_forced_bias(ck, scene).items():
+            moving_bias, bins = teacher_forced_bias(ck, scene, args.top_k)
+            for t, v in moving_bias.items():
                 tf[t] += v
+            tf_bins += bins
         common = {"set": set_name, "scenes": len(scenes), "rollouts": args.rollouts, "top_k": args.top_k,
                   "temperature": args.temperature, "prior": args.prior}
         for t in MOTION_TYPES:
@@ -160,6 +186,11 @@ def main(argv=None) -> None:
                 print(json.dumps({"kind": "teacher_forced", "type": t.name.lower(), "argmax_mps": round(s[0] / s[2], 3),
                                   "target_mps": round(s[1] / s[2], 3), "ratio": round(s[0] / max(s[1], 1e-9), 3),
                                   "rows": int(s[2]), **common}), flush=True)
+        for (lo, hi), (am, tk, tgt, n) in zip(zip(SPEED_BINS_MPS[:-1], SPEED_BINS_MPS[1:]), tf_bins):
+            if n:
+                print(json.dumps({"kind": "teacher_forced_by_speed", "type": "vehicle", "input_mps": [lo, hi if hi < 1e9 else None],
+                                  "target_mps": round(tgt / n, 3), "argmax_ratio": round(am / max(tgt, 1e-9), 3),
+                                  "top_k_mean_ratio": round(tk / max(tgt, 1e-9), 3), "rows": int(n), **common}), flush=True)
 
 
 if __name__ == "__main__":

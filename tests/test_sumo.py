@@ -348,6 +348,21 @@ def test_legacy_config_draws_the_first_generators_networks():
     assert 3.2 <= tuned.lane_width_m <= 3.8
 
 
+def test_speed_limits_are_drawn_from_the_configured_levels_and_weights():
+    """``generate-sumo --speed-limits 50,90 --speed-weights 1,3``: km/h become m/s, the weights are
+    normalised, and the networks' limits are drawn from those levels in those proportions."""
+    from smart_marl.commands.generate_sumo import speed_changes
+    from smart_marl.sources.sumo_sim import network_spec
+
+    changes = speed_changes("50,90", "1,3")
+    assert changes == {"speed_levels_mps": (13.89, 25.0), "speed_weights": (0.25, 0.75)}
+    assert speed_changes("50,90", None)["speed_weights"] is None and speed_changes(None, None) == {}
+    config = SumoConfig(**changes)
+    drawn = [network_spec(np.random.default_rng(i), config).speed_mps for i in range(400)]
+    assert set(drawn) == {13.89, 25.0}
+    assert drawn.count(25.0) / len(drawn) == pytest.approx(0.75, abs=0.06)
+
+
 def test_random_walk_goes_straight_on_and_stops_at_a_dead_end():
     from smart_marl.sources.sumo_sim import EdgeGraph, random_walk
 

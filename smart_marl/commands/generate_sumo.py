@@ -34,17 +34,48 @@ def register(subparsers) -> None:
                         "instead of the defaults tuned toward real traffic")
     p.add_argument("--demand-scale", type=float, default=None, metavar="X",
                    help="multiplies the traffic demand (default: the config's, 2.5 for the tuned traffic, 1 with --legacy)")
+    p.add_argument("--speed-limits", default=None, metavar="KMH[,KMH...]",
+                   help="the networks' speed limits to draw from, km/h (default: the config's, 30-70 km/h)")
+    p.add_argument("--speed-weights", default=None, metavar="W[,W...]",
+                   help="their probabilities, one per limit (normalised; default: the config's with the default "
+                        "limits, uniform with --speed-limits)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
+
+
+def _numbers(text: str, name: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise UsageError(f"argument {name}: expected comma-separated numbers, got {text!r}") from None
+    if not values or not all(v > 0 for v in values):
+        raise UsageError(f"argument {name}: every value must be > 0, got {text!r}")
+    return values
+
+
+def speed_changes(limits_kmh: str | None, weights: str | None) -> dict:
+    """SumoConfig changes of ``--speed-limits`` / ``--speed-weights`` (km/h, probabilities)."""
+    if limits_kmh is None:
+        if weights is not None:
+            raise UsageError("argument --speed-weights: needs --speed-limits (one weight per limit)")
+        return {}
+    levels = tuple(round(v / 3.6, 2) for v in _numbers(limits_kmh, "--speed-limits"))
+    if weights is None:
+        return {"speed_levels_mps": levels, "speed_weights": None}
+    w = _numbers(weights, "--speed-weights")
+    if len(w) != len(levels):
+        raise UsageError(f"argument --speed-weights: {len(w)} weights for {len(levels)} speed limits")
+    return {"speed_levels_mps": levels, "speed_weights": tuple(x / sum(w) for x in w)}
 
 
 def run(args) -> int:
     if args.demand_scale is not None and not args.demand_scale > 0:
         raise UsageError(f"argument --demand-scale: must be > 0, got {args.demand_scale}")
     make_config = SumoConfig.legacy if args.legacy else SumoConfig
-    demand = {} if args.demand_scale is None else {"demand_scale": args.demand_scale}
+    changes = {} if args.demand_scale is None else {"demand_scale": args.demand_scale}
+    changes.update(speed_changes(args.speed_limits, args.speed_weights))
     config = make_config(scenes_per_sim=args.scenes_per_sim, radius_m=args.radius, pedestrians=not args.no_pedestrians,
-                         bicycles=not args.no_bicycles, sublane=args.sublane, **demand)
+                         bicycles=not args.no_bicycles, sublane=args.sublane, **changes)
     try:
         report = generate_to_dir(args.out, args.scenes, seed=args.seed, config=config, workers=args.workers,
                                  fmt=args.format, progress=not args.quiet)

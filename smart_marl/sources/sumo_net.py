@@ -160,11 +160,12 @@ SPEEDS_MPS = (8.33, 11.11, 13.89, 16.67, 19.44)
 def random_network_spec(rng: np.random.Generator, pedestrians: bool = True, bicycles: bool = True,
                         length_scale: float = 1.0, kind_weights=(0.45, 0.2, 0.35),
                         junction_weights=(0.5, 0.25, 0.1, 0.07, 0.08), speed_weights=None,
-                        tls_guess_probability: float = 0.4, lane_width_m: tuple[float, float] | None = None) -> NetworkSpec:
+                        tls_guess_probability: float = 0.4, lane_width_m: tuple[float, float] | None = None,
+                        speed_levels_mps: tuple[float, ...] = SPEEDS_MPS) -> NetworkSpec:
     """A random network: topology, sizes and rules drawn from ``rng``. ``length_scale`` multiplies
     every block length (grid blocks, spider rings, random-network edge lengths); the weights are the
-    probabilities of :data:`NETWORK_KINDS`, :data:`JUNCTION_TYPES` and :data:`SPEEDS_MPS` (the
-    network's default speed limit; None: uniform); ``lane_width_m``: a range to draw the lane width
+    probabilities of :data:`NETWORK_KINDS`, :data:`JUNCTION_TYPES` and ``speed_levels_mps`` (the
+    network's default speed limit, :data:`SPEEDS_MPS` unless given; None: uniform); ``lane_width_m``: a range to draw the lane width
     from (None: netgenerate's 3.2 m, and no draw). The defaults are the first generator's, whose
     draws they repeat exactly (``SumoConfig.legacy()``)."""
     k = float(length_scale)
@@ -189,7 +190,7 @@ def random_network_spec(rng: np.random.Generator, pedestrians: bool = True, bicy
     junction_type = str(rng.choice(list(JUNCTION_TYPES), p=list(junction_weights)))
     spec = dict(
         kind=kind, params=params, lanes=lanes, random_lanenumber=bool(lanes > 1 and rng.random() < 0.5),
-        speed_mps=round(float(rng.choice(list(SPEEDS_MPS), p=None if speed_weights is None else list(speed_weights))), 2),
+        speed_mps=round(float(rng.choice(list(speed_levels_mps), p=None if speed_weights is None else list(speed_weights))), 2),
         junction_type=junction_type,
         tls_guess=bool(junction_type != "traffic_light" and rng.random() < tls_guess_probability),
         sidewalks=bool(pedestrians), crossings=bool(pedestrians),

@@ -34,7 +34,7 @@ import numpy as np
 from ..geometry import frame_steps
 from ..scenario import DT_S, AgentType, SceneFrame, Scenario, TrafficLights, Tracks, wrap_angle
 from .sumo_net import (
-    SIGNAL_OF_CHAR, NetworkMap, NetworkSpec, build_network, network_map, quantize, random_network_spec,
+    SIGNAL_OF_CHAR, SPEEDS_MPS, NetworkMap, NetworkSpec, build_network, network_map, quantize, random_network_spec,
     require_sumo, rotation_matrix, sumo_binary, turn_angle,
 )
 
@@ -67,7 +67,8 @@ class SumoConfig:
     length_scale: float = 2.0  # multiplies every block length of the random networks (1: 60-180 m grid blocks)
     kind_weights: tuple[float, float, float] = (0.45, 0.2, 0.35)  # grid, spider, rand
     junction_weights: tuple[float, ...] = (0.3, 0.5, 0.1, 0.08, 0.02)  # over sumo_net.JUNCTION_TYPES
-    speed_weights: tuple[float, ...] | None = (0.3, 0.3, 0.2, 0.15, 0.05)  # over sumo_net.SPEEDS_MPS; None: uniform
+    speed_levels_mps: tuple[float, ...] = SPEEDS_MPS  # the networks' default speed limits to draw from
+    speed_weights: tuple[float, ...] | None = (0.3, 0.3, 0.2, 0.15, 0.05)  # over speed_levels_mps; None: uniform
     tls_guess_probability: float = 0.2  # share of unsignalised networks that get lights at busy junctions
     lane_width_m: tuple[float, float] | None = (3.2, 3.8)  # lane width range; None: SUMO's 3.2 m
     routes: str = "walk"  # "walk": random walks that mostly go straight on; "trips": random origin-destination trips
@@ -489,7 +490,8 @@ def network_spec(rng: np.random.Generator, config: SumoConfig) -> NetworkSpec:
     return random_network_spec(rng, pedestrians=config.pedestrians, bicycles=config.bicycles,
                                length_scale=config.length_scale, kind_weights=config.kind_weights,
                                junction_weights=config.junction_weights, speed_weights=config.speed_weights,
-                               tls_guess_probability=config.tls_guess_probability, lane_width_m=config.lane_width_m)
+                               tls_guess_probability=config.tls_guess_probability, lane_width_m=config.lane_width_m,
+                               speed_levels_mps=config.speed_levels_mps)
 
 
 def sim_seed(seed: int, sim_index: int) -> int:
