@@ -293,3 +293,43 @@ def test_cli_vocab_build_writes_loadable_files(shared_data, tmp_path):
     assert v64.sizes()["vehicle"] == 64 and v64.provenance["files"] == [str(src)]
     assert load_motion_vocabulary(tmp_path / "motion_32").sizes() == {"vehicle": 32, "pedestrian": 32}  # no cyclist there
     assert load_road_vocabulary(tmp_path / "road_64").size == 64
+
+
+def _pair_search_by_brute_force(poses, cur, targets, heading_weight):
+    """match_token_path's look-ahead by its definition: every one of the V x V token pairs scored."""
+    import torch
+
+    from smart_marl.tokens.motion import compose_poses
+
+    p = torch.as_tensor(poses, dtype=torch.float64)[:, 1:]  # (V, 5, 3)
+    v = p.shape[0]
+    first = p[:, None].expand(v, v, 5, 3)
+    second = torch.as_tensor(compose_poses(np.repeat(p[:, -1].numpy()[:, None, None], 5, 2), p.numpy()[None]))
+    pair = torch.cat([first, second], 2)  # (V, V, 10, 3): token b placed at the end of token a
+    out = []
+    for c, t in zip(cur, targets):
+        world = torch.as_tensor(compose_poses(np.repeat(c[None, None, None], 10, 2), pair.numpy()))
+        err = (world[..., :2] - t[:, :2]).norm(dim=-1).mean(-1) + heading_weight * torch.as_tensor(
+            wrap_angle((world[..., 2] - t[:, 2]).numpy())).abs().mean(-1)
+        out.append(int(err.amin(1).argmin()))
+    return out
+
+
+def test_path_matching_look_ahead_equals_scoring_every_token_pair():
+    """match_token_path prunes the V x V pairs by a bound (half the first token's error): the same
+    choice as scoring every pair, on noisy paths built from token pairs and on random ones."""
+    import torch
+
+    from smart_marl.model.checkpoint import load_embedded
+    from smart_marl.tokens.motion import compose_poses, match_token_path
+
+    poses = load_embedded().motion_vocab[AgentType.VEHICLE].poses[:160].astype(np.float64)
+    rng = np.random.default_rng(0)
+    a, b = rng.integers(0, 160, 6), rng.integers(0, 160, 6)
+    cur = np.concatenate([rng.normal(0, 5, (6, 2)), rng.uniform(-np.pi, np.pi, (6, 1))], 1)
+    local = np.concatenate([poses[a, 1:], compose_poses(poses[a, -1][:, None], poses[b, 1:])], 1)
+    local = local + rng.normal(0, 0.2, local.shape)
+    local[-2:] = rng.normal(0, 3, (2, 10, 3))  # two paths no pair follows
+    targets = compose_poses(cur[:, None], local)
+    got = match_token_path(torch.from_numpy(poses), 160, torch.from_numpy(cur), torch.from_numpy(targets), 2.0)
+    assert got.tolist() == _pair_search_by_brute_force(poses, cur, targets, 2.0)

@@ -516,6 +516,8 @@ def reconstruct(tokens: MotionTokens, vocab: MotionVocabulary, num_frames: int |
 # ------------------------------------------------------------------------- matching one move
 PATH_HEADING_WEIGHT_M_PER_RAD = 2.0
 """How much a heading error counts against a position error when matching a path (m per rad)."""
+PAIR_CHUNK = 32
+"""First tokens whose pairs :func:`match_token_path`'s look-ahead scores together."""
 PEDESTRIAN_PATH_HEADING_WEIGHT_M_PER_RAD = 1.0
 """Pedestrians turn on the spot and their headings are noisy in the data: heading counts half as much."""
 
@@ -563,14 +565,38 @@ def match_token_path(token_poses: torch.Tensor, vocab_size: int, current_pose: t
         dh = candidate[..., 2] - target[..., 2]
         return pos + heading_weight * wrap_angle(dh).abs().mean(-1)
 
+    first = error(poses[None], local[:, None, :FRAMES_PER_TOKEN])  # (M, V)
     if local.shape[1] < 2 * FRAMES_PER_TOKEN:
-        return error(poses[None], local[:, None, :FRAMES_PER_TOKEN]).argmin(1)
-    # pairs: token b placed at the end of token a -> (V, V, 5, 3)
+        return first.argmin(1)
+    # pairs: token b placed at the end of token a. A pair's error is the mean of its first token's
+    # error and its second's, so half the first token's error bounds every pair that starts with it:
+    # pairs are scored in chunks of first tokens, best first, until no unscored first token can beat
+    # the best pair found. Exact (the full V x V argmin, ties to the lowest id) at a few chunks' cost.
     end = poses[:, -1]  # (V, 3)
-    ce, se = end[:, 2].cos()[:, None, None], end[:, 2].sin()[:, None, None]
     bx, by = poses[None, :, :, 0], poses[None, :, :, 1]
-    second = torch.stack([end[:, None, None, 0] + ce * bx - se * by, end[:, None, None, 1] + se * bx + ce * by,
-                          end[:, None, None, 2] + poses[None, :, :, 2]], -1)
-    pair = torch.cat([poses[:, None].expand(-1, poses.shape[0], -1, -1), second], 2)  # (V, V, 10, 3)
-    err = error(pair[None], local[:, None, None, : 2 * FRAMES_PER_TOKEN])  # (M, V, V)
-    return err.amin(2).argmin(1)
+    m, v = first.shape
+    order = first.argsort(1)  # (M, V) first tokens, best first
+    best = torch.full((m,), math.inf, dtype=first.dtype)
+    best_id = torch.zeros(m, dtype=torch.long)
+    for lo in range(0, v, PAIR_CHUNK):
+        ids = order[:, lo:lo + PAIR_CHUNK]  # (M, C)
+        live = first.gather(1, ids) / 2 <= best[:, None]  # (M, C) could still win (or tie)
+        if not live.any():
+            break
+        rows = live.any(1).nonzero().squeeze(1)
+        ids = ids[rows]
+        e = end[ids]  # (R, C, 3)
+        c2, s2 = e[..., 2].cos()[..., None, None], e[..., 2].sin()[..., None, None]
+        second = torch.stack([e[..., 0, None, None] + c2 * bx - s2 * by, e[..., 1, None, None] + s2 * bx + c2 * by,
+                              e[..., 2, None, None] + poses[None, :, :, 2]], -1)  # (R, C, V, 5, 3)
+        err2 = error(second, local[rows, None, None, FRAMES_PER_TOKEN: 2 * FRAMES_PER_TOKEN]).amin(2)  # (R, C)
+        err = (first[rows].gather(1, ids) + err2) / 2
+        err = err.masked_fill(~live[rows], math.inf)
+        val = err.min(1).values
+        for r, row in enumerate(rows.tolist()):  # ties keep the lowest token id, as the full argmin does
+            tied = int(ids[r][err[r] == val[r]].min())
+            if val[r] < best[row]:
+                best[row], best_id[row] = val[r], tied
+            elif val[r] == best[row]:
+                best_id[row] = min(int(best_id[row]), tied)
+    return best_id
