@@ -95,8 +95,9 @@ def main() -> int:
     ap.add_argument("--betas", type=float, nargs="*", default=[0.0, 0.03, 0.1, 0.3, 1.0])
     ap.add_argument("--loglik-weight", type=float, default=0.05, help="reward.prior_log_likelihood of the extra run (0: none)")
     ap.add_argument("--loglik-beta", type=float, default=0.1)
-    ap.add_argument("--reference-top-k", type=int, default=5, help="the reference's k (0: the full softmax)")
-    ap.add_argument("--compare-k", type=int, nargs="*", default=[3, 10], help="extra prior top-k rows (0: none)")
+    ap.add_argument("--reference-top-k", type=int, default=None,
+                    help="the reference's k (0: the full softmax; default: the fine-tuning config's, 3)")
+    ap.add_argument("--compare-k", type=int, nargs="*", default=[5, 10], help="extra prior top-k rows (0: none)")
     ap.add_argument("--iterations", type=int, default=30)
     ap.add_argument("--frames-per-batch", type=int, default=240)
     ap.add_argument("--lr", type=float, default=0.003)
@@ -119,8 +120,9 @@ def main() -> int:
     base = {"scenes": list(args.scenes), "prior": args.prior, "num_scenes": args.num_scenes, "max_agents": args.max_agents,
             "background": "prior", "iterations": args.iterations, "frames_per_batch": args.frames_per_batch, "lr": args.lr,
             "eval_episodes": 0, "eval_scenes": list(args.eval_scenes), "eval_num_scenes": args.eval_num_scenes,
-            "reference_top_k": args.reference_top_k or None, "seed": args.seed, "torch_threads": args.threads,
-            "tensorboard": False, "checkpoint_every": args.iterations}
+            "seed": args.seed, "torch_threads": args.threads, "tensorboard": False, "checkpoint_every": args.iterations}
+    if args.reference_top_k is not None:
+        base["reference_top_k"] = args.reference_top_k or None
     cfg = load_finetune_config("tiny", base)
     t0 = time.perf_counter()
     model, vocab = load_prior(cfg.prior)

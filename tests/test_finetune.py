@@ -44,8 +44,9 @@ GPUDRIVE = "gpudrive_json"  # held-out scenes of the tiny runs that fine-tune on
 
 
 def tiny(shared_data, prior_path, out_dir, **over) -> dict:
+    """The tests' overrides of the ``tiny`` config: the real scenes, the test prior, a top-5 reference."""
     return {"scenes": str(shared_data / WOMD), "prior": str(prior_path), "out_dir": str(out_dir), "tensorboard": False,
-            "eval_scenes": str(shared_data / GPUDRIVE), "eval_num_scenes": 1, **over}
+            "eval_scenes": str(shared_data / GPUDRIVE), "eval_num_scenes": 1, "reference_top_k": 5, **over}
 
 
 @pytest.fixture(scope="module")
@@ -140,7 +141,7 @@ def test_prior_kl_loss_adds_beta_times_the_exact_kl_of_agents_that_acted():
     computed here independently from the actor's logits; masked agents do not count."""
     from tensordict import TensorDict
 
-    cfg = load_finetune_config({"hidden": 16, "critic": "ippo", "normalize_advantage": False})
+    cfg = load_finetune_config({"hidden": 16, "critic": "ippo", "normalize_advantage": False, "reference_top_k": 5})
     obs_dim, n_agents, batch = 7, 3, 6
     net, actor, critic = build_modules(cfg, obs_dim, VOCAB, n_agents)
     torch.manual_seed(1)
@@ -173,7 +174,7 @@ def test_prior_kl_loss_adds_beta_times_the_exact_kl_of_agents_that_acted():
     assert float(losses[0.0]["loss_prior_kl"]) == 0.0
     assert float(losses[2.5]["loss_objective"]) == pytest.approx(float(losses[0.0]["loss_objective"]), rel=1e-6)
     assert float(expect) > 0.05
-    # the top-5 reference (the config's default; the actor is masked to it): renormalised on the prior's top 5
+    # the top-5 reference (the tests' config; the actor is masked to it): renormalised on the prior's top 5
     assert net.top_k == cfg.reference_top_k == 5
     loss = PriorKLPPOLoss(actor, critic, beta=1.0, entropy_bonus=False, normalize_advantage=False, reference_top_k=5)
     loss.set_keys(action=("agents", "action"), sample_log_prob=("agents", "action_log_prob"), value=("agents", "state_value"),
