@@ -361,6 +361,8 @@ def test_speed_limits_are_drawn_from_the_configured_levels_and_weights():
     drawn = [network_spec(np.random.default_rng(i), config).speed_mps for i in range(400)]
     assert set(drawn) == {13.89, 25.0}
     assert drawn.count(25.0) / len(drawn) == pytest.approx(0.75, abs=0.06)
+    with pytest.raises(ValueError, match="speed_weights has 5 entries for 2 speed_levels_mps"):
+        SumoConfig(speed_levels_mps=(13.89, 25.0))  # the default weights are for the default five levels
 
 
 def test_random_walk_goes_straight_on_and_stops_at_a_dead_end():

@@ -165,9 +165,9 @@ def random_network_spec(rng: np.random.Generator, pedestrians: bool = True, bicy
     """A random network: topology, sizes and rules drawn from ``rng``. ``length_scale`` multiplies
     every block length (grid blocks, spider rings, random-network edge lengths); the weights are the
     probabilities of :data:`NETWORK_KINDS`, :data:`JUNCTION_TYPES` and ``speed_levels_mps`` (the
-    network's default speed limit, :data:`SPEEDS_MPS` unless given; None: uniform); ``lane_width_m``: a range to draw the lane width
-    from (None: netgenerate's 3.2 m, and no draw). The defaults are the first generator's, whose
-    draws they repeat exactly (``SumoConfig.legacy()``)."""
+    network's default speed limit, :data:`SPEEDS_MPS` unless given; None: uniform); ``lane_width_m``:
+    a range to draw the lane width from (None: netgenerate's 3.2 m, and no draw). The defaults are
+    the first generator's, whose draws they repeat exactly (``SumoConfig.legacy()``)."""
     k = float(length_scale)
     kind = str(rng.choice(list(NETWORK_KINDS), p=list(kind_weights)))
     if kind == "grid":

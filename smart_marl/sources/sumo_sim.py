@@ -87,6 +87,11 @@ class SumoConfig:
         The same seed gives the same scenes as that generator did. ``changes`` override fields."""
         return cls(**{**LEGACY_TRAFFIC, **changes})
 
+    def __post_init__(self) -> None:
+        if self.speed_weights is not None and len(self.speed_weights) != len(self.speed_levels_mps):
+            raise ValueError(f"SumoConfig: speed_weights has {len(self.speed_weights)} entries for "
+                             f"{len(self.speed_levels_mps)} speed_levels_mps; give one weight per level (or None)")
+
     def sim_duration_s(self) -> float:
         return self.warmup_s + (self.scenes_per_sim - 1) * self.scene_spacing_s + SCENE_FRAMES * DT_S + 0.5
 
