@@ -113,8 +113,9 @@ def teacher_forced_bias(ck, scene, top_k: int = 5) -> tuple[dict, np.ndarray]:
             continue
         prev = torch.cat([torch.full_like(tgt[:, :1], -1), tgt[:, :-1]], 1)  # the input token of each step
         rows = is_type & b.target_valid[0] & (prev >= 0)
-        top, idx = lg[rows].topk(min(top_k or lg.shape[-1], lg.shape[-1]), -1)  # 0 / None: the full softmax
-        cols = np.stack([token_mps[lg[rows].argmax(-1)].numpy(), (torch.softmax(top, -1) * token_mps[idx]).sum(-1).numpy(),
+        lr = lg[rows]
+        top, idx = lr.topk(min(top_k or lr.shape[-1], lr.shape[-1]), -1)  # 0 / None: the full softmax
+        cols = np.stack([token_mps[lr.argmax(-1)].numpy(), (torch.softmax(top, -1) * token_mps[idx]).sum(-1).numpy(),
                          token_mps[tgt[rows]].numpy()], 1)
         which = np.digitize(token_mps[prev[rows]].numpy(), SPEED_BINS_MPS[1:-1])
         for i in range(len(bins)):

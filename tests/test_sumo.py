@@ -354,9 +354,9 @@ def test_speed_limits_are_drawn_from_the_configured_levels_and_weights():
     from smart_marl.commands.generate_sumo import speed_changes
     from smart_marl.sources.sumo_sim import network_spec
 
-    changes = speed_changes("50,90", "1,3")
+    changes = speed_changes((50.0, 90.0), (1.0, 3.0))
     assert changes == {"speed_levels_mps": (13.89, 25.0), "speed_weights": (0.25, 0.75)}
-    assert speed_changes("50,90", None)["speed_weights"] is None and speed_changes(None, None) == {}
+    assert speed_changes((50.0, 90.0), None)["speed_weights"] is None and speed_changes(None, None) == {}
     config = SumoConfig(**changes)
     drawn = [network_spec(np.random.default_rng(i), config).speed_mps for i in range(400)]
     assert set(drawn) == {13.89, 25.0}

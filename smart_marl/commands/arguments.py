@@ -1,7 +1,8 @@
 """Argument types the subcommands share: each refuses a bad value while the command line is parsed
 (exit code 2 and one ``error:`` line naming the argument), before any work starts.
 
-``type=positive_int`` (``--workers``, ``--scenes-per-shard``...), ``type=output_dir`` (``--out``:
+``type=positive_int`` (``--workers``, ``--scenes-per-shard``...), ``type=positive_numbers``
+(``--speed-limits 30,50``: comma-separated numbers > 0), ``type=output_dir`` (``--out``:
 anything but an existing file), ``type=device`` (``--device``: a torch device this machine has;
 ``device_or_auto`` also takes ``auto``) and :func:`reader_formats` (the ``choices`` of ``--format``).
 """
@@ -23,6 +24,17 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
     return value
+
+
+def positive_numbers(text: str) -> tuple[float, ...]:
+    """Comma-separated numbers, each > 0."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+    if not all(v > 0 for v in values):
+        raise argparse.ArgumentTypeError(f"every value must be > 0, got {text!r}")
+    return values
 
 
 def output_dir(text: str) -> str:

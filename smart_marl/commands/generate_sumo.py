@@ -7,7 +7,7 @@ import os
 
 from ..errors import SmartMarlError, UsageError
 from ..sources.sumo import SumoConfig, SumoUnavailableError, generate_to_dir
-from .arguments import output_dir, positive_int
+from .arguments import output_dir, positive_int, positive_numbers
 
 
 def register(subparsers) -> None:
@@ -34,35 +34,24 @@ def register(subparsers) -> None:
                         "instead of the defaults tuned toward real traffic")
     p.add_argument("--demand-scale", type=float, default=None, metavar="X",
                    help="multiplies the traffic demand (default: the config's, 2.5 for the tuned traffic, 1 with --legacy)")
-    p.add_argument("--speed-limits", default=None, metavar="KMH[,KMH...]",
+    p.add_argument("--speed-limits", type=positive_numbers, default=None, metavar="KMH[,KMH...]",
                    help="the networks' speed limits to draw from, km/h (default: the config's, 30-70 km/h)")
-    p.add_argument("--speed-weights", default=None, metavar="W[,W...]",
+    p.add_argument("--speed-weights", type=positive_numbers, default=None, metavar="W[,W...]",
                    help="their probabilities, one per limit (normalised; default: the config's with the default "
                         "limits, uniform with --speed-limits)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
-def _numbers(text: str, name: str) -> list[float]:
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise UsageError(f"argument {name}: expected comma-separated numbers, got {text!r}") from None
-    if not values or not all(v > 0 for v in values):
-        raise UsageError(f"argument {name}: every value must be > 0, got {text!r}")
-    return values
-
-
-def speed_changes(limits_kmh: str | None, weights: str | None) -> dict:
-    """SumoConfig changes of ``--speed-limits`` / ``--speed-weights`` (km/h, probabilities)."""
+def speed_changes(limits_kmh: tuple[float, ...] | None, w: tuple[float, ...] | None) -> dict:
+    """SumoConfig changes of ``--speed-limits`` / ``--speed-weights`` (km/h, relative weights)."""
     if limits_kmh is None:
-        if weights is not None:
+        if w is not None:
             raise UsageError("argument --speed-weights: needs --speed-limits (one weight per limit)")
         return {}
-    levels = tuple(round(v / 3.6, 2) for v in _numbers(limits_kmh, "--speed-limits"))
-    if weights is None:
+    levels = tuple(round(v / 3.6, 2) for v in limits_kmh)
+    if w is None:
         return {"speed_levels_mps": levels, "speed_weights": None}
-    w = _numbers(weights, "--speed-weights")
     if len(w) != len(levels):
         raise UsageError(f"argument --speed-weights: {len(w)} weights for {len(levels)} speed limits")
     return {"speed_levels_mps": levels, "speed_weights": tuple(x / sum(w) for x in w)}

@@ -570,33 +570,22 @@ def match_token_path(token_poses: torch.Tensor, vocab_size: int, current_pose: t
         return first.argmin(1)
     # pairs: token b placed at the end of token a. A pair's error is the mean of its first token's
     # error and its second's, so half the first token's error bounds every pair that starts with it:
-    # pairs are scored in chunks of first tokens, best first, until no unscored first token can beat
-    # the best pair found. Exact (the full V x V argmin, ties to the lowest id) at a few chunks' cost.
+    # first tokens are scored in chunks, best first, until none left unscored can reach the best pair
+    # found. Unscored ones stay at inf, so the argmin (ties to the lowest id) is the full V x V one's.
     end = poses[:, -1]  # (V, 3)
     bx, by = poses[None, :, :, 0], poses[None, :, :, 1]
-    m, v = first.shape
     order = first.argsort(1)  # (M, V) first tokens, best first
-    best = torch.full((m,), math.inf, dtype=first.dtype)
-    best_id = torch.zeros(m, dtype=torch.long)
-    for lo in range(0, v, PAIR_CHUNK):
+    pair_err = torch.full_like(first, math.inf)  # (M, V) each scored first token's best pair
+    for lo in range(0, first.shape[1], PAIR_CHUNK):
         ids = order[:, lo:lo + PAIR_CHUNK]  # (M, C)
-        live = first.gather(1, ids) / 2 <= best[:, None]  # (M, C) could still win (or tie)
-        if not live.any():
+        rows = (first.gather(1, ids) / 2 <= pair_err.amin(1, keepdim=True)).any(1).nonzero().squeeze(1)
+        if not len(rows):
             break
-        rows = live.any(1).nonzero().squeeze(1)
         ids = ids[rows]
         e = end[ids]  # (R, C, 3)
         c2, s2 = e[..., 2].cos()[..., None, None], e[..., 2].sin()[..., None, None]
         second = torch.stack([e[..., 0, None, None] + c2 * bx - s2 * by, e[..., 1, None, None] + s2 * bx + c2 * by,
                               e[..., 2, None, None] + poses[None, :, :, 2]], -1)  # (R, C, V, 5, 3)
         err2 = error(second, local[rows, None, None, FRAMES_PER_TOKEN: 2 * FRAMES_PER_TOKEN]).amin(2)  # (R, C)
-        err = (first[rows].gather(1, ids) + err2) / 2
-        err = err.masked_fill(~live[rows], math.inf)
-        val = err.min(1).values
-        for r, row in enumerate(rows.tolist()):  # ties keep the lowest token id, as the full argmin does
-            tied = int(ids[r][err[r] == val[r]].min())
-            if val[r] < best[row]:
-                best[row], best_id[row] = val[r], tied
-            elif val[r] == best[row]:
-                best_id[row] = min(int(best_id[row]), tied)
-    return best_id
+        pair_err[rows] = pair_err[rows].scatter(1, ids, (first[rows].gather(1, ids) + err2) / 2)
+    return pair_err.argmin(1)
