@@ -72,7 +72,7 @@ from smart_marl.errors import SmartMarlError, UsageError
 from smart_marl.model.checkpoint import EMBEDDED, CheckpointError
 from smart_marl.model.checkpoint import load_prior as load_smart_prior
 from smart_marl.readers import read_scenarios
-from smart_marl.rollout import top_k_mask
+from smart_marl.rollout import DEFAULT_TOP_K, top_k_mask
 from smart_marl.runlog import RunLog
 from smart_marl.scenario import AgentType
 
@@ -114,7 +114,7 @@ class FinetuneConfig:
     horizon_steps: int = 16  # token steps (0.5 s each) per episode
     reward: dict = field(default_factory=dict)  # RewardConfig weights, e.g. {"collision": -1.0}
     terminate_on: tuple = ("collision", "offroad", "goal")
-    top_k: int = 5  # the background's top-k sampling
+    top_k: int = DEFAULT_TOP_K  # the background's top-k sampling
     temperature: float = 1.0  # the prior's temperature T
     reference_top_k: int | None = 3  # the reference the policy starts from and is pulled toward: softmax(prior_logits / T)
     # on the prior's top-k tokens, renormalised (the prior as it drives; also the policy's action mask); None: full softmax.

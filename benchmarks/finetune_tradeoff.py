@@ -98,6 +98,9 @@ def main() -> int:
     ap.add_argument("--reference-top-k", type=int, default=None,
                     help="the reference's k (0: the full softmax; default: the fine-tuning config's, 3)")
     ap.add_argument("--compare-k", type=int, nargs="*", default=[5, 10], help="extra prior top-k rows (0: none)")
+    ap.add_argument("--reward", nargs="*", default=[], metavar="TERM=W",
+                    help="reward weights of every fine-tuning run (envs RewardConfig terms, e.g. collision=-3); "
+                         "the runs' names say them")
     ap.add_argument("--iterations", type=int, default=30)
     ap.add_argument("--frames-per-batch", type=int, default=240)
     ap.add_argument("--lr", type=float, default=0.003)
@@ -109,6 +112,10 @@ def main() -> int:
                     "held-out scenes, seeds and reference: its baseline and fine-tuned rows are kept (marked reused), "
                     "only the runs it lacks are made")
     args = ap.parse_args()
+    try:
+        reward = {k: float(v) for k, v in (item.split("=", 1) for item in args.reward)}
+    except ValueError:
+        ap.error(f"--reward: expected TERM=WEIGHT items, got {args.reward}")
 
     from agents.evaluate import evaluate_policies
     from agents.finetune import (FinetunedPolicy, evaluation_policies, finetune, held_out_scenes, load_finetune_config,
@@ -137,13 +144,16 @@ def main() -> int:
 
     reused_base, reused_tuned = {}, {}
     if args.reuse:
+        same_training = False  # fine-tuned rows are reused only from a run with this fine-tuning config
         for line in Path(args.reuse).read_text().splitlines():
             d = json.loads(line)
-            if d["kind"] == "setup" and (d["prior"], d["held_out_scenes"], d["seeds"], d["reference"]) != (
-                    args.prior, [s.scenario_id for s in scenes], seeds, env.reference):
-                print(f"--reuse {args.reuse}: another prior, held-out scenes, seeds or reference", file=sys.stderr)
-                return 2
-            if d["kind"] in ("baseline", "finetuned"):
+            if d["kind"] == "setup":
+                if (d["prior"], d["held_out_scenes"], d["seeds"], d["reference"]) != (
+                        args.prior, [s.scenario_id for s in scenes], seeds, env.reference):
+                    print(f"--reuse {args.reuse}: another prior, held-out scenes, seeds or reference", file=sys.stderr)
+                    return 2
+                same_training = d["config"] == json.loads(json.dumps(cfg.to_dict(), default=float))
+            if d["kind"] == "baseline" or (d["kind"] == "finetuned" and same_training):
                 row = {k: v for k, v in d.items() if k not in ("kind", "policy", "reused")}
                 (reused_base if d["kind"] == "baseline" else reused_tuned)[d["policy"]] = row
 
@@ -162,10 +172,11 @@ def main() -> int:
     for name, row in baselines.items():
         emit({"kind": "baseline", "policy": name, **row, **({"reused": True} if reused_base else {})})
 
-    runs = [(f"fine-tuned beta={b:g}", b, {}) for b in args.betas]
+    tag = "".join(f", {k} {v:g}" for k, v in reward.items())
+    runs = [(f"fine-tuned beta={b:g}{tag}", b, reward) for b in args.betas]
     if args.loglik_weight:
-        runs.append((f"fine-tuned beta={args.loglik_beta:g} + prior log-lik {args.loglik_weight:g}", args.loglik_beta,
-                     {"prior_log_likelihood": args.loglik_weight}))
+        runs.append((f"fine-tuned beta={args.loglik_beta:g}{tag} + prior log-lik {args.loglik_weight:g}", args.loglik_beta,
+                     {**reward, "prior_log_likelihood": args.loglik_weight}))
     tuned = {}
     for name, beta, reward in runs:
         if name in reused_tuned:

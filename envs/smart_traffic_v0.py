@@ -71,7 +71,7 @@ from smart_marl.embedded import sample_scenarios
 from smart_marl.model.checkpoint import CheckpointError, load_prior
 from smart_marl.readers import read_scenarios
 from smart_marl.render import BevRenderer, EpisodeRecorder
-from smart_marl.rollout import RolloutState, reference_log_probs, reference_name, top_k_mask
+from smart_marl.rollout import DEFAULT_TOP_K, RolloutState, reference_log_probs, reference_name, top_k_mask
 from smart_marl.scenario import DT_S, AgentType, Scenario
 from smart_marl.tokens import FRAMES_PER_TOKEN, MotionVocabulary
 
@@ -170,7 +170,7 @@ class SmartTrafficEnv(ParallelEnv):
     def __init__(self, scenarios="embedded", prior="embedded", controlled="sdc", background: str = "prior",
                  horizon_steps: int = 16, reward=None, observation="vector", render_mode: str | None = None,
                  max_agents: int | None = None, terminate_on: Sequence[str] = TERMINATION_EVENTS,
-                 scene_order: str = "sequential", motion_vocab: MotionVocabulary | None = None, top_k: int = 5,
+                 scene_order: str = "sequential", motion_vocab: MotionVocabulary | None = None, top_k: int = DEFAULT_TOP_K,
                  temperature: float = 1.0, render_size_px: int = 400, render_radius_m: float = 50.0,
                  reference_top_k: int | None = None) -> None:
         if background not in BACKGROUNDS:

@@ -119,3 +119,27 @@ def test_eval_policy_prior_scores_the_rollout_engines_rollouts(shared_data, tiny
     assert rollouts.x.shape == (2, len(valid_now), 80) and scene.scenario_id == scenario.scenario_id
     first = np.hypot(rollouts.x[:, :, 0], rollouts.y[:, :, 0])
     assert np.all(np.isfinite(first)) and first.max() < 5e3
+
+
+def test_eval_policy_prior_samples_with_the_given_top_k(shared_data, tiny_prior, capsys):
+    """``--top-k 1`` drives by argmax, so the seed changes nothing; the default top-k samples."""
+    import json
+
+    from smart_marl.cli import main
+    from smart_marl.commands.eval import prior_rollouts
+    from smart_marl.model.checkpoint import load_checkpoint
+    from smart_marl.readers import read_scenario
+
+    path = shared_data / "womd_tfrecord" / "motion_data_one_scenario.tfrecord"
+    scores = []
+    for seed in (0, 1):
+        assert main(["eval", "--scenes", str(path), "--policy", "prior", "--checkpoint", str(tiny_prior), "--rollouts", "2",
+                     "--rules", "2024", "--json", "--top-k", "1", "--temperature", "0.5", "--seed", str(seed)]) == 0
+        scores.append(json.loads(capsys.readouterr().out)["likelihoods"])
+    assert scores[0] == scores[1]
+    scenario = read_scenario(path)
+    prior = load_checkpoint(tiny_prior)
+    argmax = [prior_rollouts(prior, scenario, 2, seed=s, top_k=1) for s in (0, 1)]
+    sampled = [prior_rollouts(prior, scenario, 2, seed=s) for s in (0, 1)]
+    assert np.array_equal(argmax[0].x, argmax[1].x) and np.array_equal(argmax[0].x[0], argmax[0].x[1])
+    assert not np.array_equal(sampled[0].x, sampled[1].x)

@@ -18,6 +18,7 @@ from smart_marl.geometry import colliding, min_box_distance
 from smart_marl.metrics import Rollouts, score_scenario
 from smart_marl.metrics.config import CURRENT_STEP, NUM_SIMULATION_STEPS, NUM_STEPS
 from smart_marl.model.checkpoint import EMBEDDED, load_prior
+from smart_marl.rollout import DEFAULT_TOP_K
 from smart_marl.scenario import AgentType, Scenario
 from smart_marl.tokens import FRAMES_PER_TOKEN
 
@@ -36,7 +37,7 @@ class WhatIfResult:
 
 
 def run_whatif(prior, scene: Scenario, whatif: WhatIf, num_rollouts: int = 8, seed: int = 0, num_steps: int = 16,
-               top_k: int = 5, temperature: float = 1.0, device="cpu", realism: bool = True) -> WhatIfResult:
+               top_k: int = DEFAULT_TOP_K, temperature: float = 1.0, device="cpu", realism: bool = True) -> WhatIfResult:
     """The what-if and its unperturbed baseline (same seed, same number of rollouts) on one scene,
     and the comparison table (:func:`compare`). ``prior``: a SMART model, Checkpoint, checkpoint
     path, or None for the embedded prior."""

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from smart_marl.rollout import RolloutState, StepOutput, track_frames
+from smart_marl.rollout import DEFAULT_TOP_K, RolloutState, StepOutput, track_frames
 from smart_marl.scenario import DT_S, Scenario
 from smart_marl.tokens import FRAMES_PER_TOKEN, road_pieces
 from smart_marl.tokens.motion import match_token_path, path_heading_weight
@@ -141,7 +141,7 @@ def _nearest(state: RolloutState, atype: int, slot: int, targets: np.ndarray) ->
                             torch.from_numpy(np.asarray(targets, np.float64)), path_heading_weight(atype)).to(torch.long)
 
 
-def simulate(model, vocab, prepared: Prepared, num_rollouts: int, seed: int, num_steps: int = 16, top_k: int = 5,
+def simulate(model, vocab, prepared: Prepared, num_rollouts: int, seed: int, num_steps: int = 16, top_k: int = DEFAULT_TOP_K,
              temperature: float = 1.0, device="cpu", scripted_on: bool = True) -> SimRollouts:
     """Roll out ``prepared.scene`` with its per-step actions (``scripted_on=False``: the scene as
     it is, no forced tokens, removals or light changes)."""

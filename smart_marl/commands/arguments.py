@@ -1,7 +1,8 @@
 """Argument types the subcommands share: each refuses a bad value while the command line is parsed
 (exit code 2 and one ``error:`` line naming the argument), before any work starts.
 
-``type=positive_int`` (``--workers``, ``--scenes-per-shard``...), ``type=positive_numbers``
+``type=positive_int`` (``--workers``, ``--scenes-per-shard``...), ``type=non_negative_int``
+(``--top-k``: 0 means none), ``type=positive_number`` (``--temperature``), ``type=positive_numbers``
 (``--speed-limits 30,50``: comma-separated numbers > 0), ``type=output_dir`` (``--out``:
 anything but an existing file), ``type=device`` (``--device``: a torch device this machine has;
 ``device_or_auto`` also takes ``auto``) and :func:`reader_formats` (the ``choices`` of ``--format``).
@@ -23,6 +24,28 @@ def positive_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    """An integer >= 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")
+    return value
+
+
+def positive_number(text: str) -> float:
+    """A finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (0 < value < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
     return value
 
 
@@ -69,4 +92,4 @@ def reader_formats() -> list[str]:
     return format_names()
 
 
-__all__ = ["positive_int", "output_dir", "device", "device_or_auto", "reader_formats"]
+__all__ = ["positive_int", "non_negative_int", "positive_number", "positive_numbers", "output_dir", "device", "device_or_auto", "reader_formats"]

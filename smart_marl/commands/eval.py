@@ -30,8 +30,8 @@ from ..metrics.inputs import RolloutError, Rollouts
 from ..metrics.submission import ScenarioRolloutArrays, check_against_scene, rollouts_from_submission, write_rollouts
 from ..model.checkpoint import EMBEDDED, load_checkpoint
 from ..readers import expand_paths, read_scenarios
-from ..rollout import rollout
-from .arguments import device, positive_int, reader_formats
+from ..rollout import DEFAULT_TOP_K, rollout
+from .arguments import device, non_negative_int, positive_int, positive_number, reader_formats
 
 POLICY_CHOICES = ("constant_velocity", "log_replay", "random", "prior")
 WOSAC_ROLLOUTS = 32
@@ -50,6 +50,10 @@ def register(subparsers) -> None:
     src.add_argument("--policy", choices=POLICY_CHOICES, help="generate rollouts with a baseline policy")
     p.add_argument("--checkpoint", metavar="C", help="model checkpoint for --policy prior (default: the embedded prior)")
     p.add_argument("--device", default="cpu", type=device, help="torch device for --policy prior (default cpu)")
+    p.add_argument("--top-k", type=non_negative_int, default=None, metavar="K",
+                   help=f"--policy prior samples among its K most likely tokens (default {DEFAULT_TOP_K}; 0: all of them)")
+    p.add_argument("--temperature", type=positive_number, default=None, metavar="T",
+                   help="--policy prior samples from softmax(logits / T) (default 1)")
     p.add_argument("--rollouts", type=positive_int, default=32, help="rollouts per scene for --policy (default 32)")
     p.add_argument("--seed", type=int, default=0, help="random seed for --policy (default 0)")
     p.add_argument("--rules", choices=("2024", "2025"), default="2025", help="challenge rules (default 2025)")
@@ -95,9 +99,11 @@ def _scenes(args, skipped: list[dict]):
 
 
 def run(args) -> int:
-    if args.checkpoint and args.policy != "prior":
-        print("smart-marl eval: error: --checkpoint only applies to --policy prior", file=sys.stderr)
-        return 2
+    for given, flag in ((args.checkpoint, "--checkpoint"), (args.top_k is not None, "--top-k"),
+                        (args.temperature is not None, "--temperature")):
+        if given and args.policy != "prior":
+            print(f"smart-marl eval: error: {flag} only applies to --policy prior", file=sys.stderr)
+            return 2
     if args.write_submission and not args.policy:
         print("smart-marl eval: error: --write-submission needs --policy", file=sys.stderr)
         return 2
@@ -134,7 +140,8 @@ def run(args) -> int:
         elif args.policy == "prior":
             if prior is None:
                 prior = load_checkpoint(args.checkpoint or EMBEDDED, map_location=args.device)
-            rollouts = prior_rollouts(prior, scenario, args.rollouts, args.seed, args.device)
+            rollouts = prior_rollouts(prior, scenario, args.rollouts, args.seed, args.device,
+                                      DEFAULT_TOP_K if args.top_k is None else args.top_k, args.temperature or 1.0)
             where = f"--policy prior ({args.checkpoint or 'embedded'})"
         else:
             rollouts = policy_rollouts(args.policy, scenario, args.rollouts, args.seed)
@@ -159,10 +166,13 @@ def run(args) -> int:
     return 0
 
 
-def prior_rollouts(prior, scenario, num_rollouts: int, seed: int, device: str = "cpu"):
-    """WOSAC rollouts of one scene by the SMART prior: 16 token steps (80 frames) of every agent valid
-    at the current frame (the engine simulates vehicles, pedestrians and cyclists and moves agents of
-    type OTHER at constant velocity), as :class:`~smart_marl.metrics.inputs.Rollouts`."""
-    result = rollout(prior, scenario, num_rollouts=num_rollouts, num_steps=16, seed=seed, device=device)
+def prior_rollouts(prior, scenario, num_rollouts: int, seed: int, device: str = "cpu", top_k: int = DEFAULT_TOP_K,
+                   temperature: float = 1.0):
+    """WOSAC rollouts of one scene by the SMART prior (top-k sampling, ``top_k`` 0: the whole
+    distribution): 16 token steps (80 frames) of every agent valid at the current frame (the engine
+    simulates vehicles, pedestrians and cyclists and moves agents of type OTHER at constant
+    velocity), as :class:`~smart_marl.metrics.inputs.Rollouts`."""
+    result = rollout(prior, scenario, num_rollouts=num_rollouts, num_steps=16, seed=seed, device=device, top_k=top_k,
+                     temperature=temperature)
     agents = np.flatnonzero(result.has_trajectory[0])
     return Rollouts.from_source(result.agent_ids[0, agents], result.trajectory[:, agents], scenario.frame)

@@ -58,7 +58,7 @@ from ..scenario import DT_S, Scenario, wrap_angle
 from ..tokens import FRAMES_PER_TOKEN, MOTION_TYPES, TOKEN_S, MotionVocabulary, token_boundaries, tokenize_tracks
 from ..tokens.motion import match_token_ends
 from ..tokens.road import RoadVocabulary
-from .sampling import sample_tokens
+from .sampling import DEFAULT_TOP_K, sample_tokens
 
 MODES = ("cached", "full")
 INTERPOLATIONS = ("spline", "contour")
@@ -247,7 +247,7 @@ class RolloutState:
 
     # ------------------------------------------------------------------------------- creation
     @classmethod
-    def start(cls, model, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 1, seed: int = 0, top_k: int = 5,
+    def start(cls, model, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 1, seed: int = 0, top_k: int = DEFAULT_TOP_K,
               temperature: float = 1.0, device="cpu", mode: str = "cached", motion_vocab: MotionVocabulary | None = None,
               interpolation: str = "spline") -> "RolloutState":
         """Tokenize the scenes' histories and run them through the model. ``model``: a SMART model,
@@ -456,7 +456,7 @@ class RolloutResult:
 
 
 def rollout(model_or_checkpoint, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 32, num_steps: int = 16,
-            top_k: int = 5, temperature: float = 1.0, seed: int = 0, device="cpu", mode: str = "cached",
+            top_k: int = DEFAULT_TOP_K, temperature: float = 1.0, seed: int = 0, device="cpu", mode: str = "cached",
             motion_vocab: MotionVocabulary | None = None, interpolation: str = "spline") -> RolloutResult:
     """Generate ``num_rollouts`` joint futures of ``num_steps`` tokens (0.5 s each) for every scene
     in one batch (see the module docstring). Same seed, same rollouts (on the CPU)."""
