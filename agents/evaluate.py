@@ -11,6 +11,9 @@ policy (:func:`evaluate_policies`):
 * ``goal_rate``, ``collision_rate``, ``offroad_rate``: fractions of agent-episodes in which the
   event happened at some step; ``progress_m``: metres gained along the logged route per
   agent-episode; ``return`` per agent-episode;
+* who hit whom (:func:`first_collision_kinds`): ``collision_rate`` split by where the agent a
+  controlled agent first overlapped was a frame before, ``rear_ended_rate`` (behind it: the other ran
+  into it), ``front_collision_rate`` (ahead: it ran into the other) and ``side_collision_rate``;
 * ``kl_to_reference`` / ``kl_to_full_prior``: mean per agent-step of the exact KL(policy || the
   env's reference) and KL(policy || the prior's full softmax) (:func:`agents.prior_policy.kl_to_prior`;
   ``inf`` when the policy puts mass where the reference has none);
@@ -30,6 +33,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from smart_marl.geometry import boxes_overlap
 from smart_marl.metrics import Rollouts, SceneNotScorableError, aggregate, logged_scene, score_rollouts
 from smart_marl.metrics.config import NUM_SIMULATION_STEPS
 from smart_marl.metrics.inputs import simulated_agent_indices
@@ -38,6 +42,9 @@ from smart_marl.tokens import FRAMES_PER_TOKEN
 from .prior_policy import SampledPolicy, run_episode
 
 RATES = ("goal_rate", "collision_rate", "offroad_rate")
+COLLISION_KINDS = ("rear_ended", "front", "side")
+"""Where the other agent was, one frame before a controlled agent's first collision, seen from that
+agent: behind it (more than 135 degrees off its heading), ahead (within 45 degrees) or to a side."""
 REALISM = ("meta_metric", "kinematic", "interactive", "map_based", "min_ade")
 
 
@@ -63,6 +70,34 @@ def episode_rollout(env, sim_tracks: np.ndarray) -> np.ndarray:
     return np.concatenate([p[..., :2], z, p[..., 2:]], -1)
 
 
+def first_collision_kinds(poses: np.ndarray, present: np.ndarray, box_size: np.ndarray, ctrl: Sequence[int]) -> list:
+    """Per controlled track ``ctrl[i]``: None (no collision) or the :data:`COLLISION_KINDS` entry of its
+    first collision: the first frame its rounded box overlaps another present track's (the env's
+    collision test, :func:`smart_marl.geometry.boxes_overlap`), the other taken at the frame before,
+    in the controlled agent's frame then. poses [N, F, 3] x, y, heading, present [N, F] bool,
+    box_size [N, 2+] length, width (``env.trajectories()`` and ``env.static.box_size``)."""
+    n, f = present.shape
+    length, width = box_size[:, 0, None], box_size[:, 1, None]
+    kinds = []
+    for c in ctrl:
+        c = int(c)
+        a = [np.broadcast_to(v, (n, f)) for v in (poses[c, :, 0], poses[c, :, 1], box_size[c, 0], box_size[c, 1], poses[c, :, 2])]
+        b = [np.broadcast_to(v, (n, f)) for v in (poses[:, :, 0], poses[:, :, 1], length, width, poses[:, :, 2])]
+        hit = boxes_overlap(*a, *b) & present & present[c]
+        hit[c] = False
+        frames = np.flatnonzero(hit.any(0))
+        if not len(frames):
+            kinds.append(None)
+            continue
+        first = int(frames[0])
+        other, before = int(np.argmax(hit[:, first])), max(first - 1, 0)
+        dx, dy = poses[other, before, :2] - poses[c, before, :2]
+        h = poses[c, before, 2]
+        angle = abs(math.degrees(math.atan2(-dx * math.sin(h) + dy * math.cos(h), dx * math.cos(h) + dy * math.sin(h))))
+        kinds.append("front" if angle < 45.0 else "rear_ended" if angle > 135.0 else "side")
+    return kinds
+
+
 def evaluate_policies(env, policies: Mapping[str, SampledPolicy], scene_indices: Sequence[int], seeds: Sequence[int],
                       rules: str = "2024") -> dict:
     """Every policy on every (scene, seed) of ``env`` (see the module docstring). Returns
@@ -70,7 +105,7 @@ def evaluate_policies(env, policies: Mapping[str, SampledPolicy], scene_indices:
     "realism_scenes": [ids scored], "rows": {name: metrics}}``."""
     seeds = [int(s) for s in seeds]
     acc = {name: {k: 0.0 for k in ("goal", "collision", "offroad", "progress_m", "return", "kl_to_reference",
-                                    "kl_to_full_prior", "steps", "n")} for name in policies}
+                                    "kl_to_full_prior", "steps", "n", *COLLISION_KINDS)} for name in policies}
     scored = {name: [] for name in policies}
     scene_ids, realism_ids = [], []
     for i in scene_indices:
@@ -90,6 +125,10 @@ def evaluate_policies(env, policies: Mapping[str, SampledPolicy], scene_indices:
                                 "steps"):
                         a[key] += ep[key][agent]
                     a["n"] += 1
+                poses, present = env.trajectories()
+                for kind in first_collision_kinds(poses, present, env.static.box_size, env.ctrl_tracks):
+                    if kind is not None:
+                        a[kind] += 1
                 if logged is not None:
                     rollouts.append(episode_rollout(env, sim))
             if logged is not None:
@@ -100,7 +139,9 @@ def evaluate_policies(env, policies: Mapping[str, SampledPolicy], scene_indices:
         n, steps = max(a["n"], 1), max(a["steps"], 1)
         row = {"goal_rate": a["goal"] / n, "collision_rate": a["collision"] / n, "offroad_rate": a["offroad"] / n,
                "progress_m": a["progress_m"] / n, "return": a["return"] / n, "kl_to_reference": a["kl_to_reference"] / steps,
-               "kl_to_full_prior": a["kl_to_full_prior"] / steps, "agent_episodes": int(a["n"]), "steps": int(a["steps"])}
+               "kl_to_full_prior": a["kl_to_full_prior"] / steps, "agent_episodes": int(a["n"]), "steps": int(a["steps"]),
+               "rear_ended_rate": a["rear_ended"] / n, "front_collision_rate": a["front"] / n,
+               "side_collision_rate": a["side"] / n}
         if scored[name]:
             agg = aggregate(scored[name], rules)
             row.update({k: agg[k] for k in REALISM})
@@ -118,14 +159,14 @@ def format_table(result: dict) -> str:
     lines = [f"{len(result['scenes'])} held-out scene(s) x {len(result['seeds'])} seed(s) = {first['agent_episodes']} "
              f"agent-episodes per policy (same scenes, same seeds); KL reference: {result['reference']}; realism "
              f"({result['rules']} rules, controlled agents) on {len(result['realism_scenes'])} scene(s)",
-             f"{'policy':<20} {'collision':>9} {'offroad':>8} {'goal':>6} {'progress':>9} {'KL/step':>8} {'KL full':>8} "
+             f"{'policy':<20} {'collision':>9} {'rear-ended':>10} {'offroad':>8} {'goal':>6} {'progress':>9} {'KL/step':>8} {'KL full':>8} "
              f"{'realism':>8} {'kinem.':>7} {'interact':>8} {'map':>6} {'minADE':>7}"]
     for name, m in rows.items():
-        lines.append(f"{name:<20} {m['collision_rate']:>9.3f} {m['offroad_rate']:>8.3f} {m['goal_rate']:>6.3f} "
+        lines.append(f"{name:<20} {m['collision_rate']:>9.3f} {m['rear_ended_rate']:>10.3f} {m['offroad_rate']:>8.3f} {m['goal_rate']:>6.3f} "
                      f"{m['progress_m']:>8.1f}m {m['kl_to_reference']:>8.3f} {m['kl_to_full_prior']:>8.3f} "
                      f"{m['meta_metric']:>8.4f} {m['kinematic']:>7.4f} {m['interactive']:>8.4f} {m['map_based']:>6.4f} "
                      f"{m['min_ade']:>7.2f}")
     return "\n".join(lines)
 
 
-__all__ = ["RATES", "REALISM", "evaluate_policies", "format_table", "scene_logged"]
+__all__ = ["COLLISION_KINDS", "RATES", "REALISM", "evaluate_policies", "first_collision_kinds", "format_table", "scene_logged"]

@@ -20,7 +20,7 @@ pytest.importorskip("pettingzoo", reason="the env extra (pettingzoo) is not inst
 pytest.importorskip("torchrl", reason="the rl extra (torchrl) is not installed")
 
 from agents import PriorPolicy, kl_to_prior, run_episode  # noqa: E402
-from agents.evaluate import evaluate_policies  # noqa: E402
+from agents.evaluate import evaluate_policies, first_collision_kinds  # noqa: E402
 from agents.finetune import (  # noqa: E402
     FinetuneError, FinetunedPolicy, PolicyLogits, build_modules, finetune, held_out_scenes, load_finetune_config, load_policy,
     load_prior, scene_env, select_scenes,
@@ -96,6 +96,27 @@ def test_top_k_reference_kl_is_exact_on_a_hand_made_case():
     logits = torch.tensor([[1.0, 0.5, float("-inf"), float("-inf")]], requires_grad=True)
     kl_to_prior(torch.log_softmax(logits, -1), prior, top_k=2).sum().backward()
     assert torch.isfinite(logits.grad).all() and logits.grad[0, :2].abs().sum() > 0
+
+
+def test_first_collision_kinds_say_who_ran_into_whom():
+    """Four cars (4.5 x 2 m) in a row of frames: 0 heads +x at 5 m/s, 1 starts 8 m behind it at 10 m/s and
+    runs into it (0 is rear-ended, 1 hits the one ahead); 2 comes at 0's left side, down the y axis; 3 is
+    far away; 4 sits on top of 0 but is never present."""
+    f = 20
+    t = np.arange(f) * 0.1
+    poses = np.zeros((5, f, 3))
+    poses[0, :, 0] = 5 * t
+    poses[1, :, 0] = -8 + 10 * t
+    poses[2, :, 0], poses[2, :, 1], poses[2, :, 2] = 4.0, 6 - 4 * t, -np.pi / 2
+    poses[3, :, 0], poses[3, :, 1] = 200.0, 50.0
+    poses[4, :, 0] = 5 * t  # on top of 0, but absent
+    present = np.ones((5, f), bool)
+    present[4] = False
+    box = np.tile([4.5, 2.0, 1.5], (5, 1))
+    assert first_collision_kinds(poses, present, box, [0, 1, 3]) == ["rear_ended", "front", None]
+    # without car 1, car 2 drives into 0's side: 0 is hit on its side, 2 hit what was ahead of it
+    present[1] = False
+    assert first_collision_kinds(poses, present, box, [0, 2]) == ["side", "front"]
 
 
 def test_env_action_mask_and_infos_carry_the_top_k_reference(shared_data, prior_path):
@@ -208,6 +229,9 @@ def test_tiny_finetuning_reaches_logged_goals_more_often_than_the_prior(tiny_run
     assert prior["kl_to_reference"] < 1e-5 < tuned["kl_to_reference"] < float("inf")
     assert tuned["goal_rate"] >= prior["goal_rate"] + 0.05 or tuned["collision_rate"] <= prior["collision_rate"] - 0.05
     assert tuned["return"] > prior["return"]
+    for row in rows.values():  # every collision has one kind
+        kinds = row["rear_ended_rate"] + row["front_collision_rate"] + row["side_collision_rate"]
+        assert kinds == pytest.approx(row["collision_rate"])
     # the training log: every iteration, KL to the prior grows from 0 as the policy leaves it
     hist = result.history
     assert len(hist) == cfg.iterations and hist[0]["kl_to_prior"] < 1e-3 < hist[-1]["kl_to_prior"]
