@@ -38,7 +38,7 @@ import torch
 from smart_marl.model.batch import collate_scenes, scene_road, scene_tensors
 from smart_marl.model.checkpoint import load_checkpoint
 from smart_marl.readers import read_scenarios
-from smart_marl.rollout import rollout
+from smart_marl.rollout import DEFAULT_TOP_K, rollout
 from smart_marl.scenario import AgentType
 from smart_marl.tokens.motion import MOTION_TYPES, tokenize_motion
 
@@ -144,7 +144,7 @@ def main(argv=None) -> None:
                     help="a named set of scenes (files, folders, globs); repeatable (default: real shared scenes, SUMO samples)")
     ap.add_argument("--max-scenes", type=int, default=0, help="at most this many scenes per set (0: all)")
     ap.add_argument("--rollouts", type=int, default=8)
-    ap.add_argument("--top-k", type=int, default=5)
+    ap.add_argument("--top-k", type=int, default=DEFAULT_TOP_K)
     ap.add_argument("--temperature", type=float, default=1.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
