@@ -97,6 +97,8 @@ def main() -> int:
     ap.add_argument("--loglik-beta", type=float, default=0.1)
     ap.add_argument("--reference-top-k", type=int, default=None,
                     help="the reference's k (0: the full softmax; default: the fine-tuning config's, 3)")
+    ap.add_argument("--background-top-k", type=int, default=None,
+                    help="the background prior's top-k (default: the fine-tuning config's, DEFAULT_TOP_K)")
     ap.add_argument("--compare-k", type=int, nargs="*", default=[5, 10], help="extra prior top-k rows (0: none)")
     ap.add_argument("--reward", nargs="*", default=[], metavar="TERM=W",
                     help="reward weights of every fine-tuning run (envs RewardConfig terms, e.g. collision=-3); "
@@ -130,6 +132,8 @@ def main() -> int:
             "seed": args.seed, "torch_threads": args.threads, "tensorboard": False, "checkpoint_every": args.iterations}
     if args.reference_top_k is not None:
         base["reference_top_k"] = args.reference_top_k or None
+    if args.background_top_k is not None:
+        base["top_k"] = args.background_top_k
     cfg = load_finetune_config("tiny", base)
     t0 = time.perf_counter()
     model, vocab = load_prior(cfg.prior)
