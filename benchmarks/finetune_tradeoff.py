@@ -91,6 +91,8 @@ def main() -> int:
     ap.add_argument("--eval-scenes", nargs="*", default=HELD_OUT_SCENES, help="held-out scene paths / globs")
     ap.add_argument("--eval-num-scenes", type=int, default=4)
     ap.add_argument("--rollouts", type=int, default=16, help="seeds (rollouts) per held-out scene, every policy")
+    ap.add_argument("--eval-seed", type=int, default=None,
+                    help="the first evaluation seed (default: the fine-tuning config's, 1000); another block of seeds")
     ap.add_argument("--max-agents", type=int, default=4)
     ap.add_argument("--betas", type=float, nargs="*", default=[0.0, 0.03, 0.1, 0.3, 1.0])
     ap.add_argument("--loglik-weight", type=float, default=0.05, help="reward.prior_log_likelihood of the extra run (0: none)")
@@ -134,6 +136,8 @@ def main() -> int:
         base["reference_top_k"] = args.reference_top_k or None
     if args.background_top_k is not None:
         base["top_k"] = args.background_top_k
+    if args.eval_seed is not None:
+        base["eval_seed"] = args.eval_seed
     cfg = load_finetune_config("tiny", base)
     t0 = time.perf_counter()
     model, vocab = load_prior(cfg.prior)
