@@ -33,6 +33,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from smart_marl.config_files import split_override  # noqa: E402
+
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 TRAIN_SCENES = [str(SHARED / "gpudrive_json")]  # WOMD training-split scenes
 HELD_OUT_SCENES = [str(SHARED / "nocturne_json"), str(SHARED / "scenarionet" / "waymo" / "sd_training.*.pkl"),
@@ -117,8 +119,8 @@ def main() -> int:
                     "only the runs it lacks are made")
     args = ap.parse_args()
     try:
-        reward = {k: float(v) for k, v in (item.split("=", 1) for item in args.reward)}
-    except ValueError:
+        reward = {k: float(v) for k, v in (split_override(item, ValueError) for item in args.reward)}
+    except (TypeError, ValueError):
         ap.error(f"--reward: expected TERM=WEIGHT items, got {args.reward}")
 
     from agents.evaluate import evaluate_policies

@@ -122,7 +122,8 @@ def test_eval_policy_prior_scores_the_rollout_engines_rollouts(shared_data, tiny
 
 
 def test_eval_policy_prior_samples_with_the_given_top_k(shared_data, tiny_prior, capsys):
-    """``--top-k 1`` drives by argmax, so the seed changes nothing; the default top-k samples."""
+    """``--top-k 1`` drives by argmax, so the seed changes nothing; the default top-k samples, and
+    ``--temperature`` changes what it samples."""
     import json
 
     from smart_marl.cli import main
@@ -131,12 +132,13 @@ def test_eval_policy_prior_samples_with_the_given_top_k(shared_data, tiny_prior,
     from smart_marl.readers import read_scenario
 
     path = shared_data / "womd_tfrecord" / "motion_data_one_scenario.tfrecord"
-    scores = []
-    for seed in (0, 1):
+    def scores(*flags):
         assert main(["eval", "--scenes", str(path), "--policy", "prior", "--checkpoint", str(tiny_prior), "--rollouts", "2",
-                     "--rules", "2024", "--json", "--top-k", "1", "--temperature", "0.5", "--seed", str(seed)]) == 0
-        scores.append(json.loads(capsys.readouterr().out)["likelihoods"])
-    assert scores[0] == scores[1]
+                     "--rules", "2024", "--json", *flags]) == 0
+        return json.loads(capsys.readouterr().out)["likelihoods"]
+
+    assert scores("--top-k", "1", "--temperature", "0.5", "--seed", "0") == scores("--top-k", "1", "--temperature", "0.5", "--seed", "1")
+    assert scores("--seed", "0") != scores("--temperature", "0.25", "--seed", "0")
     scenario = read_scenario(path)
     prior = load_checkpoint(tiny_prior)
     argmax = [prior_rollouts(prior, scenario, 2, seed=s, top_k=1) for s in (0, 1)]
