@@ -17,12 +17,12 @@ import argparse
 import sys
 from importlib.metadata import entry_points
 
-from .commands import demo, generate_sumo, info, models, preprocess, train, vocab
+from .commands import demo, generate_sumo, info, models, preprocess, pretokenize, train, vocab
 from .commands import eval as eval_command
 from .errors import SmartMarlError, UsageError
 
 # Modules that add subcommands, in the order --help lists them (entry-point commands follow, by name).
-_COMMAND_MODULES = (info, preprocess, demo, train, models, generate_sumo, vocab, eval_command)
+_COMMAND_MODULES = (info, preprocess, pretokenize, demo, train, models, generate_sumo, vocab, eval_command)
 COMMAND_GROUP = "smart_marl.commands"
 
 

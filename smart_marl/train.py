@@ -61,6 +61,7 @@ from .runlog import RunLog
 from .scenario import AgentType, Scenario
 from .tokens import MotionVocabulary, build_motion_vocabulary, collect_snippets, tokenize_motion
 from .tokens.road import RoadVocabulary, build_road_vocabulary, road_pieces
+from .token_cache import TokenCache, is_token_cache
 from .tokens.vocab_io import load_motion_vocabulary, load_road_vocabulary, save_motion_vocabulary, save_road_vocabulary
 
 
@@ -212,6 +213,28 @@ class MixedScenes(Sequence):
         return self.main[index] if index < len(self.main) else self.extra[(index - len(self.main)) % len(self.extra)]
 
 
+def road_keep_radius(value: float | None, model_cfg: SmartConfig) -> float | None:
+    """``TrainConfig.road_keep_radius_m`` resolved: a negative value is the lossless radius of the
+    model config (map-agent radius + RoadNet layers x road radius); None keeps every piece."""
+    if value is not None and value < 0:
+        return model_cfg.map_radius_m + model_cfg.num_road_layers * model_cfg.road_radius_m
+    return value
+
+
+def _check_token_cache_config(cfg: "TrainConfig") -> None:
+    """A token cache holds noise-free, teacher-forced tokens made with given vocabularies: refuse a
+    run that would need anything else from it."""
+    wrong = [f"token_noise_topk={cfg.token_noise_topk}"] if cfg.token_noise_topk and cfg.token_noise_topk > 1 else []
+    wrong += [f"catk_top_k={cfg.catk_top_k}"] if cfg.catk_top_k > 0 else []
+    wrong += ["extra_data=" + cfg.extra_data] if cfg.extra_data else []
+    if wrong:
+        raise TrainConfigError(f"data={cfg.data} is a token cache (noise-free teacher-forced tokens, one folder): "
+                               f"it cannot serve {', '.join(wrong)}; train on the scenes instead")
+    if not (cfg.motion_vocab or cfg.init):
+        raise TrainConfigError(f"data={cfg.data} is a token cache: name its vocabularies (motion_vocab=, road_vocab=) "
+                               "or an init checkpoint that has them; they cannot be built from tokens")
+
+
 def training_scenes(cfg: "TrainConfig") -> Sequence[Scenario]:
     """The run's scenes: ``data``, with ``extra_data`` mixed in at ``extra_data_share`` when given."""
     scenes = open_scenes(cfg.data)
@@ -308,10 +331,10 @@ def _item_list(items: list) -> list:
     return items
 
 
-def make_loader(dataset: TokenizedScenes, sampler: EpochBatchSampler, num_workers: int, pin_memory: bool, seed: int) -> DataLoader:
-    collate = _item_list if dataset.closed_loop else collate_scenes
-    return DataLoader(dataset, batch_sampler=sampler, collate_fn=collate, num_workers=num_workers,
-                      pin_memory=pin_memory and not dataset.closed_loop,
+def make_loader(dataset: TokenizedScenes | TokenCache, sampler: EpochBatchSampler, num_workers: int, pin_memory: bool, seed: int) -> DataLoader:
+    closed_loop = getattr(dataset, "closed_loop", False)
+    return DataLoader(dataset, batch_sampler=sampler, collate_fn=_item_list if closed_loop else collate_scenes,
+                      num_workers=num_workers, pin_memory=pin_memory and not closed_loop,
                       generator=torch.Generator().manual_seed(seed),  # leaves the global RNG alone (exact resume)
                       persistent_workers=False, prefetch_factor=2 if num_workers else None)
 
@@ -541,7 +564,10 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
     resuming = checkpoint_paths(last)["meta"].is_file()
     if info.is_main:
         out_dir.mkdir(parents=True, exist_ok=True)
-    scenes = scenes if scenes is not None else training_scenes(cfg)
+    tokens = TokenCache(cfg.data, cfg.seed, cfg.road_mask_prob) if scenes is None and is_token_cache(cfg.data) else None
+    if tokens is not None:
+        _check_token_cache_config(cfg)
+    scenes = scenes if scenes is not None else tokens if tokens is not None else training_scenes(cfg)
     if len(scenes) == 0:
         raise TrainError(f"{cfg.data or 'the scenes given'}: the dataset is empty (no scene to train on)")
 
@@ -591,16 +617,20 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
     if info.enabled:
         wrapped = torch.nn.parallel.DistributedDataParallel(loss_module, device_ids=[device.index] if device.type == "cuda" else None)
 
-    keep = cfg.road_keep_radius_m
-    if keep is not None and keep < 0:
-        keep = model_cfg.map_radius_m + model_cfg.num_road_layers * model_cfg.road_radius_m
+    keep = road_keep_radius(cfg.road_keep_radius_m, model_cfg)
     noise = cfg.token_noise_topk if cfg.token_noise_topk and cfg.token_noise_topk > 1 else 0
     if cfg.catk_top_k < 0:
         raise TrainError(f"catk_top_k must be >= 0 (0: teacher forcing), got {cfg.catk_top_k}")
-    train_set = TokenizedScenes(scenes, mv, rv, cfg.seed, noise, cfg.road_mask_prob, keep, cache_size=cfg.cache_scenes,
-                                closed_loop=cfg.catk_top_k > 0, road_types=model_cfg.road_types)
-    val_scenes = open_scenes(cfg.val_data) if cfg.val_data else scenes
-    val_set = TokenizedScenes(val_scenes, mv, rv, cfg.seed + 1, 0, cfg.road_mask_prob, keep, road_types=model_cfg.road_types)
+    if tokens is not None:  # pre-tokenized: the same items, without the rolling matching
+        tokens.check(mv, rv, model_cfg.road_types, keep)
+        train_set = tokens
+        val_scenes = val_set = TokenCache(cfg.val_data, cfg.seed + 1, cfg.road_mask_prob) if cfg.val_data else tokens.with_seed(cfg.seed + 1)
+        val_set.check(mv, rv, model_cfg.road_types, keep)
+    else:
+        train_set = TokenizedScenes(scenes, mv, rv, cfg.seed, noise, cfg.road_mask_prob, keep, cache_size=cfg.cache_scenes,
+                                    closed_loop=cfg.catk_top_k > 0, road_types=model_cfg.road_types)
+        val_scenes = open_scenes(cfg.val_data) if cfg.val_data else scenes
+        val_set = TokenizedScenes(val_scenes, mv, rv, cfg.seed + 1, 0, cfg.road_mask_prob, keep, road_types=model_cfg.road_types)
     n_val = min(cfg.val_scenes, len(val_scenes))
     val_keys = [(i, i) for i in range(info.rank, n_val, info.world_size)]
     pin = device.type == "cuda"
@@ -642,7 +672,7 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
     model.train()
     ckpt_path = None
     for batch in loader:
-        if train_set.closed_loop:
+        if getattr(train_set, "closed_loop", False):
             batch = closed_loop_batch(model, batch, mv, cfg.catk_top_k, cfg.road_mask_prob, keep, cfg.seed, device)
         lr = scheduler.get_last_lr()[0]
         res = train_step(wrapped, optimizer, scheduler, batch, cfg.grad_clip, info, device, cfg.amp)

@@ -12,6 +12,7 @@ outlives its parent by more than :data:`PARENT_POLL_S`.
 from __future__ import annotations
 
 import ctypes
+import multiprocessing
 import os
 import signal
 import sys
@@ -25,9 +26,12 @@ PARENT_POLL_S = 0.5
 _PR_SET_PDEATHSIG = 1
 
 
-def worker_pool(workers: int) -> ProcessPoolExecutor:
-    """A process pool of ``workers`` processes that exit when this process exits, however it ends."""
-    return ProcessPoolExecutor(max_workers=workers, initializer=die_with_parent, initargs=(os.getpid(),))
+def worker_pool(workers: int, spawn: bool = False) -> ProcessPoolExecutor:
+    """A process pool of ``workers`` processes that exit when this process exits, however it ends.
+    ``spawn``: start them fresh instead of forking (work that runs torch operators: a child forked
+    from a process whose torch thread pool has started can hang in its first parallel operator)."""
+    context = multiprocessing.get_context("spawn") if spawn else None
+    return ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=die_with_parent, initargs=(os.getpid(),))
 
 
 def die_with_parent(parent_pid: int) -> None:
