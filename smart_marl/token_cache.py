@@ -176,16 +176,23 @@ def pretokenize(sources, out_dir: str | os.PathLike, motion_vocab: MotionVocabul
     try:
         args = (os.fspath(out), motion_vocab, road_vocab, road_types, road_keep_radius_m)
         if workers <= 1:
-            for i, f in todo:
+            for n, (i, f) in enumerate(todo, 1):
                 results[f] = _tokenize_file(f, args[0], i, *args[1:])
                 bar.update(1)
+                if n % 50 == 0:
+                    atomic_write(out / MANIFEST, [json.dumps(manifest(), indent=1).encode()])
         else:
-            with worker_pool(workers, spawn=True) as pool:
+            pool = worker_pool(workers, spawn=True)
+            try:
                 futures = [pool.submit(_tokenize_file, f, args[0], i, *args[1:]) for i, f in todo]
-                for future in as_completed(futures):
+                for n, future in enumerate(as_completed(futures), 1):
                     res = future.result()
                     results[res["source"]] = res
                     bar.update(1)
+                    if n % 50 == 0:  # a run that is killed hard keeps most of its work
+                        atomic_write(out / MANIFEST, [json.dumps(manifest(), indent=1).encode()])
+            finally:  # on an error or an interrupt, queued files are dropped, not waited for
+                pool.shutdown(wait=True, cancel_futures=True)
     except ScenarioReadError as exc:
         raise TokenCacheError(f"pretokenize stopped at a bad input: {exc}") from exc
     finally:
