@@ -35,9 +35,10 @@ import numpy as np
 from tqdm import tqdm
 
 from .errors import ScenarioReadError, SmartMarlError
+from .model.batch import scene_road, scene_tensors
 from .readers import expand_paths, read_scenarios
 from .readers.scene_cache import atomic_write
-from .tokens.motion import MotionVocabulary
+from .tokens.motion import MotionVocabulary, tokenize_motion
 from .tokens.road import RoadVocabulary
 from .workers import worker_pool
 
@@ -118,9 +119,6 @@ def _pack(items: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
 
 def _tokenize_file(source: str, out_dir: str, index: int, motion_vocab: MotionVocabulary, road_vocab: RoadVocabulary,
                    road_types: str, road_keep_radius_m: float | None) -> dict[str, Any]:
-    from .model.batch import scene_road, scene_tensors
-    from .tokens.motion import tokenize_motion
-
     items, ids = [], []
     for scenario in read_scenarios(source):
         road = scene_road(scenario, road_vocab, road_types)

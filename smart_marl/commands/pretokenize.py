@@ -18,8 +18,9 @@ def register(subparsers) -> None:
                                           "Resumable: a rerun skips inputs already done.")
     p.add_argument("sources", nargs="+", metavar="SRC", help="scene files, folders, globs or scene caches")
     p.add_argument("--out", required=True, type=output_dir, help="the token cache folder (created if missing)")
-    p.add_argument("--checkpoint", default=EMBEDDED, metavar="CKPT",
-                   help="the checkpoint whose vocabularies and road types the training run uses (default: the embedded prior)")
+    p.add_argument("--vocab-from", default=EMBEDDED, metavar="CKPT",
+                   help="the checkpoint whose vocabularies and road types the training run uses; only these are read, "
+                        "the model is not run (default: the embedded prior)")
     p.add_argument("--road-keep-radius", type=float, default=-1.0, metavar="M",
                    help="the run's road_keep_radius_m: road pieces farther than M metres from every agent are dropped "
                         "(default -1: the lossless radius of the checkpoint's model config)")
@@ -29,7 +30,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    ck = load_checkpoint(args.checkpoint)
+    ck = load_checkpoint(args.vocab_from)
     keep = road_keep_radius(args.road_keep_radius, ck.model.config)
     manifest = pretokenize(args.sources, args.out, ck.motion_vocab, ck.road_vocab, ck.model.config.road_types, keep,
                            workers=args.workers, progress=not args.quiet)
