@@ -18,7 +18,7 @@ pytest.importorskip("pettingzoo", reason="the env extra (pettingzoo) is not inst
 from envs import smart_traffic_v0  # noqa: E402
 from envs._observation import observation_layout  # noqa: E402
 from envs._reward import REWARD_TERMS, collisions  # noqa: E402
-from smart_marl.rollout import RolloutState, rollout, sample_tokens  # noqa: E402
+from smart_marl.rollout import DEFAULT_TOP_K, RolloutState, rollout, sample_tokens  # noqa: E402
 from smart_marl.scenario import AgentType  # noqa: E402
 
 VOCAB = 32  # tokens per type of conftest's womd_vocab
@@ -181,7 +181,7 @@ def test_prior_driven_episode_equals_the_rollout_engine_on_the_same_seed(scenes,
     gen = torch.Generator().manual_seed(seed)
     while env.agents:
         logits = torch.from_numpy(np.stack([infos[a]["prior_logits"] for a in env.agents]))
-        tokens, _ = sample_tokens(logits, gen, top_k=5, temperature=1.0)
+        tokens, _ = sample_tokens(logits, gen, top_k=DEFAULT_TOP_K, temperature=1.0)  # rollout() samples with the default
         _, _, _, _, infos = env.step(dict(zip(env.agents, tokens.tolist())))
     poses, present = env.trajectories()
     res = rollout(model, scenes[0], num_rollouts=1, num_steps=steps, seed=seed, motion_vocab=vocab)

@@ -44,9 +44,10 @@ GPUDRIVE = "gpudrive_json"  # held-out scenes of the tiny runs that fine-tune on
 
 
 def tiny(shared_data, prior_path, out_dir, **over) -> dict:
-    """The tests' overrides of the ``tiny`` config: the real scenes, the test prior, a top-5 reference."""
+    """The tests' overrides of the ``tiny`` config: the real scenes, the test prior, a top-5 reference and a
+    background that samples its top 5 too (so the evaluation has one prior top-k row)."""
     return {"scenes": str(shared_data / WOMD), "prior": str(prior_path), "out_dir": str(out_dir), "tensorboard": False,
-            "eval_scenes": str(shared_data / GPUDRIVE), "eval_num_scenes": 1, "reference_top_k": 5, **over}
+            "eval_scenes": str(shared_data / GPUDRIVE), "eval_num_scenes": 1, "reference_top_k": 5, "top_k": 5, **over}
 
 
 @pytest.fixture(scope="module")

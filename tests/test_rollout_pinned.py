@@ -33,22 +33,22 @@ from smart_marl.rollout import rollout
 WOMD_SCENE = "womd_tfrecord/motion_data_one_scenario.tfrecord"
 SETTINGS = dict(num_rollouts=2, num_steps=4, top_k=5, seed=7)
 
-PINS = {  # path lengths regenerated when the 10 Hz frames became a Hermite curve between token ends (same tokens)
+PINS = {  # regenerated when the embedded prior was retrained (stage 3, 2026-11-24); same settings
     "womd-637f20cafde22ff8": {
         "simulated": 50,
-        "tokens_sha256": "eaee5faf29792565b7fb4aa7b704baa85c7d58012ce89aab449e168eb4b05d84",
+        "tokens_sha256": "b719641a10bcef85185c9f35329430cb2ec71d85d41c1eb4ce881260454027bf",
         "first_tokens": [[[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [0, 1, 1, 1]],
-                         [[1, 0, 1, 359], [1, 1, 1, 1], [1, 1, 1, 1], [1, 0, 1, 1]]],
-        "log_prob_sum": -782.0386544018984,
-        "path_length_m": 910.8709253607675,
+                         [[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [1, 0, 1, 1]]],
+        "log_prob_sum": -584.2508740872145,
+        "path_length_m": 934.4989280056529,
     },
     "sumo-sample-0": {
         "simulated": 22,
-        "tokens_sha256": "90f54f1ebbe92c311ee6ed9bd24c412f546c0ea22b7b214c47c097a6595703ec",
-        "first_tokens": [[[19, 19, 17, 987], [5, 5, 5, 5], [5, 5, 5, 5], [254, 5, 5, 254]],
-                         [[19, 68, 987, 19], [5, 254, 5, 5], [23, 23, 254, 5], [5, 5, 5, 5]]],
-        "log_prob_sum": -167.4817026257515,
-        "path_length_m": 42.2130381992899,
+        "tokens_sha256": "cac249478e2fe5e29c6f342d9c85bee0b401688dfaf5d94fef6d69ce69e6169f",
+        "first_tokens": [[[122, 138, 138, 823], [5, 5, 5, 5], [5, 5, 5, 5], [32, 5, 5, 5]],
+                         [[122, 139, 65, 9], [5, 32, 5, 5], [5, 5, 5, 5], [5, 5, 5, 5]]],
+        "log_prob_sum": -83.76338585466146,
+        "path_length_m": 42.8441393517853,
     },
 }
 

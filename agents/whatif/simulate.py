@@ -131,6 +131,10 @@ class ScriptedSteps:
             seg = s.path[:, lo: lo + 2 * FRAMES_PER_TOKEN]  # this token's 5 frames and the next one's (look-ahead)
             if seg.shape[1] < 2 * FRAMES_PER_TOKEN:
                 seg = np.concatenate([seg, np.repeat(seg[:, -1:], 2 * FRAMES_PER_TOKEN - seg.shape[1], 1)], 1)
+            still = np.ptp(seg[..., :2], axis=1).max(-1) < 1e-6  # [G] the path stands still over both tokens
+            if still.any():  # stand where the tokens left the agent, rather than creep onto the path's end point
+                seg = seg.copy()
+                seg[still] = scripted.hold_path(state.current_pose[:, slot].cpu().numpy()[still], 2 * FRAMES_PER_TOKEN)
             forced[:, slot] = _nearest(state, atype, slot, seg)
         return forced
 
