@@ -22,11 +22,11 @@ pytest.importorskip("torchrl", reason="the rl extra (torchrl) is not installed")
 from agents import PriorPolicy, kl_to_prior, run_episode  # noqa: E402
 from agents.evaluate import evaluate_policies, first_collision_kinds  # noqa: E402
 from agents.finetune import (  # noqa: E402
-    FinetuneError, FinetunedPolicy, PolicyLogits, build_modules, finetune, held_out_scenes, load_finetune_config, load_policy,
-    load_prior, scene_env, select_scenes,
+    FinetuneError, FinetunedPolicy, PolicyLogits, build_modules, evaluation_policies, finetune, held_out_scenes, load_finetune_config,
+    load_policy, load_prior, scene_env, select_scenes,
 )
 from agents.kl_ppo import PriorKLPPOLoss  # noqa: E402
-from smart_marl.rollout import reference_log_probs, sample_tokens  # noqa: E402
+from smart_marl.rollout import DEFAULT_TOP_K, reference_log_probs, sample_tokens  # noqa: E402
 
 VOCAB = 32  # tokens per type of conftest's womd_vocab
 WOMD = "womd_tfrecord/*.tfrecord"  # the two real WOMD scenes (17 and 4 moving vehicles)
@@ -57,6 +57,15 @@ def tiny_run(shared_data, prior_path, tmp_path_factory):
     evaluation runs on one held-out GPUDrive scene, 2 seeds."""
     cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, tmp_path_factory.mktemp("tiny"), eval_episodes=2))
     return cfg, finetune(cfg)
+
+
+def test_evaluation_has_a_row_for_the_reference_k_and_one_for_the_background_k_when_they_differ():
+    """The defaults: a top-3 reference and a background sampling DEFAULT_TOP_K; each k gets its row, once."""
+    cfg = load_finetune_config("tiny", {"reference_top_k": 3, "top_k": DEFAULT_TOP_K})
+    names = list(evaluation_policies(cfg, env=None, net=None))
+    assert names == ["expert (log)", "prior top-3", f"prior top-{DEFAULT_TOP_K}", "prior full softmax"]
+    same = load_finetune_config("tiny", {"reference_top_k": 5, "top_k": 5})
+    assert list(evaluation_policies(same, env=None, net=None)) == ["expert (log)", "prior top-5", "prior full softmax"]
 
 
 # ------------------------------------------------------------------------------- the prior
