@@ -45,6 +45,7 @@ from .workers import worker_pool
 __all__ = ["MANIFEST", "TokenCache", "TokenCacheError", "is_token_cache", "pretokenize"]
 
 MANIFEST = "token_cache.json"
+MANIFEST_EVERY = 50  # files: how often a run writes its manifest (what a rerun skips)
 KIND = "smart-marl token cache"
 VERSION = 1
 
@@ -171,31 +172,32 @@ def pretokenize(sources, out_dir: str | os.PathLike, motion_vocab: MotionVocabul
         shards = [results[f] for f in files if f in results and results[f]["file"]]
         return {**settings, "num_scenes": sum(len(s["scenario_ids"]) for s in shards), "shards": shards}
 
+    def write_manifest() -> None:
+        atomic_write(out / MANIFEST, [json.dumps(manifest(), indent=1).encode()])
+
+    def collect(finished) -> None:
+        for n, res in enumerate(finished, 1):
+            results[res["source"]] = res
+            bar.update(1)
+            if n % MANIFEST_EVERY == 0:  # a run that is killed hard keeps most of its work
+                write_manifest()
+
     try:
         args = (os.fspath(out), motion_vocab, road_vocab, road_types, road_keep_radius_m)
         if workers <= 1:
-            for n, (i, f) in enumerate(todo, 1):
-                results[f] = _tokenize_file(f, args[0], i, *args[1:])
-                bar.update(1)
-                if n % 50 == 0:
-                    atomic_write(out / MANIFEST, [json.dumps(manifest(), indent=1).encode()])
+            collect(_tokenize_file(f, args[0], i, *args[1:]) for i, f in todo)
         else:
             pool = worker_pool(workers, spawn=True)
             try:
                 futures = [pool.submit(_tokenize_file, f, args[0], i, *args[1:]) for i, f in todo]
-                for n, future in enumerate(as_completed(futures), 1):
-                    res = future.result()
-                    results[res["source"]] = res
-                    bar.update(1)
-                    if n % 50 == 0:  # a run that is killed hard keeps most of its work
-                        atomic_write(out / MANIFEST, [json.dumps(manifest(), indent=1).encode()])
+                collect(future.result() for future in as_completed(futures))
             finally:  # on an error or an interrupt, queued files are dropped, not waited for
                 pool.shutdown(wait=True, cancel_futures=True)
     except ScenarioReadError as exc:
         raise TokenCacheError(f"pretokenize stopped at a bad input: {exc}") from exc
     finally:
         bar.close()
-        atomic_write(out / MANIFEST, [json.dumps(manifest(), indent=1).encode()])
+        write_manifest()
     result = manifest()
     result["seconds"] = time.perf_counter() - started
     return result

@@ -114,8 +114,7 @@ class ScriptedSteps:
                 if j < len(s.tokens):
                     forced[:, slot] = s.tokens[j]
                 elif s.then == "hold":
-                    hold = scripted.hold_path(state.current_pose[:, slot].cpu().numpy(), 2 * FRAMES_PER_TOKEN)
-                    forced[:, slot] = _nearest(state, atype, slot, hold)
+                    forced[:, slot] = _nearest(state, atype, slot, _standing(state, slot))
                 continue
             if s.path is None:
                 onset_pose = state.current_pose[:, slot].cpu().numpy().astype(np.float64)
@@ -125,18 +124,22 @@ class ScriptedSteps:
                     s.end_step = int(math.ceil(moving / FRAMES_PER_TOKEN))
             lo = FRAMES_PER_TOKEN * j
             if lo >= s.path.shape[1]:
-                if s.then != "hold":
-                    continue
-                s.path = np.concatenate([s.path, np.repeat(s.path[:, -1:], lo + FRAMES_PER_TOKEN - s.path.shape[1], 1)], 1)
+                if s.then == "hold":  # past the path's end: stand
+                    forced[:, slot] = _nearest(state, atype, slot, _standing(state, slot))
+                continue
             seg = s.path[:, lo: lo + 2 * FRAMES_PER_TOKEN]  # this token's 5 frames and the next one's (look-ahead)
             if seg.shape[1] < 2 * FRAMES_PER_TOKEN:
                 seg = np.concatenate([seg, np.repeat(seg[:, -1:], 2 * FRAMES_PER_TOKEN - seg.shape[1], 1)], 1)
             still = np.ptp(seg[..., :2], axis=1).max(-1) < 1e-6  # [G] the path stands still over both tokens
             if still.any():  # stand where the tokens left the agent, rather than creep onto the path's end point
-                seg = seg.copy()
-                seg[still] = scripted.hold_path(state.current_pose[:, slot].cpu().numpy()[still], 2 * FRAMES_PER_TOKEN)
+                seg = np.where(still[:, None, None], _standing(state, slot), seg)
             forced[:, slot] = _nearest(state, atype, slot, seg)
         return forced
+
+
+def _standing(state: RolloutState, slot: int) -> np.ndarray:
+    """Every group's ``slot`` standing still where it is, over a token and the next: [G, 10, 3]."""
+    return scripted.hold_path(state.current_pose[:, slot].cpu().numpy(), 2 * FRAMES_PER_TOKEN)
 
 
 def _nearest(state: RolloutState, atype: int, slot: int, targets: np.ndarray) -> torch.Tensor:
