@@ -20,7 +20,10 @@ The pipeline:
    ``f`` a shared-parameter ``MultiAgentMLP`` whose last layer starts at 0, so training starts
    exactly at the reference) or ``f(obs)`` alone, restricted to the reference's support (the
    prior's top ``reference_top_k`` tokens, the env's ``action_mask``); a ``ProbabilisticActor``
-   with a Categorical;
+   with a Categorical. ``actor_head="per_token"``: ``f`` has one output per token id;
+   ``"motion"``: ``f`` weighs a few features of each token's motion (where it ends after 0.5 s:
+   forward, left, turn, and their squares; :func:`token_motion_features`), so what is learnt about
+   one token carries over to tokens that move alike;
 3. critic: a ``MultiAgentMLP`` value, centralised (``critic="mappo"``: each agent's value sees
    every agent's observation) or decentralised (``"ippo"``);
 4. loss: :class:`agents.kl_ppo.PriorKLPPOLoss` = TorchRL's ``ClipPPOLoss`` + ``beta *
@@ -85,6 +88,7 @@ CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "finetune"
 GROUP = "agents"
 OBS_KEY = (GROUP, "observation", "observation")
 PRIOR_KEY = (GROUP, "observation", "prior_logits")
+ACTOR_HEADS = ("per_token", "motion")
 
 
 class FinetuneError(SmartMarlError, ValueError):
@@ -122,6 +126,8 @@ class FinetuneConfig:
     # top 5 or 10 (README, Fine-tuning)
     # policy and critic
     residual: bool = True  # logits = prior_logits / T + f(obs), f starting at 0
+    actor_head: str = "per_token"  # f(obs): "per_token" (one output per token id) or "motion" (weights of each token's
+    # motion features, token_motion_features: shared by tokens that move alike)
     hidden: int = 128
     depth: int = 2
     obs_scale: float = 0.1  # the observation (metres, m/s) times this before the MLPs
@@ -203,7 +209,8 @@ _FINETUNE_RULES = {
     "reward": lambda v: None if isinstance(v, dict) and all(number()(w) is None for w in v.values())
     else f"must map reward terms to finite weights, got {v!r}",
     "terminate_on": lambda v: None if isinstance(v, tuple) and all(isinstance(e, str) for e in v) else f"must be a list of event names, got {v!r}",
-    "top_k": optional(integer(1)), "temperature": number(0.0, low_open=True), "reference_top_k": optional(integer(1)), "residual": flag, "hidden": integer(1), "depth": integer(1),
+    "top_k": optional(integer(1)), "temperature": number(0.0, low_open=True), "reference_top_k": optional(integer(1)), "residual": flag,
+    "actor_head": lambda v: None if v in ACTOR_HEADS else f"must be one of {', '.join(ACTOR_HEADS)}, got {v!r}", "hidden": integer(1), "depth": integer(1),
     "obs_scale": number(0.0, low_open=True), "critic": text, "beta": number(0.0), "gamma": number(0.0, 1.0),
     "lmbda": number(0.0, 1.0), "clip_epsilon": number(0.0, low_open=True), "entropy_coeff": number(0.0),
     "critic_coeff": number(0.0), "normalize_advantage": flag, "lr": number(0.0, low_open=True), "max_grad_norm": number(0.0),
@@ -325,18 +332,52 @@ def torchrl_env(cfg: FinetuneConfig, scenes, model, vocab):
 
 
 # ------------------------------------------------------------------------- actor and critic
+def token_motion_features(vocab, vocab_size: int) -> torch.Tensor:
+    """[3, V, 6] features of every token of each type's vocabulary (vehicle, pedestrian, cyclist):
+    where the token ends after 0.5 s in its start frame (forward m, left m, turn rad) and their
+    squares (a weight on both can favour a band: -a (x - c)^2), each standardised over the type's
+    tokens.
+    A type whose vocabulary has another size than ``vocab_size`` (the group's action space) gets
+    zeros: its agents are not in the group."""
+    out = torch.zeros(3, vocab_size, 6)
+    for t in range(3):
+        tv = vocab[AgentType(t)]
+        if tv.size != vocab_size:
+            continue
+        end = torch.as_tensor(np.asarray(tv.poses)[:, -1], dtype=torch.float32)  # (V, 3)
+        feat = torch.cat([end, end.square()], -1)
+        out[t] = (feat - feat.mean(0)) / feat.std(0).clamp(min=1e-6)
+    return out
+
+
 class PolicyLogits(nn.Module):
     """Logits over the motion vocabulary for every agent of the group: ``prior_logits / T + f(obs)``
     (residual) or ``f(obs)``, ``-inf`` outside the prior's ``top_k`` tokens (the reference's
     support, :func:`smart_marl.rollout.top_k_mask`; None: every token). observation [..., A, O],
-    prior_logits [..., A, V] -> [..., A, V]."""
+    prior_logits [..., A, V] -> [..., A, V].
+
+    ``motion_features`` None: ``f(obs)`` has one output per token. Else ([3, V, P],
+    :func:`token_motion_features`): ``f(obs)`` gives P weights and a token's output is their dot
+    product with its type's features (the type read from the observation's ``ego_type`` one-hot;
+    a padded agent's zeros give 0)."""
 
     def __init__(self, obs_dim: int, vocab_size: int, n_agents: int, hidden: int, depth: int, residual: bool = True,
-                 obs_scale: float = 0.1, temperature: float = 1.0, top_k: int | None = None) -> None:
+                 obs_scale: float = 0.1, temperature: float = 1.0, top_k: int | None = None,
+                 motion_features: torch.Tensor | None = None) -> None:
         super().__init__()
         self.residual, self.obs_scale, self.temperature = bool(residual), float(obs_scale), float(temperature)
         self.top_k = None if top_k is None else int(top_k)
-        self.f = MultiAgentMLP(obs_dim, vocab_size, n_agents, centralized=False, share_params=True, depth=depth,
+        if motion_features is not None:
+            if tuple(motion_features.shape[:2]) != (3, vocab_size):
+                raise FinetuneError(f"motion_features must be [3, {vocab_size}, P], got {list(motion_features.shape)}")
+            self.register_buffer("motion_features", motion_features.float())
+            layout = {name: (off, size) for name, off, size in smart_traffic_v0.observation_layout(smart_traffic_v0.ObservationConfig())}
+            off, size = layout["ego_type"]
+            self.type_slice = slice(off, off + size)
+        else:
+            self.motion_features = None
+        out_dim = vocab_size if motion_features is None else int(motion_features.shape[-1])
+        self.f = MultiAgentMLP(obs_dim, out_dim, n_agents, centralized=False, share_params=True, depth=depth,
                                num_cells=hidden, activation_class=nn.Tanh)
         if self.residual:  # start exactly at the prior
             last = max(int(name.split(".")[1]) for name, _ in self.f.named_parameters())
@@ -347,6 +388,8 @@ class PolicyLogits(nn.Module):
 
     def forward(self, observation: torch.Tensor, prior_logits: torch.Tensor) -> torch.Tensor:
         delta = self.f(observation * self.obs_scale)
+        if self.motion_features is not None:  # P weights per agent -> one output per token of its type
+            delta = torch.einsum("...ap,...at,tvp->...av", delta, observation[..., self.type_slice], self.motion_features)
         logits = prior_logits / self.temperature + delta if self.residual else delta
         if self.top_k is None:
             return logits
@@ -366,10 +409,16 @@ class Critic(nn.Module):
         return self.v(observation * self.obs_scale)
 
 
-def build_modules(cfg: FinetuneConfig, obs_dim: int, vocab_size: int, n_agents: int):
-    """(logits net, TorchRL ProbabilisticActor, TorchRL critic module)."""
+def build_modules(cfg: FinetuneConfig, obs_dim: int, vocab_size: int, n_agents: int, vocab=None):
+    """(logits net, TorchRL ProbabilisticActor, TorchRL critic module). ``vocab``: the prior's motion
+    vocabulary, which ``actor_head="motion"`` needs."""
+    features = None
+    if cfg.actor_head == "motion":
+        if vocab is None:
+            raise FinetuneConfigError("actor_head='motion' needs the prior's motion vocabulary")
+        features = token_motion_features(vocab, vocab_size)
     net = PolicyLogits(obs_dim, vocab_size, n_agents, cfg.hidden, cfg.depth, cfg.residual, cfg.obs_scale, cfg.temperature,
-                       cfg.reference_top_k)
+                       cfg.reference_top_k, features)
     actor = ProbabilisticActor(
         TensorDictModule(net, in_keys=[OBS_KEY, PRIOR_KEY], out_keys=[(GROUP, "logits")]),
         in_keys={"logits": (GROUP, "logits")}, out_keys=[(GROUP, "action")], distribution_class=torch.distributions.Categorical,
@@ -410,9 +459,12 @@ def load_policy(path: str | Path) -> tuple[FinetuneConfig, PolicyLogits, dict]:
     config = {k: v for k, v in meta["config"].items() if k in {f.name for f in dataclasses.fields(FinetuneConfig)}}
     config.setdefault("reference_top_k", None)  # policies saved before the top-k reference were trained on the full softmax
     cfg = load_finetune_config(config)
-    net = PolicyLogits(meta["obs_dim"], meta["vocab_size"], meta["n_agents"], cfg.hidden, cfg.depth, cfg.residual, cfg.obs_scale,
-                       cfg.temperature, cfg.reference_top_k)
     weights = load_file(str(wpath))
+    features = weights.get("actor.motion_features")  # saved with the weights (a buffer): no vocabulary needed here
+    if (features is not None) != (cfg.actor_head == "motion"):
+        raise FinetuneError(f"{wpath}: actor_head {cfg.actor_head!r} does not match the saved weights")
+    net = PolicyLogits(meta["obs_dim"], meta["vocab_size"], meta["n_agents"], cfg.hidden, cfg.depth, cfg.residual, cfg.obs_scale,
+                       cfg.temperature, cfg.reference_top_k, None if features is None else torch.zeros_like(features))
     net.load_state_dict({k[len("actor."):]: v for k, v in weights.items() if k.startswith("actor.")})
     return cfg, net.eval(), meta
 
@@ -521,7 +573,7 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     dims = {"obs_dim": obs_dim, "vocab_size": vocab_size, "n_agents": n_agents}
 
     # 2-3. actor and critic
-    net, actor, critic = build_modules(cfg, obs_dim, vocab_size, n_agents)
+    net, actor, critic = build_modules(cfg, obs_dim, vocab_size, n_agents, vocab)
     actor, critic = actor.to(device), critic.to(device)
 
     # 4. loss: clipped PPO + beta * KL(pi || reference), GAE

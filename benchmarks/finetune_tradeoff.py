@@ -107,6 +107,8 @@ def main() -> int:
     ap.add_argument("--reward", nargs="*", default=[], metavar="TERM=W",
                     help="reward weights of every fine-tuning run (envs RewardConfig terms, e.g. collision=-3); "
                          "the runs' names say them")
+    ap.add_argument("--actor-head", choices=("per_token", "motion"), default=None,
+                    help="the fine-tuned actor's residual head (default: the config's)")
     ap.add_argument("--iterations", type=int, default=30)
     ap.add_argument("--frames-per-batch", type=int, default=240)
     ap.add_argument("--lr", type=float, default=0.003)
@@ -140,6 +142,8 @@ def main() -> int:
         base["top_k"] = args.background_top_k
     if args.eval_seed is not None:
         base["eval_seed"] = args.eval_seed
+    if args.actor_head is not None:
+        base["actor_head"] = args.actor_head
     cfg = load_finetune_config("tiny", base)
     t0 = time.perf_counter()
     model, vocab = load_prior(cfg.prior)

@@ -77,7 +77,7 @@ from smart_marl.tokens import FRAMES_PER_TOKEN, MotionVocabulary
 
 from ._dynamics import BACKGROUNDS, Motion, move, release
 from .errors import ActionError, ActionTypeError, EnvConfigError, EnvError, EnvStateError, UnknownAgentError
-from ._observation import HISTORY_FRAMES, ObservationConfig, build_observations, observation_size
+from ._observation import HISTORY_FRAMES, ObservationConfig, build_observations, observation_layout, observation_size
 from ._reward import REWARD_TERMS, TERMINATION_EVENTS, RewardConfig, StepReward, route_progress_m, step_reward
 from ._scene import SceneStatic, scene_static
 
@@ -619,4 +619,4 @@ def env(**kwargs):
 
 
 __all__ = ["BACKGROUNDS", "EnvError", "EnvConfigError", "UnknownAgentError", "ActionError", "EnvStateError", "ObservationConfig", "RewardConfig", "SmartTrafficEnv",
-           "env", "parallel_env", "raw_env"]
+           "env", "observation_layout", "parallel_env", "raw_env"]

@@ -23,7 +23,7 @@ from agents import PriorPolicy, kl_to_prior, run_episode  # noqa: E402
 from agents.evaluate import evaluate_policies, first_collision_kinds  # noqa: E402
 from agents.finetune import (  # noqa: E402
     FinetuneError, FinetunedPolicy, PolicyLogits, build_modules, evaluation_policies, finetune, held_out_scenes, load_finetune_config,
-    load_policy, load_prior, scene_env, select_scenes,
+    load_policy, load_prior, scene_env, select_scenes, token_motion_features,
 )
 from agents.kl_ppo import PriorKLPPOLoss  # noqa: E402
 from smart_marl.rollout import DEFAULT_TOP_K, reference_log_probs, sample_tokens  # noqa: E402
@@ -167,6 +167,37 @@ def test_residual_actor_with_a_top_k_reference_starts_at_it_and_samples_what_the
         assert a.tolist() == b.tolist()
 
 
+def test_motion_head_scores_each_token_by_its_types_motion_features_and_starts_at_the_prior(womd_vocab):
+    """actor_head="motion": f(obs) gives 6 weights and token v of an agent of type t scores
+    sum_p w_p feat[t, v, p], the features being where the token ends (forward, left, turn) and their
+    squares, standardised over the type's tokens; the type comes from the observation's one-hot."""
+    feats = token_motion_features(womd_vocab, VOCAB)
+    assert feats.shape == (3, VOCAB, 6)
+    torch.testing.assert_close(feats.mean(1), torch.zeros(3, 6), rtol=0, atol=1e-5)
+    torch.testing.assert_close(feats.std(1), torch.ones(3, 6), rtol=0, atol=1e-4)
+    end = torch.as_tensor(np.asarray(womd_vocab[0].poses)[:, -1], dtype=torch.float32)  # vehicle tokens (V, 3)
+    forward = end[:, 0]
+    assert torch.corrcoef(torch.stack([feats[0, :, 0], forward]))[0, 1] > 0.999  # the first feature is how far it goes
+    assert token_motion_features(womd_vocab, VOCAB + 1).abs().sum() == 0  # no type has that many tokens
+    obs_dim = 473  # the env's default observation: ego_type one-hot at 5..7
+    net = PolicyLogits(obs_dim, VOCAB, n_agents=3, hidden=16, depth=2, residual=True, temperature=0.5, motion_features=feats)
+    obs, prior = torch.randn(5, 3, obs_dim), torch.randn(5, 3, VOCAB)
+    obs[..., 5:8] = 0
+    obs[:, 0, 5] = obs[:, 1, 6] = 1  # agent 0 a vehicle, agent 1 a pedestrian, agent 2 a padded slot (no type)
+    torch.testing.assert_close(net(obs, prior), prior / 0.5, rtol=0, atol=0)  # starts exactly at the prior
+    w = torch.tensor([2.0, -1.0, 0.5, -3.0, 0.0, 1.0])
+    with torch.no_grad():
+        params = dict(net.f.named_parameters())
+        last_bias = max((n for n in params if n.endswith("bias")), key=lambda n: int(n.split(".")[1]))
+        params[last_bias].copy_(w)  # the last layer's weights are 0: f(obs) = w for every agent
+    delta = net(obs, prior) - prior / 0.5
+    torch.testing.assert_close(delta[:, 0], (feats[0] @ w).expand(5, -1), rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(delta[:, 1], (feats[1] @ w).expand(5, -1), rtol=1e-5, atol=1e-5)
+    assert delta[:, 2].abs().max() == 0
+    with pytest.raises(FinetuneError, match="motion_features"):
+        PolicyLogits(obs_dim, VOCAB + 1, n_agents=3, hidden=16, depth=2, motion_features=feats)
+
+
 def test_prior_kl_loss_adds_beta_times_the_exact_kl_of_agents_that_acted():
     """The loss's extra term equals beta * mean over acting agents of sum_v pi (log pi - log prior),
     computed here independently from the actor's logits; masked agents do not count."""
@@ -289,6 +320,25 @@ def test_a_short_run_collects_its_first_batch_at_the_prior_and_writes_its_files(
     except ImportError:
         return
     assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
+
+
+def test_a_short_run_with_the_motion_head_saves_its_features_and_loads_back(shared_data, prior_path, tmp_path):
+    cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, tmp_path, iterations=2, frames_per_batch=32,
+                                            minibatch_size=32, ppo_epochs=1, eval_episodes=0, actor_head="motion"))
+    result = finetune(cfg)
+    assert result.history[0]["kl_to_prior"] < 1e-6 < result.history[1]["kl_to_prior"]
+    cfg2, net, meta = load_policy(result.checkpoint)
+    assert cfg2.actor_head == "motion"
+    _, vocab = load_prior(cfg.prior)
+    torch.testing.assert_close(net.motion_features, token_motion_features(vocab, meta["vocab_size"]), rtol=0, atol=0)
+    config = result.checkpoint.with_suffix(".json")
+    meta_json = json.loads(config.read_text())
+    meta_json["config"]["actor_head"] = "per_token"
+    config.write_text(json.dumps(meta_json))
+    with pytest.raises(FinetuneError, match="actor_head"):
+        load_policy(result.checkpoint)
+    with pytest.raises(FinetuneError, match="actor_head"):
+        load_finetune_config("tiny", {"actor_head": "tokens"})
 
 
 def test_with_a_large_beta_the_kl_stays_near_zero_and_behaviour_matches_the_prior(shared_data, prior_path, tmp_path):
