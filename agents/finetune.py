@@ -344,7 +344,7 @@ def token_motion_features(vocab, vocab_size: int) -> torch.Tensor:
         tv = vocab[AgentType(t)]
         if tv.size != vocab_size:
             continue
-        end = torch.as_tensor(np.asarray(tv.poses)[:, -1], dtype=torch.float32)  # (V, 3)
+        end = torch.as_tensor(tv.poses[:, -1], dtype=torch.float32)  # (V, 3)
         feat = torch.cat([end, end.square()], -1)
         out[t] = (feat - feat.mean(0)) / feat.std(0).clamp(min=1e-6)
     return out

@@ -107,8 +107,8 @@ def main() -> int:
     ap.add_argument("--reward", nargs="*", default=[], metavar="TERM=W",
                     help="reward weights of every fine-tuning run (envs RewardConfig terms, e.g. collision=-3); "
                          "the runs' names say them")
-    ap.add_argument("--actor-head", choices=("per_token", "motion"), default=None,
-                    help="the fine-tuned actor's residual head (default: the config's)")
+    ap.add_argument("--actor-head", default=None,
+                    help="the fine-tuned actor's residual head, per_token or motion (default: the config's)")
     ap.add_argument("--iterations", type=int, default=30)
     ap.add_argument("--frames-per-batch", type=int, default=240)
     ap.add_argument("--lr", type=float, default=0.003)
@@ -126,7 +126,7 @@ def main() -> int:
         ap.error(f"--reward: expected TERM=WEIGHT items, got {args.reward}")
 
     from agents.evaluate import evaluate_policies
-    from agents.finetune import (FinetunedPolicy, evaluation_policies, finetune, held_out_scenes, load_finetune_config,
+    from agents.finetune import (FinetuneConfigError, FinetunedPolicy, evaluation_policies, finetune, held_out_scenes, load_finetune_config,
                                  load_policy, load_prior, scene_env, select_scenes)
     from agents.prior_policy import PriorPolicy
 
@@ -144,7 +144,10 @@ def main() -> int:
         base["eval_seed"] = args.eval_seed
     if args.actor_head is not None:
         base["actor_head"] = args.actor_head
-    cfg = load_finetune_config("tiny", base)
+    try:
+        cfg = load_finetune_config("tiny", base)
+    except FinetuneConfigError as exc:
+        ap.error(str(exc))
     t0 = time.perf_counter()
     model, vocab = load_prior(cfg.prior)
     training = select_scenes(cfg, model, vocab)

@@ -179,11 +179,15 @@ def test_motion_head_scores_each_token_by_its_types_motion_features_and_starts_a
     forward = end[:, 0]
     assert torch.corrcoef(torch.stack([feats[0, :, 0], forward]))[0, 1] > 0.999  # the first feature is how far it goes
     assert token_motion_features(womd_vocab, VOCAB + 1).abs().sum() == 0  # no type has that many tokens
-    obs_dim = 473  # the env's default observation: ego_type one-hot at 5..7
+    from envs.smart_traffic_v0 import ObservationConfig, observation_layout
+
+    layout = observation_layout(ObservationConfig())  # the env's default observation
+    obs_dim = sum(size for _, _, size in layout)
+    off = next(o for name, o, _ in layout if name == "ego_type")  # its one-hot: vehicle, pedestrian, cyclist
     net = PolicyLogits(obs_dim, VOCAB, n_agents=3, hidden=16, depth=2, residual=True, temperature=0.5, motion_features=feats)
     obs, prior = torch.randn(5, 3, obs_dim), torch.randn(5, 3, VOCAB)
-    obs[..., 5:8] = 0
-    obs[:, 0, 5] = obs[:, 1, 6] = 1  # agent 0 a vehicle, agent 1 a pedestrian, agent 2 a padded slot (no type)
+    obs[..., off : off + 3] = 0
+    obs[:, 0, off] = obs[:, 1, off + 1] = 1  # agent 0 a vehicle, agent 1 a pedestrian, agent 2 a padded slot (no type)
     torch.testing.assert_close(net(obs, prior), prior / 0.5, rtol=0, atol=0)  # starts exactly at the prior
     w = torch.tensor([2.0, -1.0, 0.5, -3.0, 0.0, 1.0])
     with torch.no_grad():
