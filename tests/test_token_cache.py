@@ -82,6 +82,44 @@ def test_a_rerun_skips_done_inputs_and_refuses_other_settings(setup):
         pretokenize([str(f) for f in files], out, ck.motion_vocab, ck.road_vocab, "sumo", 20.0, progress=False)
 
 
+# a pretokenize run that dies without cleaning up (SIGKILL, out of memory) half-way through its inputs
+_KILLED_RUN = """
+import os, sys
+from smart_marl import token_cache
+from smart_marl.model.checkpoint import load_checkpoint
+
+token_cache.MANIFEST_EVERY = 1
+tokenize = token_cache._tokenize_file
+
+def dies_at_the_second_file(path, *args):
+    if path == sys.argv[2]:
+        os._exit(9)  # no finally clause runs: the manifest is what the run wrote before
+    return tokenize(path, *args)
+
+token_cache._tokenize_file = dies_at_the_second_file
+ck = load_checkpoint("embedded")
+token_cache.pretokenize(sys.argv[1:3], sys.argv[3], ck.motion_vocab, ck.road_vocab, "sumo", float(sys.argv[4]), progress=False)
+"""
+
+
+def test_a_run_killed_hard_keeps_what_its_manifest_wrote_and_a_rerun_finishes(setup, tmp_path):
+    import subprocess
+    import sys
+
+    ck, _, files, _, manifest = setup
+    out = tmp_path / "killed"
+    run = subprocess.run([sys.executable, "-c", _KILLED_RUN, str(files[0]), str(files[1]), str(out), str(RADIUS)],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 9, run.stderr[-2000:]
+    cache = TokenCache(out)  # the manifest written after the first file: that file's scenes, readable
+    assert [s["source"] for s in cache.manifest["shards"]] == [str(files[0])] and len(cache) == 3
+    first = out / cache.manifest["shards"][0]["file"]
+    before = first.stat().st_mtime_ns
+    again = pretokenize([str(f) for f in files], out, ck.motion_vocab, ck.road_vocab, "sumo", RADIUS, progress=False)
+    assert first.stat().st_mtime_ns == before  # the rerun kept the first file's shard and tokenized only the second
+    assert [s["scenario_ids"] for s in again["shards"]] == [s["scenario_ids"] for s in manifest["shards"]]
+
+
 def test_a_damaged_shard_is_named(setup, tmp_path):
     _, _, _, out, manifest = setup
     import shutil
