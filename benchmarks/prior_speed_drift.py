@@ -9,7 +9,10 @@ teacher-forced bias of the model's most likely next token (logged history as inp
 of the argmax token over the mean speed of the target token, for the same moving agents at every
 step; and for vehicles, the same by the speed of the input token, with the mean speed of the
 renormalised top-k distribution as well (does the model pull fast or slow vehicles toward the
-speeds of its training data?).
+speeds of its training data?). And, in the last second of the rollout (7-8 s), the same agents split
+by what their log does against their speed at the current frame (speeds up by more than 20%, keeps
+within 20%, slows by more than 20%): does the rollout fall short where the log slows down, keeps
+going, or speeds up?
 
 Output (stdout, one JSON object per line)::
 
@@ -17,6 +20,8 @@ Output (stdout, one JSON object per line)::
     {"kind": "teacher_forced", "set": "real", "type": "vehicle", "argmax_mps": ..., "target_mps": ..., "ratio": ..., "rows": ...}
     {"kind": "teacher_forced_by_speed", "set": "real", "type": "vehicle", "input_mps": [15.0, null], "target_mps": ...,
      "argmax_ratio": ..., "top_k_mean_ratio": ..., "rows": ...}
+    {"kind": "late_by_log_trend", "set": "real", "type": "vehicle", "log_trend": "speeds_up", "agents": ...,
+     "now_mps": ..., "log_mps": ..., "rollout_mps": ..., "ratio": ...}
 
 A prior with no drift has ratios near 1 at every horizon (the log itself slows down where the
 traffic does, which the rollout should follow, not exceed).
@@ -51,6 +56,8 @@ HORIZONS_S = (0.5, 1.0, 2.0, 4.0, 6.0, 8.0)
 MOVING_MPS = {AgentType.VEHICLE: 5.0, AgentType.PEDESTRIAN: 0.5, AgentType.CYCLIST: 2.0}
 NUM_FRAMES = 80  # 16 tokens of 5 frames
 SPEED_BINS_MPS = (0.0, 1.0, 5.0, 9.0, 12.0, 15.0, 1e9)  # vehicles' teacher-forced bias by input-token speed
+LATE_FRAMES = 10  # the last second of the rollout (7-8 s): the frames of late_by_log_trend
+TRENDS = ("speeds_up", "keeps", "slows")  # log's late mean speed over the speed now: > 1.2, within 20%, < 0.8
 
 
 def _speeds_from_positions(xy: np.ndarray, start_xy: np.ndarray) -> np.ndarray:
@@ -59,8 +66,10 @@ def _speeds_from_positions(xy: np.ndarray, start_xy: np.ndarray) -> np.ndarray:
 
 
 def rollout_speeds(ck, scene, num_rollouts: int, top_k: int, temperature: float, seed: int) -> dict:
-    """Per motion type: (rollout speed sum [T], log speed sum [T], log count [T], agents), frames cf+1..cf+80,
-    over the agents moving at the current frame; a sum at frame t counts the agents logged at t and t-1."""
+    """Per motion type: (rollout speed sum [T], log speed sum [T], log count [T], agents, by_trend), frames
+    cf+1..cf+80, over the agents moving at the current frame; a sum at frame t counts the agents logged at t and
+    t-1. ``by_trend`` [3, 4]: per log trend (:data:`TRENDS`), the sums of speed now, log and rollout mean speed in
+    the last :data:`LATE_FRAMES` frames, and the agents (those logged on at least half of those frames)."""
     res = rollout(ck, [scene], num_rollouts=num_rollouts, num_steps=NUM_FRAMES // 5, top_k=top_k,
                   temperature=temperature, seed=seed)
     tr, cf = scene.tracks, scene.current_frame
@@ -77,7 +86,17 @@ def rollout_speeds(ck, scene, num_rollouts: int, top_k: int, temperature: float,
         log_speed = _speeds_from_positions(tr.position[:a][moving][:, frames, :2], tr.position[:a][moving][:, cf, :2])
         sim = _speeds_from_positions(res.trajectory[:, moving, :, :2], np.broadcast_to(tr.position[:a][moving][:, cf, :2],
                                                                                       (num_rollouts, int(moving.sum()), 2)))
-        out[t] = (np.where(ok, sim.mean(0), 0.0).sum(0), np.where(ok, log_speed, 0.0).sum(0), ok.sum(0), int(moving.sum()))
+        sim_mean = sim.mean(0)  # [M, T] over the rollouts
+        late = ok & (np.arange(NUM_FRAMES) >= NUM_FRAMES - LATE_FRAMES)
+        n_late = late.sum(1)
+        log_late = np.where(late, log_speed, 0.0).sum(1) / np.maximum(n_late, 1)
+        sim_late = np.where(late, sim_mean, 0.0).sum(1) / np.maximum(n_late, 1)
+        now = v_now[moving]
+        trend = np.where(log_late > 1.2 * now, 0, np.where(log_late < 0.8 * now, 2, 1))
+        counted = n_late * 2 >= LATE_FRAMES
+        by_trend = np.array([[now[m].sum(), log_late[m].sum(), sim_late[m].sum(), m.sum()]
+                             for m in (counted & (trend == c) for c in range(len(TRENDS)))])
+        out[t] = (np.where(ok, sim_mean, 0.0).sum(0), np.where(ok, log_speed, 0.0).sum(0), ok.sum(0), int(moving.sum()), by_trend)
     return out
 
 
@@ -155,16 +174,14 @@ def main(argv=None) -> None:
     for set_name, scenes in scene_sets(args.sets).items():
         if args.max_scenes:
             scenes = scenes[: args.max_scenes]
-        roll = {t: [np.zeros(NUM_FRAMES), np.zeros(NUM_FRAMES), np.zeros(NUM_FRAMES), 0] for t in MOTION_TYPES}
+        roll = {t: [np.zeros(NUM_FRAMES), np.zeros(NUM_FRAMES), np.zeros(NUM_FRAMES), 0, np.zeros((len(TRENDS), 4))]
+                for t in MOTION_TYPES}
         tf = {t: np.zeros(3) for t in MOTION_TYPES}
         tf_bins = np.zeros((len(SPEED_BINS_MPS) - 1, 4))
         for scene in scenes:
-            for t, (r, lg, n, m) in rollout_speeds(ck, scene, args.rollouts, args.top_k, args.temperature, args.seed).items():
-                acc = roll[t]
-                acc[0] += r
-                acc[1] += lg
-                acc[2] += n
-                acc[3] += m
+            for t, sums in rollout_speeds(ck, scene, args.rollouts, args.top_k, args.temperature, args.seed).items():
+                for i, v in enumerate(sums):
+                    roll[t][i] += v
             moving_bias, bins = teacher_forced_bias(ck, scene, args.top_k)
             for t, v in moving_bias.items():
                 tf[t] += v
@@ -172,7 +189,7 @@ def main(argv=None) -> None:
         common = {"set": set_name, "scenes": len(scenes), "rollouts": args.rollouts, "top_k": args.top_k,
                   "temperature": args.temperature, "prior": args.prior}
         for t in MOTION_TYPES:
-            r, lg, n, m = roll[t]
+            r, lg, n, m, by_trend = roll[t]
             if m == 0:
                 continue
             for h in HORIZONS_S:
@@ -182,6 +199,12 @@ def main(argv=None) -> None:
                 print(json.dumps({"kind": "horizon", "type": t.name.lower(), "t_s": h, "rollout_mps": round(r[k] / n[k], 3),
                                   "log_mps": round(lg[k] / n[k], 3), "ratio": round(r[k] / max(lg[k], 1e-9), 3),
                                   "agents": m, "logged_at_t": int(n[k]), **common}), flush=True)
+            for name, (now, log_late, sim_late, count) in zip(TRENDS, by_trend):
+                if count:
+                    print(json.dumps({"kind": "late_by_log_trend", "type": t.name.lower(), "log_trend": name, "agents": int(count),
+                                      "now_mps": round(now / count, 3), "log_mps": round(log_late / count, 3),
+                                      "rollout_mps": round(sim_late / count, 3), "ratio": round(sim_late / max(log_late, 1e-9), 3),
+                                      **common}), flush=True)
             s = tf[t]
             if s[2]:
                 print(json.dumps({"kind": "teacher_forced", "type": t.name.lower(), "argmax_mps": round(s[0] / s[2], 3),
