@@ -57,7 +57,8 @@ MOVING_MPS = {AgentType.VEHICLE: 5.0, AgentType.PEDESTRIAN: 0.5, AgentType.CYCLI
 NUM_FRAMES = 80  # 16 tokens of 5 frames
 SPEED_BINS_MPS = (0.0, 1.0, 5.0, 9.0, 12.0, 15.0, 1e9)  # vehicles' teacher-forced bias by input-token speed
 LATE_FRAMES = 10  # the last second of the rollout (7-8 s): the frames of late_by_log_trend
-TRENDS = ("speeds_up", "keeps", "slows")  # log's late mean speed over the speed now: > 1.2, within 20%, < 0.8
+TRENDS = ("speeds_up", "keeps", "slows")  # log's late mean speed against the speed now: above, within, below the band
+TREND_BAND = 0.2  # "keeps": within 20% of the speed now
 
 
 def _speeds_from_positions(xy: np.ndarray, start_xy: np.ndarray) -> np.ndarray:
@@ -92,7 +93,7 @@ def rollout_speeds(ck, scene, num_rollouts: int, top_k: int, temperature: float,
         log_late = np.where(late, log_speed, 0.0).sum(1) / np.maximum(n_late, 1)
         sim_late = np.where(late, sim_mean, 0.0).sum(1) / np.maximum(n_late, 1)
         now = v_now[moving]
-        trend = np.where(log_late > 1.2 * now, 0, np.where(log_late < 0.8 * now, 2, 1))
+        trend = np.where(log_late > (1 + TREND_BAND) * now, 0, np.where(log_late < (1 - TREND_BAND) * now, 2, 1))
         counted = n_late * 2 >= LATE_FRAMES
         by_trend = np.array([[now[m].sum(), log_late[m].sum(), sim_late[m].sum(), m.sum()]
                              for m in (counted & (trend == c) for c in range(len(TRENDS)))])

@@ -619,4 +619,4 @@ def env(**kwargs):
 
 
 __all__ = ["BACKGROUNDS", "EnvError", "EnvConfigError", "UnknownAgentError", "ActionError", "EnvStateError", "ObservationConfig", "RewardConfig", "SmartTrafficEnv",
-           "env", "observation_layout", "parallel_env", "raw_env"]
+           "env", "observation_layout", "observation_size", "parallel_env", "raw_env"]

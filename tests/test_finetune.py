@@ -179,11 +179,10 @@ def test_motion_head_scores_each_token_by_its_types_motion_features_and_starts_a
     forward = end[:, 0]
     assert torch.corrcoef(torch.stack([feats[0, :, 0], forward]))[0, 1] > 0.999  # the first feature is how far it goes
     assert token_motion_features(womd_vocab, VOCAB + 1).abs().sum() == 0  # no type has that many tokens
-    from envs.smart_traffic_v0 import ObservationConfig, observation_layout
+    from envs.smart_traffic_v0 import ObservationConfig, observation_layout, observation_size
 
-    layout = observation_layout(ObservationConfig())  # the env's default observation
-    obs_dim = sum(size for _, _, size in layout)
-    off = next(o for name, o, _ in layout if name == "ego_type")  # its one-hot: vehicle, pedestrian, cyclist
+    obs_dim = observation_size(ObservationConfig())  # the env's default observation
+    off = next(o for name, o, _ in observation_layout(ObservationConfig()) if name == "ego_type")  # vehicle, pedestrian, cyclist
     net = PolicyLogits(obs_dim, VOCAB, n_agents=3, hidden=16, depth=2, residual=True, temperature=0.5, motion_features=feats)
     obs, prior = torch.randn(5, 3, obs_dim), torch.randn(5, 3, VOCAB)
     obs[..., off : off + 3] = 0
