@@ -51,6 +51,7 @@ def test_constant_speed_vehicle_has_its_speed_no_acceleration_and_never_stops():
     assert not out["vehicle_stopped_time_share"].any()
     assert np.allclose(out["fast_vehicle_speed_ratio_4s"], 1.0) and np.allclose(out["fast_vehicle_speed_ratio_8s"], 1.0)
     assert not out["fast_vehicle_slows_20pct_8s_share"].any() and not out["fast_vehicle_stops_within_8s_share"].any()
+    assert not out["fast_vehicle_speeds_up_20pct_8s_share"].any()
     assert np.allclose(out["sdc_speed_mps"], 10.0)
     assert np.allclose(out["vehicle_abs_yaw_rate_radps"], 0.0)
 
@@ -71,6 +72,16 @@ def test_uniform_braking_gives_its_deceleration_and_a_stop():
     # below 0.5 m/s from 5.75 s on (10 - 2 (t - 1) < 0.5): 33 of the 91 frames, give or take the smoothing
     assert abs(out["vehicle_stopped_time_share"].sum() - 33) <= 2
     assert out["vehicle_moving_then_stops_share"].tolist() == [True]
+
+
+def test_a_vehicle_pulling_away_speeds_up_and_does_not_slow():
+    """6 m/s at the current frame (1 s), then 0.5 m/s^2 to 10 m/s at 9 s."""
+    ta = np.clip(t_s - 1.0, 0.0, None)
+    x = np.where(t_s < 1.0, 6.0 * t_s, 6.0 + 6.0 * ta + 0.25 * ta ** 2)
+    out = scene_samples(make_scene([np.stack([x, np.zeros(T)], -1)], heading=np.zeros((1, T))))
+    assert out["fast_vehicle_speeds_up_20pct_8s_share"].tolist() == [True]
+    assert out["fast_vehicle_slows_20pct_8s_share"].tolist() == [False]
+    assert abs(float(out["fast_vehicle_speed_ratio_8s"][0]) - 10.0 / 6.0) < 0.02
 
 
 def test_a_parked_vehicle_is_stopped_and_parked():

@@ -88,6 +88,7 @@ STATISTICS: dict[str, tuple[str, str]] = {
     "fast_vehicle_stops_within_8s_share": ("share", "vehicles > 5 m/s at the current frame that stop (< 0.5 m/s) in the next 8 s"),
     "fast_vehicle_speed_ratio_4s": ("distribution", "speed 4 s after the current frame / speed at it (vehicles > 5 m/s)"),
     "fast_vehicle_speed_ratio_8s": ("distribution", "speed 8 s after the current frame / speed at it (vehicles > 5 m/s)"),
+    "fast_vehicle_speeds_up_20pct_8s_share": ("share", "vehicles > 5 m/s whose speed 8 s later is > 120% of it"),
     "fast_vehicle_slows_20pct_8s_share": ("share", "vehicles > 5 m/s whose speed 8 s later is < 80% of it"),
     "fast_vehicle_slows_50pct_8s_share": ("share", "vehicles > 5 m/s whose speed 8 s later is < 50% of it"),
     "sdc_speed_mps": ("distribution", "SDC speed at the current frame"),
@@ -420,6 +421,7 @@ def scene_samples(scenario: Scenario) -> dict[str, np.ndarray]:
         ok8 = fast & v_valid[:, f8]
         ratio8 = v_speed[ok8, f8] / v_speed[ok8, cur]
         put("fast_vehicle_speed_ratio_8s", ratio8)
+        put("fast_vehicle_speeds_up_20pct_8s_share", ratio8 > 1.2)
         put("fast_vehicle_slows_20pct_8s_share", ratio8 < 0.8)
         put("fast_vehicle_slows_50pct_8s_share", ratio8 < 0.5)
         window = slice(cur + 1, f8 + 1)
