@@ -99,6 +99,7 @@ class TrainConfig:
     grad_clip: float = 1.0
     dropout: float = 0.1
     label_smoothing: float = 0.1
+    speed_trend_weights: tuple | None = None  # (speeds up, keeps, slows): loss weights of vehicles by their 8 s speed trend (model.losses.speed_trend_weights); None: off
     token_noise_topk: int = 5  # top-k noisy rolling matching; 0 or 1: off
     catk_top_k: int = 0  # > 0: closed-loop targets (CAT-K, smart_marl.catk) from the model's top-K tokens; 0: teacher forcing
     road_mask_prob: float = 0.15  # share of road pieces hidden for the road next-token task
@@ -141,6 +142,14 @@ def load_train_config(config: str | Mapping[str, Any] | None = None, overrides: 
     return cfg
 
 
+def _trend_weights(value) -> str | None:
+    if value is None:
+        return None
+    if not (isinstance(value, (list, tuple)) and len(value) == 3) or any(number(0.0)(w) for w in value):
+        return f"must be three numbers >= 0 (speeds up, keeps its speed, slows) or null, got {value!r}"
+    return None
+
+
 def _betas(value) -> str | None:
     if not (isinstance(value, (list, tuple)) and len(value) == 2) or any(number(0.0, 1.0, high_open=True)(b) for b in value):
         return f"must be two numbers in [0, 1), got {value!r}"
@@ -155,6 +164,7 @@ _TRAIN_RULES = {
     "batch_size": integer(1), "num_workers": integer(0), "max_steps": integer(1), "lr": number(0.0, low_open=True),
     "weight_decay": number(0.0), "betas": _betas, "warmup_steps": integer(0), "grad_clip": number(0.0),
     "dropout": number(0.0, 1.0, high_open=True), "label_smoothing": number(0.0, 1.0, high_open=True),
+    "speed_trend_weights": _trend_weights,
     "token_noise_topk": integer(0), "catk_top_k": integer(0), "cache_scenes": integer(0), "road_mask_prob": number(0.0, 1.0),
     "road_keep_radius_m": optional(lambda v: number()(v) or (None if v == -1 or v >= 0 else f"must be -1 or >= 0, got {v}")),
     "log_every": integer(1), "val_every": integer(0), "val_scenes": integer(0), "ckpt_every": integer(0), "seed": integer(),
@@ -599,7 +609,7 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
             warnings.warn(f"{cfg.init}: the run's model config differs from the checkpoint's in {sorted(differ)} "
                           f"(checkpoint, run: {differ}); pass model.KEY=VALUE to keep the checkpoint's", stacklevel=2)
     model.to(device)
-    loss_module = NextTokenLoss(model, cfg.label_smoothing)
+    loss_module = NextTokenLoss(model, cfg.label_smoothing, cfg.speed_trend_weights)
     optimizer = make_optimizer(model, cfg)
     scheduler = make_scheduler(optimizer, cfg)
     step = 0

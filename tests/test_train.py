@@ -237,3 +237,57 @@ def test_fine_tuning_warns_when_the_run_config_differs_from_the_checkpoints(shar
         warnings.simplefilter("error")  # the same config: no warning
         train(load_train_config({**base, "model_overrides": {**small, "road_types": "sumo"}, "init": init,
                                  "out_dir": str(tmp_path / "c")}))
+
+
+def _trend_batch() -> SmartBatch:
+    """One scene of 18 tokens, agents moving along x at a constant speed, then at another speed in the
+    last two tokens (7.5-8 s after the current one): a vehicle that speeds up (6 -> 9 m/s), one that
+    keeps its speed (10 -> 11), one that slows (10 -> 5), one too slow to count (3 -> 9) and a
+    pedestrian at the first vehicle's speeds; the pedestrian and the slow vehicle weigh 1."""
+    b = random_batch(b=1, n=5, s=18, seed=3)
+    types = torch.tensor([[0, 0, 0, 0, 1]])
+    speeds = torch.tensor([[6.0, 10.0, 10.0, 3.0, 6.0]])[..., None].repeat(1, 1, 18)
+    speeds[..., 16:] = torch.tensor([9.0, 11.0, 5.0, 9.0, 9.0])[:, None]
+    x = torch.cumsum(speeds * 0.5, dim=-1)
+    pose = torch.zeros(1, 5, 18, 3)
+    pose[..., 0] = x
+    start = pose.clone()
+    start[..., 0] = x - speeds * 0.5
+    valid = torch.ones(1, 5, 18, dtype=torch.bool)
+    return SmartBatch(**{**vars(b), "agent_type": types, "agent_pose": pose, "agent_start_pose": start,
+                         "agent_valid": valid, "target_valid": valid})
+
+
+def test_speed_trend_weights_pick_each_vehicles_trend_and_weigh_its_cross_entropy():
+    from smart_marl.model.losses import speed_trend_weights
+    batch = _trend_batch()
+    w = speed_trend_weights(batch, (4.0, 0.75, 0.5))
+    assert w.tolist() == [[4.0, 0.75, 0.5, 1.0, 1.0]]
+    short = SmartBatch(**{k: (v[:, :, :12] if v.dim() >= 3 and k.startswith(("agent_tokens", "agent_valid", "agent_start", "agent_pose", "target"))
+                              else v) for k, v in vars(batch).items()})
+    assert speed_trend_weights(short, (4.0, 0.75, 0.5)).tolist() == [[1.0] * 5]  # no 8 s after the current token
+
+    torch.manual_seed(0)
+    model = SMART(tiny_config()).eval()
+    plain = NextTokenLoss(model, 0.1)
+    weighted = NextTokenLoss(model, 0.1, trend_weights=(4.0, 0.75, 0.5))
+    ones = NextTokenLoss(model, 0.1, trend_weights=(1.0, 1.0, 1.0))
+    with torch.no_grad():
+        feats, _ = model(batch, road_masked=batch.road_masked)
+        per_agent = []
+        for i, t in enumerate(batch.agent_type[0].tolist()):
+            logits = model.motion_heads[t](feats[0, i]).float()
+            per_agent.append(torch.nn.functional.cross_entropy(logits, batch.target_tokens[0, i], reduction="sum", label_smoothing=0.1))
+        per_agent = torch.stack(per_agent)
+        n = batch.target_valid.sum()
+        expected = (per_agent * w[0]).sum() / n
+        assert torch.allclose(weighted(batch)["motion_loss"], expected, rtol=1e-5)
+        assert torch.allclose(plain(batch)["motion_loss"], per_agent.sum() / n, rtol=1e-5)
+        assert torch.allclose(ones(batch)["motion_loss"], plain(batch)["motion_loss"], rtol=1e-6)
+
+
+def test_speed_trend_weights_config_is_checked():
+    assert load_train_config("smart-1m", ["speed_trend_weights=[4.1,0.74,0.58]"]).speed_trend_weights == [4.1, 0.74, 0.58]
+    for bad in ("[1,2]", "[1,-1,1]", "fast"):
+        with pytest.raises(TrainError, match="speed_trend_weights"):
+            load_train_config("smart-1m", [f"speed_trend_weights={bad}"])

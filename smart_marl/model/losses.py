@@ -6,6 +6,10 @@
   (piece i -> piece j) whose piece j is masked (its content hidden from RoadNet), predict j's token
   from i's encoding.
 * Total = motion + road. Label smoothing is configurable (the reference uses 0.1).
+* Optional speed-trend weights (:func:`speed_trend_weights`): every motion token of a vehicle
+  counts with a weight chosen by what its own sequence does over the scene, speeding up, keeping its
+  speed or slowing down, so that a training set whose traffic slows more than real traffic (SUMO's)
+  can be reweighted toward real traffic's mix (a label-shift correction). Off by default.
 
 Normalisation: each loss is a sum over target tokens divided by ``normaliser`` (by default the
 batch's own count). Data-parallel training passes the count over all ranks times the world size,
@@ -18,27 +22,60 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from ..scenario import AgentType
 from .batch import SmartBatch
 from .motionnet import NUM_MOTION_TYPES
 from .smart import SMART
 
 TYPE_NAMES = ("vehicle", "pedestrian", "cyclist")
 
+TOKEN_S = 0.5
+TREND_NOW_STEP = 1  # the token that ends at the current frame (91-frame scenes whose current frame is 10)
+TREND_LATE_STEPS = (16, 17)  # the two tokens that end 7.5 and 8 s after it
+TREND_FAST_MPS = 5.0  # only vehicles faster than this now are weighted
+TREND_BAND = 0.2  # late speed above (1 + band) x now: speeds up; below (1 - band) x now: slows; else keeps
+
+
+def speed_trend_weights(batch: SmartBatch, weights: tuple[float, float, float]) -> torch.Tensor:
+    """Per-agent loss weights [B, N]: ``weights`` = (speeds up, keeps its speed, slows) for the
+    vehicles moving faster than :data:`TREND_FAST_MPS` at the current token whose mean speed over the
+    tokens 7-8 s later is above 1.2x, within 20% of, or below 0.8x their speed now (token speeds from
+    the poses the sequence reached, as in ``benchmarks/prior_speed_drift.py``'s ``late_by_log_trend``
+    rows); 1 for every other agent and for batches without 8 s of tokens after the current one."""
+    w = torch.ones(batch.agent_type.shape, device=batch.agent_pose.device)
+    if batch.agent_pose.shape[2] <= max(TREND_LATE_STEPS):
+        return w
+    step_m = (batch.agent_pose[..., :2] - batch.agent_start_pose[..., :2]).float().norm(dim=-1)  # [B, N, S]
+    late = list(TREND_LATE_STEPS)
+    now_mps = step_m[:, :, TREND_NOW_STEP] / TOKEN_S
+    late_mps = step_m[:, :, late].mean(-1) / TOKEN_S
+    ok = ((batch.agent_type == int(AgentType.VEHICLE)) & (now_mps > TREND_FAST_MPS)
+          & batch.agent_valid[:, :, TREND_NOW_STEP] & batch.agent_valid[:, :, late].all(-1))
+    ratio = late_mps / now_mps.clamp(min=1e-6)
+    up, slow = ok & (ratio > 1.0 + TREND_BAND), ok & (ratio < 1.0 - TREND_BAND)
+    w[up], w[ok & ~up & ~slow], w[slow] = (float(x) for x in weights)
+    return w
+
 
 class NextTokenLoss(nn.Module):
     """Wraps :class:`SMART` so that one ``forward`` gives the losses (what DDP wraps)."""
 
-    def __init__(self, model: SMART, label_smoothing: float = 0.1) -> None:
+    def __init__(self, model: SMART, label_smoothing: float = 0.1,
+                 trend_weights: tuple[float, float, float] | None = None) -> None:
         super().__init__()
         self.model = model
         self.label_smoothing = float(label_smoothing)
+        self.trend_weights = tuple(trend_weights) if trend_weights is not None else None
 
     def forward(self, batch: SmartBatch, motion_normaliser: torch.Tensor | float | None = None,
                 road_normaliser: torch.Tensor | float | None = None) -> dict[str, torch.Tensor]:
         """Returns ``loss`` (motion + road, differentiable), ``motion_loss``, ``road_loss`` and
         detached counts for metrics: ``{type}_tokens``, ``{type}_top1``, ``{type}_top5`` (numbers of
-        correct predictions), ``road_tokens``, ``road_top1``."""
+        correct predictions), ``road_tokens``, ``road_top1``. With ``trend_weights`` each motion
+        token's cross-entropy is multiplied by its agent's :func:`speed_trend_weights` (the
+        normaliser stays the token count)."""
         feats, road_x = self.model(batch, road_masked=batch.road_masked)  # (B, N, S, d), (B, R, d)
+        agent_w = speed_trend_weights(batch, self.trend_weights) if self.trend_weights is not None else None
         d = feats.shape[-1]
         out: dict[str, torch.Tensor] = {}
         motion_sum = feats.new_zeros(())
@@ -49,7 +86,11 @@ class NextTokenLoss(nn.Module):
             x = feats[sel]  # (M_t, d); empty rows still take part in the graph (DDP sees every head used)
             logits = self.model.motion_heads[t](x).float()  # (M_t, V_t)
             target = batch.target_tokens[sel]
-            motion_sum = motion_sum + F.cross_entropy(logits, target, reduction="sum", label_smoothing=self.label_smoothing)
+            if agent_w is None:
+                motion_sum = motion_sum + F.cross_entropy(logits, target, reduction="sum", label_smoothing=self.label_smoothing)
+            else:
+                ce = F.cross_entropy(logits, target, reduction="none", label_smoothing=self.label_smoothing)
+                motion_sum = motion_sum + (ce * agent_w[:, :, None].expand_as(sel)[sel]).sum()
             n_motion = n_motion + target.numel()
             out.update(_accuracy_counts(TYPE_NAMES[t], logits.detach(), target))
         # road next token: pairs (i -> j) with j masked, i not masked
