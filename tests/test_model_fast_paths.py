@@ -2,7 +2,8 @@
 implementations computed: the same loss and the same gradients on real scenes, within float tolerance.
 
 The reference forwards below are the project's previous implementations, kept verbatim (one batched
-einsum over the Fourier dimensions; relative positional embeddings projected per (query, key) pair).
+einsum over the Fourier dimensions, every row embedded, padded neighbour pairs included; relative
+positional embeddings projected per (query, key) pair; RoadNet over every padded piece).
 """
 
 from __future__ import annotations
@@ -14,14 +15,14 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from smart_marl.model import layers
+from smart_marl.model import layers, roadnet
 from smart_marl.model.batch import collate_scenes, scene_road, scene_tensors
 from smart_marl.model.losses import NextTokenLoss
 from smart_marl.model.smart import SMART, get_config
 from smart_marl.tokens.road import RoadVocabulary, road_pieces
 
 
-def reference_fourier_forward(self, x, categorical=None):
+def reference_fourier_forward(self, x, categorical=None, valid=None, repeated_dims=()):
     lead = x.shape[:-1]
     x = x.reshape(-1, self.input_dim)  # (M, D)
     ang = x[..., None] * self.freqs * (2 * math.pi)  # (M, D, F)
@@ -56,6 +57,23 @@ def reference_attention_forward(self, x_q, src, index, mask, rpe):
     return x + self.ff_drop(self.ff(self.norm_ff(x)))
 
 
+def reference_road_forward(self, points, pose, road_type, light, valid, masked=None):
+    b, r = valid.shape
+    x = self.piece_mlp(points.flatten(-2))
+    if masked is not None:
+        x = torch.where(masked[..., None], self.mask_emb.to(x.dtype).expand_as(x), x)
+    x = x + self.type_emb(road_type) + self.light_emb(light)
+    idx, nmask = layers.knn_within(pose[..., :2], pose[..., :2], self.cfg.road_radius_m, self.cfg.road_neighbours, valid, valid)
+    key_pose = torch.gather(pose, 1, idx.reshape(b, -1, 1).expand(-1, -1, 3)).view(b, r, -1, 3)
+    rpe = self.rpe(layers.relative_pose_features(pose[:, :, None, :], key_pose))
+    flat_idx = (idx + torch.arange(b, device=idx.device)[:, None, None] * r).view(b * r, -1)
+    x = x.reshape(b * r, -1)
+    nmask, rpe = nmask.view(b * r, -1), rpe.view(b * r, nmask.shape[-1], -1)
+    for layer in self.layers:
+        x = layer(x, x, flat_idx, nmask, rpe)
+    return x.view(b, r, -1)
+
+
 def _loss_and_grads(model: SMART, batch) -> tuple[dict[str, float], dict[str, torch.Tensor]]:
     model.zero_grad(set_to_none=True)
     out = NextTokenLoss(model, label_smoothing=0.1)(batch)
@@ -67,21 +85,27 @@ def _loss_and_grads(model: SMART, batch) -> tuple[dict[str, float], dict[str, to
 @pytest.mark.parametrize("size", ["smart-1m", "smart-7m"])
 def test_fast_layers_give_the_reference_loss_and_gradients_on_real_scenes(womd_scenes, womd_vocab, size, one_torch_thread,
                                                                           monkeypatch):
-    scene = womd_scenes[0]  # 83 tracks; first 6 token steps keep the test fast
-    pieces = road_pieces(scene.road_map).local
+    # both real scenes (83 and 257 tracks) in one batch, so that agents and road pieces are padded; the
+    # first 6 token steps keep the test fast
+    pieces = np.concatenate([road_pieces(sc.road_map).local for sc in womd_scenes])
     rv = RoadVocabulary(points=pieces[np.random.default_rng(0).choice(len(pieces), 64)], tolerance_m=0.0, requested_size=64)
     sizes = tuple(womd_vocab[t].size for t in range(3))
     cfg = get_config(size, motion_vocab_sizes=sizes, road_vocab_size=64, dropout=0.0,
                      num_agent_blocks=1 if size == "smart-7m" else 2)
-    arrays = scene_tensors(scene, womd_vocab, scene_road(scene, rv), noise_topk=5, rng=0, road_keep_radius_m=40.0)
-    for k in ("agent_tokens", "agent_valid", "agent_start_pose", "agent_pose", "target_tokens", "target_valid"):
-        arrays[k] = arrays[k][:, 4:10]
-    batch = collate_scenes([arrays])
+    items = []
+    for i, scene in enumerate(womd_scenes):
+        arrays = scene_tensors(scene, womd_vocab, scene_road(scene, rv), noise_topk=5, rng=i, road_keep_radius_m=40.0)
+        for k in ("agent_tokens", "agent_valid", "agent_start_pose", "agent_pose", "target_tokens", "target_valid"):
+            arrays[k] = arrays[k][:, 4:10]
+        items.append(arrays)
+    batch = collate_scenes(items)
+    assert not batch.road_valid.all() and not batch.agent_valid.all()  # padding that the fast paths skip
     torch.manual_seed(0)
     model = SMART(cfg, [womd_vocab[t].contour for t in range(3)]).train()  # dropout 0: deterministic
     fast_losses, fast_grads = _loss_and_grads(model, batch)
     monkeypatch.setattr(layers.FourierEmbedding, "forward", reference_fourier_forward)
     monkeypatch.setattr(layers.NeighbourAttention, "forward", reference_attention_forward)
+    monkeypatch.setattr(roadnet.RoadNet, "forward", reference_road_forward)
     ref_losses, ref_grads = _loss_and_grads(model, batch)
 
     assert batch.target_valid.sum() > 200 and ref_losses["road_tokens"] > 20  # a real workload, not an empty one

@@ -32,6 +32,9 @@ from .layers import FourierEmbedding, NeighbourAttention, knn_within, mlp, relat
 
 NUM_MOTION_TYPES = 3  # vehicle, pedestrian, cyclist (AgentType 0..2)
 STILL_SPEED_MPS = 0.1  # below this speed over a token the heading-vs-motion angle is set to 0
+# RPE inputs whose values repeat (FourierEmbedding's repeated_dims): of (distance, bearing, heading difference[, time gap])
+PAIR_REPEATS = (0, 2)  # a pair and its reverse share the distance; agents on one lane share a heading difference
+TEMPORAL_REPEATS = (0, 2, 3)  # the step itself (distance 0, heading difference 0) and the 7 time gaps
 
 
 class MotionNet(nn.Module):
@@ -116,13 +119,13 @@ class MotionNet(nn.Module):
         t_mask = ok & valid_flat[t_full]
         t_feat = torch.cat([relative_pose_features(q_pose[:, None], pose_flat[t_full]),
                             dts.to(pose.dtype).expand(rows.numel(), -1)[..., None]], -1)  # (Q, W, 4)
-        temporal = (compact[t_full].clamp(min=0), t_mask, self.rpe_temporal(t_feat))
+        temporal = (compact[t_full].clamp(min=0), t_mask, self.rpe_temporal(t_feat, valid=t_mask, repeated_dims=TEMPORAL_REPEATS))
         # 2. map -> agent: K nearest road tokens within map_radius_m of the agent's pose at step s
         m_idx, m_mask = knn_within(pose.reshape(b, n * s, 3)[..., :2], road_pose[..., :2], cfg.map_radius_m,
                                    cfg.map_neighbours, valid.reshape(b, n * s), road_valid)  # (B, N*S, Km)
         m_idx = (m_idx + (torch.arange(b, device=dev) * r)[:, None, None]).reshape(b * n * s, -1)[rows]
         m_idx, m_mask = trim_neighbours(m_idx, m_mask.reshape(b * n * s, -1)[rows])  # (Q, Km)
-        m_rpe = self.rpe_map(relative_pose_features(q_pose[:, None], road_pose.reshape(-1, 3)[m_idx]))  # (Q, Km, d)
+        m_rpe = self.rpe_map(relative_pose_features(q_pose[:, None], road_pose.reshape(-1, 3)[m_idx]), valid=m_mask)  # (Q, Km, d)
         mapa = (m_idx, m_mask, m_rpe)
         # 3. agent -> agent at the same step: K nearest within agent_radius_m
         pose_bs = pose.permute(0, 2, 1, 3).reshape(b * s, n, 3)  # (B*S, N, 3)
@@ -134,7 +137,7 @@ class MotionNet(nn.Module):
         a_full = (bb * n + a_idx) * s + ss  # (B*S, N, Ka)
         unperm = lambda t: t.view(b, s, n, -1).transpose(1, 2).reshape(b * n * s, -1)[rows]  # noqa: E731
         a_full, a_mask = trim_neighbours(unperm(a_full), unperm(a_mask))  # (Q, Ka)
-        a_rpe = self.rpe_agent(relative_pose_features(q_pose[:, None], pose_flat[a_full]))  # (Q, Ka, d)
+        a_rpe = self.rpe_agent(relative_pose_features(q_pose[:, None], pose_flat[a_full]), valid=a_mask, repeated_dims=PAIR_REPEATS)  # (Q, Ka, d)
         agents = (compact[a_full].clamp(min=0), a_mask, a_rpe)
         return rows, temporal, mapa, agents
 
@@ -224,7 +227,7 @@ class MotionNet(nn.Module):
         t_mask = torch.cat([torch.ones(nq, 1, dtype=torch.bool, device=dev), cache.valid[rows]], 1)  # (Q, W+1)
         dts = torch.arange(w + 1, device=dev, dtype=torch.float32)
         t_feat = torch.cat([relative_pose_features(q_pose[:, None], key_pose), dts.expand(nq, -1)[..., None]], -1)  # (Q, W+1, 4)
-        t_rpe = self.rpe_temporal(t_feat)  # (Q, W+1, d)
+        t_rpe = self.rpe_temporal(t_feat, valid=t_mask, repeated_dims=TEMPORAL_REPEATS)  # (Q, W+1, d)
         t_index = torch.arange(nq * (w + 1), device=dev).view(nq, w + 1)  # rows of the per-block key table
 
         # 2. map -> agent: the K nearest road tokens of each new pose (rows of the B*R road table)
@@ -232,7 +235,7 @@ class MotionNet(nn.Module):
                                    cfg.map_neighbours, valid_flat.view(g, n), cache.road_valid)  # (G, N, Km)
         m_idx = (m_idx + (cache.scene_of_group * cache.road_pose.shape[1])[:, None, None]).reshape(g * n, -1)[rows]  # (Q, Km)
         m_idx, m_mask = trim_neighbours(m_idx, m_mask.reshape(g * n, -1)[rows])
-        m_rpe = self.rpe_map(relative_pose_features(q_pose[:, None], cache.road_pose_flat[m_idx]))  # (Q, Km, d)
+        m_rpe = self.rpe_map(relative_pose_features(q_pose[:, None], cache.road_pose_flat[m_idx]), valid=m_mask)  # (Q, Km, d)
 
         # 3. agent -> agent at this step, rebuilt from the new poses
         a_idx, a_mask = knn_within(end_flat.view(g, n, 3)[..., :2], end_flat.view(g, n, 3)[..., :2], cfg.agent_radius_m,
@@ -242,7 +245,7 @@ class MotionNet(nn.Module):
         compact = torch.zeros(g * n, dtype=torch.long, device=dev)
         compact[rows] = torch.arange(nq, device=dev)
         a_rows = compact[a_full]  # (Q, Ka) query rows (masked slots point anywhere valid)
-        a_rpe = self.rpe_agent(relative_pose_features(q_pose[:, None], end_flat[a_full]))  # (Q, Ka, d)
+        a_rpe = self.rpe_agent(relative_pose_features(q_pose[:, None], end_flat[a_full]), valid=a_mask, repeated_dims=PAIR_REPEATS)  # (Q, Ka, d)
 
         new_kv = []
         for blk, (t_attn, m_attn, a_attn) in enumerate(zip(self.temporal_attn, self.map_attn, self.agent_attn)):

@@ -12,10 +12,13 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from .layers import FourierEmbedding, NeighbourAttention, knn_within, mlp, relative_pose_features
+from .layers import FourierEmbedding, NeighbourAttention, knn_within, mlp, relative_pose_features, trim_neighbours
 
 NUM_ROAD_TYPES = 64  # ids given by the batch builder: feature type * 9 + subtype (see batch.py)
 NUM_LIGHT_STATES = 10  # SignalState 0..8 plus 9 = no light on this piece
+# RPE inputs whose values repeat (FourierEmbedding's repeated_dims): a pair and its reverse share the distance,
+# pieces along one straight lane the heading difference, and pieces of a grid share bearings
+ROAD_REPEATS = (0, 1, 2)
 
 
 class RoadNet(nn.Module):
@@ -35,18 +38,23 @@ class RoadNet(nn.Module):
     def forward(self, points: torch.Tensor, pose: torch.Tensor, road_type: torch.Tensor, light: torch.Tensor,
                 valid: torch.Tensor, masked: torch.Tensor | None = None) -> torch.Tensor:
         """points [B, R, P, 2], pose [B, R, 3], road_type [B, R], light [B, R], valid [B, R],
-        masked [B, R] (pieces whose content is hidden) -> road encodings [B, R, d]."""
+        masked [B, R] (pieces whose content is hidden) -> road encodings [B, R, d] (zeros on padded
+        pieces: only the valid pieces are encoded, and no piece attends to a padded one)."""
         b, r = valid.shape
-        x = self.piece_mlp(points.flatten(-2))  # (B, R, d)
+        rows = valid.reshape(-1).nonzero().squeeze(1)  # (V,) the valid pieces, rows of the flat B*R table
+        compact = torch.full((b * r,), -1, dtype=torch.long, device=valid.device)
+        compact[rows] = torch.arange(rows.numel(), device=valid.device)
+        x = self.piece_mlp(points.reshape(b * r, -1)[rows])  # (V, d)
         if masked is not None:
-            x = torch.where(masked[..., None], self.mask_emb.to(x.dtype).expand_as(x), x)
-        x = x + self.type_emb(road_type) + self.light_emb(light)
+            x = torch.where(masked.reshape(-1)[rows, None], self.mask_emb.to(x.dtype).expand_as(x), x)
+        x = x + self.type_emb(road_type.reshape(-1)[rows]) + self.light_emb(light.reshape(-1)[rows])
         idx, nmask = knn_within(pose[..., :2], pose[..., :2], self.cfg.road_radius_m, self.cfg.road_neighbours, valid, valid)  # (B, R, K)
-        key_pose = torch.gather(pose, 1, idx.reshape(b, -1, 1).expand(-1, -1, 3)).view(b, r, -1, 3)  # (B, R, K, 3)
-        rpe = self.rpe(relative_pose_features(pose[:, :, None, :], key_pose))  # (B, R, K, d)
-        flat_idx = (idx + torch.arange(b, device=idx.device)[:, None, None] * r).view(b * r, -1)  # rows of x.view(B*R, d)
-        x = x.reshape(b * r, -1)
-        nmask, rpe = nmask.view(b * r, -1), rpe.view(b * r, nmask.shape[-1], -1)
+        flat_idx = (idx + torch.arange(b, device=idx.device)[:, None, None] * r).view(b * r, -1)[rows]  # (V, K) flat rows
+        flat_idx, nmask = trim_neighbours(flat_idx, nmask.view(b * r, -1)[rows])
+        pose_flat = pose.reshape(-1, 3)
+        rpe = self.rpe(relative_pose_features(pose_flat[rows][:, None], pose_flat[flat_idx]), valid=nmask,
+                       repeated_dims=ROAD_REPEATS)  # (V, K, d)
+        index = compact[flat_idx].clamp(min=0)  # (V, K) rows of x
         for layer in self.layers:
-            x = layer(x, x, flat_idx, nmask, rpe)
-        return x.view(b, r, -1)
+            x = layer(x, x, index, nmask, rpe)
+        return x.new_zeros(b * r, x.shape[-1]).index_copy(0, rows, x).view(b, r, -1)
