@@ -42,6 +42,7 @@ import torch
 
 from smart_marl.model.batch import collate_scenes, scene_road, scene_tensors
 from smart_marl.model.checkpoint import load_checkpoint
+from smart_marl.model.losses import TREND_BAND  # "keeps": within this share of the speed now (the training weights' band)
 from smart_marl.readers import read_scenarios
 from smart_marl.rollout import DEFAULT_TOP_K, rollout
 from smart_marl.scenario import AgentType
@@ -58,7 +59,6 @@ NUM_FRAMES = 80  # 16 tokens of 5 frames
 SPEED_BINS_MPS = (0.0, 1.0, 5.0, 9.0, 12.0, 15.0, 1e9)  # vehicles' teacher-forced bias by input-token speed
 LATE_FRAMES = 10  # the last second of the rollout (7-8 s): the frames of late_by_log_trend
 TRENDS = ("speeds_up", "keeps", "slows")  # log's late mean speed against the speed now: above, within, below the band
-TREND_BAND = 0.2  # "keeps": within 20% of the speed now
 
 
 def _speeds_from_positions(xy: np.ndarray, start_xy: np.ndarray) -> np.ndarray:
