@@ -115,7 +115,8 @@ class _FourierTrunk(torch.autograd.Function):
     """The summed per-dimension MLPs of :class:`FourierEmbedding` for inputs that need no gradient,
     with a hand-written backward: each dimension's cos/sin features are written once into the
     matrix the first product reads and kept for the backward (autograd keeps the angles and
-    recomputes cos and sin), and the gradient of the frequencies is one matrix-vector product."""
+    recomputes cos and sin), and the gradient of the frequencies never forms the gradient of the
+    features (see the backward)."""
 
     @staticmethod
     def forward(ctx, x, freqs, w1, b1, ln_w, ln_b, w2, b2, eps, repeated_dims):
@@ -161,10 +162,12 @@ class _FourierTrunk(torch.autograd.Function):
             g_lnb += gb
             grads["b1"].append(gz.sum(0))
             grads["w1"].append(feat.t() @ gz)
-            gfeat = gz @ w1[d, : 2 * nf].t()  # (U, 2F): gradients of cos and sin
-            g_ang = gfeat[:, nf:] * feat[:, :nf]  # d sin = cos
-            g_ang.addcmul_(gfeat[:, :nf], feat[:, nf:2 * nf], value=-1)  # d cos = -sin
-            grads["freqs"].append((col @ g_ang) * (2 * math.pi))
+            # z = cos(a) W_c + sin(a) W_s + ..., a = 2 pi x f, so dL/df_j = 2 pi sum_h (W_s[j, h] A[j, h] - W_c[j, h] B[j, h])
+            # with A, B = (x cos(a))^T gz, (x sin(a))^T gz: one product as tall as the weight gradient's, where
+            # the gradient of the (U, 2F) features would be a (U, H) x (H, 2F) product and two more passes
+            ab = (feat[:, : 2 * nf] * col[:, None]).t() @ gz  # (2F, H) = [A; B]
+            w_c, w_s = w1[d, :nf], w1[d, nf:2 * nf]
+            grads["freqs"].append((w_s * ab[:nf] - w_c * ab[nf:]).sum(-1) * (2 * math.pi))
         ctx.saved = None
         g_b2 = g.sum(0).expand(len(grads["w2"]), hdim).contiguous()
         stack = {k: torch.stack(v) for k, v in grads.items()}
@@ -200,6 +203,24 @@ def knn_within(query_xy: torch.Tensor, key_xy: torch.Tensor, radius_m: float, k:
     return idx.masked_fill(~mask, 0), mask
 
 
+def knn_grouped(query_xy: torch.Tensor, group: torch.Tensor, key_xy: torch.Tensor, radius_m: float, k: int,
+                key_valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`knn_within` for a flat list of queries, each searching the keys of its own group:
+    query_xy [Q, 2], group [Q] (long, ascending: e.g. the scene of each valid (agent, step) row),
+    key_xy [G, M, 2], key_valid [G, M] -> (index [Q, K] into the M keys of the query's group, mask
+    [Q, K]). The queries are packed per group before the search, so padded query slots cost nothing."""
+    g = key_xy.shape[0]
+    counts = torch.bincount(group, minlength=g)
+    q_max = int(counts.max()) if group.numel() else 0
+    slot = torch.arange(group.numel(), device=group.device) - (torch.cumsum(counts, 0) - counts)[group]  # rank in its group
+    packed = query_xy.new_zeros(g, q_max, 2)
+    packed[group, slot] = query_xy
+    packed_valid = torch.zeros(g, q_max, dtype=torch.bool, device=group.device)
+    packed_valid[group, slot] = True
+    idx, mask = knn_within(packed, key_xy, radius_m, k, packed_valid, key_valid)  # (G, Qmax, K)
+    return idx[group, slot], mask[group, slot]
+
+
 def trim_neighbours(index: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Neighbour lists index, mask [Q, K] (nearest first, as :func:`knn_within` gives them) cut to
     the largest number of real neighbours of any query -> [Q, K'], K' <= K."""
@@ -207,27 +228,84 @@ def trim_neighbours(index: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tens
     return index[:, :k], mask[:, :k]
 
 
-def gather_rows(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """``table[index]`` for a table of rows [M, C] and an index tensor [...] -> [..., C], whose
-    backward sums the gradients of repeated rows with ``index_add_`` (about 3x faster on the CPU
-    than the scattered accumulation autograd uses for advanced indexing)."""
-    if not table.requires_grad:
-        return table[index]
-    return _GatherRows.apply(table, index)
+# The attention over gathered neighbours, as two functions with hand-written backwards: autograd's
+# backward of the same expressions materialises several broadcast [Q, K, h, dh] products and copies;
+# these re-gather the key / value rows (cheaper than keeping them) and write each product once.
+def _autocast_state(t: torch.Tensor) -> dict:
+    """The autocast settings in force for ``t``'s device (a forward's, for its hand-written backward)."""
+    dev = t.device.type
+    return dict(device_type=dev, enabled=torch.is_autocast_enabled(dev), dtype=torch.get_autocast_dtype(dev))
 
 
-class _GatherRows(torch.autograd.Function):
+class _NeighbourSoftmax(torch.autograd.Function):
+    """Attention weights of each query over its K neighbours: q [Q, h, dh] against the gathered key rows
+    k_rows[index] ([M, h * dh]; index [Q, K]) plus the RPE scores q_r [Q, h, d] . r [Q, K, d], scaled by
+    1 / sqrt(dh), softmax over the neighbours in ``mask`` [Q, K] -> [Q, h, K] (0 where masked, and
+    on every neighbour of a query that has none)."""
+
     @staticmethod
-    def forward(ctx, table, index):
-        ctx.save_for_backward(index)
-        ctx.num_rows = table.shape[0]
-        return table.index_select(0, index.reshape(-1)).view(*index.shape, table.shape[1])
+    def forward(ctx, q, q_r, k_rows, r, index, mask):
+        nq, kk = index.shape
+        h, dh = q.shape[1:]
+        k = k_rows.index_select(0, index.reshape(-1)).view(nq, kk, h, dh)
+        # per-head dot products of a head dim of 8-16 run faster as a product and a sum than as Q tiny GEMMs
+        scores = ((q[:, None] * k).sum(-1).transpose(1, 2) + torch.bmm(q_r, r.transpose(1, 2))) / math.sqrt(dh)
+        m = mask[:, None, :]
+        scores = scores.masked_fill_(~m, torch.finfo(scores.dtype).min)
+        attn = torch.softmax(scores, dim=-1).mul_(m)
+        ctx.save_for_backward(q, q_r, k_rows, r, index, attn)
+        ctx.amp = _autocast_state(q)
+        return attn
 
     @staticmethod
     def backward(ctx, g):
-        (index,) = ctx.saved_tensors
-        rows = g.reshape(-1, g.shape[-1])
-        return rows.new_zeros(ctx.num_rows, rows.shape[1]).index_add_(0, index.reshape(-1), rows), None
+        with torch.autocast(**ctx.amp):
+            return _NeighbourSoftmax._backward(ctx, g)
+
+    @staticmethod
+    def _backward(ctx, g):
+        q, q_r, k_rows, r, index, attn = ctx.saved_tensors
+        nq, kk = index.shape
+        h, dh = q.shape[1:]
+        gs = attn * (g - (attn * g).sum(-1, keepdim=True)) / math.sqrt(dh)  # (Q, h, K): through the softmax
+        gs_t = gs.transpose(1, 2).contiguous()  # (Q, K, h)
+        k = k_rows.index_select(0, index.reshape(-1)).view(nq, kk, h, dh)
+        g_q = (gs_t[..., None] * k).sum(1)  # (Q, h, dh)
+        g_k = (gs_t[..., None] * q[:, None]).view(-1, h * dh)  # (Q * K, inner)
+        g_k_rows = g_k.new_zeros(k_rows.shape).index_add_(0, index.reshape(-1), g_k)
+        return g_q, torch.bmm(gs, r), g_k_rows, torch.bmm(gs_t, q_r), None, None
+
+
+class _NeighbourSum(torch.autograd.Function):
+    """The attention-weighted sums of the gathered value rows v_rows[index] and of the RPE r [Q, K, d]:
+    attn [Q, h, K] -> ([Q, h, dh], [Q, h, d])."""
+
+    @staticmethod
+    def forward(ctx, attn, v_rows, r, index):
+        nq, kk = index.shape
+        h = attn.shape[1]
+        v = v_rows.index_select(0, index.reshape(-1)).view(nq, kk, h, -1)
+        ctx.save_for_backward(attn, v_rows, r, index)
+        ctx.amp = _autocast_state(attn)
+        return (attn.transpose(1, 2)[..., None] * v).sum(1), torch.bmm(attn, r)
+
+    @staticmethod
+    def backward(ctx, g_v, g_r):
+        with torch.autocast(**ctx.amp):
+            return _NeighbourSum._backward(ctx, g_v, g_r)
+
+    @staticmethod
+    def _backward(ctx, g_v, g_r):
+        attn, v_rows, r, index = ctx.saved_tensors
+        nq, kk = index.shape
+        h = attn.shape[1]
+        v = v_rows.index_select(0, index.reshape(-1)).view(nq, kk, h, -1)
+        g_v, g_r = g_v.contiguous(), g_r.contiguous()
+        g_attn = (g_v[:, None] * v).sum(-1).transpose(1, 2) + torch.bmm(g_r, r.transpose(1, 2))  # (Q, h, K)
+        attn_t = attn.transpose(1, 2).contiguous()  # (Q, K, h)
+        g_vals = (attn_t[..., None] * g_v[:, None]).view(nq * kk, -1)  # (Q * K, inner)
+        g_v_rows = g_vals.new_zeros(v_rows.shape).index_add_(0, index.reshape(-1), g_vals)
+        return g_attn, g_v_rows, torch.bmm(attn_t, g_r), None
 
 
 # ---------------------------------------------------------------------------------- attention
@@ -281,16 +359,10 @@ class NeighbourAttention(nn.Module):
         w_kr = self.to_k_r.weight.view(h, dh, -1)  # (h, dh, d)
         w_vr = self.to_v_r.weight.view(h, dh, -1)  # (h, dh, d)
         q_r = torch.einsum("qhe,hec->qhc", q, w_kr)  # (Q, h, d)
-        k = gather_rows(k_rows, index).view(nq, kk, h, dh)  # (Q, K, h, dh)
-        # per-head dot products of a head dim of 8-16 run faster as a product and a sum than as Q tiny GEMMs
-        scores = ((q[:, None] * k).sum(-1).transpose(1, 2) + torch.bmm(q_r, r.transpose(1, 2))) / math.sqrt(dh)  # (Q, h, K)
-        m = mask[:, None, :]
-        scores = scores.masked_fill(~m, torch.finfo(scores.dtype).min)
-        attn = torch.softmax(scores, dim=-1) * m  # queries with no neighbour attend to nothing
+        attn = _NeighbourSoftmax.apply(q, q_r, k_rows, r, index, mask)  # (Q, h, K); 0 on padded neighbours
         attn = self.attn_drop(attn)
-        v = gather_rows(v_rows, index).view(nq, kk, h, dh)  # (Q, K, h, dh)
-        r_agg = torch.bmm(attn, r)  # (Q, h, d) attention-weighted RPE
-        agg = ((attn.transpose(1, 2)[..., None] * v).sum(1) + torch.einsum("qhc,hec->qhe", r_agg, w_vr)
+        agg, r_agg = _NeighbourSum.apply(attn, v_rows, r, index)  # (Q, h, dh), (Q, h, d) attention-weighted RPE
+        agg = (agg + torch.einsum("qhc,hec->qhe", r_agg, w_vr)
                + self.to_v_r.bias.view(h, dh) * attn.sum(-1, keepdim=True)).reshape(nq, h * dh)  # (Q, inner)
         g = torch.sigmoid(self.to_g(torch.cat([agg, q_in], -1)))
         agg = agg + g * (self.to_s(q_in) - agg)

@@ -28,7 +28,7 @@ import torch.nn as nn
 
 from ..scenario import wrap_angle
 from ..tokens.motion import TOKEN_S
-from .layers import FourierEmbedding, NeighbourAttention, knn_within, mlp, relative_pose_features, trim_neighbours
+from .layers import FourierEmbedding, NeighbourAttention, knn_grouped, knn_within, mlp, relative_pose_features, trim_neighbours
 
 NUM_MOTION_TYPES = 3  # vehicle, pedestrian, cyclist (AgentType 0..2)
 STILL_SPEED_MPS = 0.1  # below this speed over a token the heading-vs-motion angle is set to 0
@@ -121,10 +121,10 @@ class MotionNet(nn.Module):
                             dts.to(pose.dtype).expand(rows.numel(), -1)[..., None]], -1)  # (Q, W, 4)
         temporal = (compact[t_full].clamp(min=0), t_mask, self.rpe_temporal(t_feat, valid=t_mask, repeated_dims=TEMPORAL_REPEATS))
         # 2. map -> agent: K nearest road tokens within map_radius_m of the agent's pose at step s
-        m_idx, m_mask = knn_within(pose.reshape(b, n * s, 3)[..., :2], road_pose[..., :2], cfg.map_radius_m,
-                                   cfg.map_neighbours, valid.reshape(b, n * s), road_valid)  # (B, N*S, Km)
-        m_idx = (m_idx + (torch.arange(b, device=dev) * r)[:, None, None]).reshape(b * n * s, -1)[rows]
-        m_idx, m_mask = trim_neighbours(m_idx, m_mask.reshape(b * n * s, -1)[rows])  # (Q, Km)
+        q_scene = rows // (n * s)
+        m_idx, m_mask = knn_grouped(q_pose[:, :2], q_scene, road_pose[..., :2], cfg.map_radius_m, cfg.map_neighbours,
+                                    road_valid)  # (Q, Km)
+        m_idx, m_mask = trim_neighbours(m_idx + (q_scene * r)[:, None], m_mask)  # rows of the B*R road table
         m_rpe = self.rpe_map(relative_pose_features(q_pose[:, None], road_pose.reshape(-1, 3)[m_idx]), valid=m_mask)  # (Q, Km, d)
         mapa = (m_idx, m_mask, m_rpe)
         # 3. agent -> agent at the same step: K nearest within agent_radius_m
