@@ -115,3 +115,81 @@ def test_fast_layers_give_the_reference_loss_and_gradients_on_real_scenes(womd_s
     for name, g in ref_grads.items():
         scale = float(g.abs().max()) + 1e-12
         assert float((fast_grads[name] - g).abs().max()) <= 1e-4 * scale + 1e-8, name
+
+
+def _close(a: torch.Tensor, b: torch.Tensor) -> bool:
+    """Equal within float32 rounding, relative to the tensor's largest entry."""
+    return float((a - b).abs().max()) <= 1e-5 * float(b.abs().max()) + 1e-7
+
+
+def _fourier_grads(emb, x, **kwargs):
+    emb.zero_grad(set_to_none=True)
+    out = emb(x, **kwargs)
+    weights = torch.linspace(-1.0, 1.0, out.numel()).view_as(out)  # a loss that weighs every output differently
+    (out * weights).sum().backward()
+    return out.detach(), {n: p.grad.clone() for n, p in emb.named_parameters()}
+
+
+def test_fourier_embedding_skips_padded_rows_and_embeds_each_repeated_value_once_with_the_same_gradients():
+    torch.manual_seed(0)
+    emb = layers.FourierEmbedding(3, 16, 8)
+    g = torch.Generator().manual_seed(1)
+    x = torch.stack([torch.randint(0, 5, (40, 6), generator=g).float(),  # 5 distinct values: embedded once each
+                     torch.randn(40, 6, generator=g) * 3,  # all distinct: embedded per row
+                     torch.randint(0, 3, (40, 6), generator=g).float() * 0.5], -1)  # (40, 6, 3)
+    valid = torch.rand(40, 6, generator=g) < 0.7
+    ref_out, ref_grads = _fourier_grads(emb, x, valid=None)
+    calls = []
+    real_distinct = layers._distinct
+    layers._distinct = lambda col, repeated: calls.append(real_distinct(col, repeated)) or calls[-1]
+    try:
+        fast_out, fast_grads = _fourier_grads(emb, x, valid=valid, repeated_dims=(0, 1, 2))
+    finally:
+        layers._distinct = real_distinct
+    # dims 0 and 2 were embedded per distinct value, dim 1 (no repeats) per row, and only the valid rows
+    assert [c[0].numel() for c in calls] == [5, int(valid.sum()), 3] and calls[1][1] is None
+    assert torch.allclose(fast_out[valid], ref_out[valid], atol=1e-6) and (fast_out[~valid] == 0).all()
+    # the reference's gradients with its padded rows' outputs weighed by 0, as attention weighs padded pairs
+    emb.zero_grad(set_to_none=True)
+    out = emb(x)
+    (out * torch.linspace(-1.0, 1.0, out.numel()).view_as(out) * valid[..., None]).sum().backward()
+    for name, p in emb.named_parameters():
+        assert _close(fast_grads[name], p.grad), name
+
+
+def test_fourier_embedding_fast_trunk_matches_autograd_on_inputs_that_need_a_gradient():
+    torch.manual_seed(0)
+    emb = layers.FourierEmbedding(2, 16, 8)
+    x = torch.randn(50, 2)
+    fast_out, fast_grads = _fourier_grads(emb, x)  # geometry: no gradient, the hand-written backward
+    slow_out, slow_grads = _fourier_grads(emb, x.clone().requires_grad_())  # autograd's path
+    assert torch.allclose(fast_out, slow_out, atol=1e-6)
+    for name in slow_grads:
+        assert _close(fast_grads[name], slow_grads[name]), name
+
+
+def test_neighbour_attention_runs_under_bf16_autocast_and_stays_near_float32():
+    torch.manual_seed(0)
+    att = layers.NeighbourAttention(32, 4, 8, 0.0, bipartite=False)
+    x = torch.randn(30, 32, requires_grad=True)
+    index, mask = torch.randint(0, 30, (30, 6)), torch.rand(30, 6) < 0.8
+    rpe = torch.randn(30, 6, 32)
+    ref = att(x, x, index, mask, rpe)
+    ref.sum().backward()
+    ref_grad, x.grad = x.grad.clone(), None
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = att(x, x, index, mask, rpe)
+    out.float().sum().backward()  # the hand-written backwards run under the forward's autocast
+    assert torch.allclose(out.float(), ref, atol=0.1) and torch.allclose(x.grad, ref_grad, atol=0.15)
+
+
+def test_knn_grouped_finds_what_knn_within_finds_on_the_padded_layout():
+    g = torch.Generator().manual_seed(0)
+    keys = torch.rand(3, 20, 2, generator=g) * 50
+    key_valid = torch.rand(3, 20, generator=g) < 0.8
+    queries = torch.rand(3, 9, 2, generator=g) * 50
+    query_valid = torch.rand(3, 9, generator=g) < 0.6
+    idx, mask = layers.knn_within(queries, keys, 20.0, 5, query_valid, key_valid)  # (3, 9, 5)
+    group, slot = query_valid.nonzero(as_tuple=True)
+    g_idx, g_mask = layers.knn_grouped(queries[group, slot], group, keys, 20.0, 5, key_valid)
+    assert torch.equal(g_mask, mask[group, slot]) and torch.equal(g_idx[g_mask], idx[group, slot][g_mask])
