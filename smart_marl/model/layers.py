@@ -77,7 +77,7 @@ class FourierEmbedding(nn.Module):
             h = self._trunk_autograd(x, repeated_dims)
         else:  # the usual case: geometry carries no gradient; hand-written backward, fewer passes over memory
             h = _FourierTrunk.apply(x, self.freqs, self.w1, self.b1, self.ln1.weight, self.ln1.bias, self.w2, self.b2,
-                                    self.ln1.eps, tuple(repeated_dims))
+                                    self.ln1.eps, tuple(repeated_dims), torch.is_grad_enabled())
         if categorical is not None:
             h = h + categorical.reshape(-1, self.hidden_dim)
         h = self.out(h)
@@ -119,11 +119,10 @@ class _FourierTrunk(torch.autograd.Function):
     features (see the backward)."""
 
     @staticmethod
-    def forward(ctx, x, freqs, w1, b1, ln_w, ln_b, w2, b2, eps, repeated_dims):
+    def forward(ctx, x, freqs, w1, b1, ln_w, ln_b, w2, b2, eps, repeated_dims, keep):
         m, dims = x.shape
         nf, hdim = freqs.shape[1], w2.shape[-1]
         h = b2.sum(0).expand(m, hdim).contiguous()  # (M, H)
-        keep = any(ctx.needs_input_grad)  # nothing to keep for inference
         saved = []
         for d in range(dims):
             col, inverse = _distinct(x[:, d].contiguous(), d in repeated_dims)  # (U,)
@@ -139,7 +138,7 @@ class _FourierTrunk(torch.autograd.Function):
                 h.addmm_(y, w2[d])
             else:
                 h.add_(torch.mm(y, w2[d]).index_select(0, inverse))
-            if keep:
+            if keep:  # nothing to keep for inference (no_grad)
                 saved.append((col, inverse, feat, z, mean, rstd, y))
         ctx.saved = saved
         ctx.eps = eps
@@ -171,7 +170,7 @@ class _FourierTrunk(torch.autograd.Function):
         ctx.saved = None
         g_b2 = g.sum(0).expand(len(grads["w2"]), hdim).contiguous()
         stack = {k: torch.stack(v) for k, v in grads.items()}
-        return None, stack["freqs"], stack["w1"], stack["b1"], g_lnw, g_lnb, stack["w2"], g_b2, None, None
+        return None, stack["freqs"], stack["w1"], stack["b1"], g_lnw, g_lnb, stack["w2"], g_b2, None, None, None
 
 
 def mlp(in_dim: int, hidden_dim: int, out_dim: int, layers: int = 2) -> nn.Sequential:
