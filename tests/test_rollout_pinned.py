@@ -33,22 +33,22 @@ from smart_marl.rollout import rollout
 WOMD_SCENE = "womd_tfrecord/motion_data_one_scenario.tfrecord"
 SETTINGS = dict(num_rollouts=2, num_steps=4, top_k=5, seed=7)
 
-PINS = {  # regenerated when the embedded prior was retrained (stage 3, 2026-11-24); same settings
+PINS = {  # regenerated when the embedded prior was retrained (stage 4, speed-trend weights, 2026-11-25); same settings
     "womd-637f20cafde22ff8": {
         "simulated": 50,
-        "tokens_sha256": "b719641a10bcef85185c9f35329430cb2ec71d85d41c1eb4ce881260454027bf",
+        "tokens_sha256": "610f3a9999b84ed8834d2392022fa2cf35fa35857b7795ac95682f276f09467c",
         "first_tokens": [[[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [0, 1, 1, 1]],
                          [[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [1, 0, 1, 1]]],
-        "log_prob_sum": -584.2508740872145,
-        "path_length_m": 934.4989280056529,
+        "log_prob_sum": -579.7844423502684,
+        "path_length_m": 936.847360747019,
     },
     "sumo-sample-0": {
         "simulated": 22,
-        "tokens_sha256": "cac249478e2fe5e29c6f342d9c85bee0b401688dfaf5d94fef6d69ce69e6169f",
-        "first_tokens": [[[122, 138, 138, 823], [5, 5, 5, 5], [5, 5, 5, 5], [32, 5, 5, 5]],
-                         [[122, 139, 65, 9], [5, 32, 5, 5], [5, 5, 5, 5], [5, 5, 5, 5]]],
-        "log_prob_sum": -83.76338585466146,
-        "path_length_m": 42.8441393517853,
+        "tokens_sha256": "321785c3a5215b7638f250ec9b734f4638db2689c7fe88e08176ac5bc9e664d0",
+        "first_tokens": [[[122, 73, 138, 73], [5, 5, 5, 5], [5, 5, 5, 5], [32, 5, 5, 5]],
+                         [[122, 139, 138, 73], [5, 32, 5, 5], [5, 5, 5, 5], [5, 5, 5, 5]]],
+        "log_prob_sum": -80.85595369338989,
+        "path_length_m": 42.812276156829284,
     },
 }
 
