@@ -130,7 +130,7 @@ def _fourier_grads(emb, x, **kwargs):
     return out.detach(), {n: p.grad.clone() for n, p in emb.named_parameters()}
 
 
-def test_fourier_embedding_skips_padded_rows_and_embeds_each_repeated_value_once_with_the_same_gradients():
+def test_fourier_embedding_skips_padded_rows_and_embeds_each_repeated_value_once_with_the_same_gradients(monkeypatch):
     torch.manual_seed(0)
     emb = layers.FourierEmbedding(3, 16, 8)
     g = torch.Generator().manual_seed(1)
@@ -139,13 +139,15 @@ def test_fourier_embedding_skips_padded_rows_and_embeds_each_repeated_value_once
                      torch.randint(0, 3, (40, 6), generator=g).float() * 0.5], -1)  # (40, 6, 3)
     valid = torch.rand(40, 6, generator=g) < 0.7
     ref_out, ref_grads = _fourier_grads(emb, x, valid=None)
-    calls = []
+    calls = []  # what each dimension was embedded from
+
+    def recording_distinct(col, repeated):
+        calls.append(real_distinct(col, repeated))
+        return calls[-1]
+
     real_distinct = layers._distinct
-    layers._distinct = lambda col, repeated: calls.append(real_distinct(col, repeated)) or calls[-1]
-    try:
-        fast_out, fast_grads = _fourier_grads(emb, x, valid=valid, repeated_dims=(0, 1, 2))
-    finally:
-        layers._distinct = real_distinct
+    monkeypatch.setattr(layers, "_distinct", recording_distinct)
+    fast_out, fast_grads = _fourier_grads(emb, x, valid=valid, repeated_dims=(0, 1, 2))
     # dims 0 and 2 were embedded per distinct value, dim 1 (no repeats) per row, and only the valid rows
     assert [c[0].numel() for c in calls] == [5, int(valid.sum()), 3] and calls[1][1] is None
     assert torch.allclose(fast_out[valid], ref_out[valid], atol=1e-6) and (fast_out[~valid] == 0).all()

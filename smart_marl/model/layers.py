@@ -43,7 +43,7 @@ class FourierEmbedding(nn.Module):
       never read (its attention weight is exactly 0), so only the real pairs are embedded.
     * ``repeated_dims``: input dimensions whose values repeat (the time gap of temporal attention,
       in whole token steps; a distance, which a pair and its reverse share; the heading difference
-      of pieces along one straight lane): each dimension's MLP depends on that dimension alone, so
+      of agents driving one way): each dimension's MLP depends on that dimension alone, so
       it runs once per distinct value and the rows read their value's result (when the distinct
       values are few enough to pay for finding them).
     """
@@ -141,7 +141,6 @@ class _FourierTrunk(torch.autograd.Function):
             if keep:  # nothing to keep for inference (no_grad)
                 saved.append((col, inverse, feat, z, mean, rstd, y))
         ctx.saved = saved
-        ctx.eps = eps
         ctx.save_for_backward(freqs, w1, ln_w, ln_b, w2)
         return h
 
@@ -218,6 +217,16 @@ def knn_grouped(query_xy: torch.Tensor, group: torch.Tensor, key_xy: torch.Tenso
     packed_valid[group, slot] = True
     idx, mask = knn_within(packed, key_xy, radius_m, k, packed_valid, key_valid)  # (G, Qmax, K)
     return idx[group, slot], mask[group, slot]
+
+
+def valid_rows(valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The rows of the valid entries of ``valid`` [...] (flattened) and, for every entry, its place
+    among them (-1 where invalid): (rows [V], compact [numel])."""
+    valid_flat = valid.reshape(-1)
+    rows = valid_flat.nonzero().squeeze(1)
+    compact = torch.full(valid_flat.shape, -1, dtype=torch.long, device=valid.device)
+    compact[rows] = torch.arange(rows.numel(), device=valid.device)
+    return rows, compact
 
 
 def trim_neighbours(index: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -28,7 +28,7 @@ import torch.nn as nn
 
 from ..scenario import wrap_angle
 from ..tokens.motion import TOKEN_S
-from .layers import FourierEmbedding, NeighbourAttention, knn_grouped, knn_within, mlp, relative_pose_features, trim_neighbours
+from .layers import FourierEmbedding, NeighbourAttention, knn_grouped, knn_within, mlp, relative_pose_features, trim_neighbours, valid_rows
 
 NUM_MOTION_TYPES = 3  # vehicle, pedestrian, cyclist (AgentType 0..2)
 STILL_SPEED_MPS = 0.1  # below this speed over a token the heading-vs-motion angle is set to 0
@@ -105,9 +105,7 @@ class MotionNet(nn.Module):
         r = road_pose.shape[1]
         dev = pose.device
         valid_flat = valid.reshape(-1)
-        rows = valid_flat.nonzero().squeeze(1)  # (Q,) full row of each query
-        compact = torch.full_like(valid_flat, -1, dtype=torch.long)
-        compact[rows] = torch.arange(rows.numel(), device=dev)
+        rows, compact = valid_rows(valid)  # (Q,) full row of each query
         pose_flat = pose.reshape(-1, 3)
         q_pose = pose_flat[rows]  # (Q, 3)
         q_step = rows % s
@@ -213,7 +211,7 @@ class MotionNet(nn.Module):
         w = int(cfg.temporal_window_tokens)
         inner = cfg.num_heads * cfg.head_dim
         valid_flat = valid.reshape(-1).to(dev)
-        rows = valid_flat.nonzero().squeeze(1)  # (Q,)
+        rows, compact = valid_rows(valid_flat)  # (Q,) the valid slots; compact: each slot's query row
         nq = rows.numel()
         tokens_flat = tokens.reshape(-1).to(dev)
         start_flat = start_pose.reshape(-1, 3).to(dev, torch.float32)
@@ -242,9 +240,7 @@ class MotionNet(nn.Module):
                                    cfg.agent_neighbours, valid_flat.view(g, n), valid_flat.view(g, n))  # (G, N, Ka)
         a_full = (a_idx + (torch.arange(g, device=dev) * n)[:, None, None]).reshape(g * n, -1)[rows]  # (Q, Ka) flat slots
         a_full, a_mask = trim_neighbours(a_full, a_mask.reshape(g * n, -1)[rows])
-        compact = torch.zeros(g * n, dtype=torch.long, device=dev)
-        compact[rows] = torch.arange(nq, device=dev)
-        a_rows = compact[a_full]  # (Q, Ka) query rows (masked slots point anywhere valid)
+        a_rows = compact[a_full].clamp(min=0)  # (Q, Ka) query rows (masked slots point at row 0)
         a_rpe = self.rpe_agent(relative_pose_features(q_pose[:, None], end_flat[a_full]), valid=a_mask, repeated_dims=PAIR_REPEATS)  # (Q, Ka, d)
 
         new_kv = []
