@@ -3,9 +3,11 @@ the old token nearest it, and the probability of an old token is split among the
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from smart_marl.model.checkpoint import Checkpoint
@@ -61,3 +63,40 @@ def test_vocab_transfer_command_writes_a_checkpoint_that_loads_with_the_new_voca
     assert tuple(ck.model.config.motion_vocab_sizes) == tuple(womd_vocab[t].size for t in range(3))
     assert ck.meta["data"]["transferred_from"].endswith(".json")
     assert '"motion_sizes"' in capsys.readouterr().out
+
+
+def test_transfer_of_one_type_keeps_the_other_types_tokens_and_head_rows_exactly(womd_vocab, tiny_smart, tiny_prior, tmp_path, capsys):
+    """types=["pedestrian"]: vehicles and cyclists keep their vocabularies and logits bit for bit; only
+    the pedestrian tokens and head rows change (here to a reversed copy of another vocabulary)."""
+    from smart_marl.cli import main
+    from smart_marl.model.checkpoint import load_checkpoint
+    from smart_marl.model.transfer import merge_vocabularies
+    from smart_marl.scenario import AgentType
+    from smart_marl.tokens import save_motion_vocabulary
+
+    model = tiny_smart(womd_vocab)
+    road = RoadVocabulary(points=np.zeros((8, 11, 2), np.float32), tolerance_m=0.0, requested_size=8)
+    other = MotionVocabulary(types={t: TypeVocab.from_poses(v.poses[::-1][: v.size // 2], v.length_m, v.width_m)
+                                    for t, v in womd_vocab.types.items()})
+    moved = transfer_motion_vocabulary(Checkpoint(model=model, motion_vocab=womd_vocab, road_vocab=road), other, ["pedestrian"])
+    assert moved.motion_vocab[AgentType.VEHICLE] is womd_vocab[AgentType.VEHICLE]
+    assert moved.motion_vocab[AgentType.CYCLIST] is womd_vocab[AgentType.CYCLIST]
+    assert moved.motion_vocab[AgentType.PEDESTRIAN] is other[AgentType.PEDESTRIAN]
+    features = torch.randn(20, model.config.hidden_dim, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        old_logits, new_logits = model.eval().motion_logits(features, None), moved.model.eval().motion_logits(features, None)
+    for t in (AgentType.VEHICLE, AgentType.CYCLIST):
+        assert torch.equal(new_logits[t], old_logits[t])
+    assert new_logits[AgentType.PEDESTRIAN].shape[1] == other[AgentType.PEDESTRIAN].size
+    with pytest.raises(ValueError, match="no tokens for pedestrian"):
+        merge_vocabularies(womd_vocab, MotionVocabulary(types={AgentType.VEHICLE: womd_vocab[AgentType.VEHICLE]}), ["pedestrian"])
+
+    npz, _ = save_motion_vocabulary(other, tmp_path / "motion_other")
+    assert main(["vocab", "transfer", str(tiny_prior), "--motion-vocab", str(npz), "--types", "pedestrian",
+                 "--out", str(tmp_path / "moved")]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["motion_sizes"]["pedestrian"] == other[AgentType.PEDESTRIAN].size
+    assert out["motion_sizes"]["vehicle"] == load_checkpoint(tiny_prior).motion_vocab[AgentType.VEHICLE].size
+    assert main(["vocab", "transfer", str(tiny_prior), "--motion-vocab", str(npz), "--types", "walker",
+                 "--out", str(tmp_path / "bad")]) == 2
+    assert "--types takes a comma-separated list of vehicle, pedestrian, cyclist" in capsys.readouterr().err

@@ -14,6 +14,7 @@ import dataclasses
 
 import torch
 
+from ..scenario import AgentType
 from ..tokens import MotionVocabulary
 from .checkpoint import Checkpoint
 from .smart import SMART
@@ -28,11 +29,27 @@ def nearest_tokens(old_contour: torch.Tensor, new_contour: torch.Tensor) -> torc
     return dist.argmin(dim=1)
 
 
+def merge_vocabularies(base: MotionVocabulary, new: MotionVocabulary, types) -> MotionVocabulary:
+    """``base`` with the agent ``types`` (AgentType values or names, e.g. "pedestrian") taken from ``new``."""
+    chosen = {AgentType[t.upper()] if isinstance(t, str) else AgentType(int(t)) for t in types}
+    missing = sorted(t.name.lower() for t in chosen if t not in new.types)
+    if missing:
+        raise ValueError(f"the new motion vocabulary has no tokens for {', '.join(missing)}")
+    merged = {t: (new.types[t] if t in chosen else v) for t, v in base.types.items()}
+    merged.update({t: new.types[t] for t in chosen if t not in merged})
+    provenance = {**base.provenance, "merged": {t.name.lower(): dict(new.provenance) for t in sorted(chosen)}}
+    return MotionVocabulary(types=merged, method=base.method, seed=base.seed, provenance=provenance)
+
+
 @torch.no_grad()
-def transfer_motion_vocabulary(ck: Checkpoint, motion_vocab: MotionVocabulary) -> Checkpoint:
+def transfer_motion_vocabulary(ck: Checkpoint, motion_vocab: MotionVocabulary, types=None) -> Checkpoint:
     """A copy of ``ck`` that speaks ``motion_vocab``: same weights, contours from the new vocabulary,
     each motion head's last layer re-indexed by :func:`nearest_tokens` (see the module docstring).
-    The road vocabulary is kept. ``meta['transferred_from']`` records the source checkpoint."""
+    ``types`` (e.g. ``["pedestrian"]``): only those agent types move to the new vocabulary, the others
+    keep the checkpoint's tokens and head rows exactly. The road vocabulary is kept.
+    ``meta['transferred_from']`` records the source checkpoint."""
+    if types is not None:
+        motion_vocab = merge_vocabularies(ck.motion_vocab, motion_vocab, types)
     sizes = tuple(motion_vocab[t].size for t in range(len(ck.model.motion_contours)))
     config = dataclasses.replace(ck.model.config, motion_vocab_sizes=sizes)
     new_contours = [torch.as_tensor(motion_vocab[t].contour, dtype=torch.float32) for t in range(len(sizes))]
@@ -40,6 +57,8 @@ def transfer_motion_vocabulary(ck: Checkpoint, motion_vocab: MotionVocabulary) -
     old_state = ck.model.state_dict()
     state = model.state_dict()
     for t, (old_c, new_c) in enumerate(zip(ck.model.motion_contours, new_contours)):
+        if motion_vocab[t] is ck.motion_vocab[t]:  # a type that keeps its vocabulary keeps its head exactly
+            continue
         pick = nearest_tokens(old_c.float().cpu(), new_c)
         shared = torch.bincount(pick, minlength=old_c.shape[0]).float()
         last = len(model.motion_heads[t]) - 1
