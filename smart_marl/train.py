@@ -101,6 +101,7 @@ class TrainConfig:
     label_smoothing: float = 0.1
     speed_trend_weights: tuple | None = None  # (speeds up, keeps, slows): loss weights of vehicles by their 8 s speed trend (model.losses.speed_trend_weights); None: off
     token_noise_topk: int = 5  # top-k noisy rolling matching; 0 or 1: off
+    train_only: tuple | None = None  # parameter-name prefixes that train, the rest frozen (e.g. ["motion_heads.1"]: the pedestrian head); None: all
     catk_top_k: int = 0  # > 0: closed-loop targets (CAT-K, smart_marl.catk) from the model's top-K tokens; 0: teacher forcing
     road_mask_prob: float = 0.15  # share of road pieces hidden for the road next-token task
     road_keep_radius_m: float | None = -1.0  # crop roads to this distance from agents; -1: lossless radius from the model config
@@ -150,6 +151,28 @@ def _trend_weights(value) -> str | None:
     return None
 
 
+def _prefixes(value) -> str | None:
+    if value is None:
+        return None
+    if not (isinstance(value, (list, tuple)) and value and all(isinstance(v, str) and v for v in value)):
+        return f"must be a non-empty list of parameter-name prefixes (e.g. [\"motion_heads.1\"]) or null, got {value!r}"
+    return None
+
+
+def freeze_except(model: torch.nn.Module, prefixes) -> int:
+    """Freeze every parameter of ``model`` whose name starts with none of ``prefixes``; returns how many
+    parameters (elements) still train. A prefix that names no parameter is an error."""
+    names = [n for n, _ in model.named_parameters()]
+    unknown = [p for p in prefixes if not any(n.startswith(p) for n in names)]
+    if unknown:
+        raise TrainConfigError(f"train_only: no model parameter starts with {unknown} (e.g. {names[:3]}, ..., {names[-1]})")
+    trained = 0
+    for name, param in model.named_parameters():
+        param.requires_grad_(any(name.startswith(p) for p in prefixes))
+        trained += param.numel() if param.requires_grad else 0
+    return trained
+
+
 def _betas(value) -> str | None:
     if not (isinstance(value, (list, tuple)) and len(value) == 2) or any(number(0.0, 1.0, high_open=True)(b) for b in value):
         return f"must be two numbers in [0, 1), got {value!r}"
@@ -164,7 +187,7 @@ _TRAIN_RULES = {
     "batch_size": integer(1), "num_workers": integer(0), "max_steps": integer(1), "lr": number(0.0, low_open=True),
     "weight_decay": number(0.0), "betas": _betas, "warmup_steps": integer(0), "grad_clip": number(0.0),
     "dropout": number(0.0, 1.0, high_open=True), "label_smoothing": number(0.0, 1.0, high_open=True),
-    "speed_trend_weights": _trend_weights,
+    "speed_trend_weights": _trend_weights, "train_only": _prefixes,
     "token_noise_topk": integer(0), "catk_top_k": integer(0), "cache_scenes": integer(0), "road_mask_prob": number(0.0, 1.0),
     "road_keep_radius_m": optional(lambda v: number()(v) or (None if v == -1 or v >= 0 else f"must be -1 or >= 0, got {v}")),
     "log_every": integer(1), "val_every": integer(0), "val_scenes": integer(0), "ckpt_every": integer(0), "seed": integer(),
@@ -609,6 +632,8 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
             warnings.warn(f"{cfg.init}: the run's model config differs from the checkpoint's in {sorted(differ)} "
                           f"(checkpoint, run: {differ}); pass model.KEY=VALUE to keep the checkpoint's", stacklevel=2)
     model.to(device)
+    if cfg.train_only:
+        freeze_except(model, cfg.train_only)
     loss_module = NextTokenLoss(model, cfg.label_smoothing, cfg.speed_trend_weights)
     optimizer = make_optimizer(model, cfg)
     scheduler = make_scheduler(optimizer, cfg)

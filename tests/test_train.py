@@ -291,3 +291,31 @@ def test_speed_trend_weights_config_is_checked():
     for bad in ("[1,2]", "[1,-1,1]", "fast"):
         with pytest.raises(TrainError, match="speed_trend_weights"):
             load_train_config("smart-1m", [f"speed_trend_weights={bad}"])
+
+
+def test_train_only_trains_the_named_parameters_and_freezes_the_rest(shared_data, tmp_path):
+    """train_only=["motion_heads.1"]: a step from a checkpoint moves the pedestrian head and nothing else."""
+    vocab = _vocab_files(shared_data, tmp_path, 8, 16)
+    small = {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
+             "map_neighbours": 4, "road_neighbours": 4, "agent_neighbours": 4}
+    base = {"data": str(shared_data / GPUDRIVE), **vocab, "model_overrides": small, "batch_size": 4, "num_workers": 0,
+            "max_steps": 2, "lr": 1e-2, "log_every": 1, "val_every": 0, "ckpt_every": 0, "tensorboard": False, "progress": False}
+    first = train(load_train_config({**base, "out_dir": str(tmp_path / "a")}))
+    second = train(load_train_config({**base, "init": str(first.checkpoint), "train_only": ["motion_heads.1"],
+                                      "out_dir": str(tmp_path / "b")}))
+    before = load_checkpoint(first.checkpoint).model.state_dict()
+    after = load_checkpoint(second.checkpoint).model.state_dict()
+    moved = sorted(k for k in before if not torch.equal(before[k], after[k]))
+    assert moved and all(k.startswith("motion_heads.1.") for k in moved), moved
+
+
+def test_train_only_names_a_prefix_that_matches_nothing():
+    from smart_marl.train import TrainConfigError, freeze_except
+
+    model = SMART(tiny_config(), [torch.zeros(8, 6, 4, 2)] * 3)
+    assert freeze_except(model, ["motion_heads.1"]) == sum(p.numel() for p in model.motion_heads[1].parameters())
+    assert not any(p.requires_grad for n, p in model.named_parameters() if not n.startswith("motion_heads.1"))
+    with pytest.raises(TrainConfigError, match=r"train_only: no model parameter starts with \['motion_head.1'\]"):
+        freeze_except(model, ["motion_head.1"])
+    with pytest.raises(TrainConfigError, match="train_only"):
+        load_train_config({"train_only": "motion_heads.1"})
