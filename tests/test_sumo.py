@@ -276,6 +276,18 @@ def test_generate_sumo_command_writes_a_cache_that_reads_back(tmp_path):
         Scenario.from_arrays(arrays, meta, validate=True)  # passes the Scenario's validation
         assert got.equals(want, ignore=()) and again.equals(want, ignore=())
     assert [e["scenario_id"] for e in cache.scenes] == ["sumo-7-000000-00", "sumo-7-000000-01", "sumo-7-000001-00"]
+    # --straight-walkers: the same simulations with pedestrians on SUMO's straight lines; vehicles are untouched
+    rc = main(["generate-sumo", "--scenes", "2", "--scenes-per-sim", "2", "--out", str(tmp_path / "straight"),
+               "--workers", "1", "--seed", "7", "--quiet", "--straight-walkers"])
+    assert rc == 0
+    for straight, swayed in zip(SceneCache(tmp_path / "straight"), cache):
+        vehicles = straight.tracks.types == AgentType.VEHICLE
+        np.testing.assert_array_equal(straight.tracks.position[vehicles], swayed.tracks.position[vehicles])
+        walkers = straight.tracks.types == AgentType.PEDESTRIAN
+        if walkers.any():
+            assert not np.array_equal(straight.tracks.heading[walkers], swayed.tracks.heading[walkers])
+    with pytest.raises(ValueError, match="walker_sway_m and walker_jitter_rad must be >= 0"):
+        SumoConfig(walker_sway_m=-0.1)
 
 
 def test_missing_sumo_names_the_extra(monkeypatch):
@@ -394,3 +406,69 @@ def test_tuned_defaults_slow_fewer_moving_vehicles_than_the_first_generator(scen
     assert tuned[key]["n"] >= 30 and old[key]["n"] >= 30
     assert tuned[key]["share"] < old[key]["share"]
     assert tuned["vehicle_stopped_time_share_of_movers"]["share"] < old["vehicle_stopped_time_share_of_movers"]["share"]
+
+
+def _walker_tracks(frames: int = 91):
+    """Two smoothed walkers: one walking 1.3 m/s along +x, one standing still."""
+    t = np.arange(frames) * 0.1
+    xy = np.zeros((2, frames, 2))
+    xy[0, :, 0] = 1.3 * t
+    xy[1] = [4.0, 2.0]
+    return xy, np.ones((2, frames), bool), np.zeros((2, frames))
+
+
+def test_walker_sway_turns_walkers_a_little_and_leaves_standing_ones_alone():
+    from smart_marl.sources.sumo_sim import sway_walkers
+
+    xy, valid, heading = _walker_tracks()
+    out_xy, velocity, out_heading = sway_walkers(xy, valid, heading, np.random.default_rng(0), 0.15, 1.0)
+    # the walker now sways: its heading changes by a few hundredths of a radian every 0.5 s, as logged
+    # pedestrians' do (median 0.03-0.06 rad in the shared WOMD-derived scenes), and it never leaves its path far
+    change = np.abs(wrap_angle(out_heading[0, 5:] - out_heading[0, :-5]))
+    assert 0.01 < np.median(change) < 0.12 and change.max() < 0.6
+    assert 0.03 < np.abs(out_xy[0, :, 1]).mean() < 0.4 and np.abs(out_xy[0, :, 1]).max() < 0.8
+    # it still walks forward at its speed, pointing where it goes
+    speed = np.linalg.norm(velocity[0, 1:-1], axis=-1)
+    assert abs(np.median(speed) - 1.3) < 0.05
+    moving_dir = np.arctan2(velocity[0, 1:-1, 1], velocity[0, 1:-1, 0])
+    assert np.abs(wrap_angle(moving_dir - out_heading[0, 1:-1])).max() < 1e-6
+    # the standing one does not move or turn
+    np.testing.assert_allclose(out_xy[1], xy[1])
+    np.testing.assert_allclose(out_heading[1], heading[1])
+    # the same generator state gives the same sway; no amplitude, no sway
+    again = sway_walkers(xy, valid, heading, np.random.default_rng(0), 0.15, 1.0)
+    np.testing.assert_array_equal(again[0], out_xy)
+    still = sway_walkers(xy, valid, heading, np.random.default_rng(0), 0.0, 1.0)
+    np.testing.assert_allclose(still[0], xy, atol=1e-12)
+    np.testing.assert_allclose(still[2][0], 0.0, atol=1e-12)
+
+
+def test_walker_jitter_turns_the_body_in_heavy_tailed_flicks_not_the_path():
+    """The heading jitter: the path is the swayed one of the same generator state, the heading leaves the
+    direction of travel by at most WALKER_JITTER_MAX_RAD, and its frame-to-frame changes are mostly small
+    with a heavy tail (logged pedestrians: median 0.10 rad/s, 13% of frames above 0.4 rad/s)."""
+    from smart_marl.sources.sumo_sim import WALKER_JITTER_MAX_RAD, sway_walkers
+
+    xy, valid, heading = _walker_tracks(2000)
+    plain = sway_walkers(xy, valid, heading, np.random.default_rng(1), 0.15, 1.0)
+    out_xy, velocity, out_heading = sway_walkers(xy, valid, heading, np.random.default_rng(1), 0.15, 1.0, 0.01, 0.15)
+    np.testing.assert_array_equal(out_xy, plain[0])
+    away = np.abs(wrap_angle(out_heading[0] - plain[2][0]))
+    assert away.max() <= WALKER_JITTER_MAX_RAD + 1e-9 and away.mean() > 0.005
+    rate = np.abs(wrap_angle(np.diff(out_heading[0]))) / 0.1
+    assert 0.05 < np.median(rate) < 0.25 and 0.05 < (rate > 0.4).mean() < 0.3
+    np.testing.assert_allclose(out_heading[1], heading[1])
+
+
+def test_generated_pedestrians_sway_like_logged_ones_unless_switched_off(scenes):
+    """With the default sway, walking pedestrians' heading changes over 0.5 s as logged WOMD-derived ones do
+    (scene statistic pedestrian_abs_yaw_rate_radps, median 0.04-0.09 rad/s in ../shared/data); without
+    sway and jitter they walk SUMO's straight lines (median 0)."""
+    from smart_marl.sources.scene_stats import summarize
+
+    swayed, _ = summarize(scenes)
+    straight, _ = summarize(simulate_scenes(0, 0, SumoConfig(**SMALL_FIELDS, walker_sway_m=0.0, walker_jitter_rad=0.0)))
+    key = "pedestrian_abs_yaw_rate_radps"
+    assert swayed[key]["n"] > 200 and straight[key]["n"] > 200
+    assert 0.03 < swayed[key]["p50"] < 0.15
+    assert straight[key]["p50"] < 0.005

@@ -39,6 +39,9 @@ def register(subparsers) -> None:
     p.add_argument("--speed-weights", type=positive_numbers, default=None, metavar="W[,W...]",
                    help="their probabilities, one per limit (normalised; default: the config's with the default "
                         "limits, uniform with --speed-limits)")
+    p.add_argument("--straight-walkers", action="store_true",
+                   help="pedestrians walk SUMO's straight lines, without the sway and heading jitter of the tuned "
+                        "generator (the data of the embedded prior's stages 2-4; --legacy implies it)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -62,6 +65,8 @@ def run(args) -> int:
         raise UsageError(f"argument --demand-scale: must be > 0, got {args.demand_scale}")
     make_config = SumoConfig.legacy if args.legacy else SumoConfig
     changes = {} if args.demand_scale is None else {"demand_scale": args.demand_scale}
+    if args.straight_walkers:
+        changes.update(walker_sway_m=0.0, walker_jitter_rad=0.0)
     changes.update(speed_changes(args.speed_limits, args.speed_weights))
     config = make_config(scenes_per_sim=args.scenes_per_sim, radius_m=args.radius, pedestrians=not args.no_pedestrians,
                          bicycles=not args.no_bicycles, sublane=args.sublane, **changes)

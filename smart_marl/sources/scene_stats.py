@@ -101,6 +101,7 @@ STATISTICS: dict[str, tuple[str, str]] = {
     "vehicle_turning_share": ("share", "moving vehicle frames with |yaw rate| > 0.1 rad/s"),
     "pedestrian_speed_mps": ("distribution", "pedestrian speed, all valid frames"),
     "pedestrian_moving_share": ("share", "pedestrian frames above 0.5 m/s"),
+    "pedestrian_abs_yaw_rate_radps": ("distribution", "|yaw rate| of walking pedestrians (heading change over 0.5 s)"),
     "cyclist_speed_mps": ("distribution", "cyclist speed, all valid frames"),
     "cyclist_moving_share": ("share", "cyclist frames above 0.5 m/s"),
     "lanes_within_50m_of_sdc": ("distribution", "lane centre lines with a point within 50 m of the SDC"),
@@ -472,6 +473,10 @@ def scene_samples(scenario: Scenario) -> dict[str, np.ndarray]:
     # pedestrians and cyclists
     put("pedestrian_speed_mps", speed[ped][valid[ped]])
     put("pedestrian_moving_share", speed[ped][valid[ped]] > STOPPED_MPS)
+    if ped.any():
+        yaw, yaw_ok = yaw_rate_radps(tr.heading[ped], valid[ped], dt)
+        walking = yaw_ok & (speed[ped] > STOPPED_MPS)
+        put("pedestrian_abs_yaw_rate_radps", np.abs(yaw[walking]))
     put("cyclist_speed_mps", speed[cyc][valid[cyc]])
     put("cyclist_moving_share", speed[cyc][valid[cyc]] > STOPPED_MPS)
 

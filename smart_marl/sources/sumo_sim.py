@@ -79,6 +79,10 @@ class SumoConfig:
     car_follow_weights: tuple[float, float, float] = (0.5, 0.3, 0.2)  # Krauss, IDM, EIDM
     lc_speed_gain: tuple[float, float] = (0.1, 1.5)  # eagerness to change lanes for speed
     max_lane_piece_m: float | None = 50.0  # map lanes longer than this are cut into linked pieces (WOMD-like); None: whole
+    walker_sway_m: float = 0.15  # std of the sideways sway of walking pedestrians (sway_walkers; 0: SUMO's straight lines)
+    walker_sway_s: float = 1.0  # time scale of that sway (seconds)
+    walker_jitter_rad: float = 0.01  # scale of walking pedestrians' heavy-tailed heading jitter (sway_walkers; 0: none)
+    walker_jitter_s: float = 0.15  # time scale of that jitter (seconds)
 
     @classmethod
     def legacy(cls, **changes) -> "SumoConfig":
@@ -88,6 +92,9 @@ class SumoConfig:
         return cls(**{**LEGACY_TRAFFIC, **changes})
 
     def __post_init__(self) -> None:
+        if not (self.walker_sway_m >= 0 and self.walker_jitter_rad >= 0 and self.walker_sway_s > 0 and self.walker_jitter_s > 0):
+            raise ValueError(f"SumoConfig: walker_sway_m and walker_jitter_rad must be >= 0, walker_sway_s and walker_jitter_s > 0; "
+                             f"got {self.walker_sway_m}, {self.walker_jitter_rad}, {self.walker_sway_s}, {self.walker_jitter_s}")
         if self.speed_weights is not None and len(self.speed_weights) != len(self.speed_levels_mps):
             raise ValueError(f"SumoConfig: speed_weights has {len(self.speed_weights)} entries for "
                              f"{len(self.speed_levels_mps)} speed_levels_mps; give one weight per level (or None)")
@@ -100,7 +107,8 @@ LEGACY_TRAFFIC: dict[str, Any] = dict(
     length_scale=1.0, kind_weights=(0.45, 0.2, 0.35), junction_weights=(0.5, 0.25, 0.1, 0.07, 0.08), speed_weights=None,
     tls_guess_probability=0.4, lane_width_m=None, routes="trips", straight_probability=0.7, driver_sigma=(0.05, 0.7),
     driver_accel_mps2=(1.8, 3.5), driver_decel_mps2=(3.5, 5.5), car_follow_weights=(0.5, 0.3, 0.2),
-    lc_speed_gain=(0.3, 3.0), max_lane_piece_m=None, demand_scale=1.0)
+    lc_speed_gain=(0.3, 3.0), max_lane_piece_m=None, demand_scale=1.0, walker_sway_m=0.0,
+    walker_jitter_rad=0.0)
 """The :class:`SumoConfig` fields that differ between the first generator and the tuned defaults."""
 
 
@@ -364,6 +372,11 @@ def run_simulation(net_path: Path, route_path: Path, duration_s: float, record_f
     peds = np.flatnonzero(info_arr[:, 0] == AgentType.PEDESTRIAN)
     if len(peds):
         front[peds, :, :2], velocity[peds], heading[peds] = smooth_walkers(front[peds, :, :2], valid[peds], heading[peds])
+        if config.walker_sway_m > 0 or config.walker_jitter_rad > 0:
+            rng = np.random.default_rng([seed, 0x5a7])
+            front[peds, :, :2], velocity[peds], heading[peds] = sway_walkers(
+                front[peds, :, :2], valid[peds], heading[peds], rng, config.walker_sway_m, config.walker_sway_s,
+                config.walker_jitter_rad, config.walker_jitter_s)
         speed[peds] = np.linalg.norm(velocity[peds], axis=-1)
     length = info_arr[:, 1]
     center = front.copy()
@@ -427,6 +440,56 @@ def smooth_walkers(xy: np.ndarray, valid: np.ndarray, heading: np.ndarray, windo
         out[:, t] = np.where(valid[:, t] & valid[:, t - 1], limited, goal)
     out = wrap_angle(out)
     return smooth, velocity, out
+
+
+WALKER_JITTER_DOF = 1.3
+"""Degrees of freedom of the Student-t innovations of the walkers' heading jitter: heavy tails, as the
+headings of logged pedestrians have (mostly a few hundredths of a radian per frame, now and then a
+turn of the body or a tracker's flip of a few tenths)."""
+WALKER_JITTER_MAX_RAD = 0.5
+
+
+def _smoothed_noise(rng: np.random.Generator, shape: tuple[int, int], time_scale_s: float, draw) -> np.ndarray:
+    """Noise [P, T] from ``draw(size)`` innovations smoothed by a Gaussian of ``time_scale_s`` whose
+    weights have unit L2 norm (unit-variance innovations stay unit variance)."""
+    p, t = shape
+    half = max(1, int(math.ceil(3 * time_scale_s / DT_S)))
+    kernel = np.exp(-0.5 * (np.arange(-half, half + 1) * DT_S / time_scale_s) ** 2)
+    kernel /= np.sqrt((kernel**2).sum())
+    noise = draw((p, t + 2 * half))
+    return np.stack([np.convolve(row, kernel, mode="valid") for row in noise]) if p else np.zeros((p, t))
+
+
+def sway_walkers(xy: np.ndarray, valid: np.ndarray, heading: np.ndarray, rng: np.random.Generator,
+                 amplitude_m: float, time_scale_s: float, jitter_rad: float = 0.0, jitter_s: float = 0.15,
+                 walking_mps: float = 1.0):
+    """Walking pedestrians made to move as logged ones do. SUMO walks them along perfectly straight
+    lines, so their heading never changes between corners; a logged pedestrian's heading changes by
+    about 0.1 rad/s at the median and by more than 0.4 rad/s in one frame of eight (the GPUDrive and
+    Nocturne scenes of ../shared/data). Two things are added to the smoothed tracks ``xy`` [P, T, 2]
+    (:func:`smooth_walkers`), both faded in with the walker's speed (full from ``walking_mps``;
+    standing walkers neither move nor turn):
+
+    * a sideways sway (to the left of ``heading``): white noise smoothed by a Gaussian of
+      ``time_scale_s``, standard deviation ``amplitude_m``; velocities and headings are derived again
+      from the swayed positions, so the heading follows the path;
+    * a heading jitter around the direction of travel: Student-t innovations
+      (:data:`WALKER_JITTER_DOF`) smoothed over ``jitter_s`` and scaled by ``jitter_rad``, clipped to
+      :data:`WALKER_JITTER_MAX_RAD`. The body turns, the path does not.
+
+    Returns (xy, velocity, heading)."""
+    shape = valid.shape
+    step = frame_steps(xy, valid)[0] / DT_S
+    walking = _window_mean(np.clip(np.linalg.norm(step, axis=-1) / walking_mps, 0.0, 1.0)[..., None], valid, 9)[..., 0]
+    offset = amplitude_m * _smoothed_noise(rng, shape, time_scale_s, rng.standard_normal)
+    left = np.stack([-np.sin(heading), np.cos(heading)], axis=-1)
+    swayed = np.where(valid[..., None], xy + (offset * walking)[..., None] * left, 0.0)
+    xy, velocity, heading = smooth_walkers(swayed, valid, heading, window=1)
+    if jitter_rad > 0:
+        jitter = jitter_rad * _smoothed_noise(rng, shape, jitter_s, lambda size: rng.standard_t(WALKER_JITTER_DOF, size))
+        heading = np.where(valid, wrap_angle(heading + np.clip(jitter, -WALKER_JITTER_MAX_RAD, WALKER_JITTER_MAX_RAD) * walking),
+                           heading)
+    return xy, velocity, heading
 
 
 # ------------------------------------------------------------------------------------ scenes
