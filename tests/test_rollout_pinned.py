@@ -33,22 +33,22 @@ from smart_marl.rollout import rollout
 WOMD_SCENE = "womd_tfrecord/motion_data_one_scenario.tfrecord"
 SETTINGS = dict(num_rollouts=2, num_steps=4, top_k=5, seed=7)
 
-PINS = {  # regenerated when the embedded prior was retrained (stage 4, speed-trend weights, 2026-11-25); same settings
+PINS = {  # regenerated when the embedded prior was retrained (stage 5, swaying pedestrians, 2026-11-25); same settings
     "womd-637f20cafde22ff8": {
         "simulated": 50,
-        "tokens_sha256": "610f3a9999b84ed8834d2392022fa2cf35fa35857b7795ac95682f276f09467c",
+        "tokens_sha256": "8f8c0e0e871a0c47e2e35a97137d2409c852bad1c83445b58d3ebecfb0d27de7",
         "first_tokens": [[[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [0, 1, 1, 1]],
                          [[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [1, 0, 1, 1]]],
-        "log_prob_sum": -579.7844423502684,
-        "path_length_m": 936.847360747019,
+        "log_prob_sum": -606.4080134108663,
+        "path_length_m": 938.9321361192233,
     },
     "sumo-sample-0": {
         "simulated": 22,
-        "tokens_sha256": "321785c3a5215b7638f250ec9b734f4638db2689c7fe88e08176ac5bc9e664d0",
+        "tokens_sha256": "a8641703127db0608de0c38913af924e4a8b1fbf23758bc35b81e44fce967037",
         "first_tokens": [[[122, 73, 138, 73], [5, 5, 5, 5], [5, 5, 5, 5], [32, 5, 5, 5]],
                          [[122, 139, 138, 73], [5, 32, 5, 5], [5, 5, 5, 5], [5, 5, 5, 5]]],
-        "log_prob_sum": -80.85595369338989,
-        "path_length_m": 42.812276156829284,
+        "log_prob_sum": -139.78666654974222,
+        "path_length_m": 44.19782234392829,
     },
 }
 

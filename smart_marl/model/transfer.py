@@ -37,7 +37,10 @@ def merge_vocabularies(base: MotionVocabulary, new: MotionVocabulary, types) -> 
         raise ValueError(f"the new motion vocabulary has no tokens for {', '.join(missing)}")
     merged = {t: (new.types[t] if t in chosen else v) for t, v in base.types.items()}
     merged.update({t: new.types[t] for t in chosen if t not in merged})
-    provenance = {**base.provenance, "merged": {t.name.lower(): dict(new.provenance) for t in sorted(chosen)}}
+    summary = {k: v for k, v in new.provenance.items() if k != "scenes"}  # the base keeps its own scene list
+    if "scenes" in new.provenance:
+        summary["num_scenes"] = len(new.provenance["scenes"])
+    provenance = {**base.provenance, "merged": {t.name.lower(): summary for t in sorted(chosen)}}
     return MotionVocabulary(types=merged, method=base.method, seed=base.seed, provenance=provenance)
 
 
