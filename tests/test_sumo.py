@@ -286,7 +286,7 @@ def test_generate_sumo_command_writes_a_cache_that_reads_back(tmp_path):
         walkers = straight.tracks.types == AgentType.PEDESTRIAN
         if walkers.any():
             assert not np.array_equal(straight.tracks.heading[walkers], swayed.tracks.heading[walkers])
-    with pytest.raises(ValueError, match="walker_sway_m and walker_jitter_rad must be >= 0"):
+    with pytest.raises(ValueError, match="walker_sway_m, walker_jitter_rad and cyclist_sway_m must be >= 0"):
         SumoConfig(walker_sway_m=-0.1)
 
 
@@ -472,3 +472,25 @@ def test_generated_pedestrians_sway_like_logged_ones_unless_switched_off(scenes)
     assert swayed[key]["n"] > 200 and straight[key]["n"] > 200
     assert 0.03 < swayed[key]["p50"] < 0.15
     assert straight[key]["p50"] < 0.005
+
+
+def test_cyclist_sway_is_off_by_default_and_turns_only_the_cyclists(scenes):
+    """``cyclist_sway_m`` (default 0: cyclists ride SUMO's lane lines) sways moving cyclists as
+    :func:`sway_walkers` sways pedestrians, without the heading jitter; vehicles keep their tracks."""
+    from smart_marl.sources.scene_stats import yaw_rate_radps
+
+    swayed = simulate_scenes(0, 0, SumoConfig(**SMALL_FIELDS, cyclist_sway_m=0.22, cyclist_sway_s=0.65))
+    plain = [s for s in scenes if s.scenario_id.startswith(swayed[0].scenario_id.rsplit("-", 1)[0])]
+    assert len(plain) == len(swayed)
+    rates = {"plain": [], "swayed": []}
+    for a, b in zip(plain, swayed):
+        vehicles = a.tracks.types == AgentType.VEHICLE
+        np.testing.assert_array_equal(a.tracks.position[vehicles], b.tracks.position[vehicles])
+        for name, s in (("plain", a), ("swayed", b)):
+            cyc = s.tracks.types == AgentType.CYCLIST
+            speed = np.linalg.norm(s.tracks.velocity[cyc], axis=-1)
+            yaw, ok = yaw_rate_radps(s.tracks.heading[cyc], s.tracks.valid[cyc])
+            rates[name].append(np.abs(yaw[ok & (speed > 2.0)]))
+    plain_rates, swayed_rates = np.concatenate(rates["plain"]), np.concatenate(rates["swayed"])
+    assert len(swayed_rates) > 100
+    assert np.median(plain_rates) < 0.005 < 0.02 < np.median(swayed_rates) < 0.2

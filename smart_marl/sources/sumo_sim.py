@@ -83,6 +83,8 @@ class SumoConfig:
     walker_sway_s: float = 1.0  # time scale of that sway (seconds)
     walker_jitter_rad: float = 0.01  # scale of walking pedestrians' heavy-tailed heading jitter (sway_walkers; 0: none)
     walker_jitter_s: float = 0.15  # time scale of that jitter (seconds)
+    cyclist_sway_m: float = 0.0  # std of cyclists' sideways sway (sway_walkers without jitter; 0: SUMO's lane lines)
+    cyclist_sway_s: float = 0.7  # time scale of that sway (seconds)
 
     @classmethod
     def legacy(cls, **changes) -> "SumoConfig":
@@ -92,9 +94,11 @@ class SumoConfig:
         return cls(**{**LEGACY_TRAFFIC, **changes})
 
     def __post_init__(self) -> None:
-        if not (self.walker_sway_m >= 0 and self.walker_jitter_rad >= 0 and self.walker_sway_s > 0 and self.walker_jitter_s > 0):
-            raise ValueError(f"SumoConfig: walker_sway_m and walker_jitter_rad must be >= 0, walker_sway_s and walker_jitter_s > 0; "
-                             f"got {self.walker_sway_m}, {self.walker_jitter_rad}, {self.walker_sway_s}, {self.walker_jitter_s}")
+        if not (self.walker_sway_m >= 0 and self.walker_jitter_rad >= 0 and self.walker_sway_s > 0 and self.walker_jitter_s > 0
+                and self.cyclist_sway_m >= 0 and self.cyclist_sway_s > 0):
+            raise ValueError(f"SumoConfig: walker_sway_m, walker_jitter_rad and cyclist_sway_m must be >= 0, their time scales > 0; "
+                             f"got {self.walker_sway_m}, {self.walker_jitter_rad}, {self.cyclist_sway_m}, {self.walker_sway_s}, "
+                             f"{self.walker_jitter_s}, {self.cyclist_sway_s}")
         if self.speed_weights is not None and len(self.speed_weights) != len(self.speed_levels_mps):
             raise ValueError(f"SumoConfig: speed_weights has {len(self.speed_weights)} entries for "
                              f"{len(self.speed_levels_mps)} speed_levels_mps; give one weight per level (or None)")
@@ -378,6 +382,12 @@ def run_simulation(net_path: Path, route_path: Path, duration_s: float, record_f
                 front[peds, :, :2], valid[peds], heading[peds], rng, config.walker_sway_m, config.walker_sway_s,
                 config.walker_jitter_rad, config.walker_jitter_s)
         speed[peds] = np.linalg.norm(velocity[peds], axis=-1)
+    cycs = np.flatnonzero(info_arr[:, 0] == AgentType.CYCLIST)
+    if len(cycs) and config.cyclist_sway_m > 0:
+        rng = np.random.default_rng([seed, 0xc7c])
+        front[cycs, :, :2], velocity[cycs], heading[cycs] = sway_walkers(
+            front[cycs, :, :2], valid[cycs], heading[cycs], rng, config.cyclist_sway_m, config.cyclist_sway_s, walking_mps=2.0)
+        speed[cycs] = np.linalg.norm(velocity[cycs], axis=-1)
     length = info_arr[:, 1]
     center = front.copy()
     center[..., 0] -= 0.5 * length[:, None] * np.cos(heading)
