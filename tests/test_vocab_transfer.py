@@ -97,6 +97,7 @@ def test_transfer_of_one_type_keeps_the_other_types_tokens_and_head_rows_exactly
     out = json.loads(capsys.readouterr().out)
     assert out["motion_sizes"]["pedestrian"] == other[AgentType.PEDESTRIAN].size
     assert out["motion_sizes"]["vehicle"] == load_checkpoint(tiny_prior).motion_vocab[AgentType.VEHICLE].size
-    assert main(["vocab", "transfer", str(tiny_prior), "--motion-vocab", str(npz), "--types", "walker",
-                 "--out", str(tmp_path / "bad")]) == 2
-    assert "--types takes a comma-separated list of vehicle, pedestrian, cyclist" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        main(["vocab", "transfer", str(tiny_prior), "--motion-vocab", str(npz), "--types", "walker", "--out", str(tmp_path / "bad")])
+    assert exit_info.value.code == 2
+    assert "argument --types: expected a comma-separated list of vehicle, pedestrian, cyclist" in capsys.readouterr().err

@@ -3,7 +3,8 @@
 
 ``type=positive_int`` (``--workers``, ``--scenes-per-shard``...), ``type=non_negative_int``
 (``--top-k``: 0 means none), ``type=positive_number`` (``--temperature``), ``type=positive_numbers``
-(``--speed-limits 30,50``: comma-separated numbers > 0), ``type=output_dir`` (``--out``:
+(``--speed-limits 30,50``: comma-separated numbers > 0), ``type=motion_types`` (``--types
+pedestrian,cyclist``: agent types that have motion tokens), ``type=output_dir`` (``--out``:
 anything but an existing file), ``type=device`` (``--device``: a torch device this machine has;
 ``device_or_auto`` also takes ``auto``) and :func:`reader_formats` (the ``choices`` of ``--format``).
 """
@@ -14,6 +15,7 @@ import argparse
 
 from ..config_files import device_problem, output_dir_problem
 from ..readers import format_names
+from ..tokens.motion import MOTION_TYPES
 
 
 def _integer_at_least(text: str, low: int) -> int:
@@ -58,6 +60,15 @@ def positive_numbers(text: str) -> tuple[float, ...]:
     return values
 
 
+def motion_types(text: str) -> list[str]:
+    """Comma-separated names of agent types with motion tokens (vehicle, pedestrian, cyclist)."""
+    known = [t.name.lower() for t in MOTION_TYPES]
+    names = [t.strip().lower() for t in text.split(",") if t.strip()]
+    if not names or any(n not in known for n in names):
+        raise argparse.ArgumentTypeError(f"expected a comma-separated list of {', '.join(known)}, got {text!r}")
+    return names
+
+
 def output_dir(text: str) -> str:
     """A folder to write into: missing (it is created) or an existing folder, never an existing file."""
     problem = output_dir_problem(text)
@@ -90,4 +101,4 @@ def reader_formats() -> list[str]:
     return format_names()
 
 
-__all__ = ["positive_int", "non_negative_int", "positive_number", "positive_numbers", "output_dir", "device", "device_or_auto", "reader_formats"]
+__all__ = ["positive_int", "non_negative_int", "positive_number", "positive_numbers", "motion_types", "output_dir", "device", "device_or_auto", "reader_formats"]

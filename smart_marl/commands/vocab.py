@@ -20,7 +20,7 @@ from ..tokens import (
     save_road_vocabulary,
 )
 from ..tokens.motion import MOTION_TYPES
-from .arguments import output_dir
+from .arguments import motion_types, output_dir
 
 
 def register(subparsers) -> None:
@@ -52,7 +52,7 @@ def register(subparsers) -> None:
     t.add_argument("checkpoint", metavar="CHECKPOINT", help="a checkpoint's .json, or 'embedded'")
     t.add_argument("--motion-vocab", required=True, metavar="V", help="the new motion vocabulary (.npz)")
     t.add_argument("--out", required=True, type=Path, metavar="NAME", help="the new checkpoint (writes NAME.json, .safetensors...)")
-    t.add_argument("--types", default=None, metavar="TYPE[,TYPE]",
+    t.add_argument("--types", type=motion_types, default=None, metavar="TYPE[,TYPE]",
                    help="only these agent types (vehicle, pedestrian, cyclist) take the new vocabulary; the others keep "
                         "the checkpoint's tokens and head rows (default: every type)")
     t.set_defaults(func=run_transfer)
@@ -115,16 +115,8 @@ def run_build(args) -> int:
 
 
 def run_transfer(args) -> int:
-    types = None
-    if args.types is not None:
-        types = [t.strip().lower() for t in args.types.split(",") if t.strip()]
-        known = [t.name.lower() for t in MOTION_TYPES]
-        if not types or any(t not in known for t in types):
-            print(f"smart-marl vocab transfer: error: --types takes a comma-separated list of {', '.join(known)} "
-                  f"(got {args.types!r})", file=sys.stderr)
-            return 2
     ck = load_checkpoint(args.checkpoint)
-    moved = transfer_motion_vocabulary(ck, load_motion_vocabulary(args.motion_vocab), types)
+    moved = transfer_motion_vocabulary(ck, load_motion_vocabulary(args.motion_vocab), args.types)
     meta = save_checkpoint(args.out, moved.model, moved.motion_vocab, moved.road_vocab, step=0,
                            data={"transferred_from": str(ck.path), "motion_vocab": moved.motion_vocab.content_hash()})
     print(json.dumps({"checkpoint": str(meta), "from": str(ck.path), "motion_sizes": moved.motion_vocab.sizes(),

@@ -376,18 +376,17 @@ def run_simulation(net_path: Path, route_path: Path, duration_s: float, record_f
     peds = np.flatnonzero(info_arr[:, 0] == AgentType.PEDESTRIAN)
     if len(peds):
         front[peds, :, :2], velocity[peds], heading[peds] = smooth_walkers(front[peds, :, :2], valid[peds], heading[peds])
-        if config.walker_sway_m > 0 or config.walker_jitter_rad > 0:
-            rng = np.random.default_rng([seed, 0x5a7])
-            front[peds, :, :2], velocity[peds], heading[peds] = sway_walkers(
-                front[peds, :, :2], valid[peds], heading[peds], rng, config.walker_sway_m, config.walker_sway_s,
-                config.walker_jitter_rad, config.walker_jitter_s)
         speed[peds] = np.linalg.norm(velocity[peds], axis=-1)
     cycs = np.flatnonzero(info_arr[:, 0] == AgentType.CYCLIST)
-    if len(cycs) and config.cyclist_sway_m > 0:
-        rng = np.random.default_rng([seed, 0xc7c])
-        front[cycs, :, :2], velocity[cycs], heading[cycs] = sway_walkers(
-            front[cycs, :, :2], valid[cycs], heading[cycs], rng, config.cyclist_sway_m, config.cyclist_sway_s, walking_mps=2.0)
-        speed[cycs] = np.linalg.norm(velocity[cycs], axis=-1)
+    # (agents, their own random stream, sway m, sway s, jitter rad, jitter s, full sway from this speed)
+    for agents, stream, *sway, walking_mps in (
+            (peds, 0x5a7, config.walker_sway_m, config.walker_sway_s, config.walker_jitter_rad, config.walker_jitter_s, 1.0),
+            (cycs, 0xc7c, config.cyclist_sway_m, config.cyclist_sway_s, 0.0, 0.15, 2.0)):
+        if len(agents) and (sway[0] > 0 or sway[2] > 0):
+            front[agents, :, :2], velocity[agents], heading[agents] = sway_walkers(
+                front[agents, :, :2], valid[agents], heading[agents], np.random.default_rng([seed, stream]), *sway,
+                walking_mps=walking_mps)
+            speed[agents] = np.linalg.norm(velocity[agents], axis=-1)
     length = info_arr[:, 1]
     center = front.copy()
     center[..., 0] -= 0.5 * length[:, None] * np.cos(heading)
