@@ -66,13 +66,14 @@ def _speeds_from_positions(xy: np.ndarray, start_xy: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.diff(np.concatenate([start_xy[..., None, :], xy], -2), axis=-2), axis=-1) / 0.1
 
 
-def rollout_speeds(ck, scene, num_rollouts: int, top_k: int, temperature: float, seed: int) -> dict:
+def rollout_speeds(ck, scene, num_rollouts: int, top_k: int, temperature: float, seed: int,
+                   avoid_collisions: bool = True) -> dict:
     """Per motion type: (rollout speed sum [T], log speed sum [T], log count [T], agents, by_trend), frames
     cf+1..cf+80, over the agents moving at the current frame; a sum at frame t counts the agents logged at t and
     t-1. ``by_trend`` [3, 4]: per log trend (:data:`TRENDS`), the sums of speed now, log and rollout mean speed in
     the last :data:`LATE_FRAMES` frames, and the agents (those logged on at least half of those frames)."""
     res = rollout(ck, [scene], num_rollouts=num_rollouts, num_steps=NUM_FRAMES // 5, top_k=top_k,
-                  temperature=temperature, seed=seed)
+                  temperature=temperature, seed=seed, avoid_collisions=avoid_collisions)
     tr, cf = scene.tracks, scene.current_frame
     a = res.agent_types.shape[1]
     frames = np.arange(cf + 1, cf + 1 + NUM_FRAMES)
@@ -168,6 +169,8 @@ def main(argv=None) -> None:
     ap.add_argument("--temperature", type=float, default=1.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--no-collision-avoidance", dest="avoid_collisions", action="store_false",
+                    help="sample plainly (default: collision-aware sampling, as rollouts do)")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     ck = load_checkpoint(args.prior)  # a path or "embedded"
@@ -180,7 +183,8 @@ def main(argv=None) -> None:
         tf = {t: np.zeros(3) for t in MOTION_TYPES}
         tf_bins = np.zeros((len(SPEED_BINS_MPS) - 1, 4))
         for scene in scenes:
-            for t, sums in rollout_speeds(ck, scene, args.rollouts, args.top_k, args.temperature, args.seed).items():
+            for t, sums in rollout_speeds(ck, scene, args.rollouts, args.top_k, args.temperature, args.seed,
+                                          args.avoid_collisions).items():
                 for i, v in enumerate(sums):
                     roll[t][i] += v
             moving_bias, bins = teacher_forced_bias(ck, scene, args.top_k)
@@ -188,7 +192,7 @@ def main(argv=None) -> None:
                 tf[t] += v
             tf_bins += bins
         common = {"set": set_name, "scenes": len(scenes), "rollouts": args.rollouts, "top_k": args.top_k,
-                  "temperature": args.temperature, "prior": args.prior}
+                  "temperature": args.temperature, "prior": args.prior, "avoid_collisions": args.avoid_collisions}
         for t in MOTION_TYPES:
             r, lg, n, m, by_trend = roll[t]
             if m == 0:

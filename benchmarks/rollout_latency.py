@@ -21,6 +21,9 @@ batch, wall time including tokenizing the history and encoding the road.
 
     .venv/bin/python benchmarks/rollout_latency.py [--threads 1] [--repeats 3] [--device cpu]
 
+``--avoidance`` measures only what collision-aware sampling (:mod:`smart_marl.rollout.avoidance`, the
+default) costs: the embedded prior's 32 rollouts of each real scene with and without it, alternating.
+
 Measured (2026-11-22, ``--threads 1``, a 2-core CPU shared with other jobs at load 4-9, so absolute
 times are noisy; no GPU was lent): ms per step at step 16, cached / full (ratio)
 
@@ -98,6 +101,32 @@ def step_times(model, vocab, scene, mode: str, steps: int, device: str) -> list[
     return out
 
 
+def avoidance_cost(args) -> None:
+    """One line per real scene: median wall time of ``--rollouts`` x 8 s by the embedded prior with
+    collision-aware sampling (the default) and without, runs alternating, and their ratio."""
+    from smart_marl.model.checkpoint import load_embedded
+    from smart_marl.readers import read_scenarios
+    from smart_marl.rollout import rollout
+
+    prior = load_embedded(args.device)
+    for f in SCENE_FILES:
+        sc = next(iter(read_scenarios(DATA / f)))
+        walls = {True: [], False: []}
+        for _ in range(args.repeats):
+            for avoid in (False, True):
+                sync(args.device)
+                t0 = time.perf_counter()
+                rollout(prior, [sc], num_rollouts=args.rollouts, num_steps=16, seed=0, device=args.device,
+                        avoid_collisions=avoid)
+                sync(args.device)
+                walls[avoid].append(time.perf_counter() - t0)
+        plain, avoiding = statistics.median(walls[False]), statistics.median(walls[True])
+        print(json.dumps({"kind": "avoidance", "prior": "embedded", "scenario_id": sc.scenario_id, "tracks": sc.num_tracks,
+                          "rollouts": args.rollouts, "repeats": args.repeats, "plain_wall_s": round(plain, 3),
+                          "avoiding_wall_s": round(avoiding, 3), "ratio": round(avoiding / plain, 3),
+                          "device": args.device, "threads": torch.get_num_threads()}), flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", nargs="+", default=["smart-1m", "smart-7m"])
@@ -108,9 +137,14 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--skip-rollouts", action="store_true")
+    ap.add_argument("--avoidance", action="store_true",
+                    help="only the cost of collision-aware sampling: the embedded prior's rollouts of the real scenes with "
+                         "and without it, alternating, --repeats each")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.avoidance:
+        return avoidance_cost(args)
 
     from smart_marl.readers import read_scenarios
     from smart_marl.tokens import collect_snippets

@@ -12,7 +12,10 @@ id of their type's vocabulary: Discrete(V)); every other agent follows the backg
 
 * ``"prior"``: one incremental SMART step (:class:`smart_marl.rollout.RolloutState`, KV cache)
   samples every background agent's token, conditioned on the controlled agents' chosen tokens
-  (they are forced into the same step); agents of type OTHER move at constant velocity;
+  (they are forced into the same step), collision-aware unless ``avoid_collisions=False``
+  (:mod:`smart_marl.rollout.avoidance`: a background agent does not draw a token that runs into
+  another agent, the controlled ones included, where they would be at constant velocity); agents
+  of type OTHER move at constant velocity;
 * ``"log"``: logged poses are replayed (an agent is present on the frames its log is valid; for the
   prior it leaves for good at its first gap);
 * ``"constant_velocity"``: the logged velocity at the current frame, heading held.
@@ -172,7 +175,7 @@ class SmartTrafficEnv(ParallelEnv):
                  max_agents: int | None = None, terminate_on: Sequence[str] = TERMINATION_EVENTS,
                  scene_order: str = "sequential", motion_vocab: MotionVocabulary | None = None, top_k: int = DEFAULT_TOP_K,
                  temperature: float = 1.0, render_size_px: int = 400, render_radius_m: float = 50.0,
-                 reference_top_k: int | None = None) -> None:
+                 reference_top_k: int | None = None, avoid_collisions: bool = True) -> None:
         if background not in BACKGROUNDS:
             raise EnvConfigError(f"background must be one of {BACKGROUNDS}, got {background!r}")
         if int(horizon_steps) < 1:
@@ -209,6 +212,7 @@ class SmartTrafficEnv(ParallelEnv):
         self.terminate_on = frozenset(terminate_on)
         self.scene_order = scene_order
         self.top_k, self.temperature = int(top_k), float(temperature)
+        self.avoid_collisions = bool(avoid_collisions)
         if reference_top_k is not None and int(reference_top_k) < 1:
             raise EnvConfigError(f"reference_top_k must be None (the full softmax) or >= 1, got {reference_top_k}")
         self.reference_top_k = None if reference_top_k is None else int(reference_top_k)
@@ -359,7 +363,8 @@ class SmartTrafficEnv(ParallelEnv):
         pristine = self._prior_states.pop(index, None)
         if pristine is None:
             pristine = RolloutState.start(self.model, self.scenes[index], num_rollouts=1, seed=0, top_k=self.top_k,
-                                          temperature=self.temperature, motion_vocab=self.motion_vocab)
+                                          temperature=self.temperature, motion_vocab=self.motion_vocab,
+                                          avoid_collisions=self.avoid_collisions)
         self._prior_states[index] = pristine  # most recent last
         while len(self._prior_states) > self.PRIOR_STATE_CACHE:
             self._prior_states.pop(next(iter(self._prior_states)))
@@ -602,7 +607,9 @@ def parallel_env(scenarios="embedded", prior="embedded", controlled="sdc", backg
     :class:`~envs._reward.RewardConfig` or a dict of weights; ``observation``: "vector", "dict"
     or an :class:`~envs._observation.ObservationConfig`. Other keywords: ``terminate_on``,
     ``scene_order`` ("sequential" or "random" with the reset seed), ``motion_vocab`` (needed with
-    ``prior=None``), ``top_k``, ``temperature``, ``reference_top_k``, ``render_size_px``, ``render_radius_m``."""
+    ``prior=None``), ``top_k``, ``temperature``, ``reference_top_k``, ``avoid_collisions`` (the prior's
+    background keeps its sampled tokens out of other agents' boxes, :mod:`smart_marl.rollout.avoidance`;
+    default True), ``render_size_px``, ``render_radius_m``."""
     return SmartTrafficEnv(scenarios=scenarios, prior=prior, controlled=controlled, background=background,
                            horizon_steps=horizon_steps, reward=reward, observation=observation, render_mode=render_mode,
                            max_agents=max_agents, **kwargs)

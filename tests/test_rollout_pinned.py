@@ -3,7 +3,8 @@ tokens. Refactors of the model, the KV-cached step or the rollout engine must no
 
 Pinned here: 2 rollouts x 4 token steps, seed 7, top-k 5, of the embedded prior
 (``smart_marl/checkpoints/embedded``) on the real WOMD scene 637f20cafde22ff8 (skipped when
-``../shared/data`` is absent) and on the package's first SUMO sample scene (always runs). The
+``../shared/data`` is absent), with collision-aware sampling (the default) and without it
+("-plain"), and on the package's first SUMO sample scene (always runs). The
 tokens of every simulated agent are pinned exactly (a SHA-256 of the int64 array, agents in track
 order, plus the first agents' tokens written out); log-probabilities to 1e-5 (relative) and the
 agents' summed path length to 1 mm.
@@ -33,8 +34,17 @@ from smart_marl.rollout import rollout
 WOMD_SCENE = "womd_tfrecord/motion_data_one_scenario.tfrecord"
 SETTINGS = dict(num_rollouts=2, num_steps=4, top_k=5, seed=7)
 
-PINS = {  # regenerated when the embedded prior was retrained (stage 5, swaying pedestrians, 2026-11-25); same settings
+PINS = {  # regenerated when collision-aware sampling became the default (stage 5 prior, 2026-11-25; the SUMO pin
+    # did not move: no token of its first 4 steps collides); same settings
     "womd-637f20cafde22ff8": {
+        "simulated": 50,
+        "tokens_sha256": "bda2d45fbadf897fa2a3efec9e8560f2b92f7f2fc6161e06d2c1abac9e46a4fb",
+        "first_tokens": [[[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [0, 1, 1, 1]],
+                         [[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [1, 0, 1, 1]]],
+        "log_prob_sum": -613.2756459712982,
+        "path_length_m": 944.5962700704863,
+    },
+    "womd-637f20cafde22ff8-plain": {  # the stage-5 pin, unchanged
         "simulated": 50,
         "tokens_sha256": "8f8c0e0e871a0c47e2e35a97137d2409c852bad1c83445b58d3ebecfb0d27de7",
         "first_tokens": [[[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [0, 1, 1, 1]],
@@ -53,9 +63,9 @@ PINS = {  # regenerated when the embedded prior was retrained (stage 5, swaying 
 }
 
 
-def _summary(scene) -> dict:
+def _summary(scene, avoid_collisions: bool = True) -> dict:
     """What is pinned of one scene's rollout (computed on one torch thread)."""
-    result = rollout(load_embedded(), scene, **SETTINGS)
+    result = rollout(load_embedded(), scene, **SETTINGS, avoid_collisions=avoid_collisions)
     sim = result.simulated[0]  # [A] the same agents are simulated in every rollout of a scene
     tokens = np.ascontiguousarray(result.tokens[:, sim], np.int64)  # [R, simulated, steps]
     return {
@@ -68,7 +78,7 @@ def _summary(scene) -> dict:
 
 
 def _check(name: str, scene) -> None:
-    got, pin = _summary(scene), PINS[name]
+    got, pin = _summary(scene, avoid_collisions=not name.endswith("-plain")), PINS[name]
     assert got["simulated"] == pin["simulated"]
     assert got["first_tokens"] == pin["first_tokens"]
     assert got["tokens_sha256"] == pin["tokens_sha256"], "the rollout's tokens changed (see the module docstring)"
@@ -83,6 +93,10 @@ def test_embedded_prior_rollout_of_a_real_womd_scene_is_pinned(shared_data):
     _check("womd-637f20cafde22ff8", next(iter(read_scenarios(shared_data / WOMD_SCENE))))
 
 
+def test_embedded_prior_rollout_of_a_real_womd_scene_sampled_plainly_is_pinned(shared_data):
+    _check("womd-637f20cafde22ff8-plain", next(iter(read_scenarios(shared_data / WOMD_SCENE))))
+
+
 def test_embedded_prior_rollout_of_a_sample_scene_is_pinned():
     _check("sumo-sample-0", sample_scenarios()[0])
 
@@ -94,5 +108,6 @@ if __name__ == "__main__":  # print fresh pins (see the module docstring)
     data = Path(__file__).resolve().parents[1].parent / "shared" / "data"
     scenes = {"sumo-sample-0": sample_scenarios()[0]}
     if (data / WOMD_SCENE).is_file():
-        scenes["womd-637f20cafde22ff8"] = next(iter(read_scenarios(data / WOMD_SCENE)))
-    pprint.pprint({name: _summary(sc) for name, sc in scenes.items()}, sort_dicts=False, width=120)
+        scenes["womd-637f20cafde22ff8"] = scenes["womd-637f20cafde22ff8-plain"] = next(iter(read_scenarios(data / WOMD_SCENE)))
+    pprint.pprint({name: _summary(sc, avoid_collisions=not name.endswith("-plain")) for name, sc in scenes.items()},
+                  sort_dicts=False, width=120)

@@ -54,6 +54,9 @@ def register(subparsers) -> None:
                    help=f"--policy prior samples among its K most likely tokens (default {DEFAULT_TOP_K}; 0: all of them)")
     p.add_argument("--temperature", type=positive_number, default=None, metavar="T",
                    help="--policy prior samples from softmax(logits / T) (default 1)")
+    p.add_argument("--no-collision-avoidance", dest="avoid_collisions", action="store_false",
+                   help="--policy prior samples plainly, without keeping tokens out of other agents' boxes "
+                        "(default: collision-aware sampling, smart_marl.rollout.avoidance)")
     p.add_argument("--rollouts", type=positive_int, default=32, help="rollouts per scene for --policy (default 32)")
     p.add_argument("--seed", type=int, default=0, help="random seed for --policy (default 0)")
     p.add_argument("--rules", choices=("2024", "2025"), default="2025", help="challenge rules (default 2025)")
@@ -141,7 +144,8 @@ def run(args) -> int:
             if prior is None:
                 prior = load_checkpoint(args.checkpoint or EMBEDDED, map_location=args.device)
             rollouts = prior_rollouts(prior, scenario, args.rollouts, args.seed, args.device,
-                                      DEFAULT_TOP_K if args.top_k is None else args.top_k, args.temperature or 1.0)
+                                      DEFAULT_TOP_K if args.top_k is None else args.top_k, args.temperature or 1.0,
+                                      avoid_collisions=args.avoid_collisions)
             where = f"--policy prior ({args.checkpoint or 'embedded'})"
         else:
             rollouts = policy_rollouts(args.policy, scenario, args.rollouts, args.seed)
@@ -167,12 +171,12 @@ def run(args) -> int:
 
 
 def prior_rollouts(prior, scenario, num_rollouts: int, seed: int, device: str = "cpu", top_k: int = DEFAULT_TOP_K,
-                   temperature: float = 1.0):
+                   temperature: float = 1.0, avoid_collisions: bool = True):
     """WOSAC rollouts of one scene by the SMART prior (top-k sampling, ``top_k`` 0: the whole
-    distribution): 16 token steps (80 frames) of every agent valid at the current frame (the engine
+    distribution, collision-aware unless ``avoid_collisions`` is False): 16 token steps (80 frames) of every agent valid at the current frame (the engine
     simulates vehicles, pedestrians and cyclists and moves agents of type OTHER at constant
     velocity), as :class:`~smart_marl.metrics.inputs.Rollouts`."""
     result = rollout(prior, scenario, num_rollouts=num_rollouts, num_steps=16, seed=seed, device=device, top_k=top_k,
-                     temperature=temperature)
+                     temperature=temperature, avoid_collisions=avoid_collisions)
     agents = np.flatnonzero(result.has_trajectory[0])
     return Rollouts.from_source(result.agent_ids[0, agents], result.trajectory[:, agents], scenario.frame)

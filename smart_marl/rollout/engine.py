@@ -19,14 +19,17 @@ How a rollout runs:
    copies; road encodings are computed once per scene and shared by its rollouts).
 3. Every step: each simulated agent's next token is drawn from its type's distribution
    (:func:`~smart_marl.rollout.sampling.sample_tokens`: top-k with renormalised probabilities and a
-   temperature) or forced; the token's 6 poses (its contour's centre and heading) are placed at the
+   temperature; collision-aware by default: tokens whose frames would overlap another agent are not
+   drawn, :mod:`~smart_marl.rollout.avoidance`, ``avoid_collisions=False`` samples plainly) or
+   forced; the token's 6 poses (its contour's centre and heading) are placed at the
    agent's current pose; its last pose is where the agent is 0.5 s later (the next token starts
-   there); the tokens go back in. The 10 Hz frames in between (``interpolation="spline"``, the
-   default) follow a cubic Hermite curve from the current pose to the token's end, whose tangent at
-   each end is the displacement over the previous token and over this one: the frames are smooth
-   across token boundaries (the token contours' own in-between poses come from other snippets, whose
-   speed and yaw rate jump at every boundary), use no later step (a state stepped one token at a time
-   gives the same frames as a whole rollout), and never change what the model sees.
+   there); the tokens go back in. The 10 Hz frames in between (:mod:`~smart_marl.rollout.frames`;
+   ``interpolation="spline"``, the default) follow a cubic Hermite curve from the current pose to
+   the token's end, whose tangent at each end is the displacement over the previous token and over
+   this one: the frames are smooth across token boundaries (the token contours' own in-between poses
+   come from other snippets, whose speed and yaw rate jump at every boundary), use no later step (a
+   state stepped one token at a time gives the same frames as a whole rollout), and never change
+   what the model sees (collision-aware sampling checks them, so they can change which token is drawn).
    ``interpolation="contour"`` keeps the token's own in-between poses.
    ``mode="cached"`` runs the new step through the model's KV-cached step
    (:meth:`SMART.step <smart_marl.model.SMART.step>`); ``mode="full"`` re-runs MotionNet over the
@@ -58,12 +61,11 @@ from ..scenario import DT_S, Scenario, wrap_angle
 from ..tokens import FRAMES_PER_TOKEN, MOTION_TYPES, TOKEN_S, MotionVocabulary, token_boundaries, tokenize_tracks
 from ..tokens.motion import match_token_ends
 from ..tokens.road import RoadVocabulary
+from .avoidance import excluded_tokens
+from .frames import INTERPOLATIONS, token_frames
 from .sampling import DEFAULT_TOP_K, sample_tokens
 
 MODES = ("cached", "full")
-INTERPOLATIONS = ("spline", "contour")
-MAX_LEAD = 2.8  # the start tangent of a token's curve is capped at this many times its displacement
-_HERMITE_S = torch.tensor([0.2, 0.4, 0.6, 0.8], dtype=torch.float64)  # the in-between frames of a token, as a fraction of it
 
 
 # ------------------------------------------------------------------------------ model inputs
@@ -177,7 +179,7 @@ class RolloutState:
 
     def __init__(self, model, vocab: MotionVocabulary, scenes: Sequence[Scenario], num_rollouts: int, seed: int, top_k: int,
                  temperature: float, device, mode: str, road_vocab: RoadVocabulary | None = None,
-                 interpolation: str = "spline") -> None:
+                 interpolation: str = "spline", avoid_collisions: bool = True) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         if interpolation not in INTERPOLATIONS:
@@ -185,6 +187,7 @@ class RolloutState:
         self.model, self.vocab, self.mode, self.interpolation = model, vocab, mode, interpolation
         self.scenes = list(scenes)
         self.top_k, self.temperature = int(top_k), float(temperature)
+        self.avoid_collisions = bool(avoid_collisions)
         self.device = torch.device(device)
         self.generator = torch.Generator(device=self.device).manual_seed(int(seed))
         self.num_rollouts = r = int(num_rollouts)
@@ -249,16 +252,19 @@ class RolloutState:
     @classmethod
     def start(cls, model, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 1, seed: int = 0, top_k: int = DEFAULT_TOP_K,
               temperature: float = 1.0, device="cpu", mode: str = "cached", motion_vocab: MotionVocabulary | None = None,
-              interpolation: str = "spline") -> "RolloutState":
+              interpolation: str = "spline", avoid_collisions: bool = True) -> "RolloutState":
         """Tokenize the scenes' histories and run them through the model. ``model``: a SMART model,
         a Checkpoint or a checkpoint path; ``motion_vocab`` overrides the vocabulary used to
         tokenize the history and place tokens (by default the checkpoint's, or the model's contours);
-        ``interpolation`` draws the 10 Hz frames between token ends (module docstring)."""
+        ``interpolation`` draws the 10 Hz frames between token ends (module docstring);
+        ``avoid_collisions`` keeps sampled tokens from ending in another agent's box
+        (:mod:`~smart_marl.rollout.avoidance`; False: plain top-k sampling)."""
         m, vocab = load_prior(model, device)
         scenes = [scenes] if isinstance(scenes, Scenario) else list(scenes)
         if not scenes:
             raise ValueError("no scenes to roll out")
-        return cls(m, motion_vocab or vocab, scenes, num_rollouts, seed, top_k, temperature, device, mode, interpolation=interpolation)
+        return cls(m, motion_vocab or vocab, scenes, num_rollouts, seed, top_k, temperature, device, mode, interpolation=interpolation,
+                   avoid_collisions=avoid_collisions)
 
     # ------------------------------------------------------------------------------ accessors
     @property
@@ -360,7 +366,14 @@ class RolloutState:
                 raise ValueError(f"forced token outside its agent type's vocabulary at slots {bad.nonzero()[:5].tolist()}")
         rows = sim.reshape(-1).nonzero().squeeze(1)
         forced_rows = forced_tokens.reshape(-1)[rows] if forced_tokens is not None else None
-        tok_rows, logp_rows = sample_tokens(logits.reshape(g * n, -1)[rows], self.generator, self.top_k, self.temperature, forced_rows)
+        row_logits = logits.reshape(g * n, -1)[rows]
+        exclude = None
+        if self.avoid_collisions:
+            pick = torch.ones(len(rows), dtype=torch.bool, device=self.device) if forced_rows is None else forced_rows < 0
+            exclude = torch.zeros(row_logits.shape, dtype=torch.bool, device=self.device)
+            exclude[pick] = excluded_tokens(row_logits[pick], rows[pick], self.pose, self.previous_pose, self.agent_shape, sim,
+                                            self.agent_type, self.token_poses, self.top_k, self.interpolation)
+        tok_rows, logp_rows = sample_tokens(row_logits, self.generator, self.top_k, self.temperature, forced_rows, exclude)
         tokens = torch.full((g * n,), -1, dtype=torch.long, device=self.device)
         tokens[rows] = tok_rows
         log_probs = torch.zeros(g * n, device=self.device)
@@ -368,11 +381,8 @@ class RolloutState:
         tokens, log_probs = tokens.view(g, n), log_probs.view(g, n)
         # place each token's poses at the slot's current pose
         local = self.token_poses[self.agent_type, tokens.clamp(min=0)]  # (G, N, 6, 3)
-        frames = slice(1, None) if self.interpolation == "contour" else slice(-1, None)  # spline: only the end is placed
-        placed = compose_torch(self.pose[:, :, None, :], local[:, :, frames])  # (G, N, 5 or 1, 3)
+        placed = token_frames(local, self.pose, self.previous_pose, self.interpolation)  # (G, N, 5, 3)
         new_pose = torch.where(sim[..., None], placed[:, :, -1], self.pose)
-        if self.interpolation == "spline":
-            placed = torch.cat([hermite_frames(self.previous_pose, self.pose, new_pose), new_pose[:, :, None]], 2)
         placed = torch.where(sim[:, :, None, None], placed, self.pose[:, :, None, :])
         start = self.pose
         self.previous_pose = torch.where(sim[..., None], self.pose, self.previous_pose)
@@ -397,38 +407,6 @@ class RolloutState:
             forced = before_step(self, k, outs[-1] if outs else None) if before_step is not None else None
             outs.append(self.step(forced))
         return outs
-
-
-def hermite_frames(before: torch.Tensor, start: torch.Tensor, end: torch.Tensor) -> torch.Tensor:
-    """The 4 in-between 10 Hz poses [..., 4, 3] of a token from pose ``start`` to pose ``end`` [..., 3]:
-    a cubic Hermite curve in x, y and heading whose tangents are ``start - before`` (the previous
-    token's displacement; the token's own where ``before`` is NaN) and ``end - start``, so that
-    consecutive tokens join with continuous velocity and yaw rate. The start tangent is capped at
-    ``MAX_LEAD`` times the token's displacement (position and heading separately) so that the curve
-    never overshoots its end. Headings are unwrapped along the way and wrapped back."""
-    chord = torch.cat([end[..., :2] - start[..., :2], wrap_angle(end[..., 2:] - start[..., 2:])], -1)
-    lead = torch.cat([start[..., :2] - before[..., :2], wrap_angle(start[..., 2:] - before[..., 2:])], -1)
-    lead = torch.where(torch.isnan(lead), chord, lead)
-    # no overshoot: a tangent at most 2.8x the token's own displacement (the Fritsch-Carlson bound for
-    # a monotone cubic), in position and in heading, so that a token that stops or stops turning
-    # does not first run on and come back
-    limit_xy = MAX_LEAD * chord[..., :2].norm(dim=-1, keepdim=True)
-    lead_xy = lead[..., :2] * (limit_xy / lead[..., :2].norm(dim=-1, keepdim=True).clamp(min=1e-9)).clamp(max=1.0)
-    lead_h = torch.maximum(torch.minimum(lead[..., 2:], MAX_LEAD * chord[..., 2:].abs()), -MAX_LEAD * chord[..., 2:].abs())
-    lead = torch.cat([lead_xy, lead_h], -1)
-    s = _HERMITE_S.to(start.device, start.dtype)[:, None]  # (4, 1)
-    h10, h01_plus_h11 = s**3 - 2 * s**2 + s, 2 * s**2 - s**3  # Hermite basis; the end tangent is the chord itself
-    out = start[..., None, :] + h10 * lead[..., None, :] + h01_plus_h11 * chord[..., None, :]
-    return torch.cat([out[..., :2], wrap_angle(out[..., 2:])], -1)
-
-
-def compose_torch(origin: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
-    """Poses ``local`` [..., 3] in the frame of ``origin`` [..., 3] -> outer frame (heading wrapped)."""
-    c, s = origin[..., 2].cos(), origin[..., 2].sin()
-    x = origin[..., 0] + c * local[..., 0] - s * local[..., 1]
-    y = origin[..., 1] + s * local[..., 0] + c * local[..., 1]
-    h = wrap_angle(origin[..., 2] + local[..., 2])
-    return torch.stack([x, y, h], -1)
 
 
 # ----------------------------------------------------------------------------------- result
@@ -457,12 +435,13 @@ class RolloutResult:
 
 def rollout(model_or_checkpoint, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 32, num_steps: int = 16,
             top_k: int = DEFAULT_TOP_K, temperature: float = 1.0, seed: int = 0, device="cpu", mode: str = "cached",
-            motion_vocab: MotionVocabulary | None = None, interpolation: str = "spline") -> RolloutResult:
+            motion_vocab: MotionVocabulary | None = None, interpolation: str = "spline",
+            avoid_collisions: bool = True) -> RolloutResult:
     """Generate ``num_rollouts`` joint futures of ``num_steps`` tokens (0.5 s each) for every scene
     in one batch (see the module docstring). Same seed, same rollouts (on the CPU)."""
     state = RolloutState.start(model_or_checkpoint, scenes, num_rollouts=num_rollouts, seed=seed, top_k=top_k,
                                temperature=temperature, device=device, mode=mode, motion_vocab=motion_vocab,
-                               interpolation=interpolation)
+                               interpolation=interpolation, avoid_collisions=avoid_collisions)
     outs = state.run(num_steps)
     return collect_result(state, outs)
 

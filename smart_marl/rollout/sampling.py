@@ -30,12 +30,14 @@ costs speed and, beyond 8, interactive realism."""
 
 
 def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int = DEFAULT_TOP_K, temperature: float = 1.0,
-                  forced: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                  forced: torch.Tensor | None = None, exclude: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Top-k sampling with renormalised probabilities.
 
     logits [..., V] (``-inf`` for tokens outside the agent's vocabulary; a row must have at
-    least one finite entry), forced [...] int64 (``-1``: sample; otherwise that token is taken)
-    -> (tokens [...] int64, log_probs [...] under ``log_softmax(logits / temperature)``).
+    least one finite entry), forced [...] int64 (``-1``: sample; otherwise that token is taken),
+    exclude [..., V] bool (tokens that may not be drawn: the top k are taken among the others; a row
+    must keep at least one finite entry) -> (tokens [...] int64, log_probs [...] under
+    ``log_softmax(logits / temperature)``, the distribution before ``exclude``).
     """
     if temperature <= 0:
         raise ValueError(f"temperature must be > 0, got {temperature}")
@@ -43,7 +45,8 @@ def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int =
     flat = logits.reshape(-1, v) / temperature  # (M, V)
     logp = torch.log_softmax(flat, dim=-1)
     k = v if top_k is None or top_k <= 0 else min(int(top_k), v)
-    top_val, top_idx = torch.topk(flat, k, dim=-1)  # (M, k), -inf entries (beyond the type's size) get zero probability
+    drawn = flat if exclude is None else flat.masked_fill(exclude.reshape(-1, v), float("-inf"))
+    top_val, top_idx = torch.topk(drawn, k, dim=-1)  # (M, k), -inf entries (beyond the type's size) get zero probability
     probs = torch.softmax(top_val, dim=-1)
     if flat.shape[0]:
         pick = torch.multinomial(probs, 1, generator=generator)  # (M, 1)

@@ -1,0 +1,141 @@
+"""Rollout stage, collision-aware sampling: the tokens an agent may not draw because they would put
+its box into another agent's box.
+
+What comes in: every slot's current pose and where its last token started ``[G, N, 3]`` (local
+frame), box sizes, which slots are present, which rows sample, their logits ``[M, V]`` and every
+type's token poses. What goes out: ``bool [M, V]``, true on the tokens to exclude from sampling.
+
+The rule, per sampling agent ``i`` (a vehicle, pedestrian or cyclist whose token is drawn, not
+forced): a token is excluded when, on any of the token's five 10 Hz frames (drawn as the rollout
+draws them, :mod:`~smart_marl.rollout.frames`), the agent's box overlaps the box of one of its
+``NEIGHBOURS`` nearest present agents ``j`` on the same frame, ``j`` moving at constant velocity
+(its last token's displacement repeated, heading held). Pairs whose boxes overlap already at the
+current poses are left alone: pedestrians walking in a group, or boxes that overlap in the log,
+keep doing what the model says. Tokens are checked most likely first until ``k`` are free (or the
+type's vocabulary is exhausted), so excluding them and then sampling the top ``k`` is the same as
+top-k sampling from the distribution with every colliding token removed. An agent whose every token
+collides is not restricted.
+
+Boxes are exact oriented rectangles (separating axes); the realism metrics' rounded corners make
+their boxes a little smaller, so a token excluded here may not have collided there. Agents of type
+OTHER (moved at constant velocity outside the model) are not checked against.
+
+Why: the prior was trained on SUMO traffic, where pedestrians and vehicles rarely meet, and in
+closed loop on real scenes it walks pedestrians into cars and lets followers close in on a slower
+leader. On the 7 held-out real scenes (README, model card) this rule raises the collision
+likelihood of WOSAC's metrics from 0.887 to 0.98 without retraining. It changes what is drawn, not
+the model: the logits, the log-probabilities a step reports and the KL reference of fine-tuning
+stay the model's own.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from ..tokens import FRAMES_PER_TOKEN
+from .frames import token_frames
+
+NEIGHBOURS = 16
+"""How many nearest agents (by distance to where they will be) each sampling agent is checked against."""
+
+FIRST_CHUNK = 16
+"""Tokens checked per row in the first round; each further round checks twice as many."""
+
+
+def boxes_overlap(a_xy: torch.Tensor, a_heading: torch.Tensor, a_half: torch.Tensor, b_xy: torch.Tensor,
+                  b_heading: torch.Tensor, b_half: torch.Tensor) -> torch.Tensor:
+    """bool [...]: do oriented boxes ``a`` and ``b`` overlap (separating axis theorem; touching is
+    not overlapping). ``xy`` [..., 2], ``heading`` [...], ``half`` [..., 2] half length and half
+    width; all broadcast."""
+    d = b_xy - a_xy
+    ca, sa, cb, sb = a_heading.cos(), a_heading.sin(), b_heading.cos(), b_heading.sin()
+    hit = None
+    for ux, uy in ((ca, sa), (-sa, ca), (cb, sb), (-sb, cb)):  # the four edge normals
+        ext_a = a_half[..., 0] * (ux * ca + uy * sa).abs() + a_half[..., 1] * (uy * ca - ux * sa).abs()
+        ext_b = b_half[..., 0] * (ux * cb + uy * sb).abs() + b_half[..., 1] * (uy * cb - ux * sb).abs()
+        sep = (d[..., 0] * ux + d[..., 1] * uy).abs() < ext_a + ext_b
+        hit = sep if hit is None else hit & sep
+    return hit
+
+
+def constant_velocity_pose(pose: torch.Tensor, previous_pose: torch.Tensor) -> torch.Tensor:
+    """[..., 3] where each agent will be one token later if it repeats its last token's displacement
+    (heading held); an agent with no previous pose (NaN) stays where it is."""
+    prev = torch.where(torch.isnan(previous_pose), pose, previous_pose)
+    return torch.cat([2 * pose[..., :2] - prev[..., :2], pose[..., 2:]], -1)
+
+
+def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor, previous_pose: torch.Tensor,
+                    size: torch.Tensor, present: torch.Tensor, agent_type: torch.Tensor, token_poses: torch.Tensor,
+                    top_k: int, interpolation: str = "spline") -> torch.Tensor:
+    """bool [M, V]: the tokens that sampling rows ``rows`` [M] (flat indices into the G x N slots)
+    must not draw (module docstring).
+
+    ``logits`` [M, V] of those rows (``-inf`` beyond a type's vocabulary), ``pose`` /
+    ``previous_pose`` [G, N, 3], ``size`` [G, N, >= 2] length and width, ``present`` [G, N] the slots
+    that are on the road this step (they block others), ``agent_type`` [G, N], ``token_poses``
+    [types, V, 6, 3] every token's poses in its start frame, ``top_k`` the sampler's k (<= 0: the
+    whole vocabulary is checked), ``interpolation`` how the token's frames are drawn
+    (:func:`~smart_marl.rollout.frames.token_frames`)."""
+    g, n, _ = pose.shape
+    m, v = logits.shape
+    if m == 0 or n < 2:
+        return torch.zeros(m, v, dtype=torch.bool, device=logits.device)
+    half = size[..., :2].to(pose.dtype) / 2
+    ahead = constant_velocity_pose(pose, previous_pose)
+    gi, si = rows // n, rows % n
+    # each row's NEIGHBOURS nearest present others, not overlapping it now
+    own_pose, own_before, own_half, own_type = pose[gi, si], previous_pose[gi, si], half[gi, si], agent_type[gi, si]
+    dist = (ahead[gi][:, :, :2] - own_pose[:, None, :2]).norm(dim=-1)  # [M, N]
+    blocked_now = boxes_overlap(own_pose[:, None, :2], own_pose[:, None, 2], own_half[:, None], pose[gi][:, :, :2],
+                                pose[gi][:, :, 2], half[gi])
+    usable = present[gi] & ~blocked_now
+    usable[torch.arange(m, device=rows.device), si] = False
+    near_d, near = torch.topk(dist.masked_fill(~usable, float("inf")), min(NEIGHBOURS, n - 1), dim=-1, largest=False)
+    near_ok = torch.isfinite(near_d)  # [M, K]
+    # the neighbours on the token's 5 frames, at constant velocity: [M, 5, K, 2], heading held
+    s = torch.arange(1, FRAMES_PER_TOKEN + 1, dtype=pose.dtype, device=pose.device) / FRAMES_PER_TOKEN
+    now_xy, step_xy = pose[gi[:, None], near, :2], ahead[gi[:, None], near, :2] - pose[gi[:, None], near, :2]
+    other_xy = now_xy[:, None] + s[None, :, None, None] * step_xy[:, None]
+    other_h, other_half = pose[gi[:, None], near, 2], half[gi[:, None], near]
+
+    def collides(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
+        """[R, c]: does token ``tok`` [R, c] of rows ``r`` [R] overlap a neighbour on any of its frames."""
+        local = token_poses[own_type[r][:, None], tok]  # [R, c, 6, 3]
+        frames = token_frames(local, own_pose[r][:, None].expand(-1, tok.shape[1], -1),
+                              own_before[r][:, None].expand(-1, tok.shape[1], -1), interpolation)  # [R, c, 5, 3]
+        hit = boxes_overlap(frames[:, :, :, None, :2], frames[:, :, :, None, 2], own_half[r][:, None, None, None],
+                            other_xy[r][:, None], other_h[r][:, None, None], other_half[r][:, None, None])  # [R, c, 5, K]
+        return (hit & near_ok[r][:, None, None]).flatten(2).any(-1)
+
+    finite = torch.isfinite(logits).sum(-1)  # [M] tokens of the row's type
+    want = finite if top_k is None or top_k <= 0 else finite.clamp(max=int(top_k))
+    order = torch.argsort(logits, dim=-1, descending=True)  # [M, V] most likely first
+    excluded = _exclude_in_order(order, finite, want, near_ok.any(-1), collides)
+    excluded[excluded.sum(-1) >= finite] = False  # every token of the type is excluded: leave the row alone
+    return excluded
+
+
+def _exclude_in_order(order: torch.Tensor, finite: torch.Tensor, want: torch.Tensor, todo: torch.Tensor,
+                      test: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
+    """bool [M, V]: tokens ``test(rows [R], tokens [R, c]) -> bool [R, c]`` rejects, checked in
+    ``order`` [M, V] (most likely first) by chunks until ``want`` [M] have passed or the row's
+    ``finite`` [M] tokens are exhausted; rows not in ``todo`` [M] are not checked."""
+    m, v = order.shape
+    excluded = torch.zeros(m, v, dtype=torch.bool, device=order.device)
+    passed = torch.zeros(m, dtype=torch.long, device=order.device)
+    todo = todo.clone()
+    start, chunk = 0, FIRST_CHUNK
+    while todo.any() and start < v:
+        r = todo.nonzero().squeeze(1)
+        tok = order[r, start:start + chunk]  # [R, c]
+        in_vocab = torch.arange(start, start + tok.shape[1], device=tok.device)[None] < finite[r, None]
+        hit = test(r, tok) & in_vocab
+        excluded[r[:, None], tok] = hit
+        passed[r] += (in_vocab & ~hit).sum(-1)
+        start += tok.shape[1]
+        chunk *= 2
+        todo[r] = (passed[r] < want[r]) & (start < finite[r])
+    return excluded

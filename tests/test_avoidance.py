@@ -1,0 +1,181 @@
+"""Collision-aware sampling (smart_marl.rollout.avoidance): the box test, which tokens are excluded,
+that sampling with the exclusions is top-k of the distribution without the colliding tokens, and that
+rollouts keep the model's own logits and log-probabilities while their agents collide less."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from smart_marl import geometry
+from smart_marl.model.checkpoint import load_embedded
+from smart_marl.readers import read_scenarios
+from smart_marl.rollout import RolloutState, sample_tokens
+from smart_marl.rollout.avoidance import boxes_overlap, excluded_tokens, constant_velocity_pose
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
+
+
+def test_boxes_overlap_equals_the_metrics_plain_box_geometry_on_random_boxes():
+    rng = np.random.default_rng(0)
+    n = 4000
+    a = rng.uniform([-3, -3, 0.5, 0.5, -math.pi], [3, 3, 5, 2.5, math.pi], (n, 5))
+    b = rng.uniform([-3, -3, 0.5, 0.5, -math.pi], [3, 3, 5, 2.5, math.pi], (n, 5))
+    want = geometry.boxes_overlap(*a.T, *b.T, rounding=0.0)
+    t = torch.from_numpy
+    got = boxes_overlap(t(a[:, :2]), t(a[:, 4]), t(a[:, 2:4] / 2), t(b[:, :2]), t(b[:, 4]), t(b[:, 2:4] / 2)).numpy()
+    assert 0.2 < want.mean() < 0.8  # both outcomes are exercised
+    # boxes within a hair of touching may go either way in float arithmetic
+    dist = geometry.rounded_box_signed_distance(*a.T, *b.T, rounding=0.0)
+    clear = np.abs(dist) > 1e-9
+    np.testing.assert_array_equal(got[clear], want[clear])
+
+
+def test_a_rotated_box_beside_a_corner_does_not_overlap_although_its_bounding_box_would():
+    t = torch.tensor
+    # a 2 x 2 square at the origin and a square turned 45 degrees whose corner points at (1.05, 1.05)'s side
+    half = t([1.0, 1.0], dtype=torch.float64)
+    centre = t([1.0 + math.sqrt(2) / 2 + 0.3, 1.0 + math.sqrt(2) / 2 + 0.3], dtype=torch.float64)
+    assert not boxes_overlap(t([0.0, 0.0], dtype=torch.float64), t(0.0, dtype=torch.float64), half, centre,
+                             t(math.pi / 4, dtype=torch.float64), half)
+    assert boxes_overlap(t([0.0, 0.0], dtype=torch.float64), t(0.0, dtype=torch.float64), half, centre - 0.5,
+                         t(math.pi / 4, dtype=torch.float64), half)
+
+
+def test_constant_velocity_pose_repeats_the_last_displacement_and_holds_still_without_one():
+    pose = torch.tensor([[2.0, 1.0, 0.3], [5.0, 5.0, 1.0]])
+    prev = torch.tensor([[1.0, 1.5, 0.1], [float("nan")] * 3])
+    out = constant_velocity_pose(pose, prev)
+    torch.testing.assert_close(out, torch.tensor([[3.0, 0.5, 0.3], [5.0, 5.0, 1.0]]))
+
+
+# --------------------------------------------------------------------- a scene of three slots
+# slot 0 samples, heading +x from the origin; its type's tokens end 5, 0, 2 or 8 m ahead, or 3 m to
+# the left; slot 1 is a car standing at x = 7 (from 5 to 9 m); slot 2 overlaps slot 0 now (a pedestrian beside it)
+ENDS = torch.tensor([[[5.0, 0, 0], [0.0, 0, 0], [2.0, 0, 0], [8.0, 0, 0], [0.0, 3.0, 0]]], dtype=torch.float32)
+
+
+def _poses(ends):
+    """[types, V, 6, 3] tokens moving evenly from the origin to ``ends`` [types, V, 3]."""
+    return torch.linspace(0, 1, 6)[None, None, :, None] * ends[:, :, None, :]
+
+
+def _scene(third_present=True):
+    pose = torch.tensor([[[0.0, 0, 0], [7.0, 0, 0], [0.5, 0.5, 0]]])
+    prev = pose.clone()
+    size = torch.tensor([[[4.0, 2.0, 1.5], [4.0, 2.0, 1.5], [0.8, 0.8, 1.8]]])
+    present = torch.tensor([[True, True, third_present]])
+    types = torch.zeros(1, 3, dtype=torch.long)
+    return pose, prev, size, present, types
+
+
+def test_tokens_ending_in_a_standing_car_are_excluded_most_likely_first_until_k_are_free():
+    pose, prev, size, present, types = _scene()
+    logits = torch.tensor([[4.0, 1.0, 3.0, 2.0, 0.0]])  # most likely: 5 m (into the car), then 2 m, 8 m, 0 m
+    rows = torch.tensor([0])
+    everything = excluded_tokens(logits, rows, pose, prev, size, present, types, _poses(ENDS), top_k=0)
+    # 5 m ahead and 8 m ahead end inside the car (centres 2 and 1 m apart, boxes 4 m long); 2 m ahead stops short
+    assert everything.tolist() == [[True, False, False, True, False]]
+    # with k = 1 the check stops at the first free token, but the first chunk covers all five here
+    assert excluded_tokens(logits, rows, pose, prev, size, present, types, _poses(ENDS), top_k=1).tolist() == everything.tolist()
+
+
+def test_pairs_overlapping_now_and_absent_agents_do_not_block():
+    pose, prev, size, present, types = _scene()
+    # slot 2 (the pedestrian overlapping slot 0 now) stands at (0.5, 0.5): "stay" (token 1) would hit
+    # it if pairs overlapping now were checked
+    logits = torch.tensor([[0.0, 5.0, 0.0, 0.0, 0.0]])
+    out = excluded_tokens(logits, torch.tensor([0]), pose, prev, size, present, types, _poses(ENDS), top_k=0)
+    assert not out[0, 1]
+    absent = excluded_tokens(logits, torch.tensor([0]), pose, prev, size, _scene(third_present=True)[3] & torch.tensor(
+        [[True, False, True]]), types, _poses(ENDS), top_k=0)
+    assert not absent.any()  # the car is not present: nothing blocks
+
+
+def test_the_other_agent_is_checked_where_it_will_be_at_constant_velocity():
+    pose, prev, size, present, types = _scene()
+    prev[0, 1, 0] = 9.0  # the car drives toward slot 0 at 2 m per token: it will be at x = 5 (from 3 to 7 m)
+    logits = torch.tensor([[0.0, 5.0, 4.0, 0.0, 0.0]])
+    out = excluded_tokens(logits, torch.tensor([0]), pose, prev, size, present, types, _poses(ENDS), top_k=0)
+    assert out.tolist() == [[True, False, True, True, False]]  # 2 m ahead now collides too; stopping does not
+
+
+@pytest.mark.parametrize("interpolation", ["spline", "contour"])
+def test_a_token_that_passes_through_an_agent_between_its_ends_is_excluded(interpolation):
+    """14 m in 0.5 s past a pedestrian standing 7 m ahead: neither end box touches it, the frames in
+    between do."""
+    pose = torch.tensor([[[0.0, 0, 0], [7.0, 0, 0]]])
+    size = torch.tensor([[[4.0, 2.0, 1.5], [0.8, 0.8, 1.8]]])
+    prev = torch.tensor([[[-14.0, 0, 0], [7.0, 0, 0]]])
+    ends = torch.tensor([[[14.0, 0, 0], [3.0, 0, 0]]])
+    out = excluded_tokens(torch.tensor([[1.0, 0.0]]), torch.tensor([0]), pose, prev, size, torch.ones(1, 2, dtype=torch.bool),
+                          torch.zeros(1, 2, dtype=torch.long), _poses(ends), top_k=0, interpolation=interpolation)
+    assert out.tolist() == [[True, False]]
+
+
+def test_a_row_whose_every_token_collides_is_left_alone():
+    pose, prev, size, present, types = _scene()
+    ends = torch.tensor([[[5.0, 0, 0], [6.0, 0, 0]]])
+    out = excluded_tokens(torch.tensor([[1.0, 0.0]]), torch.tensor([0]), pose, prev, size, present, types, _poses(ends), top_k=1)
+    assert not out.any()
+
+
+def test_tokens_beyond_the_types_vocabulary_are_never_checked_or_counted():
+    pose, prev, size, present, types = _scene()
+    logits = torch.tensor([[4.0, 1.0, 3.0, float("-inf"), float("-inf")]])
+    out = excluded_tokens(logits, torch.tensor([0]), pose, prev, size, present, types, _poses(ENDS), top_k=0)
+    assert out.tolist() == [[True, False, False, False, False]]
+
+
+def test_sampling_with_exclusions_is_top_k_of_the_distribution_without_them():
+    g = torch.Generator().manual_seed(0)
+    logits = torch.randn(500, 40)
+    exclude = torch.rand(500, 40) < 0.4
+    tokens, logp = sample_tokens(logits, g, top_k=5, exclude=exclude)
+    assert not exclude.gather(1, tokens[:, None]).any()
+    allowed = torch.topk(logits.masked_fill(exclude, float("-inf")), 5, dim=-1).indices
+    assert (allowed == tokens[:, None]).any(-1).all()
+    # the reported log-probabilities are the model's, before the exclusions
+    torch.testing.assert_close(logp, torch.log_softmax(logits, -1).gather(1, tokens[:, None]).squeeze(1))
+
+
+def _token_end_overlaps(state, outs):
+    """Per step, the (group, i, j) pairs of simulated slots whose boxes overlap at the token's end but
+    did not at its start."""
+    count = 0
+    half = state.agent_shape[..., :2].double() / 2
+    start = None
+    for out in outs:
+        end = out.poses[:, :, -1].double()
+        sim = out.simulated
+        if start is not None:
+            def pairs(p):
+                return boxes_overlap(p[:, :, None, :2], p[:, :, None, 2], half[:, :, None], p[:, None, :, :2], p[:, None, :, 2],
+                                     half[:, None])
+            both = sim[:, :, None] & sim[:, None, :] & ~torch.eye(sim.shape[1], dtype=torch.bool)[None]
+            count += int((pairs(end) & ~pairs(start) & both).sum())
+        start = end
+    return count
+
+
+def test_rollouts_of_the_embedded_prior_collide_less_and_keep_the_models_logits(shared_data):
+    # a real scene where the plain prior walks a pedestrian into a car that waits for it
+    scene = next(read_scenarios(shared_data / "smart_pkl" / "2a716fad0956ffcf.pkl"))
+    ck = load_embedded()
+    runs = {}
+    for avoid in (False, True):
+        state = RolloutState.start(ck, scene, num_rollouts=8, seed=3, avoid_collisions=avoid)
+        outs = state.run(16)
+        runs[avoid] = (state, outs)
+    plain, avoiding = (_token_end_overlaps(*runs[a]) for a in (False, True))
+    assert avoiding < plain, (avoiding, plain)
+    # the first step sees the same history: identical logits; the reported log-probabilities are the
+    # model's own log-softmax at the drawn tokens
+    torch.testing.assert_close(runs[True][1][0].logits, runs[False][1][0].logits)
+    for out in runs[True][1]:
+        rows = out.simulated
+        logp = torch.log_softmax(out.logits[rows], -1).gather(1, out.tokens[rows][:, None]).squeeze(1)
+        torch.testing.assert_close(out.log_probs[rows], logp)
