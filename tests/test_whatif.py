@@ -304,7 +304,7 @@ def test_vehicles_behind_a_braking_car_slow_down_under_the_prior(hard_brake):
 def test_the_braking_car_is_rarely_hit_from_behind(hard_brake):
     """Sampled plainly, the issue-13 priors' followers slow down too little for an 8 m/s2 stop and hit
     the braking car in 5-7 of 8 rollouts (the stage-1 prior: 0 of 8, because it drove everyone at half
-    speed). Collision-aware sampling (smart_marl.rollout.avoidance, the default) brings it to 2 of 8
+    speed). Collision-aware sampling (smart_marl.rollout.avoidance, the default) brings it to 0 of 8
     with the stage-5 prior; see the README's limits."""
     rows = {(r["quantity"], r["agent"]): r for r in hard_brake.table}
     assert rows[("collided_rate", "1609 (brake)")]["whatif"] <= 0.25

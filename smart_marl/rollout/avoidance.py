@@ -40,8 +40,9 @@ from .frames import token_frames
 NEIGHBOURS = 16
 """How many nearest agents (by distance to where they will be) each sampling agent is checked against."""
 
-FIRST_CHUNK = 16
-"""Tokens checked per row in the first round; each further round checks twice as many."""
+SORTED_DEPTH = 64
+"""How many of each row's most likely tokens are ranked up front (the rest only for the rare row that
+gets that deep)."""
 
 
 def boxes_overlap(a_xy: torch.Tensor, a_heading: torch.Tensor, a_half: torch.Tensor, b_xy: torch.Tensor,
@@ -100,36 +101,49 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     now_xy, step_xy = pose[gi[:, None], near, :2], ahead[gi[:, None], near, :2] - pose[gi[:, None], near, :2]
     other_xy = now_xy[:, None] + s[None, :, None, None] * step_xy[:, None]
     other_h, other_half = pose[gi[:, None], near, 2], half[gi[:, None], near]
+    own_radius, other_radius = own_half.norm(dim=-1), other_half.norm(dim=-1)
 
     def collides(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
         """[R, c]: does token ``tok`` [R, c] of rows ``r`` [R] overlap a neighbour on any of its frames."""
         local = token_poses[own_type[r][:, None], tok]  # [R, c, 6, 3]
         frames = token_frames(local, own_pose[r][:, None].expand(-1, tok.shape[1], -1),
                               own_before[r][:, None].expand(-1, tok.shape[1], -1), interpolation)  # [R, c, 5, 3]
-        hit = boxes_overlap(frames[:, :, :, None, :2], frames[:, :, :, None, 2], own_half[r][:, None, None, None],
-                            other_xy[r][:, None], other_h[r][:, None, None], other_half[r][:, None, None])  # [R, c, 5, K]
-        return (hit & near_ok[r][:, None, None]).flatten(2).any(-1)
+        # boxes can only overlap when their centres are closer than their half diagonals together
+        gap = (frames[:, :, :, None, :2] - other_xy[r][:, None]).norm(dim=-1)  # [R, c, 5, K]
+        close = (gap < (own_radius[r][:, None, None, None] + other_radius[r][:, None, None])) & near_ok[r][:, None, None]
+        ri, ci, fi, ki = close.nonzero(as_tuple=True)
+        hit = torch.zeros_like(close)
+        hit[ri, ci, fi, ki] = boxes_overlap(frames[ri, ci, fi, :2], frames[ri, ci, fi, 2], own_half[r[ri]],
+                                            other_xy[r[ri], fi, ki], other_h[r[ri], ki], other_half[r[ri], ki])
+        return hit.flatten(2).any(-1)
 
     finite = torch.isfinite(logits).sum(-1)  # [M] tokens of the row's type
     want = finite if top_k is None or top_k <= 0 else finite.clamp(max=int(top_k))
-    order = torch.argsort(logits, dim=-1, descending=True)  # [M, V] most likely first
-    excluded = _exclude_in_order(order, finite, want, near_ok.any(-1), collides)
+    excluded = _exclude_in_order(logits, finite, want, near_ok.any(-1), collides)
     excluded[excluded.sum(-1) >= finite] = False  # every token of the type is excluded: leave the row alone
     return excluded
 
 
-def _exclude_in_order(order: torch.Tensor, finite: torch.Tensor, want: torch.Tensor, todo: torch.Tensor,
+def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Tensor, todo: torch.Tensor,
                       test: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
-    """bool [M, V]: tokens ``test(rows [R], tokens [R, c]) -> bool [R, c]`` rejects, checked in
-    ``order`` [M, V] (most likely first) by chunks until ``want`` [M] have passed or the row's
-    ``finite`` [M] tokens are exhausted; rows not in ``todo`` [M] are not checked."""
-    m, v = order.shape
-    excluded = torch.zeros(m, v, dtype=torch.bool, device=order.device)
-    passed = torch.zeros(m, dtype=torch.long, device=order.device)
+    """bool [M, V]: tokens ``test(rows [R], tokens [R, c]) -> bool [R, c]`` rejects, checked most
+    likely first (by ``logits`` [M, V]) in chunks (``want`` tokens, then twice as many each round)
+    until ``want`` [M] have passed or the row's ``finite`` [M] tokens are exhausted; rows not in
+    ``todo`` [M] are not checked."""
+    m, v = logits.shape
+    excluded = torch.zeros(m, v, dtype=torch.bool, device=logits.device)
+    passed = torch.zeros(m, dtype=torch.long, device=logits.device)
     todo = todo.clone()
-    start, chunk = 0, FIRST_CHUNK
+    order = torch.topk(logits, min(SORTED_DEPTH, v), dim=-1).indices  # [M, D] most likely first
+    start, chunk = 0, max(int(want.max()) if m else 1, 1)
     while todo.any() and start < v:
         r = todo.nonzero().squeeze(1)
+        if start + chunk > order.shape[1] and order.shape[1] < v:
+            # deeper than ranked so far: rank everything and check these rows again from the top
+            # (the full ranking may order tied logits differently)
+            order = torch.zeros(m, v, dtype=torch.long, device=logits.device)  # rows done by now are not read again
+            order[r] = torch.sort(logits[r], dim=-1, descending=True, stable=True).indices
+            excluded[r], passed[r], start = False, 0, 0
         tok = order[r, start:start + chunk]  # [R, c]
         in_vocab = torch.arange(start, start + tok.shape[1], device=tok.device)[None] < finite[r, None]
         hit = test(r, tok) & in_vocab

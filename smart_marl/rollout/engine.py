@@ -57,7 +57,7 @@ import torch
 from ..model.batch import scene_road
 from ..model.checkpoint import load_prior
 from ..model.motionnet import NUM_MOTION_TYPES
-from ..scenario import DT_S, Scenario, wrap_angle
+from ..scenario import DT_S, Scenario
 from ..tokens import FRAMES_PER_TOKEN, MOTION_TYPES, TOKEN_S, MotionVocabulary, token_boundaries, tokenize_tracks
 from ..tokens.motion import match_token_ends
 from ..tokens.road import RoadVocabulary
