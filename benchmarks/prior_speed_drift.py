@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from smart_marl.commands.arguments import collision_avoidance_flag
 from smart_marl.model.batch import collate_scenes, scene_road, scene_tensors
 from smart_marl.model.checkpoint import load_checkpoint
 from smart_marl.model.losses import TREND_BAND  # "keeps": within this share of the speed now (the training weights' band)
@@ -169,8 +170,7 @@ def main(argv=None) -> None:
     ap.add_argument("--temperature", type=float, default=1.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--no-collision-avoidance", dest="avoid_collisions", action="store_false",
-                    help="sample plainly (default: collision-aware sampling, as rollouts do)")
+    collision_avoidance_flag(ap)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     ck = load_checkpoint(args.prior)  # a path or "embedded"

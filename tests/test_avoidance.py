@@ -4,6 +4,7 @@ rollouts keep the model's own logits and log-probabilities while their agents co
 
 from __future__ import annotations
 
+import importlib
 import math
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 import torch
 
 from smart_marl import geometry
+from smart_marl.embedded import sample_scenarios
 from smart_marl.model.checkpoint import load_embedded
 from smart_marl.readers import read_scenarios
 from smart_marl.rollout import RolloutState, sample_tokens
@@ -179,3 +181,39 @@ def test_rollouts_of_the_embedded_prior_collide_less_and_keep_the_models_logits(
         rows = out.simulated
         logp = torch.log_softmax(out.logits[rows], -1).gather(1, out.tokens[rows][:, None]).squeeze(1)
         torch.testing.assert_close(out.log_probs[rows], logp)
+
+
+# ------------------------------------------------------------------------------ how it is reached
+def test_commands_sample_collision_aware_unless_told_not_to():
+    from smart_marl.cli import build_parser
+
+    parser = build_parser()
+    for argv in (["eval", "--scenes", "x", "--policy", "prior"], ["whatif", "x", "--script", "s.yaml", "--out", "o"]):
+        assert parser.parse_args(argv).avoid_collisions is True
+        assert parser.parse_args(argv + ["--no-collision-avoidance"]).avoid_collisions is False
+
+
+def test_whatif_passes_the_choice_to_both_of_its_runs_and_on_to_the_engine(monkeypatch):
+    from agents.whatif import WhatIf
+
+    compare = importlib.import_module("agents.whatif.compare")  # the modules (the package exports functions of these names)
+    simulate_module = importlib.import_module("agents.whatif.simulate")
+
+    scene = sample_scenarios()[0]
+    runs = []
+    monkeypatch.setattr(compare, "simulate", lambda *a, avoid_collisions=True, **k: runs.append(avoid_collisions))
+    monkeypatch.setattr(compare, "compare", lambda *a, **k: [])
+    compare.run_whatif(None, scene, WhatIf([]), num_rollouts=1, num_steps=1, avoid_collisions=False)
+    assert runs == [False, False]  # baseline and what-if
+
+    started = []
+
+    def start(*args, avoid_collisions=True, **kwargs):
+        started.append(avoid_collisions)
+        raise StopIteration  # the engine is not needed past its arguments
+
+    monkeypatch.setattr(simulate_module.RolloutState, "start", start)
+    with pytest.raises(StopIteration):
+        simulate_module.simulate(None, None, compare.Prepared(scene=scene, scripts=[], removals=[], lights=[], affected={},
+                                                              followers={}, onset_step={}), 1, 0, avoid_collisions=False)
+    assert started == [False]

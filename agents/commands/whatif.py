@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from smart_marl.commands.arguments import device, output_dir, positive_int
+from smart_marl.commands.arguments import collision_avoidance_flag, device, output_dir, positive_int
 from smart_marl.errors import SmartMarlError, UsageError
 from smart_marl.readers import read_scenarios
 
@@ -35,6 +35,7 @@ def register(subparsers) -> None:
     p.add_argument("--scenario-id", default=None, help="pick this scene when SCENE holds several")
     p.add_argument("--animation", choices=("gif", "mp4", "none"), default="gif", help="animation format (default gif)")
     p.add_argument("--no-realism", action="store_true", help="skip the realism metric (faster)")
+    collision_avoidance_flag(p, "the prior (both runs)")
     p.set_defaults(func=run)
 
 
@@ -50,7 +51,7 @@ def run(args) -> int:
     if scene is None:
         raise SmartMarlError(f"{args.scene}: no scene" + (f" with id {args.scenario_id}" if args.scenario_id else ""))
     result = run_whatif(args.checkpoint, scene, script, num_rollouts=args.rollouts, seed=args.seed, num_steps=args.steps,
-                        device=args.device, realism=not args.no_realism)
+                        device=args.device, realism=not args.no_realism, avoid_collisions=args.avoid_collisions)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     csv_path = write_table_csv(result.table, out / "table.csv")

@@ -102,3 +102,11 @@ def reader_formats() -> list[str]:
 
 
 __all__ = ["positive_int", "non_negative_int", "positive_number", "positive_numbers", "motion_types", "output_dir", "device", "device_or_auto", "reader_formats"]
+
+
+def collision_avoidance_flag(parser: argparse.ArgumentParser, who: str = "the prior") -> None:
+    """``--no-collision-avoidance`` (``args.avoid_collisions``, default True): the one way every
+    command that rolls out the prior lets its draws be plain top-k (:mod:`smart_marl.rollout.avoidance`)."""
+    parser.add_argument("--no-collision-avoidance", dest="avoid_collisions", action="store_false",
+                        help=f"{who} samples plainly, without keeping its tokens out of other agents' boxes "
+                             "(default: collision-aware sampling, smart_marl.rollout.avoidance)")

@@ -31,7 +31,7 @@ from ..metrics.submission import ScenarioRolloutArrays, check_against_scene, rol
 from ..model.checkpoint import EMBEDDED, load_checkpoint
 from ..readers import expand_paths, read_scenarios
 from ..rollout import DEFAULT_TOP_K, rollout
-from .arguments import device, non_negative_int, positive_int, positive_number, reader_formats
+from .arguments import collision_avoidance_flag, device, non_negative_int, positive_int, positive_number, reader_formats
 
 POLICY_CHOICES = ("constant_velocity", "log_replay", "random", "prior")
 WOSAC_ROLLOUTS = 32
@@ -54,9 +54,7 @@ def register(subparsers) -> None:
                    help=f"--policy prior samples among its K most likely tokens (default {DEFAULT_TOP_K}; 0: all of them)")
     p.add_argument("--temperature", type=positive_number, default=None, metavar="T",
                    help="--policy prior samples from softmax(logits / T) (default 1)")
-    p.add_argument("--no-collision-avoidance", dest="avoid_collisions", action="store_false",
-                   help="--policy prior samples plainly, without keeping tokens out of other agents' boxes "
-                        "(default: collision-aware sampling, smart_marl.rollout.avoidance)")
+    collision_avoidance_flag(p, "--policy prior")
     p.add_argument("--rollouts", type=positive_int, default=32, help="rollouts per scene for --policy (default 32)")
     p.add_argument("--seed", type=int, default=0, help="random seed for --policy (default 0)")
     p.add_argument("--rules", choices=("2024", "2025"), default="2025", help="challenge rules (default 2025)")
