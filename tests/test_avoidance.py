@@ -217,3 +217,21 @@ def test_whatif_passes_the_choice_to_both_of_its_runs_and_on_to_the_engine(monke
         simulate_module.simulate(None, None, compare.Prepared(scene=scene, scripts=[], removals=[], lights=[], affected={},
                                                               followers={}, onset_step={}), 1, 0, avoid_collisions=False)
     assert started == [False]
+
+
+def test_eval_hands_the_flag_to_the_rollouts(monkeypatch, shared_data):
+    from smart_marl.cli import main
+
+    eval_module = importlib.import_module("smart_marl.commands.eval")
+    seen = []
+
+    def fake_rollout(*args, avoid_collisions=True, **kwargs):
+        seen.append(avoid_collisions)
+        raise StopIteration  # the choice is all this test needs
+
+    monkeypatch.setattr(eval_module, "rollout", fake_rollout)
+    scene = str(shared_data / "womd_tfrecord" / "motion_data_one_scenario.tfrecord")
+    for extra, want in (([], True), (["--no-collision-avoidance"], False)):
+        with pytest.raises(StopIteration):
+            main(["eval", "--scenes", scene, "--policy", "prior", "--rules", "2024"] + extra)
+        assert seen[-1] is want

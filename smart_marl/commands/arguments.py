@@ -6,7 +6,9 @@
 (``--speed-limits 30,50``: comma-separated numbers > 0), ``type=motion_types`` (``--types
 pedestrian,cyclist``: agent types that have motion tokens), ``type=output_dir`` (``--out``:
 anything but an existing file), ``type=device`` (``--device``: a torch device this machine has;
-``device_or_auto`` also takes ``auto``) and :func:`reader_formats` (the ``choices`` of ``--format``).
+``device_or_auto`` also takes ``auto``), :func:`reader_formats` (the ``choices`` of ``--format``)
+and :func:`collision_avoidance_flag` (``--no-collision-avoidance`` on every command that rolls out
+the prior).
 """
 
 from __future__ import annotations
@@ -69,6 +71,14 @@ def motion_types(text: str) -> list[str]:
     return names
 
 
+def collision_avoidance_flag(parser: argparse.ArgumentParser, who: str = "the prior") -> None:
+    """``--no-collision-avoidance`` (``args.avoid_collisions``, default True): the one way every
+    command that rolls out the prior lets its draws be plain top-k (:mod:`smart_marl.rollout.avoidance`)."""
+    parser.add_argument("--no-collision-avoidance", dest="avoid_collisions", action="store_false",
+                        help=f"{who} samples plainly, without keeping its tokens out of other agents' boxes "
+                             "(default: collision-aware sampling, smart_marl.rollout.avoidance)")
+
+
 def output_dir(text: str) -> str:
     """A folder to write into: missing (it is created) or an existing folder, never an existing file."""
     problem = output_dir_problem(text)
@@ -101,12 +111,4 @@ def reader_formats() -> list[str]:
     return format_names()
 
 
-__all__ = ["positive_int", "non_negative_int", "positive_number", "positive_numbers", "motion_types", "output_dir", "device", "device_or_auto", "reader_formats"]
-
-
-def collision_avoidance_flag(parser: argparse.ArgumentParser, who: str = "the prior") -> None:
-    """``--no-collision-avoidance`` (``args.avoid_collisions``, default True): the one way every
-    command that rolls out the prior lets its draws be plain top-k (:mod:`smart_marl.rollout.avoidance`)."""
-    parser.add_argument("--no-collision-avoidance", dest="avoid_collisions", action="store_false",
-                        help=f"{who} samples plainly, without keeping its tokens out of other agents' boxes "
-                             "(default: collision-aware sampling, smart_marl.rollout.avoidance)")
+__all__ = ["positive_int", "non_negative_int", "positive_number", "positive_numbers", "motion_types", "collision_avoidance_flag", "output_dir", "device", "device_or_auto", "reader_formats"]

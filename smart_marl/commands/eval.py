@@ -171,9 +171,10 @@ def run(args) -> int:
 def prior_rollouts(prior, scenario, num_rollouts: int, seed: int, device: str = "cpu", top_k: int = DEFAULT_TOP_K,
                    temperature: float = 1.0, avoid_collisions: bool = True):
     """WOSAC rollouts of one scene by the SMART prior (top-k sampling, ``top_k`` 0: the whole
-    distribution, collision-aware unless ``avoid_collisions`` is False): 16 token steps (80 frames) of every agent valid at the current frame (the engine
-    simulates vehicles, pedestrians and cyclists and moves agents of type OTHER at constant
-    velocity), as :class:`~smart_marl.metrics.inputs.Rollouts`."""
+    distribution; collision-aware unless ``avoid_collisions`` is False): 16 token steps (80 frames)
+    of every agent valid at the current frame (the engine simulates vehicles, pedestrians and
+    cyclists and moves agents of type OTHER at constant velocity), as
+    :class:`~smart_marl.metrics.inputs.Rollouts`."""
     result = rollout(prior, scenario, num_rollouts=num_rollouts, num_steps=16, seed=seed, device=device, top_k=top_k,
                      temperature=temperature, avoid_collisions=avoid_collisions)
     agents = np.flatnonzero(result.has_trajectory[0])

@@ -61,6 +61,24 @@ def boxes_overlap(a_xy: torch.Tensor, a_heading: torch.Tensor, a_half: torch.Ten
     return hit
 
 
+def boxes_overlap_near(a_xy: torch.Tensor, a_heading: torch.Tensor, a_half: torch.Tensor, b_xy: torch.Tensor,
+                       b_heading: torch.Tensor, b_half: torch.Tensor, where: torch.Tensor | None = None) -> torch.Tensor:
+    """:func:`boxes_overlap` (same arguments, broadcast) on the pairs ``where`` says (all by default,
+    false elsewhere), with the exact test run only where the centres are closer than the two half
+    diagonals together (elsewhere the boxes cannot overlap)."""
+    close = (b_xy - a_xy).norm(dim=-1) < a_half.norm(dim=-1) + b_half.norm(dim=-1)  # radii on the unbroadcast inputs
+    if where is not None:
+        close = close & where
+    shape = close.shape
+    a_xy, b_xy = a_xy.expand(shape + (2,)), b_xy.expand(shape + (2,))
+    a_heading, b_heading = a_heading.expand(shape), b_heading.expand(shape)
+    a_half, b_half = a_half.expand(shape + (2,)), b_half.expand(shape + (2,))
+    at = close.nonzero(as_tuple=True)
+    out = torch.zeros(shape, dtype=torch.bool, device=a_xy.device)
+    out[at] = boxes_overlap(a_xy[at], a_heading[at], a_half[at], b_xy[at], b_heading[at], b_half[at])
+    return out
+
+
 def constant_velocity_pose(pose: torch.Tensor, previous_pose: torch.Tensor) -> torch.Tensor:
     """[..., 3] where each agent will be one token later if it repeats its last token's displacement
     (heading held); an agent with no previous pose (NaN) stays where it is."""
@@ -80,7 +98,7 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     [types, V, 6, 3] every token's poses in its start frame, ``top_k`` the sampler's k (<= 0: the
     whole vocabulary is checked), ``interpolation`` how the token's frames are drawn
     (:func:`~smart_marl.rollout.frames.token_frames`)."""
-    g, n, _ = pose.shape
+    n = pose.shape[1]
     m, v = logits.shape
     if m == 0 or n < 2:
         return torch.zeros(m, v, dtype=torch.bool, device=logits.device)
@@ -90,8 +108,8 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     # each row's NEIGHBOURS nearest present others, not overlapping it now
     own_pose, own_before, own_half, own_type = pose[gi, si], previous_pose[gi, si], half[gi, si], agent_type[gi, si]
     dist = (ahead[gi][:, :, :2] - own_pose[:, None, :2]).norm(dim=-1)  # [M, N]
-    blocked_now = boxes_overlap(own_pose[:, None, :2], own_pose[:, None, 2], own_half[:, None], pose[gi][:, :, :2],
-                                pose[gi][:, :, 2], half[gi])
+    blocked_now = boxes_overlap_near(own_pose[:, None, :2], own_pose[:, None, 2], own_half[:, None], pose[gi][:, :, :2],
+                                     pose[gi][:, :, 2], half[gi], where=present[gi])
     usable = present[gi] & ~blocked_now
     usable[torch.arange(m, device=rows.device), si] = False
     near_d, near = torch.topk(dist.masked_fill(~usable, float("inf")), min(NEIGHBOURS, n - 1), dim=-1, largest=False)
@@ -101,20 +119,15 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     now_xy, step_xy = pose[gi[:, None], near, :2], ahead[gi[:, None], near, :2] - pose[gi[:, None], near, :2]
     other_xy = now_xy[:, None] + s[None, :, None, None] * step_xy[:, None]
     other_h, other_half = pose[gi[:, None], near, 2], half[gi[:, None], near]
-    own_radius, other_radius = own_half.norm(dim=-1), other_half.norm(dim=-1)
 
     def collides(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
         """[R, c]: does token ``tok`` [R, c] of rows ``r`` [R] overlap a neighbour on any of its frames."""
         local = token_poses[own_type[r][:, None], tok]  # [R, c, 6, 3]
         frames = token_frames(local, own_pose[r][:, None].expand(-1, tok.shape[1], -1),
                               own_before[r][:, None].expand(-1, tok.shape[1], -1), interpolation)  # [R, c, 5, 3]
-        # boxes can only overlap when their centres are closer than their half diagonals together
-        gap = (frames[:, :, :, None, :2] - other_xy[r][:, None]).norm(dim=-1)  # [R, c, 5, K]
-        close = (gap < (own_radius[r][:, None, None, None] + other_radius[r][:, None, None])) & near_ok[r][:, None, None]
-        ri, ci, fi, ki = close.nonzero(as_tuple=True)
-        hit = torch.zeros_like(close)
-        hit[ri, ci, fi, ki] = boxes_overlap(frames[ri, ci, fi, :2], frames[ri, ci, fi, 2], own_half[r[ri]],
-                                            other_xy[r[ri], fi, ki], other_h[r[ri], ki], other_half[r[ri], ki])
+        hit = boxes_overlap_near(frames[:, :, :, None, :2], frames[:, :, :, None, 2], own_half[r][:, None, None, None],
+                                 other_xy[r][:, None], other_h[r][:, None, None], other_half[r][:, None, None],
+                                 where=near_ok[r][:, None, None])  # [R, c, 5, K]
         return hit.flatten(2).any(-1)
 
     finite = torch.isfinite(logits).sum(-1)  # [M] tokens of the row's type
