@@ -15,7 +15,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from smart_marl.model import layers, roadnet
+from smart_marl.model import layers, motionnet, roadnet
 from smart_marl.model.batch import collate_scenes, scene_road, scene_tensors
 from smart_marl.model.losses import NextTokenLoss
 from smart_marl.model.smart import SMART, get_config
@@ -36,9 +36,14 @@ def reference_fourier_forward(self, x, categorical=None, valid=None, repeated_di
     return self.out(h).reshape(*lead, self.hidden_dim)
 
 
-def reference_attention_forward(self, x_q, src, index, mask, rpe):
+def reference_attention_forward(self, x_q, keys, mask):
     q_in = self.norm_q(x_q)
-    k_rows, v_rows = self.project_source(src) if isinstance(src, torch.Tensor) else src
+    if keys[0] == "raw":  # the map attention: raw road encodings, the neighbours' rows, raw RPE
+        _, src, index, rpe = keys
+        k_rows, v_rows = self.project_source(src)
+    else:  # self-attention among the queries' own rows
+        index, rpe = keys
+        k_rows, v_rows = self.project_source(x_q)
     r = self.norm_rpe(rpe)
     nq, kk = index.shape
     h, dh = self.num_heads, self.head_dim
@@ -57,6 +62,11 @@ def reference_attention_forward(self, x_q, src, index, mask, rpe):
     return x + self.ff_drop(self.ff(self.norm_ff(x)))
 
 
+def reference_project_source(self, src):
+    s = (self.norm_src or self.norm_q)(src)
+    return self.to_k(s), self.to_v(s)
+
+
 def reference_road_forward(self, points, pose, road_type, light, valid, masked=None):
     b, r = valid.shape
     x = self.piece_mlp(points.flatten(-2))
@@ -70,7 +80,7 @@ def reference_road_forward(self, points, pose, road_type, light, valid, masked=N
     x = x.reshape(b * r, -1)
     nmask, rpe = nmask.view(b * r, -1), rpe.view(b * r, nmask.shape[-1], -1)
     for layer in self.layers:
-        x = layer(x, x, flat_idx, nmask, rpe)
+        x = layer(x, (flat_idx, rpe), nmask)
     return x.view(b, r, -1)
 
 
@@ -106,6 +116,10 @@ def test_fast_layers_give_the_reference_loss_and_gradients_on_real_scenes(womd_s
     monkeypatch.setattr(layers.FourierEmbedding, "forward", reference_fourier_forward)
     monkeypatch.setattr(layers.NeighbourAttention, "forward", reference_attention_forward)
     monkeypatch.setattr(roadnet.RoadNet, "forward", reference_road_forward)
+    # each reference layer normalises its own inputs and projects keys and values per pair
+    monkeypatch.setattr(layers.NeighbourAttention, "project_source", reference_project_source, raising=False)
+    monkeypatch.setattr(motionnet, "normalise", lambda t: t)
+    monkeypatch.setattr(motionnet, "neighbour_keys", lambda rows, index, rpe: ("raw", rows, index, rpe))
     ref_losses, ref_grads = _loss_and_grads(model, batch)
 
     assert batch.target_valid.sum() > 200 and ref_losses["road_tokens"] > 20  # a real workload, not an empty one
@@ -170,18 +184,64 @@ def test_fourier_embedding_fast_trunk_matches_autograd_on_inputs_that_need_a_gra
         assert _close(fast_grads[name], slow_grads[name]), name
 
 
+@pytest.mark.parametrize("bipartite", [False, True])
+def test_neighbour_attention_folds_its_layer_norms_exactly(bipartite):
+    # in float64, so that any difference is the algebra and not rounding: the fast layer (normalised inputs on
+    # the pairs, every LayerNorm's scale and shift folded into per-query weights, the scores' per-query
+    # constant left out) against SMART's layer written out, with LayerNorms far from their initial (1, 0)
+    torch.manual_seed(0)
+    att = layers.NeighbourAttention(32, 4, 8, 0.0, bipartite=bipartite).double()
+    with torch.no_grad():
+        for norm in (att.norm_q, att.norm_src, att.norm_rpe, att.norm_ff):
+            if norm is not None:
+                norm.weight.normal_(1.0, 0.5)
+                norm.bias.normal_(0.0, 0.5)
+    x = torch.randn(30, 32, dtype=torch.float64, requires_grad=True)
+    src = torch.randn(45, 32, dtype=torch.float64, requires_grad=True) if bipartite else x
+    index = torch.randint(0, src.shape[0], (30, 6))
+    mask = torch.rand(30, 6) < 0.8
+    mask[3] = False  # a query without neighbours
+    rpe = torch.randn(30, 6, 32, dtype=torch.float64, requires_grad=True)
+    weights = torch.randn(30, 32, dtype=torch.float64)
+
+    def run(forward, keys):
+        for t in (x, src, rpe):
+            t.grad = None
+        att.zero_grad(set_to_none=True)
+        out = forward(att, x, keys, mask)
+        (out * weights).sum().backward()
+        inputs = (x, src, rpe) if bipartite else (x, rpe)
+        return out.detach(), [t.grad.clone() for t in inputs], {n: p.grad.clone() for n, p in att.named_parameters()}
+
+    if bipartite:
+        fast_keys = layers.neighbour_keys(layers.normalise(src), index, layers.normalise(rpe))
+    else:
+        fast_keys = (index, layers.normalise(rpe))
+    fast = run(layers.NeighbourAttention.forward, fast_keys)
+    ref_keys = ("raw", src, index, rpe) if bipartite else (index, rpe)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(layers.NeighbourAttention, "project_source", reference_project_source, raising=False)
+        ref = run(reference_attention_forward, ref_keys)
+    torch.testing.assert_close(fast[0], ref[0], rtol=1e-10, atol=1e-10)
+    for g_fast, g_ref in zip(fast[1], ref[1]):
+        torch.testing.assert_close(g_fast, g_ref, rtol=1e-9, atol=1e-10)
+    assert fast[2].keys() == ref[2].keys()
+    for name in ref[2]:
+        torch.testing.assert_close(fast[2][name], ref[2][name], rtol=1e-9, atol=1e-10, msg=name)
+
+
 def test_neighbour_attention_runs_under_bf16_autocast_and_stays_near_float32():
     torch.manual_seed(0)
     att = layers.NeighbourAttention(32, 4, 8, 0.0, bipartite=False)
     x = torch.randn(30, 32, requires_grad=True)
     index, mask = torch.randint(0, 30, (30, 6)), torch.rand(30, 6) < 0.8
-    rpe = torch.randn(30, 6, 32)
-    ref = att(x, x, index, mask, rpe)
+    rpe = layers.normalise(torch.randn(30, 6, 32))
+    ref = att(x, (index, rpe), mask)
     ref.sum().backward()
     ref_grad, x.grad = x.grad.clone(), None
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        out = att(x, x, index, mask, rpe)
-    out.float().sum().backward()  # the hand-written backwards run under the forward's autocast
+        out = att(x, (index, rpe), mask)
+    out.float().sum().backward()  # the hand-written backward runs under the forward's autocast
     assert torch.allclose(out.float(), ref, atol=0.1) and torch.allclose(x.grad, ref_grad, atol=0.15)
 
 

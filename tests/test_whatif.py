@@ -184,11 +184,11 @@ def test_traffic_light_override_reaches_the_models_road_encodings(model, vocab, 
     # at_s > 0: overriding a running state gives the road encodings and KV-cache road rows of a
     # state started on the overridden scene, and changes the next step's logits
     running = RolloutState.start(model, scene, motion_vocab=vocab)
-    before = running.cache.road_kv[0][0].clone()
+    before = running.cache.road_rows.clone()
     override_road_lights(running, pieces.traffic_light_index, np.arange(len(tl.lane_ids)), stop)
     torch.testing.assert_close(running.road_x, state.road_x)
-    torch.testing.assert_close(running.cache.road_kv[0][0], state.cache.road_kv[0][0])
-    assert not torch.allclose(before, running.cache.road_kv[0][0])
+    torch.testing.assert_close(running.cache.road_rows, state.cache.road_rows)
+    assert not torch.allclose(before, running.cache.road_rows)
     torch.testing.assert_close(running.logits(), state.logits())
     assert len(prepared.approaching[0][1]) >= 3  # vehicles in front of the scene's stop lines, whose speeds the table reports
     # the scene's signal states (what the animation and the realism metric read) change from the onset frame

@@ -159,11 +159,13 @@ class _FourierTrunk(torch.autograd.Function):
             g_lnw += gw
             g_lnb += gb
             grads["b1"].append(gz.sum(0))
-            grads["w1"].append(feat.t() @ gz)
             # z = cos(a) W_c + sin(a) W_s + ..., a = 2 pi x f, so dL/df_j = 2 pi sum_h (W_s[j, h] A[j, h] - W_c[j, h] B[j, h])
-            # with A, B = (x cos(a))^T gz, (x sin(a))^T gz: one product as tall as the weight gradient's, where
-            # the gradient of the (U, 2F) features would be a (U, H) x (H, 2F) product and two more passes
-            ab = (feat[:, : 2 * nf] * col[:, None]).t() @ gz  # (2F, H) = [A; B]
+            # with A, B = cos(a)^T (x gz), sin(a)^T (x gz): the same rows as the weight gradient feat^T gz, so
+            # both come from one product, feat^T [gz, x gz] (the gradient of the (U, 2F) features would be a
+            # (U, H) x (H, 2F) product and two more passes)
+            both = feat.t() @ torch.cat([gz, gz * col[:, None]], 1)  # (2F+1, 2H)
+            grads["w1"].append(both[:, :hdim])
+            ab = both[: 2 * nf, hdim:]  # (2F, H) = [A; B]
             w_c, w_s = w1[d, :nf], w1[d, nf:2 * nf]
             grads["freqs"].append((w_s * ab[:nf] - w_c * ab[nf:]).sum(-1) * (2 * math.pi))
         ctx.saved = None
@@ -236,84 +238,149 @@ def trim_neighbours(index: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tens
     return index[:, :k], mask[:, :k]
 
 
-# The attention over gathered neighbours, as two functions with hand-written backwards: autograd's
-# backward of the same expressions materialises several broadcast [Q, K, h, dh] products and copies;
-# these re-gather the key / value rows (cheaper than keeping them) and write each product once.
+NORM_EPS = 1e-5  # the eps of every LayerNorm that attention inputs go through (nn.LayerNorm's default)
+
+
+def normalise(t: torch.Tensor) -> torch.Tensor:
+    """LayerNorm over the last dim without a scale and shift: [..., d] -> [..., d]. What the attentions'
+    key-side inputs go through once, shared by every layer that reads them (each
+    :class:`NeighbourAttention` folds its own LayerNorms' scales and shifts into its weights)."""
+    return F.layer_norm(t, t.shape[-1:], eps=NORM_EPS)
+
+
+def neighbour_keys(rows: torch.Tensor, index: torch.Tensor, rpe: torch.Tensor) -> torch.Tensor:
+    """The key-side input of an attention, per (query, neighbour) pair: the neighbour's normalised row
+    and the pair's normalised RPE side by side. rows [M, d] (through :func:`normalise`), index [Q, K]
+    (rows of ``rows``), rpe [Q, K, d] (through :func:`normalise`) -> [Q, K, 2d]."""
+    gathered = rows.index_select(0, index.reshape(-1)).view(*index.shape, rows.shape[-1])  # (Q, K, d)
+    return torch.cat([gathered, rpe.to(gathered.dtype)], -1)
+
+
 def _autocast_state(t: torch.Tensor) -> dict:
     """The autocast settings in force for ``t``'s device (a forward's, for its hand-written backward)."""
     dev = t.device.type
     return dict(device_type=dev, enabled=torch.is_autocast_enabled(dev), dtype=torch.get_autocast_dtype(dev))
 
 
-class _NeighbourSoftmax(torch.autograd.Function):
-    """Attention weights of each query over its K neighbours: q [Q, h, dh] against the gathered key rows
-    k_rows[index] ([M, h * dh]; index [Q, K]) plus the RPE scores q_r [Q, h, d] . r [Q, K, d], scaled by
-    1 / sqrt(dh), softmax over the neighbours in ``mask`` [Q, K] -> [Q, h, K] (0 where masked, and
-    on every neighbour of a query that has none)."""
+def dropout_mask(like: torch.Tensor, p: float) -> torch.Tensor:
+    """A dropout mask for ``like``: 0 with probability ``p``, else 1 / (1 - p), as ``nn.Dropout`` draws it.
+    On the CPU each mask entry compares 32 random bits (two per 64-bit draw: half the generator's work
+    of uniform or Bernoulli draws, which dominates there) with p * 2^32; elsewhere a uniform draw."""
+    if like.device.type != "cpu":
+        return (torch.rand_like(like, dtype=torch.float32) >= p).to(like.dtype).mul_(1.0 / (1.0 - p))
+    n = like.numel()
+    bits = torch.randint(-(2**63), 2**63 - 1, ((n + 1) // 2,), dtype=torch.int64).view(torch.int32)[:n]
+    threshold = int(round(p * 2**32)) - 2**31  # P(bits < threshold) = p (to 2^-32)
+    return (bits >= threshold).view(like.shape).to(like.dtype).mul_(1.0 / (1.0 - p))
+
+
+class FastDropout(nn.Dropout):
+    """``nn.Dropout`` with its mask from :func:`dropout_mask` (the same distribution, fewer cycles)."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not self.training or self.p == 0.0:
+            return x
+        return _MaskMul.apply(x, dropout_mask(x, self.p))
+
+
+class _MaskMul(torch.autograd.Function):
+    """x * mask with only the mask kept for the backward."""
 
     @staticmethod
-    def forward(ctx, q, q_r, k_rows, r, index, mask):
-        nq, kk = index.shape
-        h, dh = q.shape[1:]
-        k = k_rows.index_select(0, index.reshape(-1)).view(nq, kk, h, dh)
-        # per-head dot products of a head dim of 8-16 run faster as a product and a sum than as Q tiny GEMMs
-        scores = ((q[:, None] * k).sum(-1).transpose(1, 2) + torch.bmm(q_r, r.transpose(1, 2))) / math.sqrt(dh)
-        m = mask[:, None, :]
-        scores = scores.masked_fill_(~m, torch.finfo(scores.dtype).min)
-        attn = torch.softmax(scores, dim=-1).mul_(m)
-        ctx.save_for_backward(q, q_r, k_rows, r, index, attn)
-        ctx.amp = _autocast_state(q)
-        return attn
+    def forward(ctx, x, mask):
+        ctx.save_for_backward(mask)
+        return x * mask
+
+    @staticmethod
+    def backward(ctx, g):
+        (mask,) = ctx.saved_tensors
+        return g * mask, None
+
+
+class _Headwise(torch.autograd.Function):
+    """Per-head linear maps: x [Q, h, i], w [h, i, o] -> [Q, h, o] (y[:, j] = x[:, j] @ w[j]). As
+    ``einsum("qhi,hio->qho")``, with the weight gradient always formed as the product whose output has
+    the short side first (a (i x Q) (Q x o) product with i >> o runs at a tenth of the speed here)."""
+
+    @staticmethod
+    def forward(ctx, x, w):
+        ctx.save_for_backward(x, w)
+        ctx.amp = _autocast_state(x)
+        return torch.bmm(x.transpose(0, 1), w).transpose(0, 1)  # (Q, h, o), head-major in memory
 
     @staticmethod
     def backward(ctx, g):
         with torch.autocast(**ctx.amp):
-            return _NeighbourSoftmax._backward(ctx, g)
+            return _Headwise._backward(ctx, g)
 
     @staticmethod
     def _backward(ctx, g):
-        q, q_r, k_rows, r, index, attn = ctx.saved_tensors
-        nq, kk = index.shape
-        h, dh = q.shape[1:]
-        gs = attn * (g - (attn * g).sum(-1, keepdim=True)) / math.sqrt(dh)  # (Q, h, K): through the softmax
-        gs_t = gs.transpose(1, 2).contiguous()  # (Q, K, h)
-        k = k_rows.index_select(0, index.reshape(-1)).view(nq, kk, h, dh)
-        g_q = (gs_t[..., None] * k).sum(1)  # (Q, h, dh)
-        g_k = (gs_t[..., None] * q[:, None]).view(-1, h * dh)  # (Q * K, inner)
-        g_k_rows = g_k.new_zeros(k_rows.shape).index_add_(0, index.reshape(-1), g_k)
-        return g_q, torch.bmm(gs, r), g_k_rows, torch.bmm(gs_t, q_r), None, None
+        x, w = ctx.saved_tensors
+        xt, gt = x.transpose(0, 1), g.transpose(0, 1)  # (h, Q, i), (h, Q, o)
+        g_x = torch.bmm(gt, w.transpose(1, 2)).transpose(0, 1) if ctx.needs_input_grad[0] else None
+        if w.shape[1] <= w.shape[2]:
+            g_w = torch.bmm(xt.transpose(1, 2), gt)  # (h, i, o)
+        else:
+            g_w = torch.bmm(gt.transpose(1, 2), xt).transpose(1, 2)  # (h, o, i) -> (h, i, o)
+        return g_x, g_w
 
 
-class _NeighbourSum(torch.autograd.Function):
-    """The attention-weighted sums of the gathered value rows v_rows[index] and of the RPE r [Q, K, d]:
-    attn [Q, h, K] -> ([Q, h, dh], [Q, h, d])."""
+class _NeighbourAttention(torch.autograd.Function):
+    """The attention of each query over its neighbours, on the key-side inputs themselves (the key and
+    value maps live in per-query weights, see :meth:`NeighbourAttention.forward`).
+
+    ``apply(mask [Q, K], drop_p, a_1, keys_1, a_2, keys_2, ...)``: the key-side inputs in parts keys_i
+    [Q, K, C_i] (gathered rows, RPE: whatever is at hand, without copying them side by side) with their
+    per-query, per-head weights a_i [Q, h, C_i] (scaled by 1 / sqrt(head dim)); drop_p: attention
+    dropout (0: none).
+
+        scores = sum_i a_i . keys_i per head, masked softmax over K -> attn [Q, h, K], dropped out -> attn_d
+        -> (attn_d @ keys_i [Q, h, C_i] for each part, attn_d summed over K [Q, h])
+
+    Every product is a batched matrix product over queries that reads one part once; in the backward,
+    the two weighings of each part (by the scores' gradient against a_i, by attn_d against the output's
+    gradient) are stacked into one product.
+    """
 
     @staticmethod
-    def forward(ctx, attn, v_rows, r, index):
-        nq, kk = index.shape
-        h = attn.shape[1]
-        v = v_rows.index_select(0, index.reshape(-1)).view(nq, kk, h, -1)
-        ctx.save_for_backward(attn, v_rows, r, index)
-        ctx.amp = _autocast_state(attn)
-        return (attn.transpose(1, 2)[..., None] * v).sum(1), torch.bmm(attn, r)
+    def forward(ctx, mask, drop_p, *pairs):
+        a, keys = pairs[0::2], pairs[1::2]
+        scores = torch.bmm(a[0], keys[0].transpose(1, 2))  # (Q, h, K)
+        for a_i, k_i in zip(a[1:], keys[1:]):
+            scores = torch.baddbmm(scores, a_i, k_i.transpose(1, 2))
+        m = mask[:, None, :]
+        scores = scores.masked_fill_(~m, torch.finfo(scores.dtype).min)
+        attn = torch.softmax(scores, dim=-1).mul_(m)
+        keep = dropout_mask(attn, drop_p) if drop_p > 0 else None
+        attn_d = attn if keep is None else attn * keep
+        ctx.save_for_backward(attn, keep, *pairs)
+        ctx.amp = _autocast_state(a[0])
+        return (*(torch.bmm(attn_d, k_i) for k_i in keys), attn_d.sum(-1))
 
     @staticmethod
-    def backward(ctx, g_v, g_r):
+    def backward(ctx, *grads):
         with torch.autocast(**ctx.amp):
-            return _NeighbourSum._backward(ctx, g_v, g_r)
+            return _NeighbourAttention._backward(ctx, *grads)
 
     @staticmethod
-    def _backward(ctx, g_v, g_r):
-        attn, v_rows, r, index = ctx.saved_tensors
-        nq, kk = index.shape
-        h = attn.shape[1]
-        v = v_rows.index_select(0, index.reshape(-1)).view(nq, kk, h, -1)
-        g_v, g_r = g_v.contiguous(), g_r.contiguous()
-        g_attn = (g_v[:, None] * v).sum(-1).transpose(1, 2) + torch.bmm(g_r, r.transpose(1, 2))  # (Q, h, K)
-        attn_t = attn.transpose(1, 2).contiguous()  # (Q, K, h)
-        g_vals = (attn_t[..., None] * g_v[:, None]).view(nq * kk, -1)  # (Q * K, inner)
-        g_v_rows = g_vals.new_zeros(v_rows.shape).index_add_(0, index.reshape(-1), g_vals)
-        return g_attn, g_v_rows, torch.bmm(attn_t, g_r), None
+    def _backward(ctx, *grads):
+        attn, keep, *pairs = ctx.saved_tensors
+        a, keys = pairs[0::2], pairs[1::2]
+        g_out, g_sum = grads[:-1], grads[-1]
+        g_attn = g_sum[..., None].expand_as(attn).clone() if g_sum is not None else torch.zeros_like(attn)
+        for g_i, k_i in zip(g_out, keys):
+            g_attn = torch.baddbmm(g_attn, g_i, k_i.transpose(1, 2))  # (Q, h, K)
+        attn_d = attn
+        if keep is not None:
+            g_attn = g_attn.mul_(keep)
+            attn_d = attn * keep
+        gs = attn * (g_attn - (attn * g_attn).sum(-1, keepdim=True))  # (Q, h, K): through the softmax
+        w = torch.cat([gs, attn_d.to(gs.dtype)], 1).transpose(1, 2)  # (Q, K, 2h)
+        out = [None, None]
+        for a_i, k_i, g_i in zip(a, keys, g_out):
+            out.append(torch.bmm(gs, k_i))  # the gradient of a_i
+            out.append(torch.bmm(w, torch.cat([a_i, g_i.to(a_i.dtype)], 1)))  # of keys_i (Q, K, C_i)
+        return tuple(out)
 
 
 # ---------------------------------------------------------------------------------- attention
@@ -321,17 +388,28 @@ class NeighbourAttention(nn.Module):
     """Pre-norm multi-head attention of each query over its gathered neighbours, with RPE added to
     keys and values, a gated residual (SMART/QCNet ``AttentionLayer``) and a feed-forward block.
 
-    ``forward(x_q [Q, d], src [M, d], index [Q, K] (rows of src), mask [Q, K], rpe [Q, K, d])``.
-    ``bipartite`` queries and keys come from different sets (map -> agent) and get their own norms.
+    ``forward(x_q [Q, d], keys, mask [Q, K])``: ``keys`` is either a pair (index [Q, K], rpe [Q, K, d])
+    for self-attention among the queries' own rows (index points into x_q), or the key-side inputs
+    [Q, K, 2d] of :func:`neighbour_keys` (source rows and RPE through :func:`normalise`, e.g. the road
+    encodings and map RPE that every map attention shares, or a KV cache's rows). ``rpe`` always
+    comes through :func:`normalise`. ``bipartite`` queries and keys come from different sets (map ->
+    agent) and get their own norms.
+
+    Computed as SMART's layer: keys to_k(LN_src(x_j)) + to_k_r(LN_rpe(r_ij)), values to_v(LN_src(x_j)) +
+    to_v_r(LN_rpe(r_ij)). Every linear map and every LayerNorm's scale and shift is moved off the
+    (query, key) pairs: q . W (g * n + b) = ((W^T q) * g) . n + q . W b and sum_j a_j W (g * n_j + b) =
+    (W diag(g)) sum_j a_j n_j + W b sum_j a_j. So the pairs carry only the normalised inputs, shared by
+    every layer that reads them, and the per-query constant q . W b of the scores is left out (the
+    softmax does not change with it).
     """
 
     def __init__(self, hidden_dim: int, num_heads: int, head_dim: int, dropout: float, bipartite: bool) -> None:
         super().__init__()
         inner = num_heads * head_dim
         self.num_heads, self.head_dim, self.bipartite = num_heads, head_dim, bipartite
-        self.norm_q = nn.LayerNorm(hidden_dim)
-        self.norm_src = nn.LayerNorm(hidden_dim) if bipartite else None  # self-attention: keys share norm_q
-        self.norm_rpe = nn.LayerNorm(hidden_dim)
+        self.norm_q = nn.LayerNorm(hidden_dim, eps=NORM_EPS)
+        self.norm_src = nn.LayerNorm(hidden_dim, eps=NORM_EPS) if bipartite else None  # self-attention: keys share norm_q
+        self.norm_rpe = nn.LayerNorm(hidden_dim, eps=NORM_EPS)
         self.to_q = nn.Linear(hidden_dim, inner)
         self.to_k = nn.Linear(hidden_dim, inner, bias=False)
         self.to_v = nn.Linear(hidden_dim, inner)
@@ -340,38 +418,36 @@ class NeighbourAttention(nn.Module):
         self.to_s = nn.Linear(hidden_dim, inner)
         self.to_g = nn.Linear(inner + hidden_dim, inner)
         self.to_out = nn.Linear(inner, hidden_dim)
-        self.attn_drop = nn.Dropout(dropout)
-        self.out_drop = nn.Dropout(dropout)
+        self.attn_drop = nn.Dropout(dropout)  # its p: the attention dropout, drawn inside the attention
+        self.out_drop = FastDropout(dropout)
         self.norm_ff = nn.LayerNorm(hidden_dim)
-        self.ff = nn.Sequential(nn.Linear(hidden_dim, 4 * hidden_dim), nn.ReLU(inplace=True), nn.Dropout(dropout),
+        self.ff = nn.Sequential(nn.Linear(hidden_dim, 4 * hidden_dim), nn.ReLU(inplace=True), FastDropout(dropout),
                                 nn.Linear(4 * hidden_dim, hidden_dim))
-        self.ff_drop = nn.Dropout(dropout)
+        self.ff_drop = FastDropout(dropout)
 
-    def project_source(self, src: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Key and value rows of the source set (what a KV cache keeps): src [M, d] -> 2 x [M, inner]."""
-        s = (self.norm_src or self.norm_q)(src)
-        return self.to_k(s), self.to_v(s)
-
-    def forward(self, x_q: torch.Tensor, src: torch.Tensor | tuple[torch.Tensor, torch.Tensor], index: torch.Tensor,
-                mask: torch.Tensor, rpe: torch.Tensor) -> torch.Tensor:
-        q_in = self.norm_q(x_q)
-        k_rows, v_rows = self.project_source(src) if isinstance(src, torch.Tensor) else src  # (M, inner)
-        r = self.norm_rpe(rpe)  # (Q, K, d)
-        nq, kk = index.shape
+    def forward(self, x_q: torch.Tensor, keys: torch.Tensor | tuple[torch.Tensor, torch.Tensor],
+                mask: torch.Tensor) -> torch.Tensor:
+        n_q = normalise(x_q)  # (Q, d)
+        q_in = torch.addcmul(self.norm_q.bias, n_q, self.norm_q.weight)  # norm_q(x_q)
         h, dh = self.num_heads, self.head_dim
-        q = self.to_q(q_in).view(nq, h, dh)  # (Q, h, dh)
-        # The RPE enters keys and values through linear maps, so it is never projected per (query,
-        # key) pair: q . (W_kr r) = (W_kr^T q) . r and sum_k a_k (W_vr r_k + b_vr) = W_vr (sum_k a_k r_k)
-        # + b_vr sum_k a_k. Same numbers as k = k_rows[index] + to_k_r(r), v = v_rows[index] + to_v_r(r),
-        # without the two [Q, K, inner] tensors.
-        w_kr = self.to_k_r.weight.view(h, dh, -1)  # (h, dh, d)
-        w_vr = self.to_v_r.weight.view(h, dh, -1)  # (h, dh, d)
-        q_r = torch.einsum("qhe,hec->qhc", q, w_kr)  # (Q, h, d)
-        attn = _NeighbourSoftmax.apply(q, q_r, k_rows, r, index, mask)  # (Q, h, K); 0 on padded neighbours
-        attn = self.attn_drop(attn)
-        agg, r_agg = _NeighbourSum.apply(attn, v_rows, r, index)  # (Q, h, dh), (Q, h, d) attention-weighted RPE
-        agg = (agg + torch.einsum("qhc,hec->qhe", r_agg, w_vr)
-               + self.to_v_r.bias.view(h, dh) * attn.sum(-1, keepdim=True)).reshape(nq, h * dh)  # (Q, inner)
+        d = q_in.shape[-1]
+        norm_src = self.norm_src or self.norm_q
+        g_src, b_src, g_rpe, b_rpe = norm_src.weight, norm_src.bias, self.norm_rpe.weight, self.norm_rpe.bias
+        q = self.to_q(q_in).view(-1, h, dh) * (1.0 / math.sqrt(dh))  # (Q, h, dh)
+        w_k = torch.cat([self.to_k.weight * g_src, self.to_k_r.weight * g_rpe], 1).view(h, dh, 2 * d)
+        a = _Headwise.apply(q, w_k)  # (Q, h, 2d): the key maps moved onto the query
+        drop_p = self.attn_drop.p if self.training else 0.0
+        if isinstance(keys, tuple):  # the queries' own rows, gathered, and the RPE: two parts
+            index, rpe = keys
+            rows = n_q.index_select(0, index.reshape(-1)).view(*index.shape, d)  # (Q, K, d)
+            o_src, o_rpe, attn_sum = _NeighbourAttention.apply(mask, drop_p, a[..., :d], rows, a[..., d:], rpe)
+            out = torch.cat([o_src, o_rpe], -1)  # (Q, h, 2d)
+        else:
+            out, attn_sum = _NeighbourAttention.apply(mask, drop_p, a, keys)  # (Q, h, 2d), (Q, h)
+        w_v = torch.cat([self.to_v.weight * g_src, self.to_v_r.weight * g_rpe], 1).view(h, dh, 2 * d)
+        bias = self.to_v.bias + self.to_v.weight @ b_src + self.to_v_r.bias + self.to_v_r.weight @ b_rpe  # (inner,)
+        agg = _Headwise.apply(out, w_v.transpose(1, 2)) + bias.view(h, dh) * attn_sum[..., None]  # the value maps
+        agg = agg.reshape(-1, h * dh)  # (Q, inner)
         g = torch.sigmoid(self.to_g(torch.cat([agg, q_in], -1)))
         agg = agg + g * (self.to_s(q_in) - agg)
         x = x_q + self.out_drop(self.to_out(agg))

@@ -11,8 +11,8 @@ and shape embeddings, and the pose it reached at the end of token s. Each block 
 
 each with RPE (distance, bearing in the query's frame, heading difference, and the time gap for
 temporal edges) added to keys and values. Step s's features depend only on steps <= s, so one new
-step can be run against cached key/value rows of the last w steps: every attention projects its key
-rows with :meth:`NeighbourAttention.project_source`, per step. :meth:`MotionNet.forward` runs every
+step can be run against the cached source rows of the last w steps: every attention reads its
+source rows through :func:`~.layers.normalise`, per step. :meth:`MotionNet.forward` runs every
 step at once (training, and the rollout's ``mode="full"``); :meth:`MotionNet.step` runs one new step
 against a :class:`MotionCache` (inference), through the same embeddings, neighbour search, RPE and
 attention layers, so the two give the same features (``tests/test_rollout.py``).
@@ -28,7 +28,8 @@ import torch.nn as nn
 
 from ..scenario import wrap_angle
 from ..tokens.motion import TOKEN_S
-from .layers import FourierEmbedding, NeighbourAttention, knn_grouped, knn_within, mlp, relative_pose_features, trim_neighbours, valid_rows
+from .layers import (FourierEmbedding, NeighbourAttention, knn_grouped, knn_within, mlp, neighbour_keys, normalise,
+                     relative_pose_features, trim_neighbours, valid_rows)
 
 NUM_MOTION_TYPES = 3  # vehicle, pedestrian, cyclist (AgentType 0..2)
 STILL_SPEED_MPS = 0.1  # below this speed over a token the heading-vs-motion angle is set to 0
@@ -117,13 +118,15 @@ class MotionNet(nn.Module):
         t_mask = ok & valid_flat[t_full]
         t_feat = torch.cat([relative_pose_features(q_pose[:, None], pose_flat[t_full]),
                             dts.to(pose.dtype).expand(rows.numel(), -1)[..., None]], -1)  # (Q, W, 4)
-        temporal = (compact[t_full].clamp(min=0), t_mask, self.rpe_temporal(t_feat, valid=t_mask, repeated_dims=TEMPORAL_REPEATS))
+        t_rpe = normalise(self.rpe_temporal(t_feat, valid=t_mask, repeated_dims=TEMPORAL_REPEATS))  # (Q, W, d)
+        temporal = (compact[t_full].clamp(min=0), t_mask, t_rpe)
         # 2. map -> agent: K nearest road tokens within map_radius_m of the agent's pose at step s
         q_scene = rows // (n * s)
         m_idx, m_mask = knn_grouped(q_pose[:, :2], q_scene, road_pose[..., :2], cfg.map_radius_m, cfg.map_neighbours,
                                     road_valid)  # (Q, Km)
         m_idx, m_mask = trim_neighbours(m_idx + (q_scene * r)[:, None], m_mask)  # rows of the B*R road table
-        m_rpe = self.rpe_map(relative_pose_features(q_pose[:, None], road_pose.reshape(-1, 3)[m_idx]), valid=m_mask)  # (Q, Km, d)
+        m_rpe = normalise(self.rpe_map(relative_pose_features(q_pose[:, None], road_pose.reshape(-1, 3)[m_idx]),
+                                       valid=m_mask))  # (Q, Km, d)
         mapa = (m_idx, m_mask, m_rpe)
         # 3. agent -> agent at the same step: K nearest within agent_radius_m
         pose_bs = pose.permute(0, 2, 1, 3).reshape(b * s, n, 3)  # (B*S, N, 3)
@@ -135,7 +138,8 @@ class MotionNet(nn.Module):
         a_full = (bb * n + a_idx) * s + ss  # (B*S, N, Ka)
         unperm = lambda t: t.view(b, s, n, -1).transpose(1, 2).reshape(b * n * s, -1)[rows]  # noqa: E731
         a_full, a_mask = trim_neighbours(unperm(a_full), unperm(a_mask))  # (Q, Ka)
-        a_rpe = self.rpe_agent(relative_pose_features(q_pose[:, None], pose_flat[a_full]), valid=a_mask, repeated_dims=PAIR_REPEATS)  # (Q, Ka, d)
+        a_rpe = normalise(self.rpe_agent(relative_pose_features(q_pose[:, None], pose_flat[a_full]), valid=a_mask,
+                                         repeated_dims=PAIR_REPEATS))  # (Q, Ka, d)
         agents = (compact[a_full].clamp(min=0), a_mask, a_rpe)
         return rows, temporal, mapa, agents
 
@@ -144,13 +148,13 @@ class MotionNet(nn.Module):
         """x [B, N, S, d] fused inputs, road_x [B, R, d] (RoadNet), nbrs from :meth:`neighbourhoods`
         -> features [B, N, S, d] (zeros on invalid (agent, step) rows)."""
         shape = x.shape
-        rows, temporal, mapa, agents = nbrs
+        rows, (t_idx, t_mask, t_rpe), (m_idx, m_mask, m_rpe), (a_idx, a_mask, a_rpe) = nbrs
         h = x.reshape(-1, shape[-1])[rows]  # (Q, d) the valid (agent, step) rows
-        road = road_x.reshape(-1, road_x.shape[-1])  # (B*R, d)
+        map_keys = neighbour_keys(normalise(road_x.reshape(-1, road_x.shape[-1])), m_idx, m_rpe)  # (Q, Km, 2d)
         for t_attn, m_attn, a_attn in zip(self.temporal_attn, self.map_attn, self.agent_attn):
-            h = t_attn(h, h, *temporal)
-            h = m_attn(h, road, *mapa)
-            h = a_attn(h, h, *agents)
+            h = t_attn(h, (t_idx, t_rpe), t_mask)
+            h = m_attn(h, map_keys, m_mask)  # the same key-side inputs for every block
+            h = a_attn(h, (a_idx, a_rpe), a_mask)
         out = h.new_zeros(shape[0] * shape[1] * shape[2], shape[3])
         return out.index_copy(0, rows, h).view(shape)
 
@@ -168,15 +172,14 @@ class MotionNet(nn.Module):
         g, n = agent_type.shape
         dev = road_x.device
         scene_of_group, agent_type = scene_of_group.to(dev), agent_type.to(dev)
-        w, inner = int(cfg.temporal_window_tokens), cfg.num_heads * cfg.head_dim
+        w = int(cfg.temporal_window_tokens)
         cache = MotionCache(
             num_groups=g, num_slots=n, scene_of_group=scene_of_group, agent_type=agent_type.reshape(-1),
             agent_categorical=self.agent_categorical(agent_type, agent_shape.to(dev)).reshape(g * n, -1),  # (G*N, d)
             token_table=self.token_table(contours),  # (3, Vmax, d)
             road_pose=road_pose[scene_of_group], road_valid=road_valid[scene_of_group], road_pose_flat=road_pose.reshape(-1, 3),
-            road_kv=[],
-            k=[torch.zeros(g * n, w, inner, device=dev) for _ in range(cfg.num_agent_blocks)],
-            v=[torch.zeros(g * n, w, inner, device=dev) for _ in range(cfg.num_agent_blocks)],
+            road_rows=road_x.new_zeros(0),
+            src=[torch.zeros(g * n, w, cfg.hidden_dim, device=dev) for _ in range(cfg.num_agent_blocks)],
             pose=torch.zeros(g * n, w, 3, device=dev), valid=torch.zeros(g * n, w, dtype=torch.bool, device=dev),
         )
         self.cache_road(cache, road_x)
@@ -184,10 +187,9 @@ class MotionNet(nn.Module):
 
     @torch.no_grad()
     def cache_road(self, cache: "MotionCache", road_x: torch.Tensor) -> None:
-        """Use new road encodings [B, R, d] (same pieces) from the next step on: re-projects the
-        map-attention keys and values of every block (e.g. after a traffic-light change)."""
-        flat = road_x.reshape(-1, road_x.shape[-1])
-        cache.road_kv = [m.project_source(flat) for m in self.map_attn]  # per block 2 x (B*R, inner)
+        """Use new road encodings [B, R, d] (same pieces) from the next step on (e.g. after a
+        traffic-light change): the map attentions read them through :func:`normalise`."""
+        cache.road_rows = normalise(road_x.reshape(-1, road_x.shape[-1]))  # (B*R, d)
 
     @torch.no_grad()
     def step(self, cache: "MotionCache", tokens: torch.Tensor, start_pose: torch.Tensor, end_pose: torch.Tensor,
@@ -200,16 +202,15 @@ class MotionNet(nn.Module):
         index g * N + n of the valid slots), features [Q, d]) and pushes this step into the cache.
 
         Why this is exact: step s depends only on steps <= s. Per block it runs temporal attention
-        over the agent's own steps s - W .. s (the cached key/value rows of the block's input at the
-        last W steps, with the poses they ended at), map-agent attention to the road encodings'
-        key/value rows (projected once per scene) and agent-agent attention among the agents at
+        over the agent's own steps s - W .. s (the cached source rows of the block's input at the
+        last W steps, with the poses they ended at), map-agent attention to the road encodings
+        (normalised once per scene) and agent-agent attention among the agents at
         step s (rebuilt from the new poses).
         """
         cfg = self.cfg
         g, n = cache.num_groups, cache.num_slots
         dev = cache.agent_type.device
         w = int(cfg.temporal_window_tokens)
-        inner = cfg.num_heads * cfg.head_dim
         valid_flat = valid.reshape(-1).to(dev)
         rows, compact = valid_rows(valid_flat)  # (Q,) the valid slots; compact: each slot's query row
         nq = rows.numel()
@@ -225,15 +226,15 @@ class MotionNet(nn.Module):
         t_mask = torch.cat([torch.ones(nq, 1, dtype=torch.bool, device=dev), cache.valid[rows]], 1)  # (Q, W+1)
         dts = torch.arange(w + 1, device=dev, dtype=torch.float32)
         t_feat = torch.cat([relative_pose_features(q_pose[:, None], key_pose), dts.expand(nq, -1)[..., None]], -1)  # (Q, W+1, 4)
-        t_rpe = self.rpe_temporal(t_feat, valid=t_mask, repeated_dims=TEMPORAL_REPEATS)  # (Q, W+1, d)
-        t_index = torch.arange(nq * (w + 1), device=dev).view(nq, w + 1)  # rows of the per-block key table
+        t_rpe = normalise(self.rpe_temporal(t_feat, valid=t_mask, repeated_dims=TEMPORAL_REPEATS))  # (Q, W+1, d)
 
         # 2. map -> agent: the K nearest road tokens of each new pose (rows of the B*R road table)
         m_idx, m_mask = knn_within(end_flat.view(g, n, 3)[..., :2], cache.road_pose[..., :2], cfg.map_radius_m,
                                    cfg.map_neighbours, valid_flat.view(g, n), cache.road_valid)  # (G, N, Km)
         m_idx = (m_idx + (cache.scene_of_group * cache.road_pose.shape[1])[:, None, None]).reshape(g * n, -1)[rows]  # (Q, Km)
         m_idx, m_mask = trim_neighbours(m_idx, m_mask.reshape(g * n, -1)[rows])
-        m_rpe = self.rpe_map(relative_pose_features(q_pose[:, None], cache.road_pose_flat[m_idx]), valid=m_mask)  # (Q, Km, d)
+        m_rpe = normalise(self.rpe_map(relative_pose_features(q_pose[:, None], cache.road_pose_flat[m_idx]),
+                                       valid=m_mask))  # (Q, Km, d)
 
         # 3. agent -> agent at this step, rebuilt from the new poses
         a_idx, a_mask = knn_within(end_flat.view(g, n, 3)[..., :2], end_flat.view(g, n, 3)[..., :2], cfg.agent_radius_m,
@@ -241,24 +242,23 @@ class MotionNet(nn.Module):
         a_full = (a_idx + (torch.arange(g, device=dev) * n)[:, None, None]).reshape(g * n, -1)[rows]  # (Q, Ka) flat slots
         a_full, a_mask = trim_neighbours(a_full, a_mask.reshape(g * n, -1)[rows])
         a_rows = compact[a_full].clamp(min=0)  # (Q, Ka) query rows (masked slots point at row 0)
-        a_rpe = self.rpe_agent(relative_pose_features(q_pose[:, None], end_flat[a_full]), valid=a_mask, repeated_dims=PAIR_REPEATS)  # (Q, Ka, d)
+        a_rpe = normalise(self.rpe_agent(relative_pose_features(q_pose[:, None], end_flat[a_full]), valid=a_mask,
+                                         repeated_dims=PAIR_REPEATS))  # (Q, Ka, d)
 
-        new_kv = []
+        map_keys = neighbour_keys(cache.road_rows, m_idx, m_rpe)  # (Q, Km, 2d), shared by the blocks
+        new_rows = []
         for blk, (t_attn, m_attn, a_attn) in enumerate(zip(self.temporal_attn, self.map_attn, self.agent_attn)):
-            k_self, v_self = t_attn.project_source(h)  # (Q, inner)
-            new_kv.append((k_self, v_self))
-            k_tab = torch.cat([k_self[:, None], cache.k[blk][rows]], 1).reshape(-1, inner)  # (Q*(W+1), inner)
-            v_tab = torch.cat([v_self[:, None], cache.v[blk][rows]], 1).reshape(-1, inner)
-            h = t_attn(h, (k_tab, v_tab), t_index, t_mask, t_rpe)
-            h = m_attn(h, cache.road_kv[blk], m_idx, m_mask, m_rpe)
-            h = a_attn(h, h, a_rows, a_mask, a_rpe)
+            own = normalise(h)  # (Q, d) this step's row of the block's temporal input
+            new_rows.append(own)
+            t_keys = torch.cat([torch.cat([own[:, None], cache.src[blk][rows]], 1), t_rpe], -1)  # (Q, W+1, 2d)
+            h = t_attn(h, t_keys, t_mask)
+            h = m_attn(h, map_keys, m_mask)
+            h = a_attn(h, (a_rows, a_rpe), a_mask)
 
         # push this step into the cache (newest first; the oldest step falls out of the window)
-        for blk, (k_self, v_self) in enumerate(new_kv):
-            k_new = torch.zeros(g * n, 1, inner, device=dev).index_copy_(0, rows, k_self[:, None])
-            v_new = torch.zeros(g * n, 1, inner, device=dev).index_copy_(0, rows, v_self[:, None])
-            cache.k[blk] = torch.cat([k_new, cache.k[blk][:, : w - 1]], 1)
-            cache.v[blk] = torch.cat([v_new, cache.v[blk][:, : w - 1]], 1)
+        for blk, own in enumerate(new_rows):
+            src_new = torch.zeros(g * n, 1, own.shape[-1], device=dev).index_copy_(0, rows, own[:, None])
+            cache.src[blk] = torch.cat([src_new, cache.src[blk][:, : w - 1]], 1)
         cache.pose = torch.cat([end_flat[:, None], cache.pose[:, : w - 1]], 1)
         cache.valid = torch.cat([valid_flat[:, None], cache.valid[:, : w - 1]], 1)
         cache.steps_done += 1
@@ -272,10 +272,11 @@ class MotionCache:
     copies) of ``N`` agent slots: per-scene and per-agent constants, and the KV cache.
 
     The cache (newest step first, the oldest falls out of the window of ``W`` =
-    ``temporal_window_tokens`` steps): per block the projected key/value rows of the block's
-    temporal input, ``k``/``v`` [G * N, W, inner], and the pose each cached step ended at and its
-    validity, ``pose`` [G * N, W, 3], ``valid`` [G * N, W]. A step replaces these tensors (it never
-    writes into them), so :meth:`fork` shares them until either copy steps.
+    ``temporal_window_tokens`` steps): per block the rows of the block's temporal input as its
+    attention reads them (through :func:`~.layers.normalise`), ``src`` [G * N, W, d], and the
+    pose each cached step ended at and its validity, ``pose`` [G * N, W, 3], ``valid`` [G * N, W].
+    A step replaces these tensors (it never writes into them), so :meth:`fork` shares them until
+    either copy steps.
     """
 
     num_groups: int
@@ -287,9 +288,8 @@ class MotionCache:
     road_pose: torch.Tensor  # [G, R, 3] each group's scene's road pieces (for the neighbour search)
     road_valid: torch.Tensor  # [G, R]
     road_pose_flat: torch.Tensor  # [B * R, 3] rows of the road table
-    road_kv: list  # per block, (keys, values) [B * R, inner] of the map attention
-    k: list  # per block [G * N, W, inner]
-    v: list  # per block [G * N, W, inner]
+    road_rows: torch.Tensor  # [B * R, d] the road encodings through normalise (what every map attention reads)
+    src: list  # per block [G * N, W, d]: the block's temporal input through normalise at the last W steps
     pose: torch.Tensor  # [G * N, W, 3]
     valid: torch.Tensor  # [G * N, W] bool
     steps_done: int = 0
@@ -297,5 +297,5 @@ class MotionCache:
     def fork(self) -> "MotionCache":
         """An independent copy that shares every tensor (none is written in place)."""
         out = copy.copy(self)
-        out.k, out.v, out.road_kv = list(self.k), list(self.v), list(self.road_kv)
+        out.src = list(self.src)
         return out

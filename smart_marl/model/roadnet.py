@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from .layers import FourierEmbedding, NeighbourAttention, knn_within, mlp, relative_pose_features, trim_neighbours, valid_rows
+from .layers import FourierEmbedding, NeighbourAttention, knn_within, mlp, normalise, relative_pose_features, trim_neighbours, valid_rows
 
 NUM_ROAD_TYPES = 64  # ids given by the batch builder: feature type * 9 + subtype (see batch.py)
 NUM_LIGHT_STATES = 10  # SignalState 0..8 plus 9 = no light on this piece
@@ -51,9 +51,9 @@ class RoadNet(nn.Module):
         flat_idx = (idx + torch.arange(b, device=idx.device)[:, None, None] * r).view(b * r, -1)[rows]  # (V, K) flat rows
         flat_idx, nmask = trim_neighbours(flat_idx, nmask.view(b * r, -1)[rows])
         pose_flat = pose.reshape(-1, 3)
-        rpe = self.rpe(relative_pose_features(pose_flat[rows][:, None], pose_flat[flat_idx]), valid=nmask,
-                       repeated_dims=ROAD_REPEATS)  # (V, K, d)
+        rpe = normalise(self.rpe(relative_pose_features(pose_flat[rows][:, None], pose_flat[flat_idx]), valid=nmask,
+                                 repeated_dims=ROAD_REPEATS))  # (V, K, d), shared by the layers
         index = compact[flat_idx].clamp(min=0)  # (V, K) rows of x
         for layer in self.layers:
-            x = layer(x, x, index, nmask, rpe)
+            x = layer(x, (index, rpe), nmask)
         return x.new_zeros(b * r, x.shape[-1]).index_copy(0, rows, x).view(b, r, -1)
