@@ -15,7 +15,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from smart_marl.model import layers, motionnet, roadnet
+from smart_marl.model import layers, losses, motionnet, roadnet
 from smart_marl.model.batch import collate_scenes, scene_road, scene_tensors
 from smart_marl.model.losses import NextTokenLoss
 from smart_marl.model.smart import SMART, get_config
@@ -129,6 +129,38 @@ def test_fast_layers_give_the_reference_loss_and_gradients_on_real_scenes(womd_s
     for name, g in ref_grads.items():
         scale = float(g.abs().max()) + 1e-12
         assert float((fast_grads[name] - g).abs().max()) <= 1e-4 * scale + 1e-8, name
+
+
+def test_rows_after_the_last_target_are_skipped_without_changing_the_loss(womd_scenes, womd_vocab, one_torch_thread,
+                                                                          monkeypatch):
+    # the last 5 token steps of both real scenes: the final step has no next token, so no target; the
+    # second scene's targets are all dropped, so none of its rows can reach the loss
+    pieces = np.concatenate([road_pieces(sc.road_map).local for sc in womd_scenes])
+    rv = RoadVocabulary(points=pieces[np.random.default_rng(0).choice(len(pieces), 64)], tolerance_m=0.0, requested_size=64)
+    sizes = tuple(womd_vocab[t].size for t in range(3))
+    cfg = get_config("smart-1m", motion_vocab_sizes=sizes, road_vocab_size=64, dropout=0.0)
+    items = []
+    for i, scene in enumerate(womd_scenes):
+        arrays = scene_tensors(scene, womd_vocab, scene_road(scene, rv), noise_topk=5, rng=i, road_keep_radius_m=40.0)
+        for k in ("agent_tokens", "agent_valid", "agent_start_pose", "agent_pose", "target_tokens", "target_valid"):
+            arrays[k] = arrays[k][:, -5:]
+        items.append(arrays)
+    items[1]["target_valid"][:] = False
+    batch = collate_scenes(items)
+    needed = losses.rows_reaching_targets(batch)
+    assert not batch.target_valid[:, :, -1].any() and batch.agent_valid[0, :, -1].any()
+    assert not needed[:, :, -1].any() and not needed[1].any()  # the final step and the target-less scene are skipped
+    assert torch.equal(needed[0, :, :-1], batch.agent_valid[0, :, :-1])  # every other row is kept
+    torch.manual_seed(0)
+    model = SMART(cfg, [womd_vocab[t].contour for t in range(3)]).train()
+    skipped_losses, skipped_grads = _loss_and_grads(model, batch)
+    monkeypatch.setattr(losses, "rows_reaching_targets", lambda b: b.agent_valid)  # every valid row
+    all_losses, all_grads = _loss_and_grads(model, batch)
+    assert all_losses["vehicle_tokens"] > 50  # a real workload
+    for k in ("loss", "motion_loss", "road_loss"):
+        assert skipped_losses[k] == pytest.approx(all_losses[k], rel=1e-6, abs=1e-7), k
+    for name, g in all_grads.items():
+        assert _close(skipped_grads[name], g), name
 
 
 def _close(a: torch.Tensor, b: torch.Tensor) -> bool:

@@ -57,6 +57,18 @@ def speed_trend_weights(batch: SmartBatch, weights: tuple[float, float, float]) 
     return w
 
 
+def rows_reaching_targets(batch: SmartBatch) -> torch.Tensor:
+    """The valid (agent, step) rows [B, N, S] whose features can reach a next-token target: those at
+    steps up to the last step of their scene that has a target. A step's features depend only on its
+    own and earlier steps (temporal attention is causal) and on the other agents at the same step, so
+    the rows after the last target (the final token step of a log, whose next token is unknown) cannot
+    change the loss and are not computed."""
+    steps = torch.arange(batch.target_valid.shape[2], device=batch.target_valid.device)
+    has_target = batch.target_valid.any(1)  # (B, S)
+    last = torch.where(has_target, steps, torch.full_like(steps, -1)).max(1).values  # (B,) -1: no target at all
+    return batch.agent_valid & (steps[None, None, :] <= last[:, None, None])
+
+
 class NextTokenLoss(nn.Module):
     """Wraps :class:`SMART` so that one ``forward`` gives the losses (what DDP wraps)."""
 
@@ -74,7 +86,8 @@ class NextTokenLoss(nn.Module):
         correct predictions), ``road_tokens``, ``road_top1``. With ``trend_weights`` each motion
         token's cross-entropy is multiplied by its agent's :func:`speed_trend_weights` (the
         normaliser stays the token count)."""
-        feats, road_x = self.model(batch, road_masked=batch.road_masked)  # (B, N, S, d), (B, R, d)
+        feats, road_x = self.model(batch, road_masked=batch.road_masked,
+                                   agent_valid=rows_reaching_targets(batch))  # (B, N, S, d), (B, R, d)
         agent_w = speed_trend_weights(batch, self.trend_weights) if self.trend_weights is not None else None
         d = feats.shape[-1]
         out: dict[str, torch.Tensor] = {}

@@ -148,11 +148,15 @@ class SMART(nn.Module):
         nbrs = self.motion_net.neighbourhoods(end_pose, valid, road_pose, road_valid)
         return self.motion_net(x, road_x, nbrs)
 
-    def forward(self, batch, road_masked: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """batch (SmartBatch) -> (agent features [B, N, S, d], road encodings [B, R, d])."""
+    def forward(self, batch, road_masked: torch.Tensor | None = None,
+                agent_valid: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """batch (SmartBatch) -> (agent features [B, N, S, d], road encodings [B, R, d]). ``agent_valid``
+        [B, N, S]: the (agent, step) rows to run, when not all of ``batch.agent_valid`` (the others are
+        left out of every attention and get zero features)."""
         road_x = self.encode_road(batch, road_masked)
+        valid = batch.agent_valid if agent_valid is None else agent_valid
         return self.agent_features(batch.agent_tokens, batch.agent_type, batch.agent_shape, batch.agent_start_pose,
-                                   batch.agent_pose, batch.agent_valid, road_x, batch.road_pose, batch.road_valid), road_x
+                                   batch.agent_pose, valid, road_x, batch.road_pose, batch.road_valid), road_x
 
     def motion_logits(self, features: torch.Tensor, agent_type: torch.Tensor) -> list[torch.Tensor]:
         """Logits of every (agent, step) under each type's head: features [..., d] -> per type
