@@ -287,3 +287,24 @@ def test_knn_grouped_finds_what_knn_within_finds_on_the_padded_layout():
     group, slot = query_valid.nonzero(as_tuple=True)
     g_idx, g_mask = layers.knn_grouped(queries[group, slot], group, keys, 20.0, 5, key_valid)
     assert torch.equal(g_mask, mask[group, slot]) and torch.equal(g_idx[g_mask], idx[group, slot][g_mask])
+
+
+def test_dropout_masks_drop_p_of_the_entries_and_keep_the_mean():
+    torch.manual_seed(0)
+    x = torch.ones(999, 1001)  # an odd count: the last 64-bit draw gives one entry
+    for p in (0.1, 0.5):
+        mask = layers.dropout_mask(x, p)
+        dropped = float((mask == 0).float().mean())
+        assert abs(dropped - p) < 0.003, (p, dropped)  # 1e6 entries: the standard error is under 0.0005
+        assert torch.allclose(mask[mask != 0], torch.tensor(1.0 / (1.0 - p)))
+        assert abs(float(mask.mean()) - 1.0) < 0.006
+    # neighbouring entries come from the two halves of one draw: they must not be correlated
+    mask = layers.dropout_mask(x, 0.5).flatten()[:-1].view(-1, 2) > 0  # entries 2i and 2i + 1 share a draw
+    both = float((mask[:, 0] & mask[:, 1]).float().mean())
+    assert abs(both - 0.25) < 0.003
+    drop = layers.FastDropout(0.3)
+    y = torch.randn(50, 40, requires_grad=True)
+    out = drop(y)
+    out.sum().backward()
+    assert torch.equal(y.grad, (out.detach() != 0).float() / 0.7 * (y.detach() != 0))  # the gradient is the mask
+    assert drop.eval()(y) is y
