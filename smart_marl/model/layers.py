@@ -159,13 +159,11 @@ class _FourierTrunk(torch.autograd.Function):
             g_lnw += gw
             g_lnb += gb
             grads["b1"].append(gz.sum(0))
+            grads["w1"].append(feat.t() @ gz)
             # z = cos(a) W_c + sin(a) W_s + ..., a = 2 pi x f, so dL/df_j = 2 pi sum_h (W_s[j, h] A[j, h] - W_c[j, h] B[j, h])
-            # with A, B = cos(a)^T (x gz), sin(a)^T (x gz): the same rows as the weight gradient feat^T gz, so
-            # both come from one product, feat^T [gz, x gz] (the gradient of the (U, 2F) features would be a
-            # (U, H) x (H, 2F) product and two more passes)
-            both = feat.t() @ torch.cat([gz, gz * col[:, None]], 1)  # (2F+1, 2H)
-            grads["w1"].append(both[:, :hdim])
-            ab = both[: 2 * nf, hdim:]  # (2F, H) = [A; B]
+            # with A, B = (x cos(a))^T gz, (x sin(a))^T gz: one product as tall as the weight gradient's, where
+            # the gradient of the (U, 2F) features would be a (U, H) x (H, 2F) product and two more passes
+            ab = (feat[:, : 2 * nf] * col[:, None]).t() @ gz  # (2F, H) = [A; B]
             w_c, w_s = w1[d, :nf], w1[d, nf:2 * nf]
             grads["freqs"].append((w_s * ab[:nf] - w_c * ab[nf:]).sum(-1) * (2 * math.pi))
         ctx.saved = None
