@@ -67,7 +67,7 @@ def reference_project_source(self, src):
     return self.to_k(s), self.to_v(s)
 
 
-def reference_road_forward(self, points, pose, road_type, light, valid, masked=None):
+def reference_road_forward(self, points, pose, road_type, light, valid, masked=None, needed=None):  # every piece
     b, r = valid.shape
     x = self.piece_mlp(points.flatten(-2))
     if masked is not None:
@@ -92,22 +92,26 @@ def _loss_and_grads(model: SMART, batch) -> tuple[dict[str, float], dict[str, to
             {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None})
 
 
+def _womd_items(womd_scenes, womd_vocab, steps: slice, road_keep_radius_m: float = 40.0) -> tuple[list[dict], dict]:
+    """Training items of both real scenes (83 and 257 tracks, so that a batch of them pads agents and
+    road pieces) over the token ``steps``, and the config fields that fit them (vocabulary sizes)."""
+    pieces = np.concatenate([road_pieces(sc.road_map).local for sc in womd_scenes])
+    rv = RoadVocabulary(points=pieces[np.random.default_rng(0).choice(len(pieces), 64)], tolerance_m=0.0, requested_size=64)
+    items = []
+    for i, scene in enumerate(womd_scenes):
+        arrays = scene_tensors(scene, womd_vocab, scene_road(scene, rv), noise_topk=5, rng=i, road_keep_radius_m=road_keep_radius_m)
+        for k in ("agent_tokens", "agent_valid", "agent_start_pose", "agent_pose", "target_tokens", "target_valid"):
+            arrays[k] = arrays[k][:, steps]
+        items.append(arrays)
+    return items, dict(motion_vocab_sizes=tuple(womd_vocab[t].size for t in range(3)), road_vocab_size=64, dropout=0.0)
+
+
 @pytest.mark.parametrize("size", ["smart-1m", "smart-7m"])
 def test_fast_layers_give_the_reference_loss_and_gradients_on_real_scenes(womd_scenes, womd_vocab, size, one_torch_thread,
                                                                           monkeypatch):
-    # both real scenes (83 and 257 tracks) in one batch, so that agents and road pieces are padded; the
-    # first 6 token steps keep the test fast
-    pieces = np.concatenate([road_pieces(sc.road_map).local for sc in womd_scenes])
-    rv = RoadVocabulary(points=pieces[np.random.default_rng(0).choice(len(pieces), 64)], tolerance_m=0.0, requested_size=64)
-    sizes = tuple(womd_vocab[t].size for t in range(3))
-    cfg = get_config(size, motion_vocab_sizes=sizes, road_vocab_size=64, dropout=0.0,
-                     num_agent_blocks=1 if size == "smart-7m" else 2)
-    items = []
-    for i, scene in enumerate(womd_scenes):
-        arrays = scene_tensors(scene, womd_vocab, scene_road(scene, rv), noise_topk=5, rng=i, road_keep_radius_m=40.0)
-        for k in ("agent_tokens", "agent_valid", "agent_start_pose", "agent_pose", "target_tokens", "target_valid"):
-            arrays[k] = arrays[k][:, 4:10]
-        items.append(arrays)
+    # the first 6 token steps keep the test fast
+    items, fields = _womd_items(womd_scenes, womd_vocab, slice(4, 10))
+    cfg = get_config(size, **fields, num_agent_blocks=1 if size == "smart-7m" else 2)
     batch = collate_scenes(items)
     assert not batch.road_valid.all() and not batch.agent_valid.all()  # padding that the fast paths skip
     torch.manual_seed(0)
@@ -135,16 +139,8 @@ def test_rows_after_the_last_target_are_skipped_without_changing_the_loss(womd_s
                                                                           monkeypatch):
     # the last 5 token steps of both real scenes: the final step has no next token, so no target; the
     # second scene's targets are all dropped, so none of its rows can reach the loss
-    pieces = np.concatenate([road_pieces(sc.road_map).local for sc in womd_scenes])
-    rv = RoadVocabulary(points=pieces[np.random.default_rng(0).choice(len(pieces), 64)], tolerance_m=0.0, requested_size=64)
-    sizes = tuple(womd_vocab[t].size for t in range(3))
-    cfg = get_config("smart-1m", motion_vocab_sizes=sizes, road_vocab_size=64, dropout=0.0)
-    items = []
-    for i, scene in enumerate(womd_scenes):
-        arrays = scene_tensors(scene, womd_vocab, scene_road(scene, rv), noise_topk=5, rng=i, road_keep_radius_m=40.0)
-        for k in ("agent_tokens", "agent_valid", "agent_start_pose", "agent_pose", "target_tokens", "target_valid"):
-            arrays[k] = arrays[k][:, -5:]
-        items.append(arrays)
+    items, fields = _womd_items(womd_scenes, womd_vocab, slice(-5, None))
+    cfg = get_config("smart-1m", **fields)
     items[1]["target_valid"][:] = False
     batch = collate_scenes(items)
     needed = losses.rows_reaching_targets(batch)
@@ -166,6 +162,39 @@ def test_rows_after_the_last_target_are_skipped_without_changing_the_loss(womd_s
 def _close(a: torch.Tensor, b: torch.Tensor) -> bool:
     """Equal within float32 rounding, relative to the tensor's largest entry."""
     return float((a - b).abs().max()) <= 1e-5 * float(b.abs().max()) + 1e-7
+
+
+def test_road_pieces_that_nothing_reads_are_skipped_without_changing_the_loss(womd_scenes, womd_vocab, one_torch_thread,
+                                                                            monkeypatch):
+    # three road layers, so that each layer's pieces are the next layer's plus their neighbours
+    items, fields = _womd_items(womd_scenes, womd_vocab, slice(4, 8), road_keep_radius_m=60.0)
+    cfg = get_config("smart-1m", **fields, num_road_layers=3)
+    batch = collate_scenes(items)
+    torch.manual_seed(0)
+    model = SMART(cfg, [womd_vocab[t].contour for t in range(3)]).train()
+    layer_queries = []
+    road_forward, layer_forward = roadnet.RoadNet.forward, layers.NeighbourAttention.forward
+
+    def spy(self, x_q, keys, mask, source=None):
+        if isinstance(self, layers.NeighbourAttention) and self in list(model.road_net.layers):
+            layer_queries.append(x_q.shape[0])
+        return layer_forward(self, x_q, keys, mask, source)
+
+    monkeypatch.setattr(layers.NeighbourAttention, "forward", spy)
+    skipped_losses, skipped_grads = _loss_and_grads(model, batch)
+    computed = list(layer_queries)
+    layer_queries.clear()
+    monkeypatch.setattr(roadnet.RoadNet, "forward", lambda self, *a, needed=None, **k: road_forward(self, *a, **k))
+    all_losses, all_grads = _loss_and_grads(model, batch)
+    valid = int(batch.road_valid.sum())
+    assert layer_queries == [valid] * 3  # the reference computes every piece in every layer
+    assert computed[2] < computed[1] <= computed[0] < valid  # each layer computes fewer pieces than the one before
+    assert all_losses["road_tokens"] > 20 and all_losses["vehicle_tokens"] > 50  # a real workload
+    for k in ("loss", "motion_loss", "road_loss"):
+        assert skipped_losses[k] == pytest.approx(all_losses[k], rel=1e-6, abs=1e-7), k
+    assert set(skipped_grads) == set(all_grads)
+    for name, g in all_grads.items():
+        assert _close(skipped_grads[name], g), name
 
 
 def _fourier_grads(emb, x, **kwargs):

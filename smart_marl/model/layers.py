@@ -386,8 +386,9 @@ class NeighbourAttention(nn.Module):
     """Pre-norm multi-head attention of each query over its gathered neighbours, with RPE added to
     keys and values, a gated residual (SMART/QCNet ``AttentionLayer``) and a feed-forward block.
 
-    ``forward(x_q [Q, d], keys, mask [Q, K])``: ``keys`` is either a pair (index [Q, K], rpe [Q, K, d])
-    for self-attention among the queries' own rows (index points into x_q), or the key-side inputs
+    ``forward(x_q [Q, d], keys, mask [Q, K], source=None)``: ``keys`` is either a pair (index [Q, K], rpe
+    [Q, K, d]) for self-attention among rows of one table (index points into ``source`` [M, d], by default
+    x_q itself; a caller that needs only some rows' outputs passes those rows as x_q), or the key-side inputs
     [Q, K, 2d] of :func:`neighbour_keys` (source rows and RPE through :func:`normalise`, e.g. the road
     encodings and map RPE that every map attention shares, or a KV cache's rows). ``rpe`` always
     comes through :func:`normalise`. ``bipartite`` queries and keys come from different sets (map ->
@@ -424,7 +425,7 @@ class NeighbourAttention(nn.Module):
         self.ff_drop = FastDropout(dropout)
 
     def forward(self, x_q: torch.Tensor, keys: torch.Tensor | tuple[torch.Tensor, torch.Tensor],
-                mask: torch.Tensor) -> torch.Tensor:
+                mask: torch.Tensor, source: torch.Tensor | None = None) -> torch.Tensor:
         n_q = normalise(x_q)  # (Q, d)
         q_in = torch.addcmul(self.norm_q.bias, n_q, self.norm_q.weight)  # norm_q(x_q)
         h, dh = self.num_heads, self.head_dim
@@ -435,9 +436,10 @@ class NeighbourAttention(nn.Module):
         w_k = torch.cat([self.to_k.weight * g_src, self.to_k_r.weight * g_rpe], 1).view(h, dh, 2 * d)
         a = _Headwise.apply(q, w_k)  # (Q, h, 2d): the key maps moved onto the query
         drop_p = self.attn_drop.p if self.training else 0.0
-        if isinstance(keys, tuple):  # the queries' own rows, gathered, and the RPE: two parts
+        if isinstance(keys, tuple):  # the source table's rows, gathered, and the RPE: two parts
             index, rpe = keys
-            rows = n_q.index_select(0, index.reshape(-1)).view(*index.shape, d)  # (Q, K, d)
+            n_src = n_q if source is None else normalise(source)
+            rows = n_src.index_select(0, index.reshape(-1)).view(*index.shape, d)  # (Q, K, d)
             o_src, o_rpe, attn_sum = _NeighbourAttention.apply(mask, drop_p, a[..., :d], rows, a[..., d:], rpe)
             out = torch.cat([o_src, o_rpe], -1)  # (Q, h, 2d)
         else:

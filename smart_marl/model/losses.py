@@ -69,6 +69,17 @@ def rows_reaching_targets(batch: SmartBatch) -> torch.Tensor:
     return batch.agent_valid & (steps[None, None, :] <= last[:, None, None])
 
 
+def road_target_pairs(batch: SmartBatch) -> tuple[torch.Tensor, torch.Tensor]:
+    """The road next-token task's pairs: successor pairs (piece i -> piece j) along the lanes whose j is
+    masked (its content hidden from RoadNet) and whose i is not; j's token is predicted from i's
+    encoding. Returns (i, j) [M] as rows of the flat B*R road table."""
+    b, r = batch.road_valid.shape
+    flat = batch.road_pairs + (torch.arange(b, device=batch.road_pairs.device) * r)[:, None, None]  # (B, E, 2)
+    masked = batch.road_masked.reshape(-1)
+    ok = batch.road_pair_valid & masked[flat[..., 1]] & ~masked[flat[..., 0]]  # (B, E)
+    return flat[..., 0][ok], flat[..., 1][ok]
+
+
 class NextTokenLoss(nn.Module):
     """Wraps :class:`SMART` so that one ``forward`` gives the losses (what DDP wraps)."""
 
@@ -86,8 +97,10 @@ class NextTokenLoss(nn.Module):
         correct predictions), ``road_tokens``, ``road_top1``. With ``trend_weights`` each motion
         token's cross-entropy is multiplied by its agent's :func:`speed_trend_weights` (the
         normaliser stays the token count)."""
-        feats, road_x = self.model(batch, road_masked=batch.road_masked,
-                                   agent_valid=rows_reaching_targets(batch))  # (B, N, S, d), (B, R, d)
+        src, dst = road_target_pairs(batch)  # rows of the B*R road table
+        road_read = torch.zeros(batch.road_valid.numel(), dtype=torch.bool, device=src.device).index_fill_(0, src, True)
+        feats, road_x = self.model(batch, road_masked=batch.road_masked, agent_valid=rows_reaching_targets(batch),
+                                   road_read=road_read.view_as(batch.road_valid))  # (B, N, S, d), (B, R, d)
         agent_w = speed_trend_weights(batch, self.trend_weights) if self.trend_weights is not None else None
         d = feats.shape[-1]
         out: dict[str, torch.Tensor] = {}
@@ -106,13 +119,6 @@ class NextTokenLoss(nn.Module):
                 motion_sum = motion_sum + (ce * agent_w[:, :, None].expand_as(sel)[sel]).sum()
             n_motion = n_motion + target.numel()
             out.update(_accuracy_counts(TYPE_NAMES[t], logits.detach(), target))
-        # road next token: pairs (i -> j) with j masked, i not masked
-        b, e = batch.road_pairs.shape[:2]
-        r = road_x.shape[1]
-        flat = batch.road_pairs + (torch.arange(b, device=road_x.device) * r)[:, None, None]  # (B, E, 2) rows of (B*R)
-        masked = batch.road_masked.reshape(-1)
-        ok = batch.road_pair_valid & masked[flat[..., 1]] & ~masked[flat[..., 0]]  # (B, E)
-        src, dst = flat[..., 0][ok], flat[..., 1][ok]
         road_logits = self.model.road_head(road_x.reshape(-1, d)[src]).float()  # (M_r, V_road)
         road_target = batch.road_token.reshape(-1)[dst]
         road_sum = F.cross_entropy(road_logits, road_target, reduction="sum", label_smoothing=self.label_smoothing)

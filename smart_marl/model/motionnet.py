@@ -86,10 +86,14 @@ class MotionNet(nn.Module):
         feat = self.motion_feat(torch.stack([speed, angle], -1), categorical=categorical)  # (..., d)
         return self.fusion(torch.cat([token_emb, feat], -1))
 
-    def embed_agents(self, tokens, agent_type, agent_shape, start_pose, end_pose, contours) -> torch.Tensor:
-        """The fused input features [B, N, S, d] of every (agent, step)."""
-        cat = self.agent_categorical(agent_type, agent_shape)[:, :, None].expand(-1, -1, tokens.shape[2], -1)  # (B, N, S, d)
-        return self.fuse(self.embed_tokens(tokens, agent_type, contours), start_pose, end_pose, cat)
+    def embed_agents(self, tokens, agent_type, agent_shape, start_pose, end_pose, contours, rows: torch.Tensor) -> torch.Tensor:
+        """The fused input features [Q, d] of the (agent, step) rows ``rows`` [Q] (full rows
+        ((b * N + n) * S + s) of tokens [B, N, S], as :meth:`neighbourhoods` gives them)."""
+        s = tokens.shape[2]
+        agent = rows // s  # (Q,) rows of the B*N agent table
+        cat = self.agent_categorical(agent_type, agent_shape).reshape(-1, self.cfg.hidden_dim)[agent]  # (Q, d)
+        token_emb = self.token_table(contours)[agent_type.reshape(-1)[agent], tokens.reshape(-1)[rows]]  # (Q, d)
+        return self.fuse(token_emb, start_pose.reshape(-1, 3)[rows], end_pose.reshape(-1, 3)[rows], cat)
 
     # ----------------------------------------------------------------------- neighbourhoods
     def neighbourhoods(self, pose: torch.Tensor, valid: torch.Tensor, road_pose: torch.Tensor, road_valid: torch.Tensor):
@@ -144,19 +148,19 @@ class MotionNet(nn.Module):
         return rows, temporal, mapa, agents
 
     # ----------------------------------------------------------------------------- forward
-    def forward(self, x: torch.Tensor, road_x: torch.Tensor, nbrs) -> torch.Tensor:
-        """x [B, N, S, d] fused inputs, road_x [B, R, d] (RoadNet), nbrs from :meth:`neighbourhoods`
-        -> features [B, N, S, d] (zeros on invalid (agent, step) rows)."""
-        shape = x.shape
+    def forward(self, x: torch.Tensor, road_x: torch.Tensor, nbrs, grid: tuple[int, int, int]) -> torch.Tensor:
+        """x [Q, d] fused inputs of the query rows (:meth:`embed_agents`), road_x [B, R, d] (RoadNet),
+        nbrs from :meth:`neighbourhoods` of the (B, N, S) ``grid`` -> features [B, N, S, d] (zeros on the
+        rows that are not queries)."""
         rows, (t_idx, t_mask, t_rpe), (m_idx, m_mask, m_rpe), (a_idx, a_mask, a_rpe) = nbrs
-        h = x.reshape(-1, shape[-1])[rows]  # (Q, d) the valid (agent, step) rows
+        h = x  # (Q, d)
         map_keys = neighbour_keys(normalise(road_x.reshape(-1, road_x.shape[-1])), m_idx, m_rpe)  # (Q, Km, 2d)
         for t_attn, m_attn, a_attn in zip(self.temporal_attn, self.map_attn, self.agent_attn):
             h = t_attn(h, (t_idx, t_rpe), t_mask)
             h = m_attn(h, map_keys, m_mask)  # the same key-side inputs for every block
             h = a_attn(h, (a_idx, a_rpe), a_mask)
-        out = h.new_zeros(shape[0] * shape[1] * shape[2], shape[3])
-        return out.index_copy(0, rows, h).view(shape)
+        out = h.new_zeros(grid[0] * grid[1] * grid[2], h.shape[-1])
+        return out.index_copy(0, rows, h).view(*grid, h.shape[-1])
 
     # ------------------------------------------------------------------ the cached step (inference)
     @torch.no_grad()

@@ -37,10 +37,16 @@ class RoadNet(nn.Module):
         )
 
     def forward(self, points: torch.Tensor, pose: torch.Tensor, road_type: torch.Tensor, light: torch.Tensor,
-                valid: torch.Tensor, masked: torch.Tensor | None = None) -> torch.Tensor:
+                valid: torch.Tensor, masked: torch.Tensor | None = None, needed: torch.Tensor | None = None) -> torch.Tensor:
         """points [B, R, P, 2], pose [B, R, 3], road_type [B, R], light [B, R], valid [B, R],
         masked [B, R] (pieces whose content is hidden) -> road encodings [B, R, d] (zeros on padded
-        pieces: only the valid pieces are encoded, and no piece attends to a padded one)."""
+        pieces: only the valid pieces are encoded, and no piece attends to a padded one).
+
+        ``needed`` [B, R] (bool): the pieces whose encodings the caller reads (training: the pieces the
+        agents attend to and those the road loss predicts from). Then each layer runs only for the pieces
+        that a later layer or the caller reads, every other piece's encoding is zero, and the needed ones
+        are what they would be with every piece computed: a piece's encoding depends only on its
+        neighbours' in the layer before."""
         b, r = valid.shape
         rows, compact = valid_rows(valid)  # (V,) the valid pieces, rows of the flat B*R table
         x = self.piece_mlp(points.reshape(b * r, -1)[rows])  # (V, d)
@@ -49,11 +55,39 @@ class RoadNet(nn.Module):
         x = x + self.type_emb(road_type.reshape(-1)[rows]) + self.light_emb(light.reshape(-1)[rows])
         idx, nmask = knn_within(pose[..., :2], pose[..., :2], self.cfg.road_radius_m, self.cfg.road_neighbours, valid, valid)  # (B, R, K)
         flat_idx = (idx + torch.arange(b, device=idx.device)[:, None, None] * r).view(b * r, -1)[rows]  # (V, K) flat rows
-        flat_idx, nmask = trim_neighbours(flat_idx, nmask.view(b * r, -1)[rows])
-        pose_flat = pose.reshape(-1, 3)
-        rpe = normalise(self.rpe(relative_pose_features(pose_flat[rows][:, None], pose_flat[flat_idx]), valid=nmask,
-                                 repeated_dims=ROAD_REPEATS))  # (V, K, d), shared by the layers
+        nmask = nmask.view(b * r, -1)[rows]
         index = compact[flat_idx].clamp(min=0)  # (V, K) rows of x
-        for layer in self.layers:
-            x = layer(x, (index, rpe), nmask)
-        return x.new_zeros(b * r, x.shape[-1]).index_copy(0, rows, x).view(b, r, -1)
+        queries = self._layer_queries(index, nmask, None if needed is None else needed.reshape(-1)[rows])
+        first = queries[0]  # the most queries of any layer (each layer's are among the layer before's)
+        q_idx, q_mask = trim_neighbours(flat_idx if first is None else flat_idx[first], nmask if first is None else nmask[first])
+        pose_flat = pose.reshape(-1, 3)
+        q_pose = pose_flat[rows] if first is None else pose_flat[rows[first]]
+        rpe = normalise(self.rpe(relative_pose_features(q_pose[:, None], pose_flat[q_idx]), valid=q_mask,
+                                 repeated_dims=ROAD_REPEATS))  # (V', K, d), shared by the layers
+        q_index = compact[q_idx].clamp(min=0)  # (V', K) rows of x
+        if first is None:  # every piece in every layer
+            for layer in self.layers:
+                x = layer(x, (q_index, rpe), q_mask)
+            return x.new_zeros(b * r, x.shape[-1]).index_copy(0, rows, x).view(b, r, -1)
+        place = torch.full((x.shape[0],), -1, dtype=torch.long, device=x.device)
+        place[first] = torch.arange(first.numel(), device=x.device)  # each piece's row in the RPE
+        for layer, sel in zip(self.layers, queries):
+            i = place[sel]
+            l_index, l_mask = trim_neighbours(q_index[i], q_mask[i])
+            x = x.index_copy(0, sel, layer(x[sel], (l_index, rpe[i, : l_index.shape[1]]), l_mask, source=x))
+        out_rows = queries[-1]
+        return x.new_zeros(b * r, x.shape[-1]).index_copy(0, rows[out_rows], x[out_rows]).view(b, r, -1)
+
+    def _layer_queries(self, index: torch.Tensor, mask: torch.Tensor, needed: torch.Tensor | None) -> list:
+        """The pieces (rows of the valid-piece table) each layer must compute, first layer first: the
+        last layer's are ``needed`` [V] (bool), each earlier layer's add the neighbours that the next
+        reads. None for every layer when ``needed`` is None (all pieces)."""
+        if needed is None:
+            return [None] * len(self.layers)
+        need = needed.clone()
+        out = []
+        for _ in self.layers:
+            out.append(need.nonzero().squeeze(1))
+            need = need.clone()
+            need[index[out[-1]][mask[out[-1]]]] = True
+        return out[::-1]

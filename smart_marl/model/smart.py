@@ -140,23 +140,35 @@ class SMART(nn.Module):
 
     def agent_features(self, tokens: torch.Tensor, agent_type: torch.Tensor, agent_shape: torch.Tensor, start_pose: torch.Tensor,
                        end_pose: torch.Tensor, valid: torch.Tensor, road_x: torch.Tensor, road_pose: torch.Tensor,
-                       road_valid: torch.Tensor) -> torch.Tensor:
+                       road_valid: torch.Tensor, nbrs=None) -> torch.Tensor:
         """MotionNet over every step: tokens [B, N, S], agent_type [B, N], agent_shape [B, N, 3],
         start_pose / end_pose [B, N, S, 3], valid [B, N, S], road encodings road_x [B, R, d] with
-        road_pose [B, R, 3], road_valid [B, R] -> features [B, N, S, d]."""
-        x = self.motion_net.embed_agents(tokens, agent_type, agent_shape, start_pose, end_pose, self.motion_contours)
-        nbrs = self.motion_net.neighbourhoods(end_pose, valid, road_pose, road_valid)
-        return self.motion_net(x, road_x, nbrs)
+        road_pose [B, R, 3], road_valid [B, R] -> features [B, N, S, d]. ``nbrs``: the neighbourhoods
+        of ``end_pose`` and ``valid`` when the caller has them (:meth:`MotionNet.neighbourhoods`)."""
+        if nbrs is None:
+            nbrs = self.motion_net.neighbourhoods(end_pose, valid, road_pose, road_valid)
+        x = self.motion_net.embed_agents(tokens, agent_type, agent_shape, start_pose, end_pose, self.motion_contours, nbrs[0])
+        return self.motion_net(x, road_x, nbrs, tuple(tokens.shape))
 
-    def forward(self, batch, road_masked: torch.Tensor | None = None,
-                agent_valid: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, batch, road_masked: torch.Tensor | None = None, agent_valid: torch.Tensor | None = None,
+                road_read: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """batch (SmartBatch) -> (agent features [B, N, S, d], road encodings [B, R, d]). ``agent_valid``
         [B, N, S]: the (agent, step) rows to run, when not all of ``batch.agent_valid`` (the others are
-        left out of every attention and get zero features)."""
-        road_x = self.encode_road(batch, road_masked)
+        left out of every attention and get zero features). ``road_read`` [B, R] (bool): the road pieces
+        whose encodings the caller reads (e.g. the road loss's); when given, RoadNet computes only those
+        and the pieces the agents attend to, and every other piece's encoding is zero."""
         valid = batch.agent_valid if agent_valid is None else agent_valid
+        nbrs = self.motion_net.neighbourhoods(batch.agent_pose, valid, batch.road_pose, batch.road_valid)
+        needed = None
+        if road_read is not None:
+            m_idx, m_mask = nbrs[2][0], nbrs[2][1]  # map neighbours: rows of the B*R road table
+            needed = road_read.reshape(-1).clone()
+            needed[m_idx[m_mask]] = True
+            needed = needed.view_as(road_read)
+        road_x = self.road_net(batch.road_points, batch.road_pose, batch.road_type, batch.road_light, batch.road_valid,
+                               road_masked, needed=needed)
         return self.agent_features(batch.agent_tokens, batch.agent_type, batch.agent_shape, batch.agent_start_pose,
-                                   batch.agent_pose, valid, road_x, batch.road_pose, batch.road_valid), road_x
+                                   batch.agent_pose, valid, road_x, batch.road_pose, batch.road_valid, nbrs), road_x
 
     def motion_logits(self, features: torch.Tensor, agent_type: torch.Tensor) -> list[torch.Tensor]:
         """Logits of every (agent, step) under each type's head: features [..., d] -> per type
