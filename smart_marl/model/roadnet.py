@@ -58,25 +58,24 @@ class RoadNet(nn.Module):
         nmask = nmask.view(b * r, -1)[rows]
         index = compact[flat_idx].clamp(min=0)  # (V, K) rows of x
         queries = self._layer_queries(index, nmask, None if needed is None else needed.reshape(-1)[rows])
-        first = queries[0]  # the most queries of any layer (each layer's are among the layer before's)
-        q_idx, q_mask = trim_neighbours(flat_idx if first is None else flat_idx[first], nmask if first is None else nmask[first])
+        # the RPE of the first layer's pieces: the most of any layer (each layer's are among the layer before's)
+        first = slice(None) if queries[0] is None else queries[0]
+        q_idx, q_mask = trim_neighbours(flat_idx[first], nmask[first])
         pose_flat = pose.reshape(-1, 3)
-        q_pose = pose_flat[rows] if first is None else pose_flat[rows[first]]
-        rpe = normalise(self.rpe(relative_pose_features(q_pose[:, None], pose_flat[q_idx]), valid=q_mask,
+        rpe = normalise(self.rpe(relative_pose_features(pose_flat[rows[first]][:, None], pose_flat[q_idx]), valid=q_mask,
                                  repeated_dims=ROAD_REPEATS))  # (V', K, d), shared by the layers
         q_index = compact[q_idx].clamp(min=0)  # (V', K) rows of x
-        if first is None:  # every piece in every layer
-            for layer in self.layers:
-                x = layer(x, (q_index, rpe), q_mask)
-            return x.new_zeros(b * r, x.shape[-1]).index_copy(0, rows, x).view(b, r, -1)
         place = torch.full((x.shape[0],), -1, dtype=torch.long, device=x.device)
-        place[first] = torch.arange(first.numel(), device=x.device)  # each piece's row in the RPE
+        place[first] = torch.arange(q_idx.shape[0], device=x.device)  # each piece's row in the RPE
         for layer, sel in zip(self.layers, queries):
+            if sel is None:  # every piece
+                x = layer(x, (q_index, rpe), q_mask)
+                continue
             i = place[sel]
             l_index, l_mask = trim_neighbours(q_index[i], q_mask[i])
             x = x.index_copy(0, sel, layer(x[sel], (l_index, rpe[i, : l_index.shape[1]]), l_mask, source=x))
-        out_rows = queries[-1]
-        return x.new_zeros(b * r, x.shape[-1]).index_copy(0, rows[out_rows], x[out_rows]).view(b, r, -1)
+        last = slice(None) if queries[-1] is None else queries[-1]
+        return x.new_zeros(b * r, x.shape[-1]).index_copy(0, rows[last], x[last]).view(b, r, -1)
 
     def _layer_queries(self, index: torch.Tensor, mask: torch.Tensor, needed: torch.Tensor | None) -> list:
         """The pieces (rows of the valid-piece table) each layer must compute, first layer first: the
