@@ -64,12 +64,6 @@ class MotionNet(nn.Module):
         vmax = max(t.shape[0] for t in tables)
         return torch.stack([nn.functional.pad(t, (0, 0, 0, vmax - t.shape[0])) for t in tables])  # (3, Vmax, d)
 
-    def embed_tokens(self, tokens: torch.Tensor, agent_type: torch.Tensor, contours: list[torch.Tensor]) -> torch.Tensor:
-        """tokens [B, N, S] (ids in the agent's type vocabulary), agent_type [B, N] (0..2),
-        contours: per type [V_t, 6, 4, 2] -> [B, N, S, d]."""
-        table = self.token_table(contours)  # (3, Vmax, d)
-        return table[agent_type[:, :, None].expand_as(tokens), tokens]  # (B, N, S, d)
-
     def agent_categorical(self, agent_type: torch.Tensor, agent_shape: torch.Tensor) -> torch.Tensor:
         """The per-agent part of the motion features: type and shape embeddings, [..., d]."""
         return self.type_emb(agent_type) + self.shape_mlp(agent_shape)

@@ -83,10 +83,9 @@ class RoadNet(nn.Module):
         reads. None for every layer when ``needed`` is None (all pieces)."""
         if needed is None:
             return [None] * len(self.layers)
-        need = needed.clone()
-        out = []
-        for _ in self.layers:
-            out.append(need.nonzero().squeeze(1))
+        need, out = needed, [needed.nonzero().squeeze(1)]
+        for _ in self.layers[1:]:
             need = need.clone()
             need[index[out[-1]][mask[out[-1]]]] = True
+            out.append(need.nonzero().squeeze(1))
         return out[::-1]

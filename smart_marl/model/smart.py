@@ -131,12 +131,13 @@ class SMART(nn.Module):
     def motion_contours(self) -> list[torch.Tensor]:
         return [getattr(self, f"motion_contour_{t}") for t in range(NUM_MOTION_TYPES)]
 
-    def encode_road(self, batch, masked: torch.Tensor | None = None) -> torch.Tensor:
+    def encode_road(self, batch, masked: torch.Tensor | None = None, needed: torch.Tensor | None = None) -> torch.Tensor:
         """Road encodings [B, R, d] (computed once per scene at inference). ``batch``: anything with
         ``road_points``, ``road_pose``, ``road_type``, ``road_light``, ``road_valid`` (a
         :class:`~smart_marl.model.batch.SmartBatch`, a :class:`~smart_marl.rollout.RolloutState`,
-        :class:`RoadInputs`)."""
-        return self.road_net(batch.road_points, batch.road_pose, batch.road_type, batch.road_light, batch.road_valid, masked)
+        :class:`RoadInputs`). ``needed`` [B, R]: compute only the pieces read later (:meth:`RoadNet.forward`)."""
+        return self.road_net(batch.road_points, batch.road_pose, batch.road_type, batch.road_light, batch.road_valid, masked,
+                             needed=needed)
 
     def agent_features(self, tokens: torch.Tensor, agent_type: torch.Tensor, agent_shape: torch.Tensor, start_pose: torch.Tensor,
                        end_pose: torch.Tensor, valid: torch.Tensor, road_x: torch.Tensor, road_pose: torch.Tensor,
@@ -165,8 +166,7 @@ class SMART(nn.Module):
             needed = road_read.reshape(-1).clone()
             needed[m_idx[m_mask]] = True
             needed = needed.view_as(road_read)
-        road_x = self.road_net(batch.road_points, batch.road_pose, batch.road_type, batch.road_light, batch.road_valid,
-                               road_masked, needed=needed)
+        road_x = self.encode_road(batch, road_masked, needed)
         return self.agent_features(batch.agent_tokens, batch.agent_type, batch.agent_shape, batch.agent_start_pose,
                                    batch.agent_pose, valid, road_x, batch.road_pose, batch.road_valid, nbrs), road_x
 
