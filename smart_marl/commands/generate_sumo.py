@@ -42,6 +42,9 @@ def register(subparsers) -> None:
     p.add_argument("--straight-walkers", action="store_true",
                    help="pedestrians walk SUMO's straight lines, without the sway and heading jitter of the tuned "
                         "generator (the data of the embedded prior's stages 2-4; --legacy implies it)")
+    p.add_argument("--no-parked-cars", action="store_true",
+                   help="no parked cars beside the kerbs (the tuned generator parks cars on 20-90%% of the kerb, drawn "
+                        "per simulation, as real scenes have them; --legacy implies none)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -67,6 +70,8 @@ def run(args) -> int:
     changes = {} if args.demand_scale is None else {"demand_scale": args.demand_scale}
     if args.straight_walkers:
         changes.update(walker_sway_m=0.0, walker_jitter_rad=0.0)
+    if args.no_parked_cars:
+        changes.update(parked_occupancy=(0.0, 0.0))
     changes.update(speed_changes(args.speed_limits, args.speed_weights))
     config = make_config(scenes_per_sim=args.scenes_per_sim, radius_m=args.radius, pedestrians=not args.no_pedestrians,
                          bicycles=not args.no_bicycles, sublane=args.sublane, **changes)

@@ -85,6 +85,9 @@ class SumoConfig:
     walker_jitter_s: float = 0.15  # time scale of that jitter (seconds)
     cyclist_sway_m: float = 0.0  # std of cyclists' sideways sway (sway_walkers without jitter; 0: SUMO's lane lines)
     cyclist_sway_s: float = 0.7  # time scale of that sway (seconds)
+    # parked cars beside the kerbside lanes (add_parked_vehicles): per simulation, the share of ~7 m kerb
+    # slots that hold one is drawn from this range (real WOMD scenes: two thirds of the vehicles are parked)
+    parked_occupancy: tuple[float, float] = (0.2, 0.9)
 
     @classmethod
     def legacy(cls, **changes) -> "SumoConfig":
@@ -99,6 +102,9 @@ class SumoConfig:
             raise ValueError(f"SumoConfig: walker_sway_m, walker_jitter_rad and cyclist_sway_m must be >= 0, their time scales > 0; "
                              f"got {self.walker_sway_m}, {self.walker_jitter_rad}, {self.cyclist_sway_m}, {self.walker_sway_s}, "
                              f"{self.walker_jitter_s}, {self.cyclist_sway_s}")
+        lo, hi = self.parked_occupancy
+        if not 0.0 <= lo <= hi <= 1.0:
+            raise ValueError(f"SumoConfig: parked_occupancy must be a range within [0, 1] (low <= high); got {self.parked_occupancy}")
         if self.speed_weights is not None and len(self.speed_weights) != len(self.speed_levels_mps):
             raise ValueError(f"SumoConfig: speed_weights has {len(self.speed_weights)} entries for "
                              f"{len(self.speed_levels_mps)} speed_levels_mps; give one weight per level (or None)")
@@ -112,7 +118,7 @@ LEGACY_TRAFFIC: dict[str, Any] = dict(
     tls_guess_probability=0.4, lane_width_m=None, routes="trips", straight_probability=0.7, driver_sigma=(0.05, 0.7),
     driver_accel_mps2=(1.8, 3.5), driver_decel_mps2=(3.5, 5.5), car_follow_weights=(0.5, 0.3, 0.2),
     lc_speed_gain=(0.3, 3.0), max_lane_piece_m=None, demand_scale=1.0, walker_sway_m=0.0,
-    walker_jitter_rad=0.0)
+    walker_jitter_rad=0.0, parked_occupancy=(0.0, 0.0))
 """The :class:`SumoConfig` fields that differ between the first generator and the tuned defaults."""
 
 
@@ -502,6 +508,105 @@ def sway_walkers(xy: np.ndarray, valid: np.ndarray, heading: np.ndarray, rng: np
 
 
 # ------------------------------------------------------------------------------------ scenes
+PARKED_SLOT_M = 7.0  # kerb length per parked-car slot
+PARKED_END_MARGIN_M = 10.0  # no parked car within this distance of either end of an edge (junctions, crossings)
+PARKED_GAP_M = 0.25  # between the kerbside lane's edge and a parked car's side
+PARKED_CLEARANCE_M = 0.3  # a parked car is dropped where a recorded agent comes this close to it
+
+
+def add_parked_vehicles(rec: Recording, net, rotation_rad: float, occupancy: float, rng: np.random.Generator) -> Recording:
+    """``rec`` with parked cars added: static vehicles, valid on every recorded frame, beside the kerbside
+    lane (the rightmost lane of the map: one that cars or bicycles may use) of every normal edge, one per :data:`PARKED_SLOT_M` slot
+    with probability ``occupancy`` (none within :data:`PARKED_END_MARGIN_M` of an edge's ends), their
+    side :data:`PARKED_GAP_M` past the lane's edge, parallel to it with a little jitter. SUMO's traffic
+    never sees them (they are outside its lanes), so a car is dropped wherever a recorded agent
+    (a walker on the sidewalk, a vehicle cutting the kerb) comes within :data:`PARKED_CLEARANCE_M` of
+    it on any frame. Real WOMD scenes are mostly parked cars (``benchmarks/scene_statistics.py``:
+    ``vehicle_parked_share``); without them a model trained on SUMO scenes slows down beside the
+    parked cars of real scenes as if they were a queue."""
+    if occupancy <= 0.0:
+        return rec
+    rot = rotation_matrix(rotation_rad)
+    rows = []  # (x, y, z, heading, length, width, height)
+    for edge in net.getEdges():
+        if edge.getFunction() not in ("", "normal"):
+            continue
+        kerb = next((lane for lane in edge.getLanes() if lane.allows("passenger") or lane.allows("bicycle")), None)
+        if kerb is None:
+            continue
+        pts = np.asarray(kerb.getShape3D() if hasattr(kerb, "getShape3D") else kerb.getShape(), np.float64)
+        if pts.shape[1] == 2:
+            pts = np.concatenate([pts, np.zeros((len(pts), 1))], axis=1)
+        pts[:, :2] = pts[:, :2] @ rot.T
+        seg = np.diff(pts, axis=0)
+        seg_len = np.linalg.norm(seg[:, :2], axis=1)
+        cum = np.concatenate([[0.0], np.cumsum(seg_len)])
+        usable = cum[-1] - 2 * PARKED_END_MARGIN_M
+        if usable < PARKED_SLOT_M:
+            continue
+        slots = PARKED_END_MARGIN_M + (np.arange(int(usable // PARKED_SLOT_M)) + 0.5) * PARKED_SLOT_M
+        slots = slots[rng.random(len(slots)) < occupancy]
+        for u in slots + rng.uniform(-0.8, 0.8, len(slots)):
+            i = int(np.clip(np.searchsorted(cum, u) - 1, 0, len(seg) - 1))
+            if seg_len[i] < 1e-6:
+                continue
+            t = seg[i, :2] / seg_len[i]
+            length, width, height = rng.uniform(4.0, 5.2), rng.uniform(1.75, 2.0), rng.uniform(1.4, 1.8)
+            offset = kerb.getWidth() / 2 + PARKED_GAP_M + width / 2 + rng.uniform(-0.1, 0.2)
+            at = pts[i] + (u - cum[i]) / seg_len[i] * seg[i]
+            rows.append((at[0] + t[1] * offset, at[1] - t[0] * offset, at[2] + height / 2,  # to the right of travel
+                         math.atan2(t[1], t[0]) + rng.normal(0.0, 0.03), length, width, height))
+    if not rows:
+        return rec
+    car = np.array(rows)  # (P, 7)
+    keep = _clear_of_agents(car, rec) & _clear_of_each_other(car)
+    car = car[keep]
+    if not len(car):
+        return rec
+    p, t = len(car), rec.valid.shape[1]
+    center = quantize(np.broadcast_to(car[:, None, :3], (p, t, 3)))
+    return Recording(
+        sumo_ids=rec.sumo_ids + [f"parked{k}" for k in range(p)],
+        types=np.concatenate([rec.types, np.full(p, AgentType.VEHICLE, np.int8)]),
+        size=np.concatenate([rec.size, car[:, 4:7]]),
+        center=np.concatenate([rec.center, center]),
+        heading=np.concatenate([rec.heading, np.broadcast_to(wrap_angle(car[:, 3:4]), (p, t))]),
+        velocity=np.concatenate([rec.velocity, np.zeros((p, t, 2))]),
+        speed=np.concatenate([rec.speed, np.zeros((p, t))]),
+        valid=np.concatenate([rec.valid, np.ones((p, t), bool)]),
+        signal_states=rec.signal_states, start_time_s=rec.start_time_s)
+
+
+def _clear_of_agents(car: np.ndarray, rec: Recording) -> np.ndarray:
+    """[P] whether no recorded agent's centre comes within its half width plus the clearance of each
+    parked car's box (car rows as in :func:`add_parked_vehicles`) on any valid frame."""
+    ok = np.ones(len(car), bool)
+    xy = np.where(rec.valid[..., None], rec.center[..., :2], np.nan)  # (A, T, 2)
+    lo, hi = np.nanmin(xy, axis=1), np.nanmax(xy, axis=1)  # (A, 2) each agent's extent
+    reach = 0.5 * rec.size[:, 1] + PARKED_CLEARANCE_M  # (A,)
+    for k, (x, y, _, heading, length, width, _) in enumerate(car):
+        r = 0.5 * math.hypot(length, width) + reach
+        near = np.flatnonzero(np.all((lo - r[:, None] <= (x, y)) & ((x, y) <= hi + r[:, None]), axis=1))
+        if not len(near):
+            continue
+        d = xy[near] - (x, y)  # (n, T, 2)
+        c, s = math.cos(heading), math.sin(heading)
+        along, across = d[..., 0] * c + d[..., 1] * s, -d[..., 0] * s + d[..., 1] * c
+        inside = (np.abs(along) < 0.5 * length + reach[near, None]) & (np.abs(across) < 0.5 * width + reach[near, None])
+        ok[k] = not inside.any()
+    return ok
+
+
+def _clear_of_each_other(car: np.ndarray) -> np.ndarray:
+    """[P] keeps a parked car unless an earlier kept one is within a car length of it (kerbs meet at
+    corners and on the two sides of narrow roads)."""
+    keep = np.zeros(len(car), bool)
+    for k in range(len(car)):
+        kept = car[keep]
+        keep[k] = not len(kept) or bool(np.min(np.linalg.norm(kept[:, :2] - car[k, :2], axis=1)) >= 5.5)
+    return keep
+
+
 def scene_candidates(rec: Recording, start: int, min_speed_mps: float = 2.0) -> np.ndarray:
     """Indices of vehicles that can be the self-driving car of the scene starting at frame ``start``:
     valid on all 91 frames and moving at the current frame."""
@@ -612,9 +717,14 @@ def simulate_scenes(seed: int, sim_index: int, config: SumoConfig = SumoConfig()
                 pass
             warnings.warn(f"SUMO simulation {sim_index} (seed {seed}) failed and yields no scene: {exc}")
             return []
+        # its own random stream: the traffic and the choice of self-driving cars do not change with it
+        parked_rng = np.random.default_rng([s, 0x9a7])
+        occupancy = float(parked_rng.uniform(*config.parked_occupancy))
+        rec = add_parked_vehicles(rec, net, spec.rotation_rad, occupancy, parked_rng)
     metadata = {"generator": "smart_marl.sources.sumo", "seed": int(seed), "sim_index": int(sim_index),
                 "sim_seed": s, "network": spec.to_metadata(), "network_stats": nmap.stats, "demand": counts,
-                "sublane": config.sublane, "lane_change_duration_s": None if config.sublane else round(lane_change_s, 2)}
+                "sublane": config.sublane, "lane_change_duration_s": None if config.sublane else round(lane_change_s, 2),
+                "parked_occupancy": round(occupancy, 3), "parked_vehicles": sum(i.startswith("parked") for i in rec.sumo_ids)}
     scenes, used = [], set()
     spacing = int(round(config.scene_spacing_s / DT_S))
     for k in range(config.scenes_per_sim):
