@@ -27,6 +27,10 @@ A prior with no drift has ratios near 1 at every horizon (the log itself slows d
 traffic does, which the rollout should follow, not exceed).
 
     .venv/bin/python benchmarks/prior_speed_drift.py [--prior PATH] [--set real=GLOB ...] [--rollouts 8] [--top-k 5]
+        [--drop-parked]
+
+``--drop-parked`` leaves every scene's parked vehicles out (logged on every frame, moving less than 0.5 m):
+the difference to a run without it is how much the parked cars slow the prior's moving traffic.
 
 Measured figures are in the README's model card.
 """
@@ -59,6 +63,7 @@ MOVING_MPS = {AgentType.VEHICLE: 5.0, AgentType.PEDESTRIAN: 0.5, AgentType.CYCLI
 NUM_FRAMES = 80  # 16 tokens of 5 frames
 SPEED_BINS_MPS = (0.0, 1.0, 5.0, 9.0, 12.0, 15.0, 1e9)  # vehicles' teacher-forced bias by input-token speed
 LATE_FRAMES = 10  # the last second of the rollout (7-8 s): the frames of late_by_log_trend
+PARKED_M = 0.5  # --drop-parked: a vehicle logged on every frame that moves less than this over the log is parked
 TRENDS = ("speeds_up", "keeps", "slows")  # log's late mean speed against the speed now: above, within, below the band
 
 
@@ -147,6 +152,17 @@ def teacher_forced_bias(ck, scene, top_k: int = 5) -> tuple[dict, np.ndarray]:
     return out, bins
 
 
+def without_parked(scene):
+    """``scene`` without its parked vehicles: those logged on every frame that end the log within
+    :data:`PARKED_M` of where they started (``--drop-parked``: do parked cars slow the prior's traffic?)."""
+    tr = scene.tracks
+    moved = np.linalg.norm(tr.position[:, -1, :2] - tr.position[:, 0, :2], axis=-1)
+    parked = (tr.types == int(AgentType.VEHICLE)) & tr.valid.all(1) & (moved < PARKED_M)
+    if scene.sdc_index >= 0:
+        parked[scene.sdc_index] = False
+    return scene.select_tracks(np.flatnonzero(~parked))
+
+
 def scene_sets(specs: list[str] | None) -> dict[str, list]:
     """NAME=PATH specs -> {name: [Scenario]}; by default the shared real 91-frame scenes and the SUMO samples."""
     if not specs:
@@ -170,6 +186,8 @@ def main(argv=None) -> None:
     ap.add_argument("--temperature", type=float, default=1.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--drop-parked", action="store_true",
+                    help="leave the parked vehicles (logged on every frame, moving less than 0.5 m) out of every scene")
     collision_avoidance_flag(ap)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -178,6 +196,8 @@ def main(argv=None) -> None:
     for set_name, scenes in scene_sets(args.sets).items():
         if args.max_scenes:
             scenes = scenes[: args.max_scenes]
+        if args.drop_parked:
+            scenes = [without_parked(sc) for sc in scenes]
         roll = {t: [np.zeros(NUM_FRAMES), np.zeros(NUM_FRAMES), np.zeros(NUM_FRAMES), 0, np.zeros((len(TRENDS), 4))]
                 for t in MOTION_TYPES}
         tf = {t: np.zeros(3) for t in MOTION_TYPES}
@@ -192,7 +212,8 @@ def main(argv=None) -> None:
                 tf[t] += v
             tf_bins += bins
         common = {"set": set_name, "scenes": len(scenes), "rollouts": args.rollouts, "top_k": args.top_k,
-                  "temperature": args.temperature, "prior": args.prior, "avoid_collisions": args.avoid_collisions}
+                  "temperature": args.temperature, "prior": args.prior, "avoid_collisions": args.avoid_collisions,
+                  "drop_parked": args.drop_parked}
         for t in MOTION_TYPES:
             r, lg, n, m, by_trend = roll[t]
             if m == 0:

@@ -1,0 +1,37 @@
+"""Helpers of the benchmark scripts that decide what a figure measures."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+
+from smart_marl.scenario import AgentType
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_drop_parked_leaves_out_exactly_the_vehicles_that_stand_all_log(womd_scenes):
+    """prior_speed_drift --drop-parked: the parked vehicles (on every frame, < 0.5 m over the log) go, every
+    other track stays as it was, the self-driving car included."""
+    drift = _load("prior_speed_drift")
+    scene = womd_scenes[1]  # 257 tracks, 7 of them parked
+    tr = scene.tracks
+    out = drift.without_parked(scene)
+    moved = np.linalg.norm(tr.position[:, -1, :2] - tr.position[:, 0, :2], axis=-1)
+    parked = (tr.types == int(AgentType.VEHICLE)) & tr.valid.all(1) & (moved < 0.5)
+    parked[scene.sdc_index] = False
+    assert parked.sum() >= 5
+    assert out.num_tracks == scene.num_tracks - parked.sum()
+    assert set(out.tracks.ids.tolist()) == set(tr.ids[~parked].tolist())
+    assert out.tracks.ids[out.sdc_index] == tr.ids[scene.sdc_index]
+    kept = np.flatnonzero(~parked)
+    np.testing.assert_array_equal(out.tracks.position, tr.position[kept])
