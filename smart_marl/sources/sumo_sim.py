@@ -4,8 +4,9 @@ Stage: the traffic half of the SUMO source (traffic simulator -> **Scenario**). 
 (:func:`simulate_scenes`): a random network (:mod:`.sumo_net`), random vehicle types with varied
 driver parameters (:func:`random_vehicle_types`), routes for cars, trucks, buses and bicycles and
 walks for pedestrians (:func:`write_demand`), a libsumo run at 0.1 s steps with a warm-up, every
-agent's state recorded per step (:class:`Recording`), then several 9.1 s scenes cut around moving
-vehicles chosen as the self-driving car (:func:`cut_scene`).
+agent's state recorded per step (:class:`Recording`), cars parked along the kerbs
+(:func:`add_parked_vehicles`), then several 9.1 s scenes cut around moving vehicles chosen as the
+self-driving car (:func:`cut_scene`).
 
 Routes: by default each vehicle follows a random walk over the network (:func:`random_walk`) that
 goes straight on at a junction with ``SumoConfig.straight_probability`` and otherwise turns, from a
