@@ -512,19 +512,20 @@ def sway_walkers(xy: np.ndarray, valid: np.ndarray, heading: np.ndarray, rng: np
 PARKED_SLOT_M = 7.0  # kerb length per parked-car slot
 PARKED_END_MARGIN_M = 10.0  # no parked car within this distance of either end of an edge (junctions, crossings)
 PARKED_GAP_M = 0.25  # between the kerbside lane's edge and a parked car's side
-PARKED_CLEARANCE_M = 0.3  # a parked car is dropped where a recorded agent comes this close to it
+PARKED_CLEARANCE_M = 0.3  # a car is dropped where an agent's centre comes within its half width plus this of it
 
 
 def add_parked_vehicles(rec: Recording, net, rotation_rad: float, occupancy: float, rng: np.random.Generator) -> Recording:
-    """``rec`` with parked cars added: static vehicles, valid on every recorded frame, beside the kerbside
-    lane (the rightmost lane of the map: one that cars or bicycles may use) of every normal edge, one per :data:`PARKED_SLOT_M` slot
-    with probability ``occupancy`` (none within :data:`PARKED_END_MARGIN_M` of an edge's ends), their
-    side :data:`PARKED_GAP_M` past the lane's edge, parallel to it with a little jitter. SUMO's traffic
-    never sees them (they are outside its lanes), so a car is dropped wherever a recorded agent
-    (a walker on the sidewalk, a vehicle cutting the kerb) comes within :data:`PARKED_CLEARANCE_M` of
-    it on any frame. Real WOMD scenes are mostly parked cars (``benchmarks/scene_statistics.py``:
-    ``vehicle_parked_share``); without them a model trained on SUMO scenes slows down beside the
-    parked cars of real scenes as if they were a queue."""
+    """``rec`` with parked cars added: static vehicles, valid on every recorded frame, beside the
+    kerbside lane (the rightmost lane of the map: one that cars or bicycles may use) of every normal
+    edge, one per :data:`PARKED_SLOT_M` slot with probability ``occupancy`` (none within
+    :data:`PARKED_END_MARGIN_M` of an edge's ends), their side :data:`PARKED_GAP_M` past the lane's
+    edge, parallel to it with a little jitter. SUMO's traffic never sees them (they are outside its
+    lanes), so a car is dropped wherever a recorded agent (a walker on the sidewalk, a vehicle cutting
+    the kerb) comes near it on any frame: its centre within its half width plus
+    :data:`PARKED_CLEARANCE_M` of the car's box. Real WOMD scenes are mostly parked cars
+    (``benchmarks/scene_statistics.py``: ``vehicle_parked_share`` 0.68, generated scenes without them
+    0.28); the README's "Parked cars" section has what they change."""
     if occupancy <= 0.0:
         return rec
     rot = rotation_matrix(rotation_rad)
