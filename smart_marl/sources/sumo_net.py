@@ -337,6 +337,14 @@ class NetworkMap:
         return RoadMap.from_features(features, all_links), kept_ids
 
 
+def lane_shape(lane) -> np.ndarray:
+    """A sumolib lane's shape points [n, 3] (x, y, z; z = 0 where the network has none), SUMO's frame."""
+    pts = np.asarray(lane.getShape3D() if hasattr(lane, "getShape3D") else lane.getShape(), np.float64)
+    if pts.shape[1] == 2:
+        pts = np.concatenate([pts, np.zeros((len(pts), 1))], axis=1)
+    return pts
+
+
 def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0, max_lane_piece_m: float | None = None) -> NetworkMap:
     """Read a ``.net.xml`` into a :class:`NetworkMap` (see the module docstring for what becomes what);
     with ``max_lane_piece_m``, lanes longer than that are cut into pieces (:func:`split_lanes`)."""
@@ -348,10 +356,7 @@ def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0, max_lane
     rot = rotation_matrix(rotation_rad)
 
     def shape3d(lane) -> np.ndarray:
-        pts = np.asarray(lane.getShape3D() if hasattr(lane, "getShape3D") else lane.getShape(), np.float64)
-        if pts.shape[1] == 2:
-            pts = np.concatenate([pts, np.zeros((len(pts), 1))], axis=1)
-        out = densify(pts, LANE_POINT_SPACING_M)
+        out = densify(lane_shape(lane), LANE_POINT_SPACING_M)
         out[:, :2] = quantize(out[:, :2] @ rot.T)
         out[:, 2] = quantize(out[:, 2])
         return out

@@ -35,7 +35,7 @@ import numpy as np
 from ..geometry import frame_steps
 from ..scenario import DT_S, AgentType, SceneFrame, Scenario, TrafficLights, Tracks, wrap_angle
 from .sumo_net import (
-    SIGNAL_OF_CHAR, SPEEDS_MPS, NetworkMap, NetworkSpec, build_network, network_map, quantize, random_network_spec,
+    SIGNAL_OF_CHAR, SPEEDS_MPS, NetworkMap, NetworkSpec, build_network, lane_shape, network_map, quantize, random_network_spec,
     require_sumo, rotation_matrix, sumo_binary, turn_angle,
 )
 
@@ -512,6 +512,7 @@ def sway_walkers(xy: np.ndarray, valid: np.ndarray, heading: np.ndarray, rng: np
 PARKED_SLOT_M = 7.0  # kerb length per parked-car slot
 PARKED_END_MARGIN_M = 10.0  # no parked car within this distance of either end of an edge (junctions, crossings)
 PARKED_GAP_M = 0.25  # between the kerbside lane's edge and a parked car's side
+PARKED_MIN_SPACING_M = 5.5  # between two parked cars' centres (kerbs meet at corners and across narrow roads)
 PARKED_CLEARANCE_M = 0.3  # a car is dropped where an agent's centre comes within its half width plus this of it
 
 
@@ -536,9 +537,7 @@ def add_parked_vehicles(rec: Recording, net, rotation_rad: float, occupancy: flo
         kerb = next((lane for lane in edge.getLanes() if lane.allows("passenger") or lane.allows("bicycle")), None)
         if kerb is None:
             continue
-        pts = np.asarray(kerb.getShape3D() if hasattr(kerb, "getShape3D") else kerb.getShape(), np.float64)
-        if pts.shape[1] == 2:
-            pts = np.concatenate([pts, np.zeros((len(pts), 1))], axis=1)
+        pts = lane_shape(kerb)
         pts[:, :2] = pts[:, :2] @ rot.T
         seg = np.diff(pts, axis=0)
         seg_len = np.linalg.norm(seg[:, :2], axis=1)
@@ -600,12 +599,12 @@ def _clear_of_agents(car: np.ndarray, rec: Recording) -> np.ndarray:
 
 
 def _clear_of_each_other(car: np.ndarray) -> np.ndarray:
-    """[P] keeps a parked car unless an earlier kept one is within a car length of it (kerbs meet at
-    corners and on the two sides of narrow roads)."""
+    """[P] keeps a parked car unless an earlier kept one's centre is within :data:`PARKED_MIN_SPACING_M`
+    of its own."""
     keep = np.zeros(len(car), bool)
     for k in range(len(car)):
         kept = car[keep]
-        keep[k] = not len(kept) or bool(np.min(np.linalg.norm(kept[:, :2] - car[k, :2], axis=1)) >= 5.5)
+        keep[k] = not len(kept) or bool(np.min(np.linalg.norm(kept[:, :2] - car[k, :2], axis=1)) >= PARKED_MIN_SPACING_M)
     return keep
 
 
