@@ -34,6 +34,7 @@ from typing import Callable
 
 import torch
 
+from ..geometry_torch import boxes_overlap
 from ..tokens import FRAMES_PER_TOKEN
 from .frames import token_frames
 
@@ -43,22 +44,6 @@ NEIGHBOURS = 16
 SORTED_DEPTH = 64
 """How many of each row's most likely tokens are ranked up front (the rest only for the rare row that
 gets that deep)."""
-
-
-def boxes_overlap(a_xy: torch.Tensor, a_heading: torch.Tensor, a_half: torch.Tensor, b_xy: torch.Tensor,
-                  b_heading: torch.Tensor, b_half: torch.Tensor) -> torch.Tensor:
-    """bool [...]: do oriented boxes ``a`` and ``b`` overlap (separating axis theorem; touching is
-    not overlapping). ``xy`` [..., 2], ``heading`` [...], ``half`` [..., 2] half length and half
-    width; all broadcast."""
-    d = b_xy - a_xy
-    ca, sa, cb, sb = a_heading.cos(), a_heading.sin(), b_heading.cos(), b_heading.sin()
-    hit = None
-    for ux, uy in ((ca, sa), (-sa, ca), (cb, sb), (-sb, cb)):  # the four edge normals
-        ext_a = a_half[..., 0] * (ux * ca + uy * sa).abs() + a_half[..., 1] * (uy * ca - ux * sa).abs()
-        ext_b = b_half[..., 0] * (ux * cb + uy * sb).abs() + b_half[..., 1] * (uy * cb - ux * sb).abs()
-        sep = (d[..., 0] * ux + d[..., 1] * uy).abs() < ext_a + ext_b
-        hit = sep if hit is None else hit & sep
-    return hit
 
 
 def boxes_overlap_near(a_xy: torch.Tensor, a_heading: torch.Tensor, a_half: torch.Tensor, b_xy: torch.Tensor,
