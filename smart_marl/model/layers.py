@@ -193,12 +193,37 @@ def knn_within(query_xy: torch.Tensor, key_xy: torch.Tensor, radius_m: float, k:
     kk = min(int(k), m)
     if kk == 0:
         return query_xy.new_zeros((g, q, 0), dtype=torch.long), torch.zeros((g, q, 0), dtype=torch.bool, device=query_xy.device)
-    dist = torch.cdist(query_xy.float(), key_xy.float())  # (G, Q, M)
+    # exact distances (no |a|^2 + |b|^2 - 2ab expansion, whose rounding depends on the tensors' sizes and
+    # would let a batch's padding change which near-tied neighbours are picked): a scene's neighbourhoods,
+    # and so its rollouts, do not depend on the scenes it is batched with; also faster here
+    dist = torch.cdist(query_xy.float(), key_xy.float(), compute_mode="donot_use_mm_for_euclid_dist")  # (G, Q, M)
     ok = query_valid[:, :, None] & key_valid[:, None, :] & (dist <= radius_m)
     dist = dist.masked_fill(~ok, float("inf"))
-    d_sel, idx = torch.topk(dist, kk, dim=-1, largest=False)  # (G, Q, K)
+    d_sel, idx = smallest_k(dist, kk)  # (G, Q, K)
     mask = torch.isfinite(d_sel)
     return idx.masked_fill(~mask, 0), mask
+
+
+def smallest_k(values: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(values, indices) [..., k] of the ``k`` smallest entries of each row of ``values`` [..., M],
+    smallest first, where entries tied at the k-th value are taken lowest index first: which entries
+    are chosen does not depend on how many entries follow them (``torch.topk`` alone may break such
+    ties differently for a row padded to another length, e.g. a scene batched with larger ones).
+    Only rows with more ties at their k-th value than places left are re-chosen."""
+    vals, idx = torch.topk(values, k, dim=-1, largest=False)
+    thr = vals[..., -1:]
+    below, tied = values < thr, values == thr
+    places = k - below.sum(-1, keepdim=True)  # slots left for the tied entries
+    ambiguous = (tied.sum(-1, keepdim=True) > places).squeeze(-1)
+    if bool(ambiguous.any()):
+        rows = ambiguous.nonzero(as_tuple=True)
+        take = below[rows] | (tied[rows] & (tied[rows].cumsum(-1) <= places[rows]))  # (A, M), k true per row
+        chosen = take.nonzero()[:, -1].view(-1, k)  # increasing index
+        chosen_vals = values[rows].gather(-1, chosen)
+        order = torch.sort(chosen_vals, dim=-1, stable=True).indices
+        vals, idx = vals.clone(), idx.clone()
+        vals[rows], idx[rows] = chosen_vals.gather(-1, order), chosen.gather(-1, order)
+    return vals, idx
 
 
 def knn_grouped(query_xy: torch.Tensor, group: torch.Tensor, key_xy: torch.Tensor, radius_m: float, k: int,

@@ -299,6 +299,53 @@ class MotionCache:
         out.src = list(self.src)
         return out
 
+    @classmethod
+    def stack(cls, caches: list["MotionCache"]) -> "MotionCache":
+        """One cache of every group of ``caches`` in order (caches of the same model whose road tables
+        are their own scenes'), slots and road pieces padded to the largest: a state started on
+        several scenes at once gives the same numbers."""
+        n = max(c.num_slots for c in caches)
+        r = max(c.num_road_pieces for c in caches)
+
+        def slots(c: "MotionCache", t: torch.Tensor, fill=0) -> torch.Tensor:  # flat [G * N, ...] -> [G, n, ...]
+            return grow(t.view(c.num_groups, c.num_slots, *t.shape[1:]), {1: n}, fill)
+
+        def scene_rows(c: "MotionCache", t: torch.Tensor) -> torch.Tensor:  # flat [B * R, ...] -> [B, r, ...]
+            return grow(t.view(-1, max(c.num_road_pieces, 1), *t.shape[1:]), {1: r})
+
+        cat = lambda parts: torch.cat(parts).flatten(0, 1)  # noqa: E731
+        first = caches[0]
+        offsets = [0]
+        for c in caches[:-1]:
+            offsets.append(offsets[-1] + c.road_pose_flat.shape[0] // max(c.num_road_pieces, 1))
+        return cls(
+            num_groups=sum(c.num_groups for c in caches), num_slots=n,
+            scene_of_group=torch.cat([c.scene_of_group + o for c, o in zip(caches, offsets)]),
+            agent_type=cat([slots(c, c.agent_type) for c in caches]),
+            agent_categorical=cat([slots(c, c.agent_categorical) for c in caches]), token_table=first.token_table,
+            road_pose=torch.cat([grow(c.road_pose, {1: r}) for c in caches]),
+            road_valid=torch.cat([grow(c.road_valid, {1: r}, False) for c in caches]),
+            road_pose_flat=cat([scene_rows(c, c.road_pose_flat) for c in caches]),
+            road_rows=cat([scene_rows(c, c.road_rows) for c in caches]),
+            src=[cat([slots(c, c.src[k]) for c in caches]) for k in range(len(first.src))],
+            pose=cat([slots(c, c.pose) for c in caches]), valid=cat([slots(c, c.valid, False) for c in caches]),
+            steps_done=first.steps_done)
+
+    def take(self, groups: torch.Tensor, scenes: torch.Tensor, num_slots: int, num_pieces: int) -> "MotionCache":
+        """A cache of groups ``groups`` of this one (whose scenes are ``scenes``, in the order of the
+        groups' ``scene_of_group``), cut to their first ``num_slots`` slots and ``num_pieces`` road pieces."""
+        n, r, b = self.num_slots, self.num_road_pieces, self.road_pose_flat.shape[0] // max(self.num_road_pieces, 1)
+        slots = lambda t: t.view(self.num_groups, n, *t.shape[1:])[groups, :num_slots].flatten(0, 1)  # noqa: E731
+        pieces = lambda t: t.view(b, r, *t.shape[1:])[scenes, :num_pieces].flatten(0, 1)  # noqa: E731
+        local = torch.full((b,), -1, dtype=torch.long, device=scenes.device)
+        local[scenes] = torch.arange(len(scenes), device=scenes.device)
+        return MotionCache(
+            num_groups=len(groups), num_slots=num_slots, scene_of_group=local[self.scene_of_group[groups]],
+            agent_type=slots(self.agent_type), agent_categorical=slots(self.agent_categorical), token_table=self.token_table,
+            road_pose=self.road_pose[groups, :num_pieces], road_valid=self.road_valid[groups, :num_pieces],
+            road_pose_flat=pieces(self.road_pose_flat), road_rows=pieces(self.road_rows), src=[slots(t) for t in self.src],
+            pose=slots(self.pose), valid=slots(self.valid), steps_done=self.steps_done)
+
     @property
     def num_road_pieces(self) -> int:
         return int(self.road_pose.shape[1])

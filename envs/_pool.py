@@ -1,0 +1,139 @@
+"""Environment stage, the scene pool: where the batched environment takes its scenes from, for its
+first reset and for every refill.
+
+What comes in: sources (scene-cache folders and ``.smsc`` shards, which are read one scene at a time,
+so a pool can be as large as the disk; any other path ``read_scenarios`` reads, ``"embedded"`` or a
+list of :class:`~smart_marl.scenario.Scenario`, which are held in memory), an order and a seed. What
+goes out: scenes by index (:meth:`ScenePool.static`, each as its :class:`~envs._scene.SceneStatic`,
+at most ``max_loaded`` of them kept in memory at once, least recently used dropped first) and the
+next indices to play (:meth:`ScenePool.take`: the pool in order, or a fresh permutation of it per
+pass with ``order="random"``).
+"""
+
+from __future__ import annotations
+
+import os
+from collections import OrderedDict
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from smart_marl.cache import SceneCache, ShardReader, is_cache_dir
+from smart_marl.embedded import sample_scenarios
+from smart_marl.readers import read_scenarios
+from smart_marl.scenario import Scenario
+
+from ._scene import SceneStatic, scene_static
+from .errors import EnvConfigError
+
+ORDERS = ("sequential", "random")
+
+
+class _Listed:
+    """Scenes held in memory."""
+
+    def __init__(self, scenes: list[Scenario]) -> None:
+        self.scenes = scenes
+
+    def __len__(self) -> int:
+        return len(self.scenes)
+
+    def __getitem__(self, i: int) -> Scenario:
+        return self.scenes[i]
+
+
+class _Shard:
+    """One ``.smsc`` shard, read one scene at a time."""
+
+    def __init__(self, path: Path) -> None:
+        self.reader = ShardReader(path)
+
+    def __len__(self) -> int:
+        return len(self.reader)
+
+    def __getitem__(self, i: int) -> Scenario:
+        return self.reader[i]
+
+
+def _open(source) -> object:
+    """A random-access view (``len`` and ``[i]``) of one source."""
+    if isinstance(source, Scenario):
+        return _Listed([source])
+    if isinstance(source, str) and source == "embedded":
+        return _Listed(sample_scenarios())
+    if isinstance(source, (str, os.PathLike)):
+        path = Path(source)
+        if path.is_dir() and is_cache_dir(path):
+            return SceneCache(path)
+        if path.is_file() and path.suffix == ".smsc":
+            return _Shard(path)
+        scenes = list(read_scenarios(path))
+        if not scenes:
+            raise EnvConfigError(f"scenarios: no scene in {str(source)!r}")
+        return _Listed(scenes)
+    raise EnvConfigError(f"scenarios: each source must be a path, a Scenario or 'embedded', got {type(source).__name__}")
+
+
+class ScenePool:
+    """Scenes by index from one or more sources (module docstring)."""
+
+    def __init__(self, sources, order: str = "sequential", seed: int = 0, max_loaded: int = 256) -> None:
+        if order not in ORDERS:
+            raise EnvConfigError(f"scene_order must be one of {ORDERS}, got {order!r}")
+        if isinstance(sources, (str, os.PathLike, Scenario)):
+            sources = [sources]
+        sources = list(sources)
+        if sources and all(isinstance(s, Scenario) for s in sources):
+            self._parts = [_Listed(sources)]
+        else:
+            self._parts = [_open(s) for s in sources]
+        self._offsets = np.cumsum([0] + [len(p) for p in self._parts])
+        if self._offsets[-1] == 0:
+            raise EnvConfigError("scenarios: the pool holds no scene")
+        self.order, self.max_loaded = order, int(max_loaded)
+        self._loaded: OrderedDict[int, SceneStatic] = OrderedDict()
+        self.seed(seed)
+
+    def __len__(self) -> int:
+        return int(self._offsets[-1])
+
+    def seed(self, seed: int) -> None:
+        """Restart the order from its beginning (a new random order for ``seed``)."""
+        self._rng = np.random.default_rng(int(seed))
+        self._queue: list[int] = []
+
+    def scenario(self, i: int) -> Scenario:
+        k = int(np.searchsorted(self._offsets, i, side="right")) - 1
+        return self._parts[k][int(i - self._offsets[k])]
+
+    def static(self, i: int) -> SceneStatic:
+        """Scene ``i``'s constants (kept for the ``max_loaded`` most recently used scenes)."""
+        st = self._loaded.get(i)
+        if st is None:
+            st = scene_static(self.scenario(i))
+            self._loaded[i] = st
+            while len(self._loaded) > self.max_loaded:
+                self._loaded.popitem(last=False)
+        else:
+            self._loaded.move_to_end(i)
+        return st
+
+    def take(self, count: int) -> list[int]:
+        """The next ``count`` scene indices in the pool's order (it wraps around: a pass over the
+        pool is every scene once)."""
+        out = []
+        while len(out) < count:
+            if not self._queue:
+                n = len(self)
+                self._queue = list(self._rng.permutation(n)) if self.order == "random" else list(range(n))
+            out.append(int(self._queue.pop(0)))
+        return out
+
+    def indices(self, ids: Sequence[str]) -> list[int]:
+        """The pool indices of scenes by scenario id (reads every scene: small pools only)."""
+        by_id = {self.scenario(i).scenario_id: i for i in range(len(self))}
+        return [by_id[s] for s in ids]
+
+
+__all__ = ["ORDERS", "ScenePool"]
