@@ -202,13 +202,19 @@ class TrafficCore:
         """A freshly started prior state per scene: kept ones for known keys, the others started
         together (one batch) and kept."""
         out: list[RolloutState | None] = [self._pristine.get(s.key) if s.key is not None else None for s in scenes]
-        missing = [i for i, st in enumerate(out) if st is None]
-        if missing:
-            started = RolloutState.start(self.model, [scenes[i].static.scenario for i in missing], num_rollouts=1, seed=0,
+        first: dict = {}  # each missing scene is started once, however often it appears
+        for i, st in enumerate(out):
+            if st is None:
+                first.setdefault(scenes[i].key if scenes[i].key is not None else ("row", i), i)
+        if first:
+            todo = list(first.values())
+            started = RolloutState.start(self.model, [scenes[i].static.scenario for i in todo], num_rollouts=1, seed=0,
                                          top_k=self.top_k, temperature=self.temperature, device=self.device,
                                          motion_vocab=self.motion_vocab, avoid_collisions=self.avoid_collisions)
-            for i, st in zip(missing, split_state(started) if len(missing) > 1 else [started]):
-                out[i] = st
+            fresh = dict(zip(first, split_state(started) if len(todo) > 1 else [started]))
+            for i, st in enumerate(out):
+                if st is None:
+                    out[i] = fresh[scenes[i].key if scenes[i].key is not None else ("row", i)]
         for s, st in zip(scenes, out):
             if s.key is not None:
                 self._pristine[s.key] = st
@@ -278,7 +284,7 @@ class TrafficCore:
         self.hist_pose = torch.cat([self.hist_pose[:, :, FRAMES_PER_TOKEN:], frames], 2)
         self.hist_valid = torch.cat([self.hist_valid[:, :, FRAMES_PER_TOKEN:],
                                      motion.present[:, :, None].expand(-1, -1, FRAMES_PER_TOKEN)], 2)
-        self.present = motion.present
+        self.present = motion.present.clone()  # terminated agents leave it below; the record keeps the step's
         self.frame = self.frame + FRAMES_PER_TOKEN
         self.step_count = self.step_count + 1
         if self.record:

@@ -78,7 +78,8 @@ def _open(source) -> object:
 class ScenePool:
     """Scenes by index from one or more sources (module docstring)."""
 
-    def __init__(self, sources, order: str = "sequential", seed: int = 0, max_loaded: int = 256) -> None:
+    def __init__(self, sources, order: str = "sequential", seed: int = 0, max_loaded: int = 256,
+                 indices: Sequence[int] | None = None) -> None:
         if order not in ORDERS:
             raise EnvConfigError(f"scene_order must be one of {ORDERS}, got {order!r}")
         if isinstance(sources, (str, os.PathLike, Scenario)):
@@ -89,14 +90,36 @@ class ScenePool:
         else:
             self._parts = [_open(s) for s in sources]
         self._offsets = np.cumsum([0] + [len(p) for p in self._parts])
-        if self._offsets[-1] == 0:
+        total = int(self._offsets[-1])
+        self._index = list(range(total)) if indices is None else [int(i) for i in indices]
+        if not self._index:
             raise EnvConfigError("scenarios: the pool holds no scene")
+        bad = [i for i in self._index if not 0 <= i < total]
+        if bad:
+            raise EnvConfigError(f"scenarios: scene indices {bad[:5]} are outside the {total} scenes of the sources")
         self.order, self.max_loaded = order, int(max_loaded)
         self._loaded: OrderedDict[int, SceneStatic] = OrderedDict()
         self.seed(seed)
 
     def __len__(self) -> int:
+        return len(self._index)
+
+    @property
+    def num_source_scenes(self) -> int:
+        """How many scenes the sources hold (a pool may use some of them: ``indices``)."""
         return int(self._offsets[-1])
+
+    def subset(self, indices: Sequence[int], order: str | None = None, seed: int = 0) -> "ScenePool":
+        """A pool of some of this pool's scenes (positions ``indices`` of this pool), sharing its sources."""
+        out = ScenePool.__new__(ScenePool)
+        out._parts, out._offsets = self._parts, self._offsets
+        out._index = [self._index[int(i)] for i in indices]
+        if not out._index:
+            raise EnvConfigError("scenarios: the pool holds no scene")
+        out.order, out.max_loaded = order or self.order, self.max_loaded
+        out._loaded = OrderedDict()
+        out.seed(seed)
+        return out
 
     def seed(self, seed: int) -> None:
         """Restart the order from its beginning (a new random order for ``seed``)."""
@@ -104,8 +127,10 @@ class ScenePool:
         self._queue: list[int] = []
 
     def scenario(self, i: int) -> Scenario:
-        k = int(np.searchsorted(self._offsets, i, side="right")) - 1
-        return self._parts[k][int(i - self._offsets[k])]
+        """Scene ``i`` of the pool, read from its source."""
+        j = self._index[int(i)]
+        k = int(np.searchsorted(self._offsets, j, side="right")) - 1
+        return self._parts[k][int(j - self._offsets[k])]
 
     def static(self, i: int) -> SceneStatic:
         """Scene ``i``'s constants (kept for the ``max_loaded`` most recently used scenes)."""
@@ -130,10 +155,14 @@ class ScenePool:
             out.append(int(self._queue.pop(0)))
         return out
 
-    def indices(self, ids: Sequence[str]) -> list[int]:
-        """The pool indices of scenes by scenario id (reads every scene: small pools only)."""
-        by_id = {self.scenario(i).scenario_id: i for i in range(len(self))}
-        return [by_id[s] for s in ids]
+    def scenario_ids(self) -> list[str]:
+        """Every scene's id, in pool order (a scene cache's manifest says them without reading a scene)."""
+        out = []
+        for j in self._index:
+            k = int(np.searchsorted(self._offsets, j, side="right")) - 1
+            part, local = self._parts[k], int(j - self._offsets[k])
+            out.append(part.scenes[local]["scenario_id"] if isinstance(part, SceneCache) else part[local].scenario_id)
+        return out
 
 
 __all__ = ["ORDERS", "ScenePool"]

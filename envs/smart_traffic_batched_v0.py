@@ -24,7 +24,7 @@ reference; :class:`envs._core.TrafficCore` underneath both) with tensors instead
   (:meth:`envs._core.TrafficCore.refill`), the others go on;
 * the pool (:class:`envs._pool.ScenePool`): ``scenarios`` is a scene-cache folder or ``.smsc``
   shard (read a scene at a time), any path ``read_scenarios`` reads, ``"embedded"``, a list of
-  Scenario, or a list of these; ``scene_order`` ``"random"`` (a new permutation per pass, seeded by
+  Scenario, a list of these, or a ``ScenePool``; ``scene_order`` ``"random"`` (a new permutation per pass, seeded by
   ``set_seed``) or ``"sequential"``. At most ``max_loaded_scenes`` scenes' constants and
   ``prior_cache_size`` freshly started prior states are kept in memory.
 
@@ -87,7 +87,7 @@ class SmartTrafficBatchedEnv(EnvBase):
         self.reference_top_k = None if reference_top_k is None else int(reference_top_k)
         self.reference = reference_name(self.reference_top_k, self.temperature)
         self.obs_config = observation or ObservationConfig()
-        self.pool = ScenePool(scenarios, scene_order, seed, max_loaded=max_loaded_scenes)
+        self.pool = scenarios if isinstance(scenarios, ScenePool) else ScenePool(scenarios, scene_order, seed, max_loaded=max_loaded_scenes)
         self.core = TrafficCore(self.model, self.motion_vocab, background, self.horizon_steps, RewardConfig.from_any(reward),
                                 terminate_on, self.obs_config, int(top_k), self.temperature, bool(avoid_collisions), device=device,
                                 prior_cache_size=prior_cache_size)

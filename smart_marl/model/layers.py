@@ -206,20 +206,29 @@ def knn_within(query_xy: torch.Tensor, key_xy: torch.Tensor, radius_m: float, k:
 
 def smallest_k(values: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
     """(values, indices) [..., k] of the ``k`` smallest entries of each row of ``values`` [..., M],
-    smallest first, where entries tied at the k-th value are taken lowest index first: which entries
-    are chosen does not depend on how many entries follow them (``torch.topk`` alone may break such
+    smallest first and, among equal values, lowest index first (entries tied at the k-th value are
+    taken lowest index first): the result is that of a stable sort, so it does not depend on how many
+    entries follow them (``torch.topk`` alone may break such
     ties differently for a row padded to another length, e.g. a scene batched with larger ones).
-    Only rows with more ties at their k-th value than places left are re-chosen."""
-    vals, idx = torch.topk(values, k, dim=-1, largest=False)
-    thr = vals[..., -1:]
-    below, tied = values < thr, values == thr
-    places = k - below.sum(-1, keepdim=True)  # slots left for the tied entries
-    ambiguous = (tied.sum(-1, keepdim=True) > places).squeeze(-1)
+    Only rows whose (k+1)-th smallest value equals their k-th are re-chosen."""
+    m = values.shape[-1]
+    if k >= m:
+        return torch.sort(values, dim=-1, stable=True)
+    vals, idx = torch.topk(values, k + 1, dim=-1, largest=False)
+    ambiguous = vals[..., k] == vals[..., k - 1]  # a tie across the boundary: topk's pick is arbitrary
+    vals, idx = vals[..., :k], idx[..., :k]
+    by_index = idx.sort(dim=-1).indices  # ties inside the k in index order too: the result is a function of the row
+    vals, idx = vals.gather(-1, by_index), idx.gather(-1, by_index)
+    by_value = torch.sort(vals, dim=-1, stable=True).indices
+    vals, idx = vals.gather(-1, by_value), idx.gather(-1, by_value)
     if bool(ambiguous.any()):
         rows = ambiguous.nonzero(as_tuple=True)
-        take = below[rows] | (tied[rows] & (tied[rows].cumsum(-1) <= places[rows]))  # (A, M), k true per row
+        v = values[rows]  # (A, M)
+        thr = vals[rows][:, -1:]
+        below, tied = v < thr, v == thr
+        take = below | (tied & (tied.cumsum(-1) <= k - below.sum(-1, keepdim=True)))  # k true per row
         chosen = take.nonzero()[:, -1].view(-1, k)  # increasing index
-        chosen_vals = values[rows].gather(-1, chosen)
+        chosen_vals = v.gather(-1, chosen)
         order = torch.sort(chosen_vals, dim=-1, stable=True).indices
         vals, idx = vals.clone(), idx.clone()
         vals[rows], idx[rows] = chosen_vals.gather(-1, order), chosen.gather(-1, order)
