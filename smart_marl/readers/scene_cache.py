@@ -186,6 +186,7 @@ def is_shard(head: bytes) -> bool:
 # --------------------------------------------------------------------------------------- manifest
 def load_manifest(path: str | os.PathLike) -> Any:
     """The JSON content of a manifest file (not yet checked), a named error when it does not parse."""
+    check_regular_file(path)
     try:
         return json.loads(Path(path).read_text())
     except (ValueError, RecursionError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
@@ -243,6 +244,42 @@ def shard_paths(root: str | os.PathLike) -> list[Path]:
     if not any(shard["scenes"] for shard in shards):
         raise ScenarioReadError(root, "the scene cache holds no scene")
     return [Path(root) / shard["file"] for shard in shards]
+
+
+def open_listed_shard(root: str | os.PathLike, shard: dict[str, Any]) -> ShardReader:
+    """A manifest's shard entry opened, checked to hold as many scenes as the entry lists."""
+    reader = ShardReader(Path(root) / shard["file"])
+    if len(reader) != len(shard["scenes"]):
+        reader.close()
+        raise ScenarioReadError(reader.path, f"holds {len(reader)} scenes, the manifest lists {len(shard['scenes'])}")
+    return reader
+
+
+def listed_scene(reader: ShardReader, shard: dict[str, Any], j: int) -> Scenario:
+    """Scene ``j`` of a shard opened with :func:`open_listed_shard`, checked to be the scene its manifest
+    entry lists (the same scenario id)."""
+    scenario = reader[j]
+    listed = shard["scenes"][j]["scenario_id"]
+    if scenario.scenario_id != listed:
+        raise ScenarioReadError(reader.path, f"holds scene {scenario.scenario_id!r} where the manifest lists {listed!r}",
+                                record=j)
+    return scenario
+
+
+def read_cache(root: str | os.PathLike) -> Iterator[Scenario]:
+    """Every scene of a cache folder, in manifest order, checked against the manifest as
+    :class:`smart_marl.cache.SceneCache` checks them (a scene missing from a shard, other scenario
+    ids, a manifest that lists no scene: :class:`ScenarioReadError`)."""
+    manifest = read_manifest(root)
+    if not any(shard["scenes"] for shard in manifest["shards"]):
+        raise ScenarioReadError(root, "the scene cache holds no scene")
+    for shard in manifest["shards"]:
+        reader = open_listed_shard(root, shard)
+        try:
+            for j in range(len(reader)):
+                yield Scenario.from_arrays(*_copied(listed_scene(reader, shard, j)), validate=False)
+        finally:
+            reader.close()
 
 
 def scene_entry(scenario: Scenario, shard_file: str) -> dict[str, Any]:
