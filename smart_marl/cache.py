@@ -31,7 +31,7 @@ from tqdm import tqdm
 from .errors import ScenarioReadError, SmartMarlError, UsageError
 from .readers import expand_paths, read_scenarios
 from .readers.scene_cache import (
-    MANIFEST, MANIFEST_KIND, SHARD_SUFFIX, ShardReader, atomic_write, is_cache_dir, listed_scene, load_manifest,
+    MANIFEST, MANIFEST_KIND, SHARD_SUFFIX, ShardReader, atomic_write, file_sha256, is_cache_dir, listed_scene, load_manifest,
     open_listed_shard, read_manifest, scene_entry, shard_name_problem, write_manifest, write_shard,
 )
 from .scenario import Scenario
@@ -123,7 +123,7 @@ def _process_file(path: str, out: str, scenes_per_shard: int, reader_format: str
         nonlocal nbytes
         name = f"{stem}-{key[:8]}-{len(shards):04d}{SHARD_SUFFIX}"
         nbytes += write_shard(out_dir / name, pending)
-        shards.append({"file": name, "scenes": [scene_entry(s, name) for s in pending]})
+        shards.append({"file": name, "scenes": [scene_entry(s, name) for s in pending], "sha256": file_sha256(out_dir / name)})
         pending.clear()
 
     try:
@@ -163,7 +163,8 @@ def _load_marker(out_dir: Path, path: str, check_stamp: bool = True) -> dict[str
 
 def _write_manifest(out_dir: Path, inputs: list[str], markers: dict[str, dict], skipped: list[dict]) -> None:
     """The manifest of a preprocess run: the shards of every finished input, in input order."""
-    shards = [{"file": shard["file"], "input": markers[path]["input"], "scenes": shard["scenes"]}
+    shards = [{"file": shard["file"], "input": markers[path]["input"], "scenes": shard["scenes"],
+               **({"sha256": shard["sha256"]} if isinstance(shard.get("sha256"), str) else {})}
               for path in inputs if markers.get(path) for shard in markers[path]["shards"]]
     write_manifest(out_dir, shards, inputs=[os.path.abspath(p) for p in inputs], skipped=skipped)
 
