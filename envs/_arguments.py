@@ -36,7 +36,7 @@ import numbers
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from smart_marl.config_files import Rule, check_value, flag, integer, is_integer, number, one_of, optional, seed
+from smart_marl.config_files import Rule, check_value, flag, integer, is_integer, number, one_of, optional, seed, shown
 from smart_marl.rollout import temperature_rule
 
 from ._dynamics import BACKGROUNDS
@@ -70,11 +70,11 @@ def _check(name: str, value: Any, rule: Rule, kind: type | tuple = numbers.Real)
 
 def _terminate_on(value: Any) -> frozenset:
     if isinstance(value, (str, bytes)) or not isinstance(value, Iterable):
-        raise EnvConfigTypeError(f"terminate_on must be a list of event names out of {TERMINATION_EVENTS}, got {value!r}")
+        raise EnvConfigTypeError(f"terminate_on must be a list of event names out of {TERMINATION_EVENTS}, got {shown(value)}")
     events = list(value)
     bad = [e for e in events if not isinstance(e, str) or e not in TERMINATION_EVENTS]
     if bad:
-        raise EnvConfigError(f"terminate_on: unknown event(s) {bad}; known: {TERMINATION_EVENTS}")
+        raise EnvConfigError(f"terminate_on: unknown event(s) {shown(bad)}; known: {TERMINATION_EVENTS}")
     return frozenset(events)
 
 
@@ -91,7 +91,7 @@ def _observation(value: Any) -> ObservationConfig:
     elif isinstance(value, str):
         config = ObservationConfig(kind=value)  # its own check names the kinds
     else:
-        raise EnvConfigTypeError(f"observation must be 'vector', 'dict' or an ObservationConfig, got {value!r}")
+        raise EnvConfigTypeError(f"observation must be 'vector', 'dict' or an ObservationConfig, got {shown(value)}")
     for name, rule in OBSERVATION_RULES.items():
         _check(f"observation.{name}", getattr(config, name), rule, str if name == "kind" else numbers.Real)
     return config
@@ -104,11 +104,11 @@ def _controlled(value: Any) -> Any:
         return value
     if isinstance(value, Mapping) or not isinstance(value, Iterable):
         raise EnvConfigTypeError(f"controlled must be one of {CONTROLLED_NAMES}, a list of track ids or agent names, or a "
-                                 f"callable(scene) -> mask; got {value!r}")
+                                 f"callable(scene) -> mask; got {shown(value)}")
     items = list(value)
     bad = [x for x in items if not (isinstance(x, str) or is_integer(x))]
     if bad:
-        raise EnvConfigTypeError(f"controlled: a list holds track ids (integers) and agent names (strings), got {bad[:3]!r}")
+        raise EnvConfigTypeError(f"controlled: a list holds track ids (integers) and agent names (strings), got {shown(bad[:3])}")
     return items
 
 
@@ -146,7 +146,7 @@ def check_reset_arguments(seed_value: Any, options: Any, num_scenes: int) -> tup
     if options is None:
         return seed_value, None
     if not isinstance(options, Mapping):
-        raise EnvConfigTypeError(f"reset options must be None or a dict such as {{'scene_index': 0}}, got {options!r}")
+        raise EnvConfigTypeError(f"reset options must be None or a dict such as {{'scene_index': 0}}, got {shown(options)}")
     if "scene_index" not in options:
         return seed_value, None
     index = _check("options['scene_index']", options["scene_index"], integer(0, num_scenes - 1, "the last scene"))

@@ -48,8 +48,10 @@ full softmax), ``action_log_prob`` (the prior's full-softmax log-probability of 
 ``collision``, ``offroad``, ``goal_reached`` (this step), ``route_progress_m`` and
 ``reward_terms`` [6] (see :mod:`envs._reward`). Without a prior the three prior keys are absent.
 
-Errors: an action outside the agent's vocabulary, a name that is not an agent of this episode,
-a missing action for a live agent, a step after every agent is done, a scene with no
+Errors: every argument of the constructor and of ``reset`` is checked before any state is built
+(:mod:`envs._arguments`: its type, range and integrality, an ``EnvConfigError`` naming it); an
+action outside the agent's vocabulary, a name that is not an agent of this episode, a missing action
+for a live agent, a step after every agent is done, a scene with no
 controllable agent, and ``prior="embedded"`` before an embedded checkpoint ships all raise
 clear errors. Actions given for agents that are already done are ignored (TorchRL sends one for
 every agent of its group).

@@ -87,7 +87,9 @@ def apply_overrides(values: dict[str, Any], overrides, fields_of: type, nested: 
     for key, val in items:
         if key.startswith(prefix + "."):
             group[key[len(prefix) + 1:]] = val
-        elif key == nested and isinstance(val, Mapping):
+        elif key == nested:
+            if not isinstance(val, Mapping):  # it would be dropped for the file's: refuse it instead
+                raise error(f"{what} config: {nested} must be a mapping ({{...}}) or set as {prefix}.KEY=VALUE, got {val!r}")
             group = dict(val)
         else:
             values[key] = val
@@ -124,8 +126,19 @@ def is_integer(value: Any) -> bool:
 
 
 def is_number(value: Any) -> bool:
-    """A finite int or float (numpy ones too); never a bool, NaN, an infinity or a string."""
-    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+    """A finite int or float (numpy ones too) that a float64 holds; never a bool, NaN, an infinity, an
+    integer beyond 1.7e308 or a string."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return False
+    if isinstance(value, numbers.Integral):
+        return abs(int(value)) <= 1.7e308  # exact comparison: math.isfinite would overflow on 10**400
+    return math.isfinite(value)
+
+
+def shown(value: Any, form=repr, width: int = 80) -> str:
+    """``value`` for an error message: its repr (or ``form``), cut to ``width`` characters."""
+    text = form(value)
+    return text if len(text) <= width else text[: width - 3] + "..."
 
 
 def _limit(high, why: str) -> str:
@@ -139,11 +152,11 @@ def integer(low: int | None = None, high: int | None = None, why: str = "") -> R
 
     def rule(value):
         if not is_integer(value):
-            return f"must be an integer, got {value!r}" + (f" (allowed: {allowed})" if allowed else "")
+            return f"must be an integer, got {shown(value)}" + (f" (allowed: {allowed})" if allowed else "")
         if low is not None and value < low:
-            return f"must be at least {low}, got {value}"
+            return f"must be at least {low}, got {shown(value, str)}"
         if high is not None and value > high:
-            return f"must be at most {_limit(high, why)}, got {value}"
+            return f"must be at most {_limit(high, why)}, got {shown(value, str)}"
         return None
     return rule
 
@@ -158,11 +171,11 @@ def number(low: float | None = None, high: float | None = None, low_open: bool =
 
     def rule(value):
         if not is_number(value):
-            return f"must be a finite number, got {value!r}" + (f" (allowed: {allowed})" if allowed else "")
+            return f"must be a finite number, got {shown(value)}" + (f" (allowed: {allowed})" if allowed else "")
         if low is not None and (value <= low if low_open else value < low):
-            return f"must be {lows}, got {value}"
+            return f"must be {lows}, got {shown(value, str)}"
         if high is not None and (value >= high if high_open else value > high):
-            return f"must be {'<' if high_open else '<='} {_limit(high, why)}, got {value}"
+            return f"must be {'<' if high_open else '<='} {_limit(high, why)}, got {shown(value, str)}"
         return None
     return rule
 
@@ -173,12 +186,12 @@ seed = integer(0, MAX_SEED, "the largest seed the random generators take")
 
 def text(value: Any) -> str | None:
     """A string."""
-    return None if isinstance(value, str) else f"must be a string, got {value!r}"
+    return None if isinstance(value, str) else f"must be a string, got {shown(value)}"
 
 
 def flag(value: Any) -> str | None:
     """A boolean (true/false; a numpy bool too), never the string "false" or a number."""
-    return None if isinstance(value, (bool, np.bool_)) else f"must be true or false, got {value!r}"
+    return None if isinstance(value, (bool, np.bool_)) else f"must be true or false, got {shown(value)}"
 
 
 def optional(rule: Rule) -> Rule:
@@ -193,7 +206,7 @@ def one_of(*options: Any) -> Rule:
             ok = any(type(value) is type(o) and value == o for o in options)
         except Exception:  # noqa: BLE001 - a value whose == raises (an array...) is not an option
             ok = False
-        return None if ok else f"must be one of {', '.join(map(repr, options))}, got {value!r}"
+        return None if ok else f"must be one of {', '.join(map(repr, options))}, got {shown(value)}"
     return rule
 
 
@@ -201,10 +214,10 @@ def sequence(rule: Rule, length: int | None = None, min_length: int = 0, max_len
     """A list or tuple whose items each pass ``rule``: exactly ``length`` items, or min..max_length."""
     def check(value):
         if not isinstance(value, (list, tuple)):
-            return f"must be a list, got {value!r}"
+            return f"must be a list, got {shown(value)}"
         n = len(value)
         if length is not None and n != length:
-            return f"must be a list of {length} item(s), got {n}: {value!r}"
+            return f"must be a list of {length} item(s), got {n}"
         if n < min_length or (max_length is not None and n > max_length):
             return f"must be a list of {min_length}..{max_length if max_length is not None else 'any'} items, got {n}"
         for i, item in enumerate(value):
@@ -224,7 +237,7 @@ def interval(low: float | None = None, high: float | None = None, low_open: bool
         problem = pair(value)
         if problem:
             return problem
-        return None if value[0] <= value[1] else f"must be a range (low, high) with low <= high, got {value!r}"
+        return None if value[0] <= value[1] else f"must be a range (low, high) with low <= high, got {shown(value)}"
     return rule
 
 
@@ -236,7 +249,7 @@ def probabilities(length: int | None = None) -> Rule:
         problem = items(value)
         if problem:
             return problem
-        return None if abs(sum(value) - 1.0) <= 1e-6 else f"must add up to 1 (probabilities), got {value!r} (sum {sum(value):g})"
+        return None if abs(sum(value) - 1.0) <= 1e-6 else f"must add up to 1 (probabilities), got {shown(value)} (sum {sum(value):g})"
     return rule
 
 
