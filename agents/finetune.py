@@ -65,12 +65,14 @@ from envs._pool import ScenePool
 from envs._reward import RewardConfig
 from envs._setup import MOVING_MIN_ROUTE_M, moving_vehicles_mask, select_controlled
 from envs.smart_traffic_batched_v0 import GROUP, SmartTrafficBatchedEnv
-from smart_marl.config_files import (apply_overrides, check_fields, device_problem, flag, integer, number, optional,
-                                     output_dir_problem, read_config_file, text)
+from envs._arguments import MAX_HORIZON_STEPS
+from smart_marl.config_files import (apply_overrides, check_fields, check_value, device_problem, flag, integer, number, one_of,
+                                     optional, output_dir_problem, read_config_file, text)
+from smart_marl.config_files import seed as seed_rule
 from smart_marl.errors import SmartMarlError, UsageError
 from smart_marl.model.checkpoint import CheckpointError
 from smart_marl.model.checkpoint import load_prior as load_smart_prior
-from smart_marl.rollout import DEFAULT_TOP_K
+from smart_marl.rollout import DEFAULT_TOP_K, temperature_rule
 from smart_marl.runlog import RunLog
 from smart_marl.scenario import AgentType
 
@@ -202,22 +204,29 @@ def _scenes_rule(value) -> str | None:
     return f"must be a path, a list of paths or 'embedded', got {value!r}"
 
 
+MAX_EVAL_EPISODES = 1024
+"""The most evaluation rollouts (seeds) per held-out scene (WOSAC uses 32)."""
+POLICY_NETWORK_FIELDS = ("hidden", "depth", "residual", "actor_head", "obs_scale", "temperature", "reference_top_k", "max_agents")
+"""The FinetuneConfig fields a saved policy's network is built with: fixed by its checkpoint."""
+
 _FINETUNE_RULES = {
-    "scenes": _scenes_rule, "num_scenes": optional(integer(1)), "prior": text, "num_envs": integer(1), "controlled": text,
-    "moving_min_route_m": number(0.0), "max_agents": integer(1), "background": text, "horizon_steps": integer(1),
+    "scenes": _scenes_rule, "num_scenes": optional(integer(1)), "prior": text, "num_envs": integer(1, 4096, "scenes in one batch"),
+    "controlled": text, "moving_min_route_m": number(0.0), "max_agents": integer(1, 1024),
+    "background": text, "horizon_steps": integer(1, MAX_HORIZON_STEPS, "the env's longest episode"),
     "reward": lambda v: None if isinstance(v, dict) and all(number()(w) is None for w in v.values())
     else f"must map reward terms to finite weights, got {v!r}",
     "terminate_on": lambda v: None if isinstance(v, tuple) and all(isinstance(e, str) for e in v) else f"must be a list of event names, got {v!r}",
-    "top_k": optional(integer(1)), "temperature": number(0.0, low_open=True), "reference_top_k": optional(integer(1)), "residual": flag,
-    "actor_head": lambda v: None if v in ACTOR_HEADS else f"must be one of {', '.join(ACTOR_HEADS)}, got {v!r}", "hidden": integer(1),
-    "depth": integer(1), "obs_scale": number(0.0, low_open=True), "critic": text, "beta": number(0.0), "gamma": number(0.0, 1.0),
+    "top_k": optional(integer(1)), "temperature": temperature_rule, "reference_top_k": optional(integer(1)), "residual": flag,
+    "actor_head": one_of(*ACTOR_HEADS), "hidden": integer(1, 4096, "16x the default"), "depth": integer(1, 16),
+    "obs_scale": number(0.0, low_open=True), "critic": text, "beta": number(0.0), "gamma": number(0.0, 1.0),
     "lmbda": number(0.0, 1.0), "clip_epsilon": number(0.0, low_open=True), "entropy_coeff": number(0.0),
     "critic_coeff": number(0.0), "normalize_advantage": flag, "lr": number(0.0, low_open=True), "max_grad_norm": number(0.0),
-    "frames_per_batch": integer(1), "iterations": integer(1), "ppo_epochs": integer(1), "minibatch_size": integer(1),
-    "eval_episodes": integer(0), "eval_seed": integer(), "eval_scenes": lambda v: None if v is None else _scenes_rule(v),
+    "frames_per_batch": integer(1, 10**6, "a million env steps per iteration"), "iterations": integer(1, 10**6),
+    "ppo_epochs": integer(1, 1000), "minibatch_size": integer(1),
+    "eval_episodes": integer(0, MAX_EVAL_EPISODES), "eval_seed": seed_rule, "eval_scenes": lambda v: None if v is None else _scenes_rule(v),
     "eval_num_scenes": integer(1), "eval_rules": lambda v: None if v in ("2024", "2025") else f"must be '2024' or '2025', got {v!r}",
-    "out_dir": lambda v: text(v) or output_dir_problem(v), "checkpoint_every": integer(1), "seed": integer(), "device": device_problem,
-    "tensorboard": flag, "torch_threads": integer(0), "prior_cache_size": integer(1),
+    "out_dir": lambda v: text(v) or output_dir_problem(v), "checkpoint_every": integer(1), "seed": seed_rule, "device": device_problem,
+    "tensorboard": flag, "torch_threads": integer(0, 1024), "prior_cache_size": integer(1, 10**6),
 }
 """What each FinetuneConfig field takes (the env checks ``controlled``, ``background`` and the reward terms by name)."""
 
@@ -582,14 +591,16 @@ def evaluate_checkpoint(path, overrides: Sequence[str] = (), episodes: int | Non
     """:func:`evaluate_finetuned` for a policy checkpoint, with its run's config (``key=value``
     overrides, e.g. ``eval_scenes=OTHER`` to evaluate on other held-out scenes; the network's own
     sizes cannot be overridden)."""
+    check_value("--episodes", episodes, optional(integer(1, MAX_EVAL_EPISODES)), FinetuneConfigError)
+    check_value("--seed", seed, optional(seed_rule), FinetuneConfigError)
     cfg, net, meta = load_policy(path)
     if overrides:
-        new = load_finetune_config(cfg.to_dict(), overrides)
-        fixed = [k for k in ("hidden", "depth", "residual", "obs_scale", "actor_head", "max_agents") if getattr(new, k) != getattr(cfg, k)]
+        saved, cfg = cfg, load_finetune_config(cfg.to_dict(), overrides)
+        fixed = [f"{k}={getattr(cfg, k)!r} (the checkpoint's: {getattr(saved, k)!r})" for k in POLICY_NETWORK_FIELDS
+                 if getattr(cfg, k) != getattr(saved, k)]
         if fixed:
-            raise FinetuneConfigError(f"{', '.join(fixed)}: the checkpoint's network was built with "
-                                      f"{', '.join(f'{k}={getattr(cfg, k)!r}' for k in fixed)}; it cannot be evaluated with another")
-        cfg = new
+            raise FinetuneConfigError(f"{', '.join(fixed)}: the policy's network was built with the checkpoint's value, "
+                                      f"which evaluation keeps; fine-tune a new policy to change it")
     result = evaluate_finetuned(cfg, net.to(cfg.device), episodes=episodes, seed=seed)
     result["checkpoint"] = str(path)
     result["iteration"] = meta.get("iteration")

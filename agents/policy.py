@@ -26,7 +26,7 @@ from torch import nn
 from torchrl.modules import MultiAgentMLP
 
 from envs._observation import ObservationConfig, observation_layout
-from smart_marl.errors import SmartMarlError
+from smart_marl.errors import SmartMarlError, check_regular_file
 from smart_marl.rollout import reference_log_probs, reference_name, sample_tokens, top_k_mask
 from smart_marl.scenario import AgentType
 
@@ -138,9 +138,11 @@ def read_policy(path: str | Path) -> tuple[dict, dict[str, torch.Tensor]]:
     jpath, wpath = stem.with_name(stem.name + ".json"), stem.with_name(stem.name + ".safetensors")
     if not jpath.is_file() or not wpath.is_file():
         raise PolicyError(f"{path}: not a policy checkpoint (needs {jpath.name} and {wpath.name})")
+    for f in (jpath, wpath):  # FIFOs, devices and /proc files are refused before they are read
+        check_regular_file(f, lambda name, problem: PolicyError(f"{name}: {problem}"))
     try:
         meta = json.loads(jpath.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
         raise PolicyError(f"{jpath}: not a readable policy checkpoint ({exc})") from exc
     if not isinstance(meta, dict) or meta.get("format") != "smart-marl-policy":
         raise PolicyError(f"{jpath}: not a smart-marl policy checkpoint (format {meta.get('format') if isinstance(meta, dict) else None!r})")

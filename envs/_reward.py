@@ -58,8 +58,6 @@ class RewardConfig:
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
                 raise EnvConfigError(f"reward: {f.name} must be a finite number, got {v!r}")
-        if self.goal_radius_m <= 0:
-            raise EnvConfigError(f"reward: goal_radius_m must be > 0, got {self.goal_radius_m!r}")
 
     @classmethod
     def from_any(cls, value) -> "RewardConfig":

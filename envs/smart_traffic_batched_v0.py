@@ -40,15 +40,17 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from smart_marl.config_files import check_value, integer
+from smart_marl.config_files import seed as seed_rule
 from smart_marl.rollout import DEFAULT_TOP_K, reference_name
 from smart_marl.scenario import AgentType
 from smart_marl.tokens import MotionVocabulary
 
+from ._arguments import check_env_arguments
 from ._core import CoreScene, CoreStep, TrafficCore
-from ._dynamics import BACKGROUNDS
 from ._observation import ObservationConfig, observation_size
 from ._pool import ScenePool
-from ._reward import REWARD_TERMS, TERMINATION_EVENTS, RewardConfig
+from ._reward import REWARD_TERMS, TERMINATION_EVENTS
 from ._setup import load_env_prior, select_controlled
 from .errors import EnvConfigError
 
@@ -65,31 +67,33 @@ class SmartTrafficBatchedEnv(EnvBase):
                  motion_vocab: MotionVocabulary | None = None, top_k: int = DEFAULT_TOP_K, temperature: float = 1.0,
                  reference_top_k: int | None = None, avoid_collisions: bool = True, observation: ObservationConfig | None = None,
                  device="cpu", prior_cache_size: int = 1024, max_loaded_scenes: int = 1024, seed: int = 0) -> None:
-        if background not in BACKGROUNDS:
-            raise EnvConfigError(f"background must be one of {BACKGROUNDS}, got {background!r}")
-        if int(num_scenes) < 1 or int(max_agents) < 1 or int(horizon_steps) < 1:
-            raise EnvConfigError(f"num_scenes, max_agents and horizon_steps must be >= 1, got {num_scenes}, {max_agents}, {horizon_steps}")
-        bad = sorted(set(terminate_on) - set(TERMINATION_EVENTS))
-        if bad:
-            raise EnvConfigError(f"terminate_on: unknown event(s) {bad}; known: {TERMINATION_EVENTS}")
-        if reference_top_k is not None and int(reference_top_k) < 1:
-            raise EnvConfigError(f"reference_top_k must be None (the full softmax) or >= 1, got {reference_top_k}")
+        a = check_env_arguments(background=background, horizon_steps=horizon_steps, scene_order=scene_order,
+                                terminate_on=terminate_on, render_mode=None, render_modes=(), max_agents=max_agents, top_k=top_k,
+                                temperature=temperature, reference_top_k=reference_top_k, render_size_px=400, render_radius_m=50.0,
+                                avoid_collisions=avoid_collisions, reward=reward, observation=observation or "vector",
+                                controlled=controlled)
+        if a["max_agents"] is None:
+            raise EnvConfigError("max_agents must be an integer >= 1: the batched env's agent group has that many slots per scene")
+        for name, value, high in (("num_scenes", num_scenes, 1 << 16), ("prior_cache_size", prior_cache_size, 1 << 20),
+                                  ("max_loaded_scenes", max_loaded_scenes, 1 << 20)):
+            check_value(name, value, integer(1, high), EnvConfigError)
+        check_value("seed", seed, seed_rule, EnvConfigError)
         device = torch.device(device)
         super().__init__(device=device, batch_size=torch.Size([int(num_scenes)]), allow_done_after_reset=True)
         self.model, self.motion_vocab = load_env_prior(prior, motion_vocab, device)
         if background == "prior" and self.model is None:
             raise EnvConfigError("background='prior' needs a prior (prior=PATH, a model or 'embedded')")
-        self.num_scenes, self.max_agents = int(num_scenes), int(max_agents)
-        self.controlled, self.background, self.horizon_steps = controlled, background, int(horizon_steps)
+        self.num_scenes, self.max_agents = int(num_scenes), a["max_agents"]
+        self.controlled, self.background, self.horizon_steps = a["controlled"], a["background"], a["horizon_steps"]
         self.vocab_size = self.motion_vocab[AgentType.VEHICLE].size
         self.group_types = [int(t) for t, v in self.motion_vocab.types.items() if v.size == self.vocab_size]
-        self.temperature = float(temperature)
-        self.reference_top_k = None if reference_top_k is None else int(reference_top_k)
+        self.temperature = a["temperature"]
+        self.reference_top_k = a["reference_top_k"]
         self.reference = reference_name(self.reference_top_k, self.temperature)
-        self.obs_config = observation or ObservationConfig()
+        self.obs_config = a["observation"]
         self.pool = scenarios if isinstance(scenarios, ScenePool) else ScenePool(scenarios, scene_order, seed, max_loaded=max_loaded_scenes)
-        self.core = TrafficCore(self.model, self.motion_vocab, background, self.horizon_steps, RewardConfig.from_any(reward),
-                                terminate_on, self.obs_config, int(top_k), self.temperature, bool(avoid_collisions), device=device,
+        self.core = TrafficCore(self.model, self.motion_vocab, self.background, self.horizon_steps, a["reward"], a["terminate_on"],
+                                self.obs_config, a["top_k"], self.temperature, a["avoid_collisions"], device=device,
                                 prior_cache_size=prior_cache_size)
         self.scene_indices = [-1] * self.num_scenes  # the pool index each row plays
         self._seed = int(seed)
@@ -136,6 +140,8 @@ class SmartTrafficBatchedEnv(EnvBase):
 
     # ------------------------------------------------------------------------------- TorchRL
     def _set_seed(self, seed: int | None) -> None:
+        if seed is not None:
+            check_value("seed", seed, seed_rule, EnvConfigError)
         self._seed = int(seed) if seed is not None else 0
         self.pool.seed(self._seed)
 

@@ -50,9 +50,11 @@ full softmax), ``action_log_prob`` (the prior's full-softmax log-probability of 
 ``collision``, ``offroad``, ``goal_reached`` (this step), ``route_progress_m`` and
 ``reward_terms`` [6] (see :mod:`envs._reward`). Without a prior the three prior keys are absent.
 
-Errors: an action outside the agent's vocabulary, a name that is not an agent of this episode,
-a missing action for a live agent, a step after every agent is done, a scene with no
-controllable agent and a prior that cannot be loaded all raise clear errors (:mod:`envs.errors`). Actions given for agents that are already done are ignored (TorchRL sends one for
+Errors: every argument of the constructor and of ``reset`` is checked before any state is built
+(:mod:`envs._arguments`: its type, range and integrality, an ``EnvConfigError`` naming it); an
+action outside the agent's vocabulary, a name that is not an agent of this episode, a missing action
+for a live agent, a step after every agent is done, a scene with no controllable agent and a prior
+that cannot be loaded all raise clear errors (:mod:`envs.errors`). Actions given for agents that are already done are ignored (TorchRL sends one for
 every agent of its group).
 """
 
@@ -76,6 +78,7 @@ from smart_marl.rollout import DEFAULT_TOP_K, reference_log_probs, reference_nam
 from smart_marl.scenario import DT_S, AgentType
 from smart_marl.tokens import FRAMES_PER_TOKEN, MotionVocabulary
 
+from ._arguments import check_env_arguments, check_reset_arguments
 from ._core import CoreScene, CoreStep, TrafficCore
 from ._dynamics import BACKGROUNDS
 from ._observation import ObservationConfig, observation_layout, observation_size
@@ -104,45 +107,35 @@ class SmartTrafficEnv(ParallelEnv):
                  scene_order: str = "sequential", motion_vocab: MotionVocabulary | None = None, top_k: int = DEFAULT_TOP_K,
                  temperature: float = 1.0, render_size_px: int = 400, render_radius_m: float = 50.0,
                  reference_top_k: int | None = None, avoid_collisions: bool = True) -> None:
-        if background not in BACKGROUNDS:
-            raise EnvConfigError(f"background must be one of {BACKGROUNDS}, got {background!r}")
-        if int(horizon_steps) < 1:
-            raise EnvConfigError(f"horizon_steps must be >= 1, got {horizon_steps}")
-        if scene_order not in ("sequential", "random"):
-            raise EnvConfigError(f"scene_order must be 'sequential' or 'random', got {scene_order!r}")
-        bad = sorted(set(terminate_on) - set(TERMINATION_EVENTS))
-        if bad:
-            raise EnvConfigError(f"terminate_on: unknown event(s) {bad}; known: {TERMINATION_EVENTS}")
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise EnvConfigError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        a = check_env_arguments(background=background, horizon_steps=horizon_steps, scene_order=scene_order,
+                                terminate_on=terminate_on, render_mode=render_mode, render_modes=self.metadata["render_modes"],
+                                max_agents=max_agents, top_k=top_k, temperature=temperature, reference_top_k=reference_top_k,
+                                render_size_px=render_size_px, render_radius_m=render_radius_m,
+                                avoid_collisions=avoid_collisions, reward=reward, observation=observation, controlled=controlled)
         if render_mode == "human" and not _has_display():
             raise EnvConfigError("render_mode='human' opens a matplotlib window, but there is no display (DISPLAY and "
                                  "WAYLAND_DISPLAY are unset); use render_mode='rgb_array' (and EpisodeRecorder) instead")
-        if max_agents is not None and int(max_agents) < 1:
-            raise EnvConfigError(f"max_agents must be >= 1 or None, got {max_agents}")
-        if reference_top_k is not None and int(reference_top_k) < 1:
-            raise EnvConfigError(f"reference_top_k must be None (the full softmax) or >= 1, got {reference_top_k}")
         self.model, self.motion_vocab = load_env_prior(prior, motion_vocab)
         if background == "prior" and self.model is None:
             raise EnvConfigError("background='prior' needs a prior (prior=PATH, a model or 'embedded'); with prior=None use "
                                  "background='log' or 'constant_velocity'")
         self.vocab_sizes = {int(t): v.size for t, v in self.motion_vocab.types.items()}
         self.scenes = load_scenes(scenarios)
-        self.controlled = controlled
-        self.background = background
-        self.horizon_steps = int(horizon_steps)
-        self.reward_config = RewardConfig.from_any(reward)
-        self.obs_config = observation if isinstance(observation, ObservationConfig) else ObservationConfig(kind=observation)
-        self.render_mode = render_mode
-        self.max_agents = None if max_agents is None else int(max_agents)
-        self.terminate_on = frozenset(terminate_on)
-        self.scene_order = scene_order
-        self.top_k, self.temperature = int(top_k), float(temperature)
-        self.avoid_collisions = bool(avoid_collisions)
-        self.reference_top_k = None if reference_top_k is None else int(reference_top_k)
+        self.controlled = a["controlled"]
+        self.background = a["background"]
+        self.horizon_steps = a["horizon_steps"]
+        self.reward_config = a["reward"]
+        self.obs_config = a["observation"]
+        self.render_mode = a["render_mode"]
+        self.max_agents = a["max_agents"]
+        self.terminate_on = a["terminate_on"]
+        self.scene_order = a["scene_order"]
+        self.top_k, self.temperature = a["top_k"], a["temperature"]
+        self.avoid_collisions = a["avoid_collisions"]
+        self.reference_top_k = a["reference_top_k"]
         self.reference = reference_name(self.reference_top_k, self.temperature)
-        self.render_size_px, self.render_radius_m = int(render_size_px), float(render_radius_m)
-        self.core = TrafficCore(self.model, self.motion_vocab, background, self.horizon_steps, self.reward_config,
+        self.render_size_px, self.render_radius_m = a["render_size_px"], a["render_radius_m"]
+        self.core = TrafficCore(self.model, self.motion_vocab, self.background, self.horizon_steps, self.reward_config,
                                 self.terminate_on, self.obs_config, self.top_k, self.temperature, self.avoid_collisions,
                                 dtype=torch.float64, prior_cache_size=self.PRIOR_STATE_CACHE, record=True)
         self._statics: dict[int, SceneStatic] = {}
@@ -211,17 +204,12 @@ class SmartTrafficEnv(ParallelEnv):
 
     # -------------------------------------------------------------------------------- reset
     def reset(self, seed: int | None = None, options: dict | None = None):
-        options = options or {}
+        seed, index = check_reset_arguments(seed, options, len(self.scenes))  # envs._arguments: refused with a named error
         if seed is not None:
             self._np_random = np.random.default_rng(seed)
-        if "scene_index" in options:
-            index = int(options["scene_index"])
-            if not 0 <= index < len(self.scenes):
-                raise EnvConfigError(f"options['scene_index'] = {index} is outside 0..{len(self.scenes) - 1}")
-        elif self.scene_order == "random":
-            index = int(self._np_random.integers(len(self.scenes)))
-        else:
-            index = self._next_scene % len(self.scenes)
+        if index is None:
+            index = (int(self._np_random.integers(len(self.scenes))) if self.scene_order == "random"
+                     else self._next_scene % len(self.scenes))
         self._next_scene = index + 1
         self._select_scene(index)
         prior_seed = int(seed) if seed is not None else int(self._np_random.integers(2**31))

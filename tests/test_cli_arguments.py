@@ -30,7 +30,7 @@ SUBMISSION = "womd_tfrecord/sim_agents_test_submission.binproto"
     (["generate-sumo", "--scenes", "1", "--out", "OUT", "--workers", "0"], "--workers"),
     (["generate-sumo", "--scenes", "1", "--out", "OUT", "--speed-weights", "1,2"], "--speed-weights: needs --speed-limits"),
     (["generate-sumo", "--scenes", "1", "--out", "OUT", "--speed-limits", "30,fast"], "--speed-limits"),
-    (["generate-sumo", "--scenes", "1", "--out", "OUT", "--speed-limits", "0,50"], "--speed-limits: every value must be > 0"),
+    (["generate-sumo", "--scenes", "1", "--out", "OUT", "--speed-limits", "0,50"], "--speed-limits: every value must be >= 5"),
     (["generate-sumo", "--scenes", "1", "--out", "OUT", "--speed-limits", "30,50", "--speed-weights", "1"],
      "--speed-weights: 1 weights for 2 speed limits"),
     (["vocab", "build", "SRC", "--out", "FILE"], "--out"),
@@ -55,7 +55,7 @@ SUBMISSION = "womd_tfrecord/sim_agents_test_submission.binproto"
     (["finetune", "--config", "tiny", "--device", "bogus"], "--device"),
     (["finetune", "--config", "tiny", "lr=abc", "--print-config"], "fine-tuning config: lr must be a finite number"),
     (["finetune", "--config", "tiny", "iterations=0", "--print-config"], "fine-tuning config: iterations must be at least 1"),
-    (["whatif", "SRC", "--script", "SRC", "--out", "OUT", "--steps", "1000"], "--steps: at most 64"),
+    (["whatif", "SRC", "--script", "SRC", "--out", "OUT", "--steps", "1000"], "--steps: must be at most 64"),
     (["whatif", "SRC", "--script", "SRC", "--out", "OUT", "--rollouts", "0"], "--rollouts"),
 ], ids=lambda a: " ".join(a) if isinstance(a, list) else None)
 def test_bad_arguments_exit_2_with_one_error_line_before_any_work(argv, names, tmp_path, capsys):

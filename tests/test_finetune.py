@@ -302,6 +302,22 @@ def test_tiny_finetuning_reaches_logged_goals_more_often_than_the_prior(tiny_run
     assert len(csv_rows) == 1 + cfg.iterations and csv_rows[0].startswith("iteration,frames")
 
 
+def test_evaluation_refuses_an_override_of_the_saved_policys_network(tiny_run, capsys):
+    """Issue 34: ``hidden=128`` at evaluation was ignored (the network is the checkpoint's); it is refused, before
+    anything runs, as is ``--episodes 0`` (which became one seed)."""
+    from agents.finetune import FinetuneConfigError, evaluate_checkpoint
+    from smart_marl.cli import main
+
+    cfg, result = tiny_run
+    assert main(["finetune", "--evaluate", str(result.checkpoint), "hidden=128"]) == 2
+    err = capsys.readouterr().err
+    assert f"hidden=128 (the checkpoint's: {cfg.hidden})" in err and "the policy's network was built with" in err
+    with pytest.raises(FinetuneConfigError, match="--episodes must be at least 1, got 0"):
+        evaluate_checkpoint(result.checkpoint, episodes=0)
+    with pytest.raises(FinetuneConfigError, match=r"--episodes must be at least 1, got -3"):
+        evaluate_checkpoint(result.checkpoint, episodes=-3)
+
+
 def test_policy_checkpoint_round_trips_and_evaluate_command_prints_the_table(tiny_run, capsys):
     from smart_marl.cli import main
 

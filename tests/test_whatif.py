@@ -197,11 +197,12 @@ def test_traffic_light_override_reaches_the_models_road_encodings(model, vocab, 
     np.testing.assert_array_equal(later.scene.traffic_lights.states[:20], tl.states[:20])
 
 
-def test_an_edit_that_never_happens_leaves_the_rollouts_identical_to_the_baseline(model, vocab, scene):
-    result = run_whatif(model, scene, WhatIf([Remove(agents=[1609], at_s=100.0)]), num_rollouts=2, seed=3, num_steps=4, realism=False)
-    np.testing.assert_array_equal(result.baseline.poses, result.perturbed.poses)
-    row = next(r for r in result.table if r["quantity"] == "colliding_agents_per_rollout")
-    assert row["change"] == 0.0
+@pytest.mark.parametrize("edit", [Remove(agents=[1609], at_s=2.0), Brake(agent=1609, at_s=30.0)])
+def test_an_edit_after_the_rollouts_end_is_refused_before_anything_runs(scene, edit):
+    """Issue 34: an onset at or after the last step (at_s 30 with 4 steps = 2 s) never happens; it is refused up
+    front, naming the edit and the rollout's end, instead of failing after both simulations."""
+    with pytest.raises(WhatIfError, match=r"edit 0: .*at_s .* is at or after the rollout's end \(4 steps = 2 s\)"):
+        run_whatif("no-such-checkpoint", scene, WhatIf([edit]), num_rollouts=2, seed=3, num_steps=4, realism=False)
 
 
 def test_table_reports_the_braking_cars_speed_drop(model, vocab, scene):

@@ -22,7 +22,7 @@ from ..metrics.baselines import policy_rollouts
 from ..model.checkpoint import EMBEDDED, load_checkpoint
 from ..render import BevRenderer, EpisodeRecorder
 from ..rollout import rollout
-from .arguments import device, output_dir, positive_int
+from .arguments import device, output_dir, rollouts, seed
 from .eval import format_table, prior_rollouts
 
 
@@ -30,8 +30,8 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("demo", help="simulate the built-in sample scenes with the embedded SMART prior",
                               description=__doc__.split("\n\n")[1])
     p.add_argument("--out", default="out/demo", type=output_dir, help="output folder (default: out/demo)")
-    p.add_argument("--rollouts", type=positive_int, default=32, help="rollouts per scene (default 32, as the metrics expect)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the rollouts (default 0)")
+    p.add_argument("--rollouts", type=rollouts, default=32, help="rollouts per scene (default 32, as the metrics expect)")
+    p.add_argument("--seed", type=seed, default=0, help="random seed of the rollouts (default 0)")
     p.add_argument("--checkpoint", default=None, help="a SMART checkpoint instead of the embedded prior")
     p.add_argument("--device", default="cpu", type=device, help="torch device (default cpu)")
     p.add_argument("--format", choices=("mp4", "gif"), default="mp4", help="animation format (default mp4)")

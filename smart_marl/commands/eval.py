@@ -16,12 +16,12 @@ way. A submission must hold WOSAC's 32 rollouts per scenario (exit 1 otherwise) 
 
 from __future__ import annotations
 
-import json
 import sys
 
 import numpy as np
 from tqdm import tqdm
 
+from ..config_files import strict_json
 from ..errors import ScenarioReadError
 from ..metrics import SceneNotScorableError, aggregate, logged_scene, score_rollouts
 from ..metrics.baselines import policy_rollouts
@@ -31,7 +31,7 @@ from ..metrics.submission import ScenarioRolloutArrays, check_against_scene, rol
 from ..model.checkpoint import EMBEDDED, load_checkpoint
 from ..readers import expand_paths, read_scenarios
 from ..rollout import DEFAULT_TOP_K, rollout
-from .arguments import collision_avoidance_flag, device, non_negative_int, positive_int, positive_number, reader_formats
+from .arguments import collision_avoidance_flag, device, non_negative_int, reader_formats, rollouts, seed, temperature
 
 POLICY_CHOICES = ("constant_velocity", "log_replay", "random", "prior")
 WOSAC_ROLLOUTS = 32
@@ -52,11 +52,11 @@ def register(subparsers) -> None:
     p.add_argument("--device", default="cpu", type=device, help="torch device for --policy prior (default cpu)")
     p.add_argument("--top-k", type=non_negative_int, default=None, metavar="K",
                    help=f"--policy prior samples among its K most likely tokens (default {DEFAULT_TOP_K}; 0: all of them)")
-    p.add_argument("--temperature", type=positive_number, default=None, metavar="T",
+    p.add_argument("--temperature", type=temperature, default=None, metavar="T",
                    help="--policy prior samples from softmax(logits / T) (default 1)")
     collision_avoidance_flag(p, "--policy prior")
-    p.add_argument("--rollouts", type=positive_int, default=32, help="rollouts per scene for --policy (default 32)")
-    p.add_argument("--seed", type=int, default=0, help="random seed for --policy (default 0)")
+    p.add_argument("--rollouts", type=rollouts, default=32, help="rollouts per scene for --policy (default 32)")
+    p.add_argument("--seed", type=seed, default=0, help="random seed for --policy (default 0)")
     p.add_argument("--rules", choices=("2024", "2025"), default="2025", help="challenge rules (default 2025)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--write-submission", metavar="OUT", help="with --policy: also write the rollouts as a submission file")
@@ -160,7 +160,7 @@ def run(args) -> int:
     out = aggregate(results, args.rules)
     if args.json:
         keys = ("meta_metric", "kinematic", "interactive", "map_based", "min_ade", "likelihoods", "num_scenarios", "rules")
-        print(json.dumps({**{k: out[k] for k in keys}, "skipped": skipped}))
+        print(strict_json({**{k: out[k] for k in keys}, "skipped": skipped}))  # NaN/inf as null: JSON, not Infinity
     else:
         print(format_table(out))
         if skipped:

@@ -290,6 +290,8 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
     index_of_key = {str(k): i for i, k in enumerate(track_keys)}
     sdc_key = meta.get("sdc_id")
     sdc_index = index_of_key.get(str(sdc_key), -1) if sdc_key is not None else -1
+    if sdc_key is not None and sdc_index < 0:  # a named self-driving car that is not there is a broken file, not "none"
+        raise ScenarioReadError(path, f"sdc_id {sdc_key!r} names no track (tracks: {list(index_of_key)[:5]}...)", "metadata")
 
     predict, difficulty = [], []
     to_predict = meta.get("tracks_to_predict") or {}

@@ -9,9 +9,10 @@ from .engine import (
     MODES, RolloutResult, RolloutState, SceneHistory, StepOutput, TrackFrames, collect_result, rollout, scene_history,
     track_frames,
 )
-from .sampling import DEFAULT_TOP_K, reference_log_probs, reference_name, sample_tokens, top_k_mask
+from .sampling import (DEFAULT_TOP_K, TEMPERATURE_RANGE, reference_log_probs, reference_name, sample_tokens, temperature_rule,
+                       top_k_mask)
 
 __all__ = [
     "MODES", "RolloutResult", "RolloutState", "SceneHistory", "StepOutput", "TrackFrames", "collect_result", "rollout",
-    "DEFAULT_TOP_K", "reference_log_probs", "reference_name", "sample_tokens", "scene_history", "top_k_mask", "track_frames",
+    "DEFAULT_TOP_K", "TEMPERATURE_RANGE", "temperature_rule", "reference_log_probs", "reference_name", "sample_tokens", "scene_history", "top_k_mask", "track_frames",
 ]

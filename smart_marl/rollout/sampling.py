@@ -20,6 +20,14 @@ from __future__ import annotations
 
 import torch
 
+from ..config_files import number
+
+TEMPERATURE_RANGE = (1e-3, 1e3)
+"""The temperatures the prior samples with, everywhere a user gives one (env, fine-tuning, eval, what-if):
+below 1e-3 ``logits / T`` overflows float32 into NaN probabilities; above 1e3 every token is as likely."""
+temperature_rule = number(*TEMPERATURE_RANGE, why="beyond it every token is as likely")
+"""The rule (:mod:`smart_marl.config_files`) of a temperature: a finite number in :data:`TEMPERATURE_RANGE`."""
+
 DEFAULT_TOP_K = 6
 """The k the prior drives with unless told otherwise (rollouts, the environment's background, what-if
 scenarios, ``smart-marl eval``). The paper samples among 5. Measured on the embedded prior (README,

@@ -32,10 +32,13 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from ..config_files import (check_fields, check_value, flag, integer, interval, is_number, number, one_of, optional,
+                            probabilities, sequence)
+from ..errors import UsageError
 from ..geometry import frame_steps
 from ..scenario import DT_S, AgentType, SceneFrame, Scenario, TrafficLights, Tracks, wrap_angle
 from .sumo_net import (
-    SIGNAL_OF_CHAR, SPEEDS_MPS, NetworkMap, NetworkSpec, build_network, lane_shape, network_map, quantize, random_network_spec,
+    JUNCTION_TYPES, SIGNAL_OF_CHAR, SPEEDS_MPS, NetworkMap, NetworkSpec, build_network, lane_shape, network_map, quantize, random_network_spec,
     require_sumo, rotation_matrix, sumo_binary, turn_angle,
 )
 
@@ -43,6 +46,13 @@ SCENE_FRAMES = 91
 CURRENT_FRAME = 10
 SOURCE = "sumo"
 
+
+class SumoConfigError(UsageError):
+    """A SumoConfig value the generator cannot use (names the field, the value and what it takes)."""
+
+
+MIN_SPEED_LIMIT_MPS, MAX_SPEED_LIMIT_MPS = 1.35, 55.6
+"""The speed limits a network may get (5-200 km/h): netgenerate crashes on limits near 0."""
 
 @dataclass(frozen=True)
 class SumoConfig:
@@ -98,20 +108,47 @@ class SumoConfig:
         return cls(**{**LEGACY_TRAFFIC, **changes})
 
     def __post_init__(self) -> None:
+        if not all(is_number(v) for v in (self.walker_sway_m, self.walker_jitter_rad, self.walker_sway_s, self.walker_jitter_s,
+                                          self.cyclist_sway_m, self.cyclist_sway_s)):
+            check_fields(self, SUMO_RULES, "SUMO", SumoConfigError)  # names the one that is not a number
         if not (self.walker_sway_m >= 0 and self.walker_jitter_rad >= 0 and self.walker_sway_s > 0 and self.walker_jitter_s > 0
                 and self.cyclist_sway_m >= 0 and self.cyclist_sway_s > 0):
-            raise ValueError(f"SumoConfig: walker_sway_m, walker_jitter_rad and cyclist_sway_m must be >= 0, their time scales > 0; "
+            raise SumoConfigError(f"SumoConfig: walker_sway_m, walker_jitter_rad and cyclist_sway_m must be >= 0, their time scales > 0; "
                              f"got {self.walker_sway_m}, {self.walker_jitter_rad}, {self.cyclist_sway_m}, {self.walker_sway_s}, "
                              f"{self.walker_jitter_s}, {self.cyclist_sway_s}")
+        check_value("parked_occupancy", self.parked_occupancy, sequence(number(), length=2), SumoConfigError, "SUMO config")
         lo, hi = self.parked_occupancy
         if not 0.0 <= lo <= hi <= 1.0:
-            raise ValueError(f"SumoConfig: parked_occupancy must be a range within [0, 1] (low <= high); got {self.parked_occupancy}")
+            raise SumoConfigError(f"SumoConfig: parked_occupancy must be a range within [0, 1] (low <= high); got {self.parked_occupancy}")
+        check_fields(self, SUMO_RULES, "SUMO", SumoConfigError)
         if self.speed_weights is not None and len(self.speed_weights) != len(self.speed_levels_mps):
-            raise ValueError(f"SumoConfig: speed_weights has {len(self.speed_weights)} entries for "
+            raise SumoConfigError(f"SumoConfig: speed_weights has {len(self.speed_weights)} entries for "
                              f"{len(self.speed_levels_mps)} speed_levels_mps; give one weight per level (or None)")
 
     def sim_duration_s(self) -> float:
         return self.warmup_s + (self.scenes_per_sim - 1) * self.scene_spacing_s + SCENE_FRAMES * DT_S + 0.5
+
+
+_SECONDS = number(0.0, 3600.0, low_open=True, why="an hour")
+SUMO_RULES = {
+    "scenes_per_sim": integer(1, 64), "scene_spacing_s": _SECONDS, "warmup_s": number(0.0, 3600.0, why="an hour"),
+    "radius_m": number(0.0, 1000.0, low_open=True, why="a kilometre around the self-driving car"),
+    "map_radius_m": number(0.0, 2000.0, low_open=True), "max_agents": integer(1, 1024), "max_predict": integer(1, 128),
+    "pedestrians": flag, "bicycles": flag, "sublane": flag, "lateral_resolution_m": number(0.05, 10.0),
+    "lane_change_duration_s": interval(0.0, 60.0, low_open=True),
+    "demand_scale": number(0.0, 100.0, low_open=True, why="a hundred times the demand jams every network"),
+    "length_scale": number(0.1, 10.0), "kind_weights": probabilities(3), "junction_weights": probabilities(len(JUNCTION_TYPES)),
+    "speed_levels_mps": sequence(number(MIN_SPEED_LIMIT_MPS, MAX_SPEED_LIMIT_MPS, why="200 km/h"), min_length=1, max_length=64),
+    "speed_weights": optional(probabilities()), "tls_guess_probability": number(0.0, 1.0),
+    "lane_width_m": optional(interval(2.0, 6.0)), "routes": one_of("walk", "trips"), "straight_probability": number(0.0, 1.0),
+    "driver_sigma": interval(0.0, 1.0), "driver_accel_mps2": interval(0.0, 10.0, low_open=True),
+    "driver_decel_mps2": interval(0.0, 10.0, low_open=True), "car_follow_weights": probabilities(3),
+    "lc_speed_gain": interval(0.0, 100.0), "max_lane_piece_m": optional(number(1.0, 10_000.0)),
+    "walker_sway_m": number(0.0, 5.0), "walker_sway_s": _SECONDS, "walker_jitter_rad": number(0.0, 3.2),
+    "walker_jitter_s": _SECONDS, "cyclist_sway_m": number(0.0, 5.0), "cyclist_sway_s": _SECONDS,
+    "parked_occupancy": interval(0.0, 1.0),
+}
+"""What each SumoConfig field takes (:mod:`smart_marl.config_files` rules), checked when a config is made."""
 
 
 LEGACY_TRAFFIC: dict[str, Any] = dict(
