@@ -128,27 +128,59 @@ def _cross(ax, ay, bx, by):
     return ax * by - ay * bx
 
 
+def _stretched_distance2(points: torch.Tensor, start: torch.Tensor, end: torch.Tensor, z_stretch: float) -> torch.Tensor:
+    """Squared 3D distance (z stretched) from points [..., 3] to segments start-end [..., 3] (broadcast)."""
+    sp, e = points - start, end - start
+    denom = e[..., 0] ** 2 + e[..., 1] ** 2
+    t = torch.where(denom > 0, (sp[..., 0] * e[..., 0] + sp[..., 1] * e[..., 1]) / denom.clamp_min(1e-30), torch.zeros_like(denom))
+    d = sp - e * t.clamp(0.0, 1.0)[..., None]
+    return d[..., 0] ** 2 + d[..., 1] ** 2 + (z_stretch * d[..., 2]) ** 2
+
+
+def nearest_road_edge(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: float = Z_STRETCH, candidates: int = 16,
+                      max_pairs: int = 1 << 22) -> torch.Tensor:
+    """[B, Q] the index of the segment nearest to each point [B, Q, 3] of its scene by 3D distance with z
+    stretched (the lowest index on ties), as :func:`smart_marl.geometry.nearest_segment_indices`.
+
+    Exact with pruning: a segment is never nearer than its 2D lower bound (distance to its midpoint
+    minus half its length); the ``candidates`` segments of smallest bound are measured, and a point
+    whose nearest candidate is nearer than every other segment's bound is done; the few others are
+    measured against every segment."""
+    b, q = points.shape[:2]
+    s = edges.num_segments
+    mid = 0.5 * (edges.start[..., :2] + edges.end[..., :2])  # [B, S, 2]
+    half = 0.5 * (edges.end[..., :2] - edges.start[..., :2]).norm(dim=-1)  # [B, S]
+    k = min(candidates, s)
+    cand_lb = torch.empty(b, q, k, dtype=points.dtype, device=points.device)
+    cand = torch.empty(b, q, k, dtype=torch.long, device=points.device)
+    rows = max(1, max_pairs // max(q * s, 1))
+    for lo in range(0, b, rows):  # the bound of every (point, segment) pair, a few scenes at a time
+        hi = min(b, lo + rows)
+        lb = ((points[lo:hi, :, None, :2] - mid[lo:hi, None]).norm(dim=-1) - half[lo:hi, None])
+        cand_lb[lo:hi], cand[lo:hi] = torch.topk(lb.masked_fill(~edges.valid[lo:hi, None], float("inf")), k, dim=-1, largest=False)
+    cand, by_index = cand.sort(dim=-1)  # the lowest index first among equally near candidates
+    cand_lb = cand_lb.gather(-1, by_index)
+    pick = lambda t: t.gather(1, cand.reshape(b, -1)[..., None].expand(-1, -1, 3)).view(b, q, k, 3)  # noqa: E731
+    d2 = _stretched_distance2(points[:, :, None], pick(edges.start), pick(edges.end), z_stretch)
+    d2 = d2.masked_fill(~edges.valid.gather(1, cand.reshape(b, -1)).view(b, q, k), float("inf"))
+    best = d2.argmin(-1, keepdim=True)
+    nearest = cand.gather(-1, best)[..., 0]
+    sure = (d2.gather(-1, best)[..., 0].sqrt() < cand_lb.amax(-1)) | (k == s)  # no segment outside the candidates is as near
+    qb, qq = (~sure & edges.valid.any(1)[:, None]).nonzero(as_tuple=True)
+    if len(qb):  # the rest: every segment of their scene
+        full = _stretched_distance2(points[qb, qq][:, None], edges.start[qb], edges.end[qb], z_stretch)
+        nearest[qb, qq] = full.masked_fill(~edges.valid[qb], float("inf")).argmin(-1)
+    return nearest
+
+
 def signed_distance_to_road_edges(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: float = Z_STRETCH,
                                   max_pairs: int = 1 << 22) -> torch.Tensor:
     """Signed 2D distance [B, Q] of points [B, Q, 3] to their scene's road edges, positive off the road,
     as :func:`smart_marl.geometry.signed_distance_to_road_edges`: the nearest segment by 3D distance
-    with z stretched ``z_stretch`` times (the lowest index on ties), the 2D distance to it, its sign by
-    the neighbour rule. Exhaustive over the scene's segments, ``max_pairs`` (point, segment) pairs at a
-    time. A scene without segments gives ``-inf`` (nowhere is off its road)."""
-    b, q = points.shape[:2]
-    nearest = torch.zeros(b, q, dtype=torch.long, device=points.device)
-    rows = max(1, max_pairs // max(q * edges.num_segments, 1))
-    se = edges.end - edges.start  # [B, S, 3]
-    for lo in range(0, b, rows):
-        hi = min(b, lo + rows)
-        sp = points[lo:hi, :, None, :] - edges.start[lo:hi, None]  # [b, Q, S, 3]
-        e = se[lo:hi, None]
-        denom = e[..., 0] ** 2 + e[..., 1] ** 2
-        t = torch.where(denom > 0, (sp[..., 0] * e[..., 0] + sp[..., 1] * e[..., 1]) / denom.clamp_min(1e-30), torch.zeros_like(denom))
-        t = t.clamp(0.0, 1.0)
-        d = sp - e * t[..., None]
-        d3 = d[..., 0] ** 2 + d[..., 1] ** 2 + (z_stretch * d[..., 2]) ** 2
-        nearest[lo:hi] = d3.masked_fill(~edges.valid[lo:hi, None], float("inf")).argmin(-1)
+    with z stretched ``z_stretch`` times (the lowest index on ties, :func:`nearest_road_edge`), the 2D
+    distance to it, its sign by the neighbour rule. ``max_pairs`` bounds the (point, segment) pairs
+    held at once. A scene without segments gives ``-inf`` (nowhere is off its road)."""
+    nearest = nearest_road_edge(points, edges, z_stretch, max_pairs=max_pairs)
     gather = lambda t: t.gather(1, nearest)  # noqa: E731  [B, S] -> [B, Q]
     gather3 = lambda t, idx=None: t.gather(1, (nearest if idx is None else idx)[..., None].expand(-1, -1, 3))  # noqa: E731
 
@@ -180,5 +212,5 @@ def box_corners_bottom(xy: torch.Tensor, heading: torch.Tensor, size: torch.Tens
     return torch.cat([xy4, zb], -1)
 
 
-__all__ = ["RoadEdgeTensors", "box_corners", "box_corners_bottom", "boxes_overlap", "polygon_distance", "rounded_boxes_overlap",
-           "signed_distance_to_road_edges"]
+__all__ = ["RoadEdgeTensors", "box_corners", "box_corners_bottom", "boxes_overlap", "nearest_road_edge", "polygon_distance",
+           "rounded_boxes_overlap", "signed_distance_to_road_edges"]

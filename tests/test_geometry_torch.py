@@ -91,3 +91,20 @@ def test_offroad_boxes_equal_the_numpy_offroad_test():
     got = signed_distance_to_road_edges(corners.reshape(1, -1, 3), edges).reshape(n, 4).amax(-1).numpy()
     np.testing.assert_allclose(got, want, atol=1e-9)
     assert 10 < (want > 0).sum() < n - 10
+
+
+def test_pruned_nearest_edge_search_equals_the_exhaustive_one_with_any_number_of_candidates():
+    from smart_marl.geometry_torch import nearest_road_edge
+
+    scenes = sample_scenarios()[:2]
+    edges = RoadEdgeTensors.from_segments([_edge_segments(sc) for sc in scenes], dtype=torch.float64)
+    gen = torch.Generator().manual_seed(4)
+    pts = torch.cat([torch.rand(2, 500, 2, generator=gen, dtype=torch.float64) * 300 - 150,
+                     torch.rand(2, 500, 1, generator=gen, dtype=torch.float64) * 4 - 2], -1)
+    sp = pts[:, :, None] - edges.start[:, None]
+    e = (edges.end - edges.start)[:, None]
+    t = ((sp[..., :2] * e[..., :2]).sum(-1) / (e[..., :2] ** 2).sum(-1).clamp_min(1e-30)).clamp(0, 1)
+    d = sp - e * t[..., None]
+    full = (d[..., 0] ** 2 + d[..., 1] ** 2 + (3.0 * d[..., 2]) ** 2).masked_fill(~edges.valid[:, None], float("inf")).argmin(-1)
+    for k in (1, 4, 16, 10**6):  # 1 candidate: most points fall back to every segment; 10**6: every segment is a candidate
+        assert torch.equal(nearest_road_edge(pts, edges, candidates=k), full)

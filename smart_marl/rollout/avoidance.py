@@ -117,13 +117,28 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
 
     finite = torch.isfinite(logits).sum(-1)  # [M] tokens of the row's type
     want = finite if top_k is None or top_k <= 0 else finite.clamp(max=int(top_k))
-    excluded = _exclude_in_order(logits, finite, want, near_ok.any(-1), collides)
+    order = torch.topk(logits, min(SORTED_DEPTH, v), dim=-1).indices  # [M, D] most likely first
+    # rows none of whose ranked tokens can reach a neighbour are not checked: their first tokens all pass
+    reach = token_reach(token_poses)[own_type[:, None], order].amax(-1)  # [M] farthest any ranked token goes
+    gap = (now_xy - own_pose[:, None, :2]).norm(dim=-1) - step_xy.norm(dim=-1)  # [M, K] nearest the neighbour comes
+    touch = own_half.norm(dim=-1)[:, None] + other_half.norm(dim=-1)  # [M, K] centres closer than this can overlap
+    todo = (near_ok & (gap < reach[:, None] + touch)).any(-1)
+    excluded = _exclude_in_order(logits, finite, want, todo, collides, order)
     excluded[excluded.sum(-1) >= finite] = False  # every token of the type is excluded: leave the row alone
     return excluded
 
 
+def token_reach(token_poses: torch.Tensor) -> torch.Tensor:
+    """[types, V] how far from its start any of a token's 10 Hz frames can be (m), with either
+    interpolation: the contour's own poses, or the spline's, which stays within 1.42 times the end's
+    distance (its start tangent is capped at ``frames.MAX_LEAD`` times the chord: 4/27 * 2.8 + 1); 1.5
+    times it here."""
+    xy = token_poses[..., 1:, :2].norm(dim=-1)  # [types, V, 5]
+    return torch.maximum(xy.amax(-1), 1.5 * xy[..., -1])
+
+
 def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Tensor, todo: torch.Tensor,
-                      test: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
+                      test: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], order: torch.Tensor | None = None) -> torch.Tensor:
     """bool [M, V]: tokens ``test(rows [R], tokens [R, c]) -> bool [R, c]`` rejects, checked most
     likely first (by ``logits`` [M, V]) in chunks (``want`` tokens, then twice as many each round)
     until ``want`` [M] have passed or the row's ``finite`` [M] tokens are exhausted; rows not in
@@ -132,7 +147,8 @@ def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Te
     excluded = torch.zeros(m, v, dtype=torch.bool, device=logits.device)
     passed = torch.zeros(m, dtype=torch.long, device=logits.device)
     todo = todo.clone()
-    order = torch.topk(logits, min(SORTED_DEPTH, v), dim=-1).indices  # [M, D] most likely first
+    if order is None:
+        order = torch.topk(logits, min(SORTED_DEPTH, v), dim=-1).indices  # [M, D] most likely first
     start, chunk = 0, max(int(want.max()) if m else 1, 1)
     while todo.any() and start < v:
         r = todo.nonzero().squeeze(1)
