@@ -79,7 +79,7 @@ from smart_marl.scenario import AgentType
 from .evaluate import evaluate_policies
 from .kl_ppo import PriorKLPPOLoss
 from .policy import (ACTOR_HEADS, Critic, ExpertTensorPolicy, FinetunedTensorPolicy, PolicyError, PolicyLogits, PriorTensorPolicy,
-                     TensorPolicy, actor_from_weights, read_policy, save_policy, token_motion_features)
+                     TensorPolicy, actor_from_weights, prior_digest, read_policy, save_policy, token_motion_features)
 from .prior_policy import kl_to_prior
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "finetune"
@@ -319,8 +319,11 @@ def build_modules(cfg: FinetuneConfig, obs_dim: int, vocab_size: int, n_agents: 
     return net, actor, critic
 
 
-def load_policy(path: str | Path) -> tuple[FinetuneConfig, PolicyLogits, dict]:
-    """(config, actor logits net with its weights, meta) of a policy checkpoint (NAME or NAME.json)."""
+def load_policy(path: str | Path = "embedded") -> tuple[FinetuneConfig, PolicyLogits, dict]:
+    """(config, actor logits net with its weights, meta) of a policy checkpoint (NAME or NAME.json), or of
+    the package's fine-tuned policy (``"embedded"``: trained against the embedded prior, see
+    docs/policy_card.md). A policy saved with the digest of its prior (``prior_sha256``) is refused
+    when its config's prior is another one."""
     try:
         meta, weights = read_policy(path)
     except PolicyError as exc:
@@ -328,7 +331,15 @@ def load_policy(path: str | Path) -> tuple[FinetuneConfig, PolicyLogits, dict]:
     known = {f.name for f in dataclasses.fields(FinetuneConfig)}
     config = {k: v for k, v in meta.get("config", {}).items() if k in known}
     config.setdefault("reference_top_k", None)  # policies saved before the top-k reference were trained on the full softmax
+    if path == "embedded":
+        config["prior"] = "embedded"  # the package's policy goes with the package's prior
     cfg = load_finetune_config(config)
+    want = meta.get("prior_sha256")
+    if want is not None:
+        model, _ = load_prior(cfg.prior)
+        if prior_digest(model) != want:
+            raise FinetuneError(f"{path}: the policy was fine-tuned against another prior than {cfg.prior!r} (weights digest "
+                                f"{want[:12]}...); evaluate it with prior=THAT_CHECKPOINT or fine-tune a new policy")
     try:
         net = actor_from_weights(meta, weights, cfg.hidden, cfg.depth, cfg.residual, cfg.obs_scale, cfg.temperature,
                                  cfg.reference_top_k, cfg.actor_head, path)
@@ -434,7 +445,7 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     env.set_seed(cfg.seed + rank)
     obs_dim, vocab_size = int(env.observation_spec[OBS_KEY].shape[-1]), int(env.observation_spec[PRIOR_KEY].shape[-1])
     n_agents = cfg.max_agents
-    dims = {"obs_dim": obs_dim, "vocab_size": vocab_size, "n_agents": n_agents}
+    dims = {"obs_dim": obs_dim, "vocab_size": vocab_size, "n_agents": n_agents, "prior_sha256": prior_digest(model)}
 
     # 2. actor and critic
     net, actor, critic = build_modules(cfg, obs_dim, vocab_size, n_agents, vocab)

@@ -33,6 +33,31 @@ from smart_marl.scenario import AgentType
 from .scripted import log_following_tokens
 
 ACTOR_HEADS = ("per_token", "motion")
+EMBEDDED_POLICY_DIR = Path(__file__).resolve().parent / "checkpoints"
+"""Where the package's fine-tuned policy lives (``load_policy("embedded")``; its card: docs/policy_card.md)."""
+
+
+def prior_digest(model) -> str:
+    """sha256 of a SMART model's weights (its state dict in name order): what a policy was trained
+    against, so that loading it next to another prior is refused (its logits are the prior's plus a
+    learned residual, meaningless on top of other logits)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for name, t in sorted(model.state_dict().items()):
+        h.update(name.encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def resolve_policy_path(path: str | Path) -> Path:
+    """``"embedded"``: the package's fine-tuned policy; anything else is a checkpoint path."""
+    if isinstance(path, str) and path == "embedded":
+        found = sorted(EMBEDDED_POLICY_DIR.glob("*.json")) if EMBEDDED_POLICY_DIR.is_dir() else []
+        if not found:
+            raise PolicyError(f"{EMBEDDED_POLICY_DIR}: this installation ships no fine-tuned policy; pass a checkpoint path")
+        return found[0]
+    return Path(path)
 
 
 class PolicyError(SmartMarlError, ValueError):
@@ -132,8 +157,9 @@ def save_policy(path: Path, config: dict, net: PolicyLogits, critic: nn.Module, 
 
 
 def read_policy(path: str | Path) -> tuple[dict, dict[str, torch.Tensor]]:
-    """(meta, weights) of a policy checkpoint (``NAME``, ``NAME.json`` or ``NAME.safetensors``)."""
-    p = Path(path)
+    """(meta, weights) of a policy checkpoint (``NAME``, ``NAME.json`` or ``NAME.safetensors``, or
+    ``"embedded"``: the package's)."""
+    p = resolve_policy_path(path)
     stem = p.with_suffix("") if p.suffix in (".json", ".safetensors") else p
     jpath, wpath = stem.with_name(stem.name + ".json"), stem.with_name(stem.name + ".safetensors")
     if not jpath.is_file() or not wpath.is_file():

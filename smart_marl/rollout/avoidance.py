@@ -85,12 +85,26 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     (:func:`~smart_marl.rollout.frames.token_frames`)."""
     n = pose.shape[1]
     m, v = logits.shape
+    out = torch.zeros(m, v, dtype=torch.bool, device=logits.device)
     if m == 0 or n < 2:
-        return torch.zeros(m, v, dtype=torch.bool, device=logits.device)
+        return out
     half = size[..., :2].to(pose.dtype) / 2
     ahead = constant_velocity_pose(pose, previous_pose)
+    # 1. the rows that need checking: those whose first tokens (the top k) can reach another agent; the
+    # others draw their top k whatever is excluded further down, so nothing of theirs is
     gi, si = rows // n, rows % n
-    # each row's NEIGHBOURS nearest present others, not overlapping it now
+    first = torch.topk(logits, v if top_k is None or top_k <= 0 else min(int(top_k), v), dim=-1).indices  # [M, k]
+    reach = token_reach(token_poses)[agent_type[gi, si][:, None], first].amax(-1)  # [M] farthest a first token goes
+    own_xy, own_r = pose[gi, si, :2], half[gi, si].norm(dim=-1)
+    gap = (pose[gi][:, :, :2] - own_xy[:, None]).norm(dim=-1) - (ahead - pose)[gi][:, :, :2].norm(dim=-1)  # [M, N] nearest they come
+    maybe = present[gi] & (gap < reach[:, None] + own_r[:, None] + half[gi].norm(dim=-1))
+    maybe[torch.arange(m, device=rows.device), si] = False
+    sub = maybe.any(-1).nonzero().squeeze(1)
+    if not len(sub):
+        return out
+    logits, rows, gi, si = logits[sub], rows[sub], gi[sub], si[sub]
+    m = len(sub)
+    # 2. each such row's NEIGHBOURS nearest present others, not overlapping it now
     own_pose, own_before, own_half, own_type = pose[gi, si], previous_pose[gi, si], half[gi, si], agent_type[gi, si]
     dist = (ahead[gi][:, :, :2] - own_pose[:, None, :2]).norm(dim=-1)  # [M, N]
     blocked_now = boxes_overlap_near(own_pose[:, None, :2], own_pose[:, None, 2], own_half[:, None], pose[gi][:, :, :2],
@@ -117,15 +131,10 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
 
     finite = torch.isfinite(logits).sum(-1)  # [M] tokens of the row's type
     want = finite if top_k is None or top_k <= 0 else finite.clamp(max=int(top_k))
-    order = torch.topk(logits, min(SORTED_DEPTH, v), dim=-1).indices  # [M, D] most likely first
-    # rows none of whose ranked tokens can reach a neighbour are not checked: their first tokens all pass
-    reach = token_reach(token_poses)[own_type[:, None], order].amax(-1)  # [M] farthest any ranked token goes
-    gap = (now_xy - own_pose[:, None, :2]).norm(dim=-1) - step_xy.norm(dim=-1)  # [M, K] nearest the neighbour comes
-    touch = own_half.norm(dim=-1)[:, None] + other_half.norm(dim=-1)  # [M, K] centres closer than this can overlap
-    todo = (near_ok & (gap < reach[:, None] + touch)).any(-1)
-    excluded = _exclude_in_order(logits, finite, want, todo, collides, order)
+    excluded = _exclude_in_order(logits, finite, want, near_ok.any(-1), collides)
     excluded[excluded.sum(-1) >= finite] = False  # every token of the type is excluded: leave the row alone
-    return excluded
+    out[sub] = excluded
+    return out
 
 
 def token_reach(token_poses: torch.Tensor) -> torch.Tensor:
@@ -138,7 +147,7 @@ def token_reach(token_poses: torch.Tensor) -> torch.Tensor:
 
 
 def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Tensor, todo: torch.Tensor,
-                      test: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], order: torch.Tensor | None = None) -> torch.Tensor:
+                      test: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
     """bool [M, V]: tokens ``test(rows [R], tokens [R, c]) -> bool [R, c]`` rejects, checked most
     likely first (by ``logits`` [M, V]) in chunks (``want`` tokens, then twice as many each round)
     until ``want`` [M] have passed or the row's ``finite`` [M] tokens are exhausted; rows not in
@@ -147,8 +156,7 @@ def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Te
     excluded = torch.zeros(m, v, dtype=torch.bool, device=logits.device)
     passed = torch.zeros(m, dtype=torch.long, device=logits.device)
     todo = todo.clone()
-    if order is None:
-        order = torch.topk(logits, min(SORTED_DEPTH, v), dim=-1).indices  # [M, D] most likely first
+    order = torch.topk(logits, min(SORTED_DEPTH, v), dim=-1).indices  # [M, D] most likely first
     start, chunk = 0, max(int(want.max()) if m else 1, 1)
     while todo.any() and start < v:
         r = todo.nonzero().squeeze(1)
