@@ -112,7 +112,8 @@ def shard_from_torchrun(environ=os.environ) -> Shard | None:
 @dataclass(frozen=True)
 class SceneSlot:
     """Scene number ``ordinal`` of the input: record ``record`` of file ``file_index`` (``path``);
-    ``load()`` decodes it (a :class:`ScenarioReadError` naming the file and record when it cannot)."""
+    ``load()`` decodes it (a :class:`ScenarioReadError` naming the file and record when it cannot).
+    Loading is cheapest while the stream stands at the slot (a scene-cache shard is still open)."""
 
     ordinal: int
     file_index: int
@@ -134,9 +135,29 @@ def _decode_womd(payload: bytes, path: str, record: int) -> Scenario:
         raise ScenarioReadError(path, f"the womd reader failed on it: {type(exc).__name__}: {exc}", record=record) from exc
 
 
-def _cached_scene(reader: ShardReader, i: int) -> Scenario:
-    arrays, meta = reader[i].to_arrays()  # copied out of the memory map, as the scene-cache reader does
-    return Scenario.from_arrays({k: v.copy() for k, v in arrays.items()}, meta, validate=False)
+class _CacheShard:
+    """A scene-cache shard open while its slots stream by; a slot loaded later opens it again."""
+
+    def __init__(self, path: str):
+        self.path = path
+        self.reader: ShardReader | None = ShardReader(path)
+
+    def __len__(self) -> int:
+        return len(self.reader)
+
+    def scene(self, i: int) -> Scenario:
+        reader = self.reader or ShardReader(self.path)
+        try:
+            arrays, meta = reader[i].to_arrays()  # copied out of the memory map, as the scene-cache reader does
+            return Scenario.from_arrays({k: v.copy() for k, v in arrays.items()}, meta, validate=False)
+        finally:
+            if reader is not self.reader:
+                reader.close()
+
+    def close(self) -> None:
+        if self.reader is not None:
+            self.reader.close()
+            self.reader = None
 
 
 def _file_records(path: str, format: str | None) -> Iterator[tuple[int, Callable[[], Scenario]]]:
@@ -148,12 +169,12 @@ def _file_records(path: str, format: str | None) -> Iterator[tuple[int, Callable
         for record, payload in enumerate(tfrecord.iter_records(path)):
             yield record, (lambda p=payload, r=record: _decode_womd(p, path, r))
     elif name == "scene_cache":
-        reader = ShardReader(path)
+        shard = _CacheShard(path)
         try:
-            for record in range(len(reader)):
-                yield record, (lambda r=record: _cached_scene(reader, r))
+            for record in range(len(shard)):
+                yield record, (lambda r=record: shard.scene(r))
         finally:
-            reader.close()
+            shard.close()
     else:  # one scene per file in the other formats: decoding it is reading it
         for record, scenario in enumerate(read_scenarios(path, format=name)):
             yield record, (lambda s=scenario: s)
@@ -316,6 +337,7 @@ class RunDir:
                     {"run": run_id, "shard": str(shard), "chunk": chunk, "scenes": scenes, "skipped": skipped})
 
     def write_done(self, run_id: str, shard: Shard, chunks: int, num_slots: int, bad_files: list[dict]) -> None:
+        self.shard_dir(shard).mkdir(parents=True, exist_ok=True)  # a shard may own no scene at all
         _write_json(self.shard_dir(shard) / DONE_FILE, {"run": run_id, "shard": str(shard), "chunks": chunks,
                                                         "num_slots": num_slots, "bad_files": bad_files})
 
