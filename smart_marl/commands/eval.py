@@ -26,6 +26,7 @@ import argparse
 import json
 import os
 import sys
+import time
 from datetime import timedelta
 from pathlib import Path
 
@@ -63,8 +64,9 @@ at challenge scale (a run folder; docs/evaluation_at_scale.md):
   smart-marl eval --merge RUN [--json]
       checks that every shard finished, prints the numbers a single-process run gives, writes RUN/result.json
       and, with rollouts kept, the submission files PREFIX-00000-of-000NN...
-  torchrun --nproc_per_node=N -m smart_marl.cli eval --scenes VAL --policy prior --out RUN
-      each rank takes shard RANK/WORLD_SIZE; rank 0 merges when all are done (also across machines: --nnodes)
+  torchrun --standalone --nproc_per_node=N -m smart_marl.cli eval --scenes VAL --policy prior --out RUN
+      each rank takes shard RANK/WORLD_SIZE; rank 0 merges when all are done (across machines: torchrun
+      --nnodes ... with RUN on a folder every machine shares)
 scene k of the input (files in sorted order, records in order) belongs to shard k mod N, on every
 machine and every rerun."""
 
@@ -72,8 +74,8 @@ machine and every rerun."""
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "eval", help="sim-agents realism metrics (WOSAC 2024/2025) of a submission file or a baseline policy",
-        description="Score rollouts of the scenes in PATH with the Waymo Open Sim Agents Challenge realism metrics "
-                    "(same numbers as the official package). Rollouts come from --submission FILE or are "
+        description="Score rollouts of the scenes in PATH with the Waymo Open Sim Agents Challenge realism metrics\n"
+                    "(same numbers as the official package). Rollouts come from --submission FILE or are\n"
                     "generated with --policy.",
         epilog=SCALE_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenes", metavar="PATH", help="scene file, folder or glob (91-step WOMD-like scenes); required but with --merge")
@@ -353,12 +355,13 @@ def run_sharded(args) -> int:
         return build_submission(kept, description=_submission_description(args.policy)).SerializeToString()
 
     slots = scene_slots(paths, args.format, on_bad_file)
+    started = time.perf_counter()
     counts = run_shard(run, run_id, shard, slots, chunk_size, score, pack if args.write_submission else None,
                        progress=lambda it: tqdm(it, desc=f"eval {shard}", unit="scene", file=sys.stderr, disable=None))
     run.write_done(run_id, shard, counts["chunks"], counts["num_slots"], bad_files)
     print(f"smart-marl eval: shard {shard}: {counts['scenes']} scene(s) in {counts['chunks']} chunk(s) "
-          f"({counts['computed']} scored now, {counts['resumed']} from a previous try) -> {run.shard_dir(shard)}",
-          file=sys.stderr, flush=True)
+          f"({counts['computed']} scored now in {time.perf_counter() - started:.2f} s, {counts['resumed']} from a previous try) "
+          f"-> {run.shard_dir(shard)}", file=sys.stderr, flush=True)
     if shard.count == 1:
         return merge_command(args, run)
     if shard_from_torchrun() is not None:

@@ -241,6 +241,27 @@ def _write_json(path: Path, data: dict) -> None:
     atomic_write(path, [json.dumps(data, separators=(",", ":")).encode()])
 
 
+def _create_once(path: Path, payload: bytes) -> bool:
+    """Write ``path`` whole unless it exists (then False): a complete temporary file hard-linked to
+    its name, so that shards starting at the same time never read a half-written file."""
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    atomic_write(tmp, [payload])
+    try:
+        os.link(tmp, path)
+        return True
+    except FileExistsError:
+        return False
+    except OSError:  # a file system without hard links: exclusive creation, then the content
+        try:
+            with open(path, "xb") as f:
+                f.write(payload)
+            return True
+        except FileExistsError:
+            return False
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def _describe_difference(mine: dict, theirs: dict, prefix: str = "") -> str:
     for key in sorted(set(mine) | set(theirs)):
         a, b = mine.get(key), theirs.get(key)
@@ -270,12 +291,8 @@ class RunDir:
         self.root.mkdir(parents=True, exist_ok=True)
         path = self.root / RUN_FILE
         record = {"kind": RUN_KIND, "version": FORMAT_VERSION, "id": _config_id(config), "config": config, **(extra or {})}
-        try:
-            with open(path, "x") as f:  # the first shard to start writes it; the others compare
-                f.write(json.dumps(record, indent=1))
+        if _create_once(path, json.dumps(record, indent=1).encode()):  # the first shard to start writes it
             return record
-        except FileExistsError:
-            pass
         existing = self.load()
         theirs = existing["config"].get("num_shards")
         if theirs != config.get("num_shards"):
@@ -361,9 +378,16 @@ def metrics_record(metrics: ScenarioMetrics) -> dict:
 
 def metrics_from_record(record: dict, where: str) -> ScenarioMetrics:
     names = {f.name for f in dataclasses.fields(ScenarioMetrics)}
-    if not isinstance(record, dict) or set(record) != names or not isinstance(record.get("likelihoods"), dict):
+    numbers = ("meta_metric", "min_ade", "ade", "collision_rate", "offroad_rate", "num_evaluated")
+    if not (isinstance(record, dict) and set(record) == names and isinstance(record["likelihoods"], dict)
+            and all(_is_number(v) for v in (*(record[k] for k in numbers), *record["likelihoods"].values()))
+            and isinstance(record["scenario_id"], str) and isinstance(record["notes"], list)):
         raise RunDirError(f"{where}: a scene's metrics are not a ScenarioMetrics record")
     return ScenarioMetrics(**record)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def run_shard(run: RunDir, run_id: str, shard: Shard, slots: Iterable[SceneSlot], chunk_size: int,
@@ -458,6 +482,9 @@ def merge_run(run: RunDir) -> MergedRun:
             raise RunDirError(f"{run.shard_dir(shard) / DONE_FILE}: read {done['num_slots']} scenes in the input, "
                               f"shard 0/{count} read {num_slots}: the shards did not see the same input")
         for bad in done["bad_files"]:
+            if not (isinstance(bad, dict) and isinstance(bad.get("file_index"), int) and isinstance(bad.get("records_read"), int)
+                    and isinstance(bad.get("path"), str) and isinstance(bad.get("reason"), str)):
+                raise RunDirError(f"{run.shard_dir(shard) / DONE_FILE}: a bad-file entry without file_index, records_read, path, reason")
             bad_files.setdefault(bad["file_index"], bad)
         seen = []
         for c in range(done["chunks"]):
@@ -471,8 +498,9 @@ def merge_run(run: RunDir) -> MergedRun:
                 scenes.append((entry["ordinal"], metrics_from_record(entry.get("metrics"), where)))
                 seen.append(entry["ordinal"])
             for entry in data["skipped"]:
-                if not (isinstance(entry, dict) and isinstance(entry.get("ordinal"), int) and isinstance(entry.get("file_index"), int)):
-                    raise RunDirError(f"{where}: a skipped scene without its number")
+                if not (isinstance(entry, dict) and all(isinstance(entry.get(k), int) for k in ("ordinal", "file_index", "record"))
+                        and all(k in entry for k in ("path", "scenario_id", "reason"))):
+                    raise RunDirError(f"{where}: a skipped scene without its number, place or reason")
                 skipped.append(((entry["file_index"], entry["record"], 0), {k: entry[k] for k in ("path", "scenario_id", "reason")}))
                 seen.append(entry["ordinal"])
             if keep and data["scenes"]:
