@@ -47,7 +47,8 @@ from ..version import __version__
 from ..readers import expand_paths, read_scenarios
 from ..readers.scene_cache import atomic_write
 from ..rollout import DEFAULT_TOP_K, rollout
-from .arguments import collision_avoidance_flag, device, non_negative_int, positive_int, positive_number, reader_formats
+from .arguments import (collision_avoidance_flag, device, non_negative_int, output_dir, positive_int, positive_number,
+                        reader_formats)
 
 POLICY_CHOICES = ("constant_velocity", "log_replay", "random", "prior")
 WOSAC_ROLLOUTS = 32
@@ -104,7 +105,7 @@ def register(subparsers) -> None:
                    help=f"score a submission that does not hold {WOSAC_ROLLOUTS} rollouts per scenario, with a warning "
                         f"(its numbers are not comparable with WOSAC's)")
     scale = p.add_argument_group("challenge scale (see below)")
-    scale.add_argument("--out", metavar="RUN", help="run folder: results kept per chunk (a rerun resumes), merged with --merge")
+    scale.add_argument("--out", metavar="RUN", type=output_dir, help="run folder: results kept per chunk (a rerun resumes), merged with --merge")
     scale.add_argument("--shard", type=parse_shard, metavar="I/N",
                        help="with --out: score shard I of N (I from 0; scene k goes to shard k mod N); default: "
                             "RANK/WORLD_SIZE under torchrun, else 0/1")
