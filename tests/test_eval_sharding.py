@@ -288,6 +288,8 @@ def test_a_run_folder_refuses_another_config_split_or_foreign_chunk(scene_dir, t
     # a shard folder of another split beside this run's shards
     shutil.rmtree(run / "shard-00001-of-00002")
     _ok([*base, "--shard", "1/2"])
+    code, _, err = _eval(["--merge", str(run), "--write-submission", str(tmp_path / "sub.binproto")])
+    assert code == 1 and "this run did not keep its rollouts (run it with --write-submission)" in err
     (run / "shard-00000-of-00003").mkdir()
     code, _, err = _eval(["--merge", str(run)])
     assert code == 1 and "shard-00000-of-00003: a shard of a 3-way split, but this run is split 2 ways" in err

@@ -43,10 +43,10 @@ from ..metrics.sharding import (RESULT_FILE, RunDir, RunDirError, Shard, file_sh
 from ..metrics.submission import (ScenarioRolloutArrays, build_submission, check_against_scene, open_submission,
                                   submission_files, submission_shard_name, write_rollouts)
 from ..model.checkpoint import EMBEDDED, checkpoint_paths, load_checkpoint, resolve_checkpoint_path
-from ..version import __version__
 from ..readers import expand_paths, read_scenarios
 from ..readers.scene_cache import atomic_write
 from ..rollout import DEFAULT_TOP_K, rollout
+from ..version import __version__
 from .arguments import (collision_avoidance_flag, device, non_negative_int, output_dir, positive_int, positive_number,
                         reader_formats)
 
@@ -398,6 +398,8 @@ def merge_command(args, run: RunDir | None = None) -> int:
         print(f"smart-marl eval: error: no scene of the run {run.root} could be scored ({len(merged.skipped)} skipped)",
               file=sys.stderr)
         return 1
+    if args.write_submission and not config.get("keep_rollouts"):
+        raise RunDirError(f"{run.root / 'run.json'}: this run did not keep its rollouts (run it with --write-submission)")
     out = aggregate(merged.metrics, config["rules"])
     result = result_json(out, merged.skipped)
     atomic_write(run.root / RESULT_FILE, [json.dumps(result).encode() + b"\n"])
@@ -410,7 +412,5 @@ def merge_command(args, run: RunDir | None = None) -> int:
             link_or_copy(chunk, target)
         print(f"smart-marl eval: wrote the submission of {len(merged.metrics)} scenario(s) in {count} file(s) "
               f"{submission_shard_name(prefix, 0, count)} ...", file=sys.stderr)
-    elif args.write_submission:
-        raise RunDirError(f"{run.root / 'run.json'}: this run did not keep its rollouts (run it with --write-submission)")
     print_result(args, out, merged.skipped)
     return 0

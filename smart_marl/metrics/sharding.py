@@ -43,8 +43,9 @@ from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
 from ..errors import ScenarioReadError, SmartMarlError, UsageError, check_regular_file
-from ..readers import detect_format, read_scenarios
+from ..readers import detect_format, read_scenarios, tfrecord
 from ..readers.scene_cache import ShardReader, atomic_write
+from ..readers.womd import decode_scenario
 from ..scenario import Scenario
 from .likelihood import ScenarioMetrics
 
@@ -123,8 +124,6 @@ class SceneSlot:
 
 
 def _decode_womd(payload: bytes, path: str, record: int) -> Scenario:
-    from ..readers.womd import decode_scenario
-
     try:
         return decode_scenario(payload, path=path, record=record)
     except ScenarioReadError:
@@ -164,8 +163,6 @@ def _file_records(path: str, format: str | None) -> Iterator[tuple[int, Callable
     name = format or detect_format(path)
     check_regular_file(path)
     if name == "womd":
-        from ..readers import tfrecord
-
         for record, payload in enumerate(tfrecord.iter_records(path)):
             yield record, (lambda p=payload, r=record: _decode_womd(p, path, r))
     elif name == "scene_cache":
