@@ -48,9 +48,9 @@ import json
 import os
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -63,172 +63,26 @@ from torchrl.objectives import ValueEstimators
 from envs._core import CoreScene, TrafficCore
 from envs._pool import ScenePool
 from envs._reward import RewardConfig
-from envs._setup import MOVING_MIN_ROUTE_M, moving_vehicles_mask, select_controlled
+from envs._setup import moving_vehicles_mask, select_controlled
 from envs.smart_traffic_batched_v0 import GROUP, SmartTrafficBatchedEnv
-from envs._arguments import MAX_HORIZON_STEPS
-from smart_marl.config_files import (apply_overrides, check_fields, check_value, device_problem, flag, integer, number, one_of,
-                                     optional, output_dir_problem, read_config_file, text)
+from smart_marl.config_files import check_value, integer, optional
 from smart_marl.config_files import seed as seed_rule
-from smart_marl.errors import SmartMarlError, UsageError
+from smart_marl.errors import SmartMarlError
 from smart_marl.model.checkpoint import CheckpointError
 from smart_marl.model.checkpoint import load_prior as load_smart_prior
-from smart_marl.rollout import DEFAULT_TOP_K, temperature_rule
 from smart_marl.runlog import RunLog
 from smart_marl.scenario import AgentType
 
 from .evaluate import evaluate_policies
+from .finetune_config import (MAX_EVAL_EPISODES, POLICY_NETWORK_FIELDS, FinetuneConfig, FinetuneConfigError, FinetuneError,
+                              load_finetune_config)
 from .kl_ppo import PriorKLPPOLoss
-from .policy import (ACTOR_HEADS, Critic, ExpertTensorPolicy, FinetunedTensorPolicy, PolicyError, PolicyLogits, PriorTensorPolicy,
+from .policy import (Critic, ExpertTensorPolicy, FinetunedTensorPolicy, PolicyError, PolicyLogits, PriorTensorPolicy,
                      TensorPolicy, actor_from_weights, prior_digest, read_policy, save_policy, token_motion_features)
 from .prior_policy import kl_to_prior
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "finetune"
 OBS_KEY = (GROUP, "observation", "observation")
 PRIOR_KEY = (GROUP, "observation", "prior_logits")
-
-
-class FinetuneError(SmartMarlError, ValueError):
-    """A fine-tuning run that cannot start: bad config, no usable scene, no prior."""
-
-
-class FinetuneConfigError(FinetuneError, UsageError):
-    """A config key or value that is not a valid FinetuneConfig (the command line exits with 2)."""
-
-
-@dataclass
-class FinetuneConfig:
-    """Every knob of a fine-tuning run."""
-
-    # data and prior
-    scenes: str | list = "embedded"  # the scene pool: scene-cache folder / file / folder / glob (read_scenarios), "embedded"
-    # (the package's sample scenes), or a list of them (their scenes one after the other)
-    num_scenes: int | None = 4  # train on the first N scenes of the pool (None: all of them)
-    prior: str = "embedded"  # SMART checkpoint (NAME or NAME.json) or "embedded": the prior, and the background's driver
-    # environment (envs.smart_traffic_batched_v0)
-    num_envs: int = 4  # scenes stepped together (one SMART forward for all of them)
-    controlled: str = "moving_vehicles"  # which agents the policy drives: "moving_vehicles" (vehicles whose logged route
-    # from the current frame is longer than moving_min_route_m: parked cars are left to the background) or the env's
-    # "vehicles", "all", "predict", "sdc"; only the types of the vehicles' vocabulary size (one action space per group)
-    moving_min_route_m: float = MOVING_MIN_ROUTE_M
-    max_agents: int = 4  # controlled agent slots per scene (the nearest to the SDC); scenes with fewer leave slots empty
-    background: str = "prior"  # how the others move: "prior", "log", "constant_velocity"
-    horizon_steps: int = 16  # token steps (0.5 s each) per episode
-    reward: dict = field(default_factory=dict)  # RewardConfig weights, e.g. {"collision": -1.0}
-    terminate_on: tuple = ("collision", "offroad", "goal")
-    top_k: int = DEFAULT_TOP_K  # the background's top-k sampling
-    temperature: float = 1.0  # the prior's temperature T
-    reference_top_k: int | None = 3  # the reference the policy starts from and is pulled toward: softmax(prior_logits / T)
-    # on the prior's top-k tokens, renormalised (the prior as it drives; also the policy's action mask); None: full softmax
-    # policy and critic
-    residual: bool = True  # logits = prior_logits / T + f(obs), f starting at 0
-    actor_head: str = "per_token"  # f(obs): "per_token" (one output per token id) or "motion" (token_motion_features)
-    hidden: int = 128
-    depth: int = 2
-    obs_scale: float = 0.1  # the observation (metres, m/s) times this before the MLPs
-    critic: str = "mappo"  # "mappo" (centralised) or "ippo" (decentralised)
-    # PPO and the prior KL
-    beta: float = 0.1  # KL(pi || reference) coefficient
-    gamma: float = 0.99
-    lmbda: float = 0.95
-    clip_epsilon: float = 0.2
-    entropy_coeff: float = 0.0
-    critic_coeff: float = 0.5
-    normalize_advantage: bool = True
-    lr: float = 3e-4
-    max_grad_norm: float = 1.0
-    frames_per_batch: int = 256  # scene-steps per iteration, all scenes together (a multiple of num_envs)
-    iterations: int = 50
-    ppo_epochs: int = 4
-    minibatch_size: int = 64  # scene-steps per minibatch (x max_agents agent-steps)
-    # evaluation (held-out scenes, full horizon, no termination) and bookkeeping
-    eval_episodes: int = 8  # rollouts (seeds) per held-out scene for every policy (0: no evaluation); WOSAC uses 32
-    eval_seed: int = 1000  # evaluation seeds are eval_seed, eval_seed + 1, ...
-    eval_scenes: str | list | None = None  # held-out scenes; None: the scenes of `scenes` after those used for fine-tuning
-    eval_num_scenes: int = 4  # the first N held-out scenes with a controllable agent
-    eval_rules: str = "2024"  # the sim-agents rules of the realism metrics ("2024" or "2025")
-    out_dir: str = "runs/finetune"
-    checkpoint_every: int = 10  # iterations (the last one is always saved)
-    seed: int = 0
-    device: str = "cpu"  # the env (prior, state) and the policy
-    tensorboard: bool = True
-    torch_threads: int = 0  # 0: leave torch's default
-    prior_cache_size: int = 1024  # scenes whose freshly started prior state is kept (memory: ~1-2 MB each)
-
-    def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
-        d["terminate_on"] = list(self.terminate_on)
-        return d
-
-
-# ------------------------------------------------------------------------------------- config
-def named_configs() -> list[str]:
-    return sorted(p.stem for p in CONFIG_DIR.glob("*.json")) if CONFIG_DIR.is_dir() else []
-
-
-def load_finetune_config(config: str | Mapping[str, Any] | None = None, overrides: Sequence[str] | Mapping[str, Any] = ()) -> FinetuneConfig:
-    """A :class:`FinetuneConfig` from a JSON/TOML file, a named config (``configs/finetune/NAME.json``:
-    ``tiny``, ``default``, ``scale``; keys starting with ``_`` are comments) or a dict, plus ``key=value``
-    overrides (values parsed as JSON when they parse; ``reward.NAME=W`` sets one reward weight)."""
-    values: dict[str, Any] = {}
-    if isinstance(config, Mapping):
-        values.update(config)
-    elif config:
-        p = Path(config)
-        if not p.is_file() and (CONFIG_DIR / f"{config}.json").is_file():
-            p = CONFIG_DIR / f"{config}.json"
-        if not p.is_file():
-            raise FinetuneError(f"unknown fine-tuning config {config!r}: neither a file nor a named config ({', '.join(named_configs())})")
-        values.update(read_config_file(p, "fine-tuning", FinetuneError))
-    values = {k: v for k, v in values.items() if not k.startswith("_")}  # "_comment" and the like
-    values = apply_overrides(values, overrides, FinetuneConfig, "reward", "reward", "fine-tuning", FinetuneConfigError)
-    if isinstance(values.get("terminate_on"), (list, tuple)):
-        values["terminate_on"] = tuple(values["terminate_on"])
-    cfg = FinetuneConfig(**values)
-    check_fields(cfg, _FINETUNE_RULES, "fine-tuning", FinetuneConfigError)
-    if cfg.critic not in ("mappo", "ippo"):
-        raise FinetuneConfigError(f"critic must be 'mappo' or 'ippo', got {cfg.critic!r}")
-    if cfg.frames_per_batch < cfg.num_envs:
-        raise FinetuneConfigError(f"frames_per_batch ({cfg.frames_per_batch}) must be at least num_envs ({cfg.num_envs})")
-    if cfg.frames_per_batch < cfg.minibatch_size:
-        raise FinetuneConfigError(f"minibatch_size ({cfg.minibatch_size}) must be in 1..frames_per_batch ({cfg.frames_per_batch})")
-    try:
-        RewardConfig.from_any(cfg.reward or None)
-    except SmartMarlError as exc:
-        raise FinetuneConfigError(str(exc)) from exc
-    return cfg
-
-
-def _scenes_rule(value) -> str | None:
-    if isinstance(value, str) or (isinstance(value, list) and value and all(isinstance(v, str) for v in value)):
-        return None
-    return f"must be a path, a list of paths or 'embedded', got {value!r}"
-
-
-MAX_EVAL_EPISODES = 1024
-"""The most evaluation rollouts (seeds) per held-out scene (WOSAC uses 32)."""
-POLICY_NETWORK_FIELDS = ("hidden", "depth", "residual", "actor_head", "obs_scale", "temperature", "reference_top_k", "max_agents")
-"""The FinetuneConfig fields a saved policy's network is built with: fixed by its checkpoint."""
-
-_FINETUNE_RULES = {
-    "scenes": _scenes_rule, "num_scenes": optional(integer(1)), "prior": text, "num_envs": integer(1, 4096, "scenes in one batch"),
-    "controlled": text, "moving_min_route_m": number(0.0), "max_agents": integer(1, 1024),
-    "background": text, "horizon_steps": integer(1, MAX_HORIZON_STEPS, "the env's longest episode"),
-    "reward": lambda v: None if isinstance(v, dict) and all(number()(w) is None for w in v.values())
-    else f"must map reward terms to finite weights, got {v!r}",
-    "terminate_on": lambda v: None if isinstance(v, tuple) and all(isinstance(e, str) for e in v) else f"must be a list of event names, got {v!r}",
-    "top_k": optional(integer(1)), "temperature": temperature_rule, "reference_top_k": optional(integer(1)), "residual": flag,
-    "actor_head": one_of(*ACTOR_HEADS), "hidden": integer(1, 4096, "16x the default"), "depth": integer(1, 16),
-    "obs_scale": number(0.0, low_open=True), "critic": text, "beta": number(0.0), "gamma": number(0.0, 1.0),
-    "lmbda": number(0.0, 1.0), "clip_epsilon": number(0.0, low_open=True), "entropy_coeff": number(0.0),
-    "critic_coeff": number(0.0), "normalize_advantage": flag, "lr": number(0.0, low_open=True), "max_grad_norm": number(0.0),
-    "frames_per_batch": integer(1, 10**6, "a million env steps per iteration"), "iterations": integer(1, 10**6),
-    "ppo_epochs": integer(1, 1000), "minibatch_size": integer(1),
-    "eval_episodes": integer(0, MAX_EVAL_EPISODES), "eval_seed": seed_rule, "eval_scenes": lambda v: None if v is None else _scenes_rule(v),
-    "eval_num_scenes": integer(1), "eval_rules": lambda v: None if v in ("2024", "2025") else f"must be '2024' or '2025', got {v!r}",
-    "out_dir": lambda v: text(v) or output_dir_problem(v), "checkpoint_every": integer(1), "seed": seed_rule, "device": device_problem,
-    "tensorboard": flag, "torch_threads": integer(0, 1024), "prior_cache_size": integer(1, 10**6),
-}
-"""What each FinetuneConfig field takes (the env checks ``controlled``, ``background`` and the reward terms by name)."""
 
 
 # ------------------------------------------------------------------------------ scenes, env
@@ -426,6 +280,70 @@ def finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
         return _finetune(cfg, on_iteration)
 
 
+@dataclass
+class _Learner:
+    """What a run trains: the actor's network, the TorchRL modules, the loss and its optimiser."""
+
+    net: PolicyLogits
+    critic: TensorDictModule
+    actor: ProbabilisticActor
+    loss: PriorKLPPOLoss
+    params: list
+    optimizer: torch.optim.Optimizer
+    dims: dict
+
+
+def _learner(cfg: FinetuneConfig, env: SmartTrafficBatchedEnv, model, vocab, device, world: int) -> _Learner:
+    """2-3. the actor and critic (every process starting from process 0's weights) and the loss:
+    clipped PPO + beta * KL(pi || reference), GAE."""
+    obs_dim, vocab_size = int(env.observation_spec[OBS_KEY].shape[-1]), int(env.observation_spec[PRIOR_KEY].shape[-1])
+    dims = {"obs_dim": obs_dim, "vocab_size": vocab_size, "n_agents": cfg.max_agents, "prior_sha256": prior_digest(model)}
+    net, actor, critic = build_modules(cfg, obs_dim, vocab_size, cfg.max_agents, vocab)
+    actor, critic = actor.to(device), critic.to(device)
+    loss = PriorKLPPOLoss(actor, critic, beta=cfg.beta, prior_logits_key=PRIOR_KEY, agent_mask_key=(GROUP, "mask"),
+                          prior_temperature=cfg.temperature, reference_top_k=cfg.reference_top_k, clip_epsilon=cfg.clip_epsilon,
+                          entropy_bonus=cfg.entropy_coeff > 0, entropy_coeff=cfg.entropy_coeff, critic_coeff=cfg.critic_coeff,
+                          normalize_advantage=cfg.normalize_advantage)
+    loss.set_keys(reward=(GROUP, "reward"), action=(GROUP, "action"), sample_log_prob=(GROUP, "action_log_prob"),
+                  value=(GROUP, "state_value"), done=(GROUP, "done"), terminated=(GROUP, "terminated"),
+                  advantage=(GROUP, "advantage"), value_target=(GROUP, "value_target"))
+    loss.make_value_estimator(ValueEstimators.GAE, gamma=cfg.gamma, lmbda=cfg.lmbda)
+    params = list(loss.parameters())
+    if world > 1:  # every learner starts from process 0's weights
+        for p in params:
+            dist.broadcast(p.data, 0)
+    return _Learner(net, critic, actor, loss, params, torch.optim.Adam(params, lr=cfg.lr), dims)
+
+
+def _ppo_update(cfg: FinetuneConfig, learner: _Learner, batch, device, world: int) -> dict[str, float]:
+    """GAE on the batch, then ``ppo_epochs`` passes over shuffled minibatches (gradients averaged over
+    the processes); the mean of each loss term over the minibatches."""
+    loss = learner.loss
+    with torch.no_grad():
+        loss.value_estimator(batch, params=loss.critic_network_params, target_params=loss.target_critic_network_params)
+    data = batch.reshape(-1)
+    sums: dict[str, float] = {}
+    steps, mb_size = 0, max(1, cfg.minibatch_size)
+    for _ in range(cfg.ppo_epochs):
+        perm = torch.randperm(data.shape[0])
+        for i in range(0, data.shape[0], mb_size):
+            out = loss(data[perm[i : i + mb_size]].to(device))
+            total = out["loss_objective"] + out["loss_critic"] + out["loss_prior_kl"]
+            if "loss_entropy" in out.keys():
+                total = total + out["loss_entropy"]
+            learner.optimizer.zero_grad()
+            total.backward()
+            if world > 1:
+                _average_gradients(learner.params, world)
+            torch.nn.utils.clip_grad_norm_(learner.params, cfg.max_grad_norm)
+            learner.optimizer.step()
+            steps += 1
+            for k in ("loss_objective", "loss_critic", "loss_entropy", "loss_prior_kl", "entropy", "clip_fraction"):
+                if k in out.keys():
+                    sums[k] = sums.get(k, 0.0) + float(out[k].detach())
+    return {k: v / max(steps, 1) for k, v in sums.items()}
+
+
 def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     rank, world = _distributed()
     if cfg.torch_threads > 0:
@@ -443,33 +361,12 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     pool = training_pool(cfg)
     env = training_env(cfg, pool, model, vocab, seed=cfg.seed + rank)
     env.set_seed(cfg.seed + rank)
-    obs_dim, vocab_size = int(env.observation_spec[OBS_KEY].shape[-1]), int(env.observation_spec[PRIOR_KEY].shape[-1])
-    n_agents = cfg.max_agents
-    dims = {"obs_dim": obs_dim, "vocab_size": vocab_size, "n_agents": n_agents, "prior_sha256": prior_digest(model)}
-
-    # 2. actor and critic
-    net, actor, critic = build_modules(cfg, obs_dim, vocab_size, n_agents, vocab)
-    actor, critic = actor.to(device), critic.to(device)
-
-    # 3. loss: clipped PPO + beta * KL(pi || reference), GAE
-    loss = PriorKLPPOLoss(actor, critic, beta=cfg.beta, prior_logits_key=PRIOR_KEY, agent_mask_key=(GROUP, "mask"),
-                          prior_temperature=cfg.temperature, reference_top_k=cfg.reference_top_k, clip_epsilon=cfg.clip_epsilon,
-                          entropy_bonus=cfg.entropy_coeff > 0, entropy_coeff=cfg.entropy_coeff, critic_coeff=cfg.critic_coeff,
-                          normalize_advantage=cfg.normalize_advantage)
-    loss.set_keys(reward=(GROUP, "reward"), action=(GROUP, "action"), sample_log_prob=(GROUP, "action_log_prob"),
-                  value=(GROUP, "state_value"), done=(GROUP, "done"), terminated=(GROUP, "terminated"),
-                  advantage=(GROUP, "advantage"), value_target=(GROUP, "value_target"))
-    loss.make_value_estimator(ValueEstimators.GAE, gamma=cfg.gamma, lmbda=cfg.lmbda)
-    params = list(loss.parameters())
-    if world > 1:  # every learner starts from process 0's weights
-        for p in params:
-            dist.broadcast(p.data, 0)
-    optimizer = torch.optim.Adam(params, lr=cfg.lr)
-
+    # 2-3. actor, critic, loss
+    learner = _learner(cfg, env, model, vocab, device, world)
     # 4. collector, PPO epochs, logging, checkpoints
     steps_per_env = max(1, cfg.frames_per_batch // cfg.num_envs)
     frames_per_batch = steps_per_env * cfg.num_envs
-    collector = Collector(env, actor, frames_per_batch=frames_per_batch, total_frames=frames_per_batch * cfg.iterations,
+    collector = Collector(env, learner.actor, frames_per_batch=frames_per_batch, total_frames=frames_per_batch * cfg.iterations,
                           policy_device=device, env_device=device, storing_device=device,
                           auto_register_policy_transforms=False)  # a feed-forward policy: no InitTracker
     log = RunLog(out_dir, {"finetune": COLUMNS}, "iteration", tensorboard=cfg.tensorboard) if rank == 0 else None
@@ -477,36 +374,13 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     ckpt_dir = out_dir / "checkpoints"
     start = time.perf_counter()
     frames, seen = 0, set()
-    mb_size = max(1, cfg.minibatch_size)
     for it, batch in enumerate(collector, start=1):
         frames += batch.numel() * world
         seen.update(env.scene_indices)
         stats = batch_stats(batch, cfg.temperature, cfg.reference_top_k)
-        with torch.no_grad():
-            loss.value_estimator(batch, params=loss.critic_network_params, target_params=loss.target_critic_network_params)
-        data = batch.reshape(-1)
-        sums: dict[str, float] = {}
-        steps = 0
-        for _ in range(cfg.ppo_epochs):
-            perm = torch.randperm(data.shape[0])
-            for i in range(0, data.shape[0], mb_size):
-                out = loss(data[perm[i : i + mb_size]].to(device))
-                total = out["loss_objective"] + out["loss_critic"] + out["loss_prior_kl"]
-                if "loss_entropy" in out.keys():
-                    total = total + out["loss_entropy"]
-                optimizer.zero_grad()
-                total.backward()
-                if world > 1:
-                    _average_gradients(params, world)
-                torch.nn.utils.clip_grad_norm_(params, cfg.max_grad_norm)
-                optimizer.step()
-                steps += 1
-                for k in ("loss_objective", "loss_critic", "loss_entropy", "loss_prior_kl", "entropy", "clip_fraction"):
-                    if k in out.keys():
-                        sums[k] = sums.get(k, 0.0) + float(out[k].detach())
+        losses = _ppo_update(cfg, learner, batch, device, world)
         collector.update_policy_weights_()
-        row = {"iteration": it, "frames": frames, "seconds": time.perf_counter() - start, "scenes_seen": len(seen), **stats,
-               **{k: v / max(steps, 1) for k, v in sums.items()}}
+        row = {"iteration": it, "frames": frames, "seconds": time.perf_counter() - start, "scenes_seen": len(seen), **stats, **losses}
         if world > 1:
             row = _mean_over_ranks(row, world, device)
             row["iteration"], row["frames"] = it, frames
@@ -516,20 +390,21 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
             if on_iteration is not None:
                 on_iteration(row)
             if it % max(cfg.checkpoint_every, 1) == 0 or it == cfg.iterations:
-                save_policy(ckpt_dir / f"policy_{it:04d}", cfg.to_dict(), net, critic.module, dims, it, stats)
+                save_policy(ckpt_dir / f"policy_{it:04d}", cfg.to_dict(), learner.net, learner.critic.module, learner.dims, it, stats)
     collector.shutdown()
     scene_ids = pool.scenario_ids()
     if rank != 0:
-        return FinetuneResult(out_dir, None, history, None, scene_ids, net)
+        return FinetuneResult(out_dir, None, history, None, scene_ids, learner.net)
     log.close()
     if not history:
         raise FinetuneError("the run collected no batch (iterations=0?)")
-    final = save_policy(ckpt_dir / "policy_last", cfg.to_dict(), net, critic.module, dims, len(history), history[-1])
+    final = save_policy(ckpt_dir / "policy_last", cfg.to_dict(), learner.net, learner.critic.module, learner.dims, len(history),
+                        history[-1])
     evaluation = None
     if cfg.eval_episodes > 0:
-        evaluation = evaluate_finetuned(cfg, net, training=scene_ids, model=model, vocab=vocab)
+        evaluation = evaluate_finetuned(cfg, learner.net, training=scene_ids, model=model, vocab=vocab)
         (out_dir / "evaluation.json").write_text(json.dumps(evaluation, indent=1, default=float))
-    return FinetuneResult(out_dir, final, history, evaluation, scene_ids, net)
+    return FinetuneResult(out_dir, final, history, evaluation, scene_ids, learner.net)
 
 
 # ------------------------------------------------------------------------------- evaluation
@@ -616,3 +491,8 @@ def evaluate_checkpoint(path, overrides: Sequence[str] = (), episodes: int | Non
     result["checkpoint"] = str(path)
     result["iteration"] = meta.get("iteration")
     return result
+
+
+__all__ = ["FinetuneConfig", "FinetuneConfigError", "FinetuneError", "FinetuneResult", "build_modules", "controlled_selection",
+           "core_scenes", "evaluate_checkpoint", "evaluate_finetuned", "evaluation_core", "evaluation_policies", "finetune",
+           "held_out_scenes", "load_finetune_config", "load_policy", "load_prior", "training_env", "training_pool"]

@@ -402,7 +402,7 @@ def merge_command(args, run: RunDir | None = None) -> int:
         raise RunDirError(f"{run.root / 'run.json'}: this run did not keep its rollouts (run it with --write-submission)")
     out = aggregate(merged.metrics, config["rules"])
     result = result_json(out, merged.skipped)
-    atomic_write(run.root / RESULT_FILE, [json.dumps(result).encode() + b"\n"])
+    atomic_write(run.root / RESULT_FILE, [strict_json(result).encode() + b"\n"])
     prefix = args.write_submission or merged.record.get("submission_prefix")
     if config.get("keep_rollouts") and prefix:
         count = len(merged.submission_chunks)
