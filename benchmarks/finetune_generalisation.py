@@ -12,7 +12,9 @@ seeds each), same scenes and seeds for every policy. Prints one JSON line per re
 relative to the prior top-k, and realism, against N) to ``--png``.
 
 Resumable: every run and every evaluation is written under ``--run-dir`` as it finishes and skipped
-when found (kill it and start it again with the same arguments).
+when found (kill it and start it again with the same arguments). ``--only`` splits the work into
+pieces that can run side by side (``train`` with one size each, ``eval-generated``, ``eval-real``),
+then a last call with everything done draws the picture.
 
     .venv/bin/python benchmarks/finetune_generalisation.py --train data/rl_train --heldout data/rl_heldout \\
         --real-train ../shared/data/gpudrive_json --real-heldout ../shared/data/womd_tfrecord ../shared/data/nocturne_json \\
@@ -104,6 +106,8 @@ def main() -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--run-dir", default="runs/generalisation")
     p.add_argument("--png", default="docs/images/finetune_generalisation.png")
+    p.add_argument("--only", choices=("train", "eval-generated", "eval-real"), default=None,
+                   help="do one piece of the work (the runs it needs must exist for eval-*)")
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides for every run")
     args = p.parse_args()
 
@@ -127,18 +131,24 @@ def main() -> int:
             over["iterations"] = args.iterations
         cfg = ft.load_finetune_config(base.to_dict(), over)
         ckpt = out / "checkpoints" / "policy_last.json"
-        if not ckpt.is_file():
+        if not ckpt.is_file() and args.only in (None, "train"):
             t0 = time.perf_counter()
             result = ft.finetune(cfg, on_iteration=lambda row, n=n: emit({"kind": "iteration", "generated_scenes": n, **row}))
             (out / "run.json").write_text(json.dumps({"seconds": time.perf_counter() - t0, "last": result.history[-1]}, default=float))
+        if not (out / "run.json").is_file():
+            continue  # another process trains it
         info = json.loads((out / "run.json").read_text())
         runs[n] = ckpt
         emit({"kind": "run", "generated_scenes": n, "real_scenes": n_real, "iterations": cfg.iterations, **info})
 
+    if args.only == "train":
+        return 0
     results = {}
     eval_sets = [("generated", args.heldout, args.eval_scenes, args.eval_seeds)]
     eval_sets += [("real", args.real_heldout, 10**6, args.real_seeds)] if args.real_heldout else []
     for name, spec, count, num_seeds in eval_sets:  # 2. every policy on the held-out sets
+        if args.only is not None and args.only != f"eval-{name}":
+            continue
         scenes = held_out(ft, base, vocab, spec, count)
         seeds = list(range(base.eval_seed, base.eval_seed + num_seeds))
         baselines = cached(run_dir / f"eval_{name}_baselines.json",
@@ -146,6 +156,8 @@ def main() -> int:
         emit({"kind": "eval", "set": name, "policy": "baselines", "scenes": len(scenes), "seeds": num_seeds, "rows": baselines["rows"]})
         tuned = {}
         for n in sizes:
+            if n not in runs:
+                continue
             cfg_n, net, _ = ft.load_policy(runs[n])
             policies = {"fine-tuned": ft.evaluation_policies(cfg_n, net)["fine-tuned"]}
             tuned[str(n)] = cached(run_dir / f"eval_{name}_finetuned_{n}.json",
@@ -153,6 +165,8 @@ def main() -> int:
             emit({"kind": "eval", "set": name, "policy": "fine-tuned", "generated_scenes": n, "scenes": len(scenes), "seeds": num_seeds,
                   "rows": tuned[str(n)]["rows"]})
         results[name] = {"baselines": baselines, "finetuned": tuned}
+    if args.only is not None or any(n not in runs for n in sizes):
+        return 0
     reference = f"prior top-{base.reference_top_k}" if base.reference_top_k else "prior full softmax"
     plot(results, sizes, reference, Path(args.png))
     return 0

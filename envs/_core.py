@@ -35,7 +35,7 @@ from typing import Hashable, Sequence
 import numpy as np
 import torch
 
-from smart_marl.padding import grow, put_rows
+from smart_marl.padding import grow
 from smart_marl.rollout import DEFAULT_TOP_K, RolloutState
 from smart_marl.rollout.refill import replace_scenes, split_state, stack_states
 from smart_marl.scenario import DT_S

@@ -24,7 +24,9 @@ from smart_marl.embedded import sample_scenarios
 from smart_marl.readers import read_scenarios
 from smart_marl.scenario import Scenario
 
+from ._core import CoreScene
 from ._scene import SceneStatic, scene_static
+from ._setup import select_controlled
 from .errors import EnvConfigError
 
 ORDERS = ("sequential", "random")
@@ -165,4 +167,23 @@ class ScenePool:
         return out
 
 
-__all__ = ["ORDERS", "ScenePool"]
+def next_scenes(pool: ScenePool, count: int, controlled, max_agents: int, types) -> tuple[list[int], list]:
+    """(pool indices, :class:`~envs._core.CoreScene` s) of the pool's next ``count`` scenes that have an
+    agent to control (``controlled``, of the agent ``types`` given, at most ``max_agents``, as
+    :func:`envs._setup.select_controlled`); scenes without one are passed over."""
+    picked, scenes, skipped = [], [], 0
+    while len(scenes) < count:
+        (i,) = pool.take(1)
+        static = pool.static(i)
+        ctrl = select_controlled(controlled, static, max_agents, types)
+        if len(ctrl) == 0:
+            skipped += 1
+            if skipped > len(pool):
+                raise EnvConfigError(f"no scene of the pool has an agent to control (controlled={controlled!r}, types {list(types)})")
+            continue
+        picked.append(i)
+        scenes.append(CoreScene(static, ctrl, key=i))
+    return picked, scenes
+
+
+__all__ = ["ORDERS", "ScenePool", "next_scenes"]

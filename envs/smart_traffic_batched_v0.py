@@ -49,9 +49,9 @@ from smart_marl.tokens import MotionVocabulary
 from ._arguments import check_env_arguments
 from ._core import CoreScene, CoreStep, TrafficCore
 from ._observation import ObservationConfig, observation_size
-from ._pool import ScenePool
+from ._pool import ScenePool, next_scenes
 from ._reward import REWARD_TERMS, TERMINATION_EVENTS
-from ._setup import load_env_prior, select_controlled
+from ._setup import load_env_prior
 from .errors import EnvConfigError
 
 GROUP = "agents"
@@ -122,21 +122,7 @@ class SmartTrafficBatchedEnv(EnvBase):
 
     # ------------------------------------------------------------------------------ scenes
     def _next_scenes(self, count: int) -> tuple[list[int], list[CoreScene]]:
-        """The pool's next ``count`` scenes that have a controllable agent of the group's vocabulary."""
-        picked, scenes, skipped = [], [], 0
-        while len(scenes) < count:
-            (i,) = self.pool.take(1)
-            static = self.pool.static(i)
-            ctrl = select_controlled(self.controlled, static, self.max_agents, self.group_types)
-            if len(ctrl) == 0:
-                skipped += 1
-                if skipped > len(self.pool):
-                    raise EnvConfigError(f"no scene of the pool has an agent to control (controlled={self.controlled!r}, "
-                                         f"types with {self.vocab_size} tokens)")
-                continue
-            picked.append(i)
-            scenes.append(CoreScene(static, ctrl, key=i))
-        return picked, scenes
+        return next_scenes(self.pool, count, self.controlled, self.max_agents, self.group_types)
 
     # ------------------------------------------------------------------------------- TorchRL
     def _set_seed(self, seed: int | None) -> None:
