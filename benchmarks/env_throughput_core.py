@@ -83,8 +83,13 @@ def main() -> int:
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--no-collision-avoidance", action="store_true")
+    p.add_argument("--tf32", action="store_true", help="CUDA: TensorFloat-32 matrix products (torch.backends.cuda.matmul.allow_tf32)")
+    p.add_argument("--profile", action="store_true", help="also print torch.profiler's table of the timed steps' heaviest operations")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
+    if args.tf32:
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
 
     from envs._core import TrafficCore
     from envs._pool import ScenePool, next_scenes
@@ -98,7 +103,7 @@ def main() -> int:
     common = dict(benchmark="env_throughput_core", background="prior", prior=args.prior, controlled=args.controlled,
                   max_agents=args.max_agents, horizon_steps=args.horizon, device=str(device), torch=torch.__version__,
                   torch_threads=args.threads, cpu=platform.processor() or platform.machine(), cpus=os.cpu_count(),
-                  avoid_collisions=not args.no_collision_avoidance)
+                  avoid_collisions=not args.no_collision_avoidance, tf32=args.tf32)
     if device.type == "cuda":
         common["gpu"] = torch.cuda.get_device_name(device)
     for b in [int(x) for x in args.num_scenes.split(",")]:
@@ -116,6 +121,14 @@ def main() -> int:
             torch.cuda.reset_peak_memory_stats(device)
         time_core(core, pool, args, types, max(args.horizon, len(pool) * args.horizon // b + 1))  # warm-up: every scene started
         runs = [time_core(core, pool, args, types, args.steps) for _ in range(args.repeats)]
+        if args.profile:
+            from torch.profiler import ProfilerActivity, profile
+
+            acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+            with profile(activities=acts) as prof:
+                time_core(core, pool, args, types, 4)
+            key = "cuda_time_total" if device.type == "cuda" else "cpu_time_total"
+            print(prof.key_averages().table(sort_by=key, row_limit=25), file=sys.stderr, flush=True)
         rate = [r["agents"] / r["step_s"] for r in runs]
         line = dict(num_scenes=b, agent_steps_per_s=round(statistics.median(rate), 1),
                     controlled_agent_steps_per_s=round(statistics.median(r["ctrl"] / r["step_s"] for r in runs), 1),

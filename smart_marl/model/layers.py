@@ -193,13 +193,17 @@ def knn_within(query_xy: torch.Tensor, key_xy: torch.Tensor, radius_m: float, k:
     kk = min(int(k), m)
     if kk == 0:
         return query_xy.new_zeros((g, q, 0), dtype=torch.long), torch.zeros((g, q, 0), dtype=torch.bool, device=query_xy.device)
-    # exact distances (no |a|^2 + |b|^2 - 2ab expansion, whose rounding depends on the tensors' sizes and
-    # would let a batch's padding change which near-tied neighbours are picked): a scene's neighbourhoods,
-    # and so its rollouts, do not depend on the scenes it is batched with; also faster here
-    dist = torch.cdist(query_xy.float(), key_xy.float(), compute_mode="donot_use_mm_for_euclid_dist")  # (G, Q, M)
-    ok = query_valid[:, :, None] & key_valid[:, None, :] & (dist <= radius_m)
-    dist = dist.masked_fill(~ok, float("inf"))
-    d_sel, idx = smallest_k(dist, kk)  # (G, Q, K)
+    # squared distances pair by pair (not the |a|^2 + |b|^2 - 2ab expansion, whose rounding depends on the
+    # tensors' sizes and would let a batch's padding change which near-tied neighbours are picked): a scene's
+    # neighbourhoods, and so its rollouts, do not depend on the scenes it is batched with. Plain elementwise
+    # work: as fast as torch.cdist's exact mode on a CPU, tens of times faster on a GPU
+    q, key = query_xy.float(), key_xy.float()
+    dx = q[..., 0, None] - key[:, None, :, 0]
+    dy = q[..., 1, None] - key[:, None, :, 1]
+    dist2 = dx * dx + dy * dy  # (G, Q, M)
+    ok = query_valid[:, :, None] & key_valid[:, None, :] & (dist2 <= float(radius_m) ** 2)
+    dist2 = dist2.masked_fill(~ok, float("inf"))
+    d_sel, idx = smallest_k(dist2, kk)  # (G, Q, K)
     mask = torch.isfinite(d_sel)
     return idx.masked_fill(~mask, 0), mask
 
