@@ -9,7 +9,9 @@ The rule, per sampling agent ``i`` (a vehicle, pedestrian or cyclist whose token
 forced): a token is excluded when, on any of the token's five 10 Hz frames (drawn as the rollout
 draws them, :mod:`~smart_marl.rollout.frames`), the agent's box overlaps the box of one of its
 ``NEIGHBOURS`` nearest present agents ``j`` on the same frame, ``j`` moving at constant velocity
-(its last token's displacement repeated, heading held). Pairs whose boxes overlap already at the
+(its last token's displacement repeated, heading held), or, where ``j``'s token of this step is
+forced (a policy's controlled agent, a scripted what-if agent), on the frames that token really
+takes it to (``known_frames``). Pairs whose boxes overlap already at the
 current poses are left alone: pedestrians walking in a group, or boxes that overlap in the log,
 keep doing what the model says. Tokens are checked most likely first until ``k`` are free (or the
 type's vocabulary is exhausted), so excluding them and then sampling the top ``k`` is the same as
@@ -88,7 +90,8 @@ def constant_velocity_pose(pose: torch.Tensor, previous_pose: torch.Tensor) -> t
 
 def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor, previous_pose: torch.Tensor,
                     size: torch.Tensor, present: torch.Tensor, agent_type: torch.Tensor, token_poses: torch.Tensor,
-                    top_k: int, interpolation: str = "spline") -> torch.Tensor:
+                    top_k: int, interpolation: str = "spline", known_frames: torch.Tensor | None = None,
+                    known: torch.Tensor | None = None) -> torch.Tensor:
     """bool [M, V]: the tokens that sampling rows ``rows`` [M] (flat indices into the G x N slots)
     must not draw (module docstring).
 
@@ -97,13 +100,17 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     that are on the road this step (they block others), ``agent_type`` [G, N], ``token_poses``
     [types, V, 6, 3] every token's poses in its start frame, ``top_k`` the sampler's k (<= 0: the
     whole vocabulary is checked), ``interpolation`` how the token's frames are drawn
-    (:func:`~smart_marl.rollout.frames.token_frames`)."""
+    (:func:`~smart_marl.rollout.frames.token_frames`). ``known_frames`` [G, N, 5, 3] and ``known`` [G, N]: the
+    slots whose frames of this step are known before the draw (their token is forced: a policy's or a
+    script's), checked against where they will really be instead of at constant velocity."""
     n = pose.shape[1]
     m, v = logits.shape
     if m == 0 or n < 2:
         return torch.zeros(m, v, dtype=torch.bool, device=logits.device)
     half = size[..., :2].to(pose.dtype) / 2
     ahead = constant_velocity_pose(pose, previous_pose)
+    if known is not None:
+        ahead = torch.where(known[..., None], known_frames[:, :, -1].to(pose.dtype), ahead)
     gi, si = rows // n, rows % n
     # each row's NEIGHBOURS nearest present others, not overlapping it now
     own_pose, own_before, own_half, own_type = pose[gi, si], previous_pose[gi, si], half[gi, si], agent_type[gi, si]
@@ -119,6 +126,13 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     now_xy, step_xy = pose[gi[:, None], near, :2], ahead[gi[:, None], near, :2] - pose[gi[:, None], near, :2]
     other_xy = now_xy[:, None] + s[None, :, None, None] * step_xy[:, None]
     other_h, other_half = pose[gi[:, None], near, 2], half[gi[:, None], near]
+    if known is not None:  # forced neighbours: their own frames of this step
+        kn = known[gi[:, None], near]  # [M, K]
+        kf = known_frames[gi[:, None], near].to(pose.dtype).transpose(1, 2)  # [M, 5, K, 3]
+        other_xy = torch.where(kn[:, None, :, None], kf[..., :2], other_xy)
+        other_h = torch.where(kn[:, None, :], kf[..., 2], other_h[:, None, :].expand(-1, FRAMES_PER_TOKEN, -1))
+    else:
+        other_h = other_h[:, None, :]
 
     def collides(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
         """[R, c]: does token ``tok`` [R, c] of rows ``r`` [R] overlap a neighbour on any of its frames."""
@@ -126,7 +140,7 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
         frames = token_frames(local, own_pose[r][:, None].expand(-1, tok.shape[1], -1),
                               own_before[r][:, None].expand(-1, tok.shape[1], -1), interpolation)  # [R, c, 5, 3]
         hit = boxes_overlap_near(frames[:, :, :, None, :2], frames[:, :, :, None, 2], own_half[r][:, None, None, None],
-                                 other_xy[r][:, None], other_h[r][:, None, None], other_half[r][:, None, None],
+                                 other_xy[r][:, None], other_h[r][:, None], other_half[r][:, None, None],
                                  where=near_ok[r][:, None, None])  # [R, c, 5, K]
         return hit.flatten(2).any(-1)
 

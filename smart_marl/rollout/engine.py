@@ -370,9 +370,18 @@ class RolloutState:
         exclude = None
         if self.avoid_collisions:
             pick = torch.ones(len(rows), dtype=torch.bool, device=self.device) if forced_rows is None else forced_rows < 0
+            known = known_frames = None
+            if forced_tokens is not None:  # the forced agents' frames of this step, seen by the others' check
+                known = sim & (forced_tokens >= 0)
+                if known.any():
+                    local = self.token_poses[self.agent_type, forced_tokens.clamp(min=0)]
+                    known_frames = token_frames(local, self.pose, self.previous_pose, self.interpolation)
+                else:
+                    known = None
             exclude = torch.zeros(row_logits.shape, dtype=torch.bool, device=self.device)
             exclude[pick] = excluded_tokens(row_logits[pick], rows[pick], self.pose, self.previous_pose, self.agent_shape, sim,
-                                            self.agent_type, self.token_poses, self.top_k, self.interpolation)
+                                            self.agent_type, self.token_poses, self.top_k, self.interpolation,
+                                            known_frames=known_frames, known=known)
         tok_rows, logp_rows = sample_tokens(row_logits, self.generator, self.top_k, self.temperature, forced_rows, exclude)
         tokens = torch.full((g * n,), -1, dtype=torch.long, device=self.device)
         tokens[rows] = tok_rows
