@@ -40,7 +40,7 @@ sampling (``--sampling default`` collision-aware, ``plain``; both by default) an
     into it), ``side``.
 
     .venv/bin/python benchmarks/reactivity.py [--prior PATH] [--set NAME=PATH ...] [--parts a,b,c,d,e]
-        [--sampling default,plain] [--seeds 0,1] [--rollouts 8] [--max-scenes N] [--threads 2]
+        [--sampling default,plain] [--seeds 0,1] [--rollouts 8] [--max-scenes N] [--threads 2] [--lights current|log]
 
 The measured figures are in docs/experiments/2026-11-26-reactivity.md.
 """
@@ -207,13 +207,14 @@ def red_light_shares(scene, traj_source: np.ndarray | None) -> tuple[int, int] |
 
 
 # ------------------------------------------------------------------------------- the parts
-def part_slowing_and_lights(model, scenes, rollouts: int, top_k: int, seed: int, avoid: bool, common: dict, parts) -> list[dict]:
+def part_slowing_and_lights(model, scenes, rollouts: int, top_k: int, seed: int, avoid: bool, common: dict, parts,
+                            lights: str = "current") -> list[dict]:
     rows = []
     roll = [np.zeros(drift.NUM_FRAMES), np.zeros(drift.NUM_FRAMES), np.zeros(drift.NUM_FRAMES), 0, np.zeros((len(drift.TRENDS), 4))]
     red = {"rollout": [0, 0], "log": [0, 0], "scenes": 0}
     for scene in scenes:
         res = rollout(model, [scene], num_rollouts=rollouts, num_steps=drift.NUM_FRAMES // 5, top_k=top_k, seed=seed,
-                      avoid_collisions=avoid)
+                      avoid_collisions=avoid, lights=lights)
         if "a" in parts:
             sums = drift.speed_sums(res, scene).get(AgentType.VEHICLE)
             if sums is not None:
@@ -380,6 +381,8 @@ def main(argv=None) -> None:
     ap.add_argument("--max-scenes", type=int, default=0)
     ap.add_argument("--top-k", type=int, default=DEFAULT_TOP_K)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--lights", default="current", choices=("current", "log"),
+                    help="(a), (b): the light states the prior sees: the current frame's, held, or the log's at every step")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     parts = [p for p in args.parts.split(",") if p]
@@ -403,7 +406,7 @@ def main(argv=None) -> None:
                 rows = []
                 if "a" in parts or "b" in parts:
                     rows += part_slowing_and_lights(model, scenes, args.rollouts, args.top_k, seed, avoid,
-                                                    {**common, "rollouts": args.rollouts}, parts)
+                                                    {**common, "rollouts": args.rollouts, "lights": args.lights}, parts, args.lights)
                 if "c" in parts:
                     rows += part_braking(model, vocab, scenes, args.case_rollouts, args.top_k, seed, avoid, args.max_pairs, common)
                 if "d" in parts:
