@@ -347,6 +347,7 @@ def part_controlled(model, vocab, scenes, seed: int, avoid: bool, top_k: int, co
                                         terminate_on=(), top_k=top_k, avoid_collisions=avoid)
     policy = LogFollowingPolicy(env, seed=seed)
     counts = {k: 0 for k in COLLISION_KINDS}
+    by_background = {k: 0 for k in COLLISION_KINDS}
     n = 0
     for i in range(len(scenes)):
         try:
@@ -360,11 +361,33 @@ def part_controlled(model, vocab, scenes, seed: int, avoid: bool, top_k: int, co
         for kind in first_collision_kinds(poses, present, env.static.box_size, env.ctrl_tracks):
             if kind is not None:
                 counts[kind] += 1
+        for kind in background_collision_kinds(poses, present, env.static.box_size, env.ctrl_tracks):
+            if kind is not None:
+                by_background[kind] += 1
     env.close()
-    return [{"part": "e", "kind": "controlled", "agent_episodes": n, "rear_ended_rate": round(counts["rear_ended"] / max(n, 1), 4),
-             "front_rate": round(counts["front"] / max(n, 1), 4), "side_rate": round(counts["side"] / max(n, 1), 4),
-             "at_fault": {"background (rear-ended)": counts["rear_ended"], "controlled (front)": counts["front"],
-                          "unclear (side)": counts["side"]}, **common}]
+    rate = lambda c: round(c / max(n, 1), 4)  # noqa: E731
+    return [{"part": "e", "kind": "controlled", "agent_episodes": n, "rear_ended_rate": rate(counts["rear_ended"]),
+             "front_rate": rate(counts["front"]), "side_rate": rate(counts["side"]),
+             "rear_ended_by_background_rate": rate(by_background["rear_ended"]),
+             "front_into_background_rate": rate(by_background["front"]), "side_with_background_rate": rate(by_background["side"]),
+             "at_fault": {"background (rear-ended)": by_background["rear_ended"], "controlled (front)": by_background["front"],
+                          "unclear (side)": by_background["side"],
+                          "between controlled agents": sum(counts.values()) - sum(by_background.values())}, **common}]
+
+
+def background_collision_kinds(poses: np.ndarray, present: np.ndarray, box_size: np.ndarray, ctrl) -> list:
+    """:func:`agents.evaluate.first_collision_kinds` counting only collisions with the background: per controlled
+    track, its first collision with an agent that is not controlled (the other controlled agents are left out;
+    two log-following cars meet where one's log ends, since it then stands at its last logged pose)."""
+    from agents.evaluate import first_collision_kinds
+
+    ctrl = [int(c) for c in ctrl]
+    out = []
+    for c in ctrl:
+        keep = present.copy()
+        keep[[o for o in ctrl if o != c]] = False
+        out += first_collision_kinds(poses, keep, box_size, [c])
+    return out
 
 
 def main(argv=None) -> None:

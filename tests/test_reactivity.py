@@ -129,3 +129,20 @@ def test_part_e_controls_the_vehicles_whose_logged_route_is_longer_than_10_m(rea
         last = np.flatnonzero(tr.valid[i])[-1]
         assert tr.types[i] == int(AgentType.VEHICLE) and tr.valid[i, cf]
         assert np.linalg.norm(tr.position[i, last, :2] - tr.position[i, cf, :2]) > 10.0
+
+
+def test_background_collisions_leave_out_the_other_controlled_agents(reactivity):
+    """Cars in a row on x (4 m x 2 m): 0 and 1 controlled, 2 background. 1 drives into 0, which stands (both
+    controlled); 2 drives into 1 from behind and stops short of 0. Counted against the background, 1 is
+    rear-ended by 2 and 0 has no collision."""
+    f = 20
+    poses = np.zeros((3, f, 3))
+    poses[0, :, 0] = 20.0
+    poses[1, :, 0] = np.minimum(np.linspace(10.0, 30.0, f), 17.0)  # stops overlapping 0
+    poses[2, :, 0] = np.minimum(np.linspace(0.0, 40.0, f), 15.0)  # stops overlapping 1, 5 m short of 0
+    present = np.ones((3, f), bool)
+    box = np.array([[4.0, 2.0], [4.0, 2.0], [4.0, 2.0]])
+    from agents.evaluate import first_collision_kinds
+
+    assert first_collision_kinds(poses, present, box, [0, 1])[0] == "rear_ended"  # 1 ran into 0
+    assert reactivity.background_collision_kinds(poses, present, box, [0, 1]) == [None, "rear_ended"]
