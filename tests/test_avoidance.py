@@ -105,6 +105,21 @@ def test_the_other_agent_is_checked_where_it_will_be_at_constant_velocity():
     assert out.tolist() == [[True, False, True, True, False]]  # 2 m ahead now collides too; stopping does not
 
 
+def test_a_forced_neighbour_is_checked_on_the_frames_its_token_really_takes_it_to():
+    """Issue 33: a leader whose token is forced (a policy's controlled car, a scripted braking car) is seen where
+    that token puts it, not at constant velocity."""
+    pose, prev, size, present, types = _scene(third_present=False)
+    prev[0, 1, 0] = 3.0  # the car ahead drives away at 4 m per token: at constant velocity it will be at x = 11 (9 to 13 m)
+    logits = torch.tensor([[5.0, 0.0, 4.0, 3.0, 0.0]])
+    args = (logits, torch.tensor([0]), pose, prev, size, present, types, _poses(ENDS))
+    assert excluded_tokens(*args, top_k=0).tolist() == [[False, False, False, True, False]]  # only 8 m ahead reaches it
+    # its forced token this step stands still at x = 7: then 5 m ahead runs into it as well
+    known = torch.tensor([[False, True, False]])
+    frames = pose[:, :, None, :].expand(-1, -1, 5, -1).clone()
+    got = excluded_tokens(*args, top_k=0, known_frames=frames, known=known)
+    assert got.tolist() == [[True, False, False, True, False]]
+
+
 @pytest.mark.parametrize("interpolation", ["spline", "contour"])
 def test_a_token_that_passes_through_an_agent_between_its_ends_is_excluded(interpolation):
     """14 m in 0.5 s past a pedestrian standing 7 m ahead: neither end box touches it, the frames in

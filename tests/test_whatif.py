@@ -302,10 +302,21 @@ def test_vehicles_behind_a_braking_car_slow_down_under_the_prior(hard_brake):
     assert np.nanmean(sp[:, kp, -20:]) < np.nanmean(sb[:, kb, -20:])
 
 
-def test_the_braking_car_is_rarely_hit_from_behind(hard_brake):
+def test_the_braking_car_is_never_hit_from_behind_with_collision_aware_sampling(hard_brake):
     """Sampled plainly, the issue-13 priors' followers slow down too little for an 8 m/s2 stop and hit
     the braking car in 5-7 of 8 rollouts (the stage-1 prior: 0 of 8, because it drove everyone at half
     speed). Collision-aware sampling (smart_marl.rollout.avoidance, the default) brings it to 0 of 8
-    with the stage-5 prior; see the README's limits."""
+    with the stage-5 prior (issue 33's target, pinned; since issue 33 the rule also sees the braking
+    car's forced token where it really goes); see the README's limits."""
     rows = {(r["quantity"], r["agent"]): r for r in hard_brake.table}
-    assert rows[("collided_rate", "1609 (brake)")]["whatif"] <= 0.25
+    assert rows[("collided_rate", "1609 (brake)")]["whatif"] == 0.0
+
+
+@pytest.mark.xfail(strict=True, reason="issue 33's target for the weights alone (at most 1 of 8 sampled plainly) is "
+                                       "not met: the stage-5 prior's follower hits the braking car in 5 of 8")
+def test_the_braking_car_is_rarely_hit_from_behind_sampled_plainly(scene):
+    """The same what-if sampled plainly (no collision-aware rule): the weights' own answer."""
+    result = run_whatif(None, scene, WhatIf([Brake(agent=1609, at_s=1.0, decel_mps2=8.0)]), num_rollouts=8, seed=0,
+                        num_steps=12, realism=False, avoid_collisions=False)
+    rows = {(r["quantity"], r["agent"]): r for r in result.table}
+    assert rows[("collided_rate", "1609 (brake)")]["whatif"] <= 1 / 8

@@ -9,7 +9,9 @@ The rule, per sampling agent ``i`` (a vehicle, pedestrian or cyclist whose token
 forced): a token is excluded when, on any of the token's five 10 Hz frames (drawn as the rollout
 draws them, :mod:`~smart_marl.rollout.frames`), the agent's box overlaps the box of one of its
 ``NEIGHBOURS`` nearest present agents ``j`` on the same frame, ``j`` moving at constant velocity
-(its last token's displacement repeated, heading held). Pairs whose boxes overlap already at the
+(its last token's displacement repeated, heading held), or, where ``j``'s token of this step is
+forced (a policy's controlled agent, a scripted what-if agent), on the frames that token really
+takes it to (``known_frames``). Pairs whose boxes overlap already at the
 current poses are left alone: pedestrians walking in a group, or boxes that overlap in the log,
 keep doing what the model says. Tokens are checked most likely first until ``k`` are free (or the
 type's vocabulary is exhausted), so excluding them and then sampling the top ``k`` is the same as
@@ -73,7 +75,8 @@ def constant_velocity_pose(pose: torch.Tensor, previous_pose: torch.Tensor) -> t
 
 def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor, previous_pose: torch.Tensor,
                     size: torch.Tensor, present: torch.Tensor, agent_type: torch.Tensor, token_poses: torch.Tensor,
-                    top_k: int, interpolation: str = "spline") -> torch.Tensor:
+                    top_k: int, interpolation: str = "spline", known_frames: torch.Tensor | None = None,
+                    known: torch.Tensor | None = None) -> torch.Tensor:
     """bool [M, V]: the tokens that sampling rows ``rows`` [M] (flat indices into the G x N slots)
     must not draw (module docstring).
 
@@ -82,7 +85,9 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     that are on the road this step (they block others), ``agent_type`` [G, N], ``token_poses``
     [types, V, 6, 3] every token's poses in its start frame, ``top_k`` the sampler's k (<= 0: the
     whole vocabulary is checked), ``interpolation`` how the token's frames are drawn
-    (:func:`~smart_marl.rollout.frames.token_frames`)."""
+    (:func:`~smart_marl.rollout.frames.token_frames`). ``known_frames`` [G, N, 5, 3] and ``known`` [G, N]: the
+    slots whose frames of this step are known before the draw (their token is forced: a policy's or a
+    script's), checked against where they will really be instead of at constant velocity."""
     n = pose.shape[1]
     m, v = logits.shape
     out = torch.zeros(m, v, dtype=torch.bool, device=logits.device)
@@ -90,13 +95,18 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
         return out
     half = size[..., :2].to(pose.dtype) / 2
     ahead = constant_velocity_pose(pose, previous_pose)
+    travel = (ahead - pose)[..., :2].norm(dim=-1)  # [G, N] how far each agent gets from its pose during the step
+    if known is not None:
+        known_frames = known_frames.to(pose.dtype)
+        ahead = torch.where(known[..., None], known_frames[:, :, -1], ahead)
+        travel = torch.where(known, (known_frames[..., :2] - pose[:, :, None, :2]).norm(dim=-1).amax(-1), travel)
     # 1. the rows that need checking: those whose first tokens (the top k) can reach another agent; the
     # others draw their top k whatever is excluded further down, so nothing of theirs is
     gi, si = rows // n, rows % n
     first = torch.topk(logits, v if top_k is None or top_k <= 0 else min(int(top_k), v), dim=-1).indices  # [M, k]
     reach = token_reach(token_poses)[agent_type[gi, si][:, None], first].amax(-1)  # [M] farthest a first token goes
     own_xy, own_r = pose[gi, si, :2], half[gi, si].norm(dim=-1)
-    gap = (pose[gi][:, :, :2] - own_xy[:, None]).norm(dim=-1) - (ahead - pose)[gi][:, :, :2].norm(dim=-1)  # [M, N] nearest they come
+    gap = (pose[gi][:, :, :2] - own_xy[:, None]).norm(dim=-1) - travel[gi]  # [M, N] nearest they come
     maybe = present[gi] & (gap < reach[:, None] + own_r[:, None] + half[gi].norm(dim=-1))
     maybe[torch.arange(m, device=rows.device), si] = False
     sub = maybe.any(-1).nonzero().squeeze(1)
@@ -118,6 +128,13 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     now_xy, step_xy = pose[gi[:, None], near, :2], ahead[gi[:, None], near, :2] - pose[gi[:, None], near, :2]
     other_xy = now_xy[:, None] + s[None, :, None, None] * step_xy[:, None]
     other_h, other_half = pose[gi[:, None], near, 2], half[gi[:, None], near]
+    if known is not None:  # forced neighbours: their own frames of this step
+        kn = known[gi[:, None], near]  # [M, K]
+        kf = known_frames[gi[:, None], near].transpose(1, 2)  # [M, 5, K, 3]
+        other_xy = torch.where(kn[:, None, :, None], kf[..., :2], other_xy)
+        other_h = torch.where(kn[:, None, :], kf[..., 2], other_h[:, None, :].expand(-1, FRAMES_PER_TOKEN, -1))
+    else:
+        other_h = other_h[:, None, :]
 
     def collides(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
         """[R, c]: does token ``tok`` [R, c] of rows ``r`` [R] overlap a neighbour on any of its frames."""
@@ -125,7 +142,7 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
         frames = token_frames(local, own_pose[r][:, None].expand(-1, tok.shape[1], -1),
                               own_before[r][:, None].expand(-1, tok.shape[1], -1), interpolation)  # [R, c, 5, 3]
         hit = boxes_overlap_near(frames[:, :, :, None, :2], frames[:, :, :, None, 2], own_half[r][:, None, None, None],
-                                 other_xy[r][:, None], other_h[r][:, None, None], other_half[r][:, None, None],
+                                 other_xy[r][:, None], other_h[r][:, None], other_half[r][:, None, None],
                                  where=near_ok[r][:, None, None])  # [R, c, 5, K]
         return hit.flatten(2).any(-1)
 

@@ -40,6 +40,8 @@ def _check(states: Sequence[RolloutState]) -> None:
             raise ValueError("batching rollout states needs states in mode 'cached'")
         if st.model is not first.model or st.num_rollouts != first.num_rollouts:
             raise ValueError("batching rollout states needs states of the same model and number of rollouts")
+        if getattr(st, "lights", "current") != "current":
+            raise ValueError("batching rollout states needs lights='current': lights='log' follows one clock for the whole state")
 
 
 def _same_phase(states: Sequence[RolloutState]) -> list[RolloutState]:

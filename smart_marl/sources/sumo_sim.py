@@ -99,6 +99,13 @@ class SumoConfig:
     # parked cars beside the kerbside lanes (add_parked_vehicles): per simulation, the share of ~7 m kerb
     # slots that hold one is drawn from this range (real WOMD scenes: two thirds of the vehicles are parked)
     parked_occupancy: tuple[float, float] = (0.2, 0.9)
+    # emergency stops (EmergencyStops, issue 33): from the warm-up on, each moving car starts a hard stop at this
+    # rate (per vehicle and minute; 0: none, the default), braking at a deceleration drawn from
+    # emergency_decel_mps2 to a standstill, standing for emergency_hold_s, then driving on; SUMO's drivers
+    # behind it answer with their own car-following model (the data of followers that brake for a leader)
+    emergency_stop_rate_per_min: float = 0.0
+    emergency_decel_mps2: tuple[float, float] = (4.0, 8.0)
+    emergency_hold_s: tuple[float, float] = (1.0, 4.0)
 
     @classmethod
     def legacy(cls, **changes) -> "SumoConfig":
@@ -121,6 +128,11 @@ class SumoConfig:
         if not 0.0 <= lo <= hi <= 1.0:
             raise SumoConfigError(f"SumoConfig: parked_occupancy must be a range within [0, 1] (low <= high); got {self.parked_occupancy}")
         check_fields(self, SUMO_RULES, "SUMO", SumoConfigError)
+        if not (self.emergency_stop_rate_per_min >= 0 and 0 < self.emergency_decel_mps2[0] <= self.emergency_decel_mps2[1]
+                and 0 <= self.emergency_hold_s[0] <= self.emergency_hold_s[1]):
+            raise SumoConfigError(f"SumoConfig: emergency_stop_rate_per_min must be >= 0, emergency_decel_mps2 a positive range and "
+                                  f"emergency_hold_s a range >= 0; got {self.emergency_stop_rate_per_min}, {self.emergency_decel_mps2}, "
+                                  f"{self.emergency_hold_s}")
         if self.speed_weights is not None and len(self.speed_weights) != len(self.speed_levels_mps):
             raise SumoConfigError(f"SumoConfig: speed_weights has {len(self.speed_weights)} entries for "
                              f"{len(self.speed_levels_mps)} speed_levels_mps; give one weight per level (or None)")
@@ -147,6 +159,8 @@ SUMO_RULES = {
     "walker_sway_m": number(0.0, 5.0), "walker_sway_s": _SECONDS, "walker_jitter_rad": number(0.0, 3.2),
     "walker_jitter_s": _SECONDS, "cyclist_sway_m": number(0.0, 5.0), "cyclist_sway_s": _SECONDS,
     "parked_occupancy": interval(0.0, 1.0),
+    "emergency_stop_rate_per_min": number(0.0, 60.0, why="a hard stop every second for every car"),
+    "emergency_decel_mps2": interval(0.0, 20.0, low_open=True), "emergency_hold_s": interval(0.0, 600.0),
 }
 """What each SumoConfig field takes (:mod:`smart_marl.config_files` rules), checked when a config is made."""
 
@@ -338,6 +352,51 @@ class Recording:
     start_time_s: float = 0.0
 
 
+class EmergencyStops:
+    """Hard stops of random moving cars during a SUMO run (``SumoConfig.emergency_stop_rate_per_min``): from
+    ``start_step`` on, every 0.1 s step each moving car (vehicle class passenger, faster than 3 m/s, not stopping
+    already) starts one with probability rate / 600; it brakes at a deceleration drawn from
+    ``emergency_decel_mps2`` (SUMO's ``slowDown`` to 0 over v / decel, the car's own decel limits lifted for it),
+    stands for a time drawn from ``emergency_hold_s`` and is then released to its car-following model. Its own
+    random stream, so the network and demand of a seed do not change with it."""
+
+    def __init__(self, config: SumoConfig, rng: np.random.Generator, start_step: int) -> None:
+        self.config, self.rng, self.start_step = config, rng, int(start_step)
+        self.until: dict[str, int] = {}  # vehicle -> step at which it is released
+        self.p = config.emergency_stop_rate_per_min * DT_S / 60.0
+
+    def step(self, sumo, step: int) -> None:
+        for vid, end in list(self.until.items()):
+            if step >= end:
+                del self.until[vid]
+                try:
+                    sumo.vehicle.setSpeed(vid, -1.0)
+                    sumo.vehicle.setDecel(vid, float(sumo.vehicle.getParameter(vid, "smart_marl.decel") or 4.5))
+                except Exception:  # the vehicle has left the network
+                    pass
+        if step < self.start_step - 50:  # 5 s before recording starts, so that some stops are under way then
+            return
+        ids = [v for v in sumo.vehicle.getIDList() if v not in self.until]
+        if not ids:
+            return
+        draw = self.rng.random(len(ids)) < self.p
+        for vid in np.asarray(ids)[draw]:
+            vid = str(vid)
+            if sumo.vehicle.getVehicleClass(vid) != "passenger":
+                continue
+            v = sumo.vehicle.getSpeed(vid)
+            if v < 3.0:
+                continue
+            decel = float(self.rng.uniform(*self.config.emergency_decel_mps2))
+            hold = float(self.rng.uniform(*self.config.emergency_hold_s))
+            stop_s = v / decel
+            sumo.vehicle.setParameter(vid, "smart_marl.decel", str(sumo.vehicle.getDecel(vid)))
+            sumo.vehicle.setDecel(vid, decel)
+            sumo.vehicle.slowDown(vid, 0.0, stop_s)
+            sumo.vehicle.setSpeed(vid, 0.0)
+            self.until[vid] = step + int(round((stop_s + hold) / DT_S))
+
+
 def run_simulation(net_path: Path, route_path: Path, duration_s: float, record_from_s: float, seed: int,
                    config: SumoConfig, nmap: NetworkMap, rotation_rad: float, lane_change_s: float = 3.0) -> Recording:
     """Run SUMO (libsumo, 0.1 s steps) and record every vehicle and person from ``record_from_s`` on."""
@@ -368,9 +427,12 @@ def run_simulation(net_path: Path, route_path: Path, duration_s: float, record_f
         first_record = int(round(record_from_s / DT_S))
         total_steps = int(round(duration_s / DT_S))
         step = 0
+        stops = EmergencyStops(config, np.random.default_rng([seed, 0xE5]), first_record) if config.emergency_stop_rate_per_min > 0 else None
         while step < total_steps:
             libsumo.simulationStep()
             step += 1
+            if stops is not None:
+                stops.step(libsumo, step)
             for vid in libsumo.simulation.getDepartedIDList():
                 libsumo.vehicle.subscribe(vid, variables)
             for pid in libsumo.simulation.getDepartedPersonIDList():
