@@ -13,9 +13,9 @@ Prints one JSON line per configuration:
   rewards, observations and TorchRL's bookkeeping count as outside);
 * ``reset_ms_per_scene``: time of the resets / refills per scene started (after a warm-up pass
   that starts every scene's prior once: both envs keep freshly started prior states);
-* ``rss_mb``: the process's resident memory after the configuration (CPU), or the device's peak
-  allocated memory (``cuda_peak_mb``);
-* ``speedup_vs_pettingzoo``: agent-steps/s against the PettingZoo line of the same run.
+* ``rss_mb``: the process's resident memory (every configuration's env is alive: the last lines carry all);
+* ``speedup_vs_pettingzoo``: agent-steps/s against the PettingZoo line of the same run (medians), and
+  ``speedup_per_repeat``: the ratio within each repeat (the repeats interleave every configuration).
 
 Actions: each controlled agent takes its prior's most likely token; ``terminate_on=()`` so that an
 episode runs its full horizon. Scenes: ``--scenes`` (default: the shared real scenes with a moving
@@ -186,25 +186,28 @@ def main() -> int:
             pass
     pz.PRIOR_STATE_CACHE = pz.core.prior_cache_size = len(usable)  # keep every scene's prior, as the batched env does
     time_pettingzoo(pz, usable, len(usable) * args.horizon)  # warm-up: every scene's prior started once
-    pz_runs = [time_pettingzoo(pz, usable, args.steps) for _ in range(args.repeats)]
-    base = summarise(pz_runs)
-    print(json.dumps(dict(env="pettingzoo", num_scenes=1, **base, rss_mb=round(rss_mb()), **common)), flush=True)
-    del pz
-
     pool = [scenes[i] for i in usable]
-    for b in [int(x) for x in args.num_scenes.split(",")]:
+    sizes = [int(x) for x in args.num_scenes.split(",")]
+    batched = {}
+    for b in sizes:
         env = smart_traffic_batched_v0.SmartTrafficBatchedEnv(scenarios=pool, num_scenes=b, scene_order="sequential",
                                                               device=args.device, **kw)
-        if args.device.startswith("cuda"):
-            torch.cuda.reset_peak_memory_stats(args.device)
         time_batched(env, max(args.horizon, len(pool) * args.horizon // b))  # warm-up: every scene's prior started once
-        runs = [time_batched(env, args.steps) for _ in range(args.repeats)]
-        line = dict(env="batched", num_scenes=b, **summarise(runs), rss_mb=round(rss_mb()), **common)
-        if args.device.startswith("cuda"):
-            line["cuda_peak_mb"] = round(torch.cuda.max_memory_allocated(args.device) / 2**20)
+        batched[b] = env
+    # the repeats interleave the configurations, so that a load that comes and goes weighs on all of them alike
+    runs = {"pettingzoo": [], **{b: [] for b in sizes}}
+    for _ in range(args.repeats):
+        runs["pettingzoo"].append(time_pettingzoo(pz, usable, args.steps))
+        for b in sizes:
+            runs[b].append(time_batched(batched[b], args.steps))
+    base = summarise(runs["pettingzoo"])
+    print(json.dumps(dict(env="pettingzoo", num_scenes=1, **base, rss_mb=round(rss_mb()), **common)), flush=True)
+    for b in sizes:
+        line = dict(env="batched", num_scenes=b, **summarise(runs[b]), rss_mb=round(rss_mb()), **common)
         line["speedup_vs_pettingzoo"] = round(line["agent_steps_per_s"] / base["agent_steps_per_s"], 2)
+        ratios = [(r["agent_steps"] / r["step_s"]) / (p["agent_steps"] / p["step_s"]) for r, p in zip(runs[b], runs["pettingzoo"])]
+        line["speedup_per_repeat"] = [round(x, 2) for x in ratios]
         print(json.dumps(line), flush=True)
-        del env
     return 0
 
 

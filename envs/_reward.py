@@ -57,7 +57,7 @@ class RewardConfig:
         for f in fields(self):
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
-                raise EnvConfigError(f"reward: {f.name} must be a finite number, got {v!r}")
+                raise EnvConfigError(f"reward[{f.name!r}] must be a finite number, got {v!r}")
 
     @classmethod
     def from_any(cls, value) -> "RewardConfig":

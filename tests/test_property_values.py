@@ -53,7 +53,7 @@ def _accepts_or_names(make, error: type[Exception], *names: str):
 
 # -------------------------------------------------------------------------------- every field has a rule
 def test_every_field_of_every_config_dataclass_has_a_rule():
-    from agents.finetune import _FINETUNE_RULES, FinetuneConfig
+    from agents.finetune_config import _FINETUNE_RULES, FinetuneConfig
     from agents.whatif.edits import _EDIT_RULES, _PLACEMENT, KINDS
     from envs._arguments import OBSERVATION_RULES, REWARD_RULES
     from envs._observation import ObservationConfig
