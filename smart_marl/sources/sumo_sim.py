@@ -33,14 +33,13 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from ..geometry import frame_steps
-from ..scenario import DT_S, AgentType, SceneFrame, Scenario, TrafficLights, Tracks, wrap_angle
+from ..scenario import CURRENT_FRAME, DT_S, AgentType, SceneFrame, Scenario, TrafficLights, Tracks, wrap_angle
 from .sumo_net import (
     SIGNAL_OF_CHAR, SPEEDS_MPS, NetworkMap, NetworkSpec, build_network, lane_shape, network_map, quantize, random_network_spec,
     require_sumo, rotation_matrix, sumo_binary, turn_angle,
 )
 
 SCENE_FRAMES = 91
-CURRENT_FRAME = 10
 SOURCE = "sumo"
 
 
