@@ -28,7 +28,7 @@ from ..metrics.baselines import policy_rollouts
 from ..metrics.config import get_rules
 from ..metrics.inputs import RolloutError, Rollouts
 from ..metrics.submission import ScenarioRolloutArrays, check_against_scene, rollouts_from_submission, write_rollouts
-from ..model.checkpoint import EMBEDDED, load_checkpoint
+from ..model.checkpoint import EMBEDDED, load_prior
 from ..readers import expand_paths, read_scenarios
 from ..rollout import DEFAULT_TOP_K, rollout
 from .arguments import collision_avoidance_flag, device, non_negative_int, positive_int, positive_number, reader_formats
@@ -140,7 +140,7 @@ def run(args) -> int:
             where = args.submission
         elif args.policy == "prior":
             if prior is None:
-                prior = load_checkpoint(args.checkpoint or EMBEDDED, map_location=args.device)
+                prior = load_prior(args.checkpoint or EMBEDDED, args.device)
             rollouts = prior_rollouts(prior, scenario, args.rollouts, args.seed, args.device,
                                       DEFAULT_TOP_K if args.top_k is None else args.top_k, args.temperature or 1.0,
                                       avoid_collisions=args.avoid_collisions)
