@@ -1,13 +1,19 @@
 """Shared fixtures. Real scenes come from ../shared/data beside the project; tests that need them
-skip with a reason when that folder is absent (it is never copied into the repository)."""
+skip with a reason when that folder is absent (it is never copied into the repository). Tests that
+need only *some* scene use the package's embedded samples (``sample_scenes`` and friends below).
+
+``SMART_MARL_SHARED_DATA=PATH`` points the real-scene tests at another folder; a folder that does
+not exist (``SMART_MARL_SHARED_DATA=/nonexistent pytest``) runs the suite as a user without the
+shared data runs it."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+SHARED_DATA = Path(os.environ.get("SMART_MARL_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
 
 
 @pytest.fixture(scope="session")
@@ -51,6 +57,39 @@ def kdisks_vocab():
         return build_motion_vocabulary(snippets, size, seed=0, progress=False)
 
     return build
+
+
+@pytest.fixture(scope="session")
+def sample_scenes():
+    """The package's embedded sample scenes (smart_marl.embedded; SUMO, 91 frames, current frame 10):
+    sumo-7-000000-00 .. -03 with 22, 25, 44 and 10 tracks (vehicles, pedestrians and cyclists; no OTHER).
+    Tests that need *some* real-looking scene use these, so they run without ../shared/data."""
+    from smart_marl.embedded import sample_scenarios
+
+    return sample_scenarios()
+
+
+@pytest.fixture(scope="session")
+def sample_scene_file(sample_scenes, tmp_path_factory) -> Path:
+    """The first sample scene (sumo-7-000000-00, 22 tracks) alone in a scene file, for commands that
+    take a path."""
+    from smart_marl.cache import write_shard
+
+    path = tmp_path_factory.mktemp("sample_scene") / "sumo-7-000000-00.smsc"
+    write_shard(path, sample_scenes[:1])
+    return path
+
+
+@pytest.fixture(scope="session")
+def sample_vocab(sample_scenes, kdisks_vocab):
+    """32 k-disks tokens per type from the four sample scenes (the sample-scene twin of ``womd_vocab``)."""
+    return kdisks_vocab(sample_scenes)
+
+
+@pytest.fixture(scope="session")
+def sample_model(sample_vocab):
+    """The tiny random model (:func:`_tiny_smart`) over ``sample_vocab``."""
+    return _tiny_smart(sample_vocab)
 
 
 @pytest.fixture(scope="session")
@@ -115,10 +154,10 @@ def save_tiny_prior(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def tiny_prior(womd_scenes, save_tiny_prior):
-    """The tiny random checkpoint over a 16-token uniform-grid vocabulary from the two real WOMD
+def tiny_prior(sample_scenes, save_tiny_prior):
+    """The tiny random checkpoint over a 16-token uniform-grid vocabulary from the package's sample
     scenes. Returns the checkpoint's JSON path."""
     from smart_marl.tokens import collect_snippets, uniform_grid_vocabulary
 
-    snippets, _ = collect_snippets(womd_scenes)
+    snippets, _ = collect_snippets(sample_scenes)
     return save_tiny_prior(uniform_grid_vocabulary(snippets, 16))
