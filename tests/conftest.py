@@ -15,6 +15,12 @@ import pytest
 
 SHARED_DATA = Path(os.environ.get("SMART_MARL_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
 
+# One torch (OpenMP) thread for the whole run, this process and the commands and workers it starts:
+# on a shared 2-core machine torch's threads fighting other processes make small-model steps about
+# 10x slower (an eval of a tiny prior on one sample scene: 218 s with the default threads, 21 s with
+# one, while other jobs loaded the machine). Set OMP_NUM_THREADS yourself to run with more.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
@@ -24,10 +30,22 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _torch_threads_from_the_environment():
+    """torch's thread count as OMP_NUM_THREADS says (1 unless set; see above), also when torch was
+    imported before this file set it."""
+    import torch
+
+    threads = os.environ["OMP_NUM_THREADS"]
+    if threads.isdigit() and int(threads) > 0:
+        torch.set_num_threads(int(threads))
+
+
 @pytest.fixture(scope="module")
 def one_torch_thread():
-    """One torch thread for a module of small-model tests: on a shared 2-core machine, torch's threads
-    fighting other processes make these small steps about 10x slower."""
+    """One torch thread for a module of small-model tests, whatever OMP_NUM_THREADS says: on a shared
+    2-core machine, torch's threads fighting other processes make these small steps about 10x slower
+    (and the pinned rollouts are pinned on one thread)."""
     import torch
 
     before = torch.get_num_threads()
