@@ -25,7 +25,6 @@ from smart_marl.tokens.vocab_io import VocabularyFileError, load_motion_vocabula
 from smart_marl.train import TrainConfig, _rng_state, _set_rng_state, make_optimizer, make_scheduler
 
 
-
 class _RunsCode:
     """Unpickling this runs ``touch marker`` (what a crafted ``last.train_state.pt`` would do)."""
 
