@@ -30,16 +30,24 @@ def one_path(shared_data):
     return shared_data / ONE_SCENARIO
 
 
+def _only_scenario(path):
+    [scenario] = list(womd.read(path))
+    return scenario
+
+
+def _only_proto(path):
+    [payload] = list(tfrecord.iter_records(path))
+    return pb.Scenario.FromString(payload)
+
+
 @pytest.fixture(scope="module")
 def one_scenario(one_path):
-    [scenario] = list(womd.read(one_path))
-    return scenario
+    return _only_scenario(one_path)
 
 
 @pytest.fixture(scope="module")
 def one_proto(one_path):
-    [payload] = list(tfrecord.iter_records(one_path))
-    return pb.Scenario.FromString(payload)
+    return _only_proto(one_path)
 
 
 @pytest.fixture(scope="module")
@@ -52,14 +60,12 @@ def sample_path(sample_scenes, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def sample_record_scenario(sample_path):
-    [scenario] = list(womd.read(sample_path))
-    return scenario
+    return _only_scenario(sample_path)
 
 
 @pytest.fixture(scope="module")
 def sample_proto(sample_path):
-    [payload] = list(tfrecord.iter_records(sample_path))
-    return pb.Scenario.FromString(payload)
+    return _only_proto(sample_path)
 
 
 def _write_raw_records(path, payloads):
