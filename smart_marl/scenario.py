@@ -35,6 +35,10 @@ from .errors import ScenarioValidationError
 
 DT_S = 0.1
 """Seconds between two frames (10 Hz)."""
+CURRENT_FRAME = 10
+"""The current frame of a WOMD-style scene (91 frames at 10 Hz: 1 s of history up to it, 8 s to simulate
+after it). The one definition: the readers whose format does not store it default to it, the SUMO and
+synthetic scenes use it, and WOSAC scores from it (:data:`smart_marl.metrics.config.CURRENT_STEP`)."""
 
 
 class AgentType(IntEnum):

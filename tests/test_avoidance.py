@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from smart_marl import geometry
-from smart_marl.embedded import sample_scenarios
+from smart_marl.embedded import sample_files, sample_scenarios
 from smart_marl.model.checkpoint import load_embedded
 from smart_marl.readers import read_scenarios
 from smart_marl.rollout import RolloutState, sample_tokens
@@ -234,7 +234,7 @@ def test_whatif_passes_the_choice_to_both_of_its_runs_and_on_to_the_engine(monke
     assert started == [False]
 
 
-def test_eval_hands_the_flag_to_the_rollouts(monkeypatch, shared_data):
+def test_eval_hands_the_flag_to_the_rollouts(monkeypatch):
     from smart_marl.cli import main
 
     eval_module = importlib.import_module("smart_marl.commands.eval")
@@ -245,7 +245,7 @@ def test_eval_hands_the_flag_to_the_rollouts(monkeypatch, shared_data):
         raise StopIteration  # the choice is all this test needs
 
     monkeypatch.setattr(eval_module, "rollout", fake_rollout)
-    scene = str(shared_data / "womd_tfrecord" / "motion_data_one_scenario.tfrecord")
+    scene = str(sample_files()[0])  # the package's sample scenes
     for extra, want in (([], True), (["--no-collision-avoidance"], False)):
         with pytest.raises(StopIteration):
             main(["eval", "--scenes", scene, "--policy", "prior", "--rules", "2024"] + extra)

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..embedded import sample_scenarios
+from ..embedded import EMBEDDED, sample_scenarios
 from ..metrics import aggregate, logged_scene, score_rollouts
 from ..metrics.baselines import policy_rollouts
-from ..model.checkpoint import EMBEDDED, load_checkpoint
+from ..model.checkpoint import load_prior, read_meta, resolve_checkpoint_path
 from ..render import BevRenderer, EpisodeRecorder
 from ..rollout import rollout
 from .arguments import device, output_dir, rollouts, seed
@@ -67,11 +67,11 @@ def run(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    prior = load_checkpoint(args.checkpoint or EMBEDDED, map_location=args.device)
+    spec = args.checkpoint or EMBEDDED
+    prior = load_prior(spec, args.device)
     scenes = sample_scenarios()
-    meta = prior.meta
-    print(f"SMART prior: {args.checkpoint or 'embedded'} ({meta.get('model_config', {}).get('name', '?')}, "
-          f"step {prior.step}); {len(scenes)} sample scenes; {args.rollouts} rollouts of 8 s each")
+    print(f"SMART prior: {spec} ({prior.model.config.name}, step {read_meta(resolve_checkpoint_path(spec)).get('step', 0)}); "
+          f"{len(scenes)} sample scenes; {args.rollouts} rollouts of 8 s each")
 
     first = scenes[0]
     t1 = time.perf_counter()

@@ -43,7 +43,7 @@ from ..metrics.sharding import (RESULT_FILE, RunDir, RunDirError, Shard, file_sh
                                 metrics_record, parse_shard, run_shard, scene_slots, shard_from_torchrun)
 from ..metrics.submission import (ScenarioRolloutArrays, build_submission, check_against_scene, open_submission,
                                   submission_files, submission_shard_name, write_rollouts)
-from ..model.checkpoint import EMBEDDED, checkpoint_paths, load_checkpoint, resolve_checkpoint_path
+from ..model.checkpoint import EMBEDDED, checkpoint_paths, load_checkpoint, load_prior, resolve_checkpoint_path
 from ..readers import expand_paths, read_scenarios
 from ..readers.scene_cache import atomic_write
 from ..rollout import DEFAULT_TOP_K, rollout
@@ -235,7 +235,7 @@ def _rollouts_of(args, scenario, scene, submitted, models: dict):
         return arrays.to_rollouts(scenario.frame), args.submission
     if args.policy == "prior":
         if "prior" not in models:
-            models["prior"] = load_checkpoint(args.checkpoint or EMBEDDED, map_location=args.device)
+            models["prior"] = load_prior(args.checkpoint or EMBEDDED, args.device)
         rollouts = prior_rollouts(models["prior"], scenario, args.rollouts, args.seed, args.device,
                                   DEFAULT_TOP_K if args.top_k is None else args.top_k, args.temperature or 1.0,
                                   avoid_collisions=args.avoid_collisions)

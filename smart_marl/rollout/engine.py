@@ -261,8 +261,9 @@ class RolloutState:
     def start(cls, model, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 1, seed: int = 0, top_k: int = DEFAULT_TOP_K,
               temperature: float = 1.0, device="cpu", mode: str = "cached", motion_vocab: MotionVocabulary | None = None,
               interpolation: str = "spline", avoid_collisions: bool = True, lights: str = "current") -> "RolloutState":
-        """Tokenize the scenes' histories and run them through the model. ``model``: a SMART model,
-        a Checkpoint or a checkpoint path; ``motion_vocab`` overrides the vocabulary used to
+        """Tokenize the scenes' histories and run them through the model. ``model``: anything
+        :func:`~smart_marl.model.checkpoint.load_prior` takes (a SMART model, a Checkpoint, a Prior, a
+        checkpoint path or ``"embedded"``); ``motion_vocab`` overrides the vocabulary used to
         tokenize the history and place tokens (by default the checkpoint's, or the model's contours);
         ``interpolation`` draws the 10 Hz frames between token ends (module docstring);
         ``avoid_collisions`` keeps sampled tokens from ending in another agent's box

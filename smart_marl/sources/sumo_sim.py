@@ -36,14 +36,13 @@ from ..config_files import (check_fields, check_value, flag, integer, interval, 
                             probabilities, sequence)
 from ..errors import UsageError
 from ..geometry import frame_steps
-from ..scenario import DT_S, AgentType, SceneFrame, Scenario, TrafficLights, Tracks, wrap_angle
+from ..scenario import CURRENT_FRAME, DT_S, AgentType, SceneFrame, Scenario, TrafficLights, Tracks, wrap_angle
 from .sumo_net import (
     JUNCTION_TYPES, SIGNAL_OF_CHAR, SPEEDS_MPS, NetworkMap, NetworkSpec, build_network, lane_shape, network_map, quantize, random_network_spec,
     require_sumo, rotation_matrix, sumo_binary, turn_angle,
 )
 
 SCENE_FRAMES = 91
-CURRENT_FRAME = 10
 SOURCE = "sumo"
 
 
