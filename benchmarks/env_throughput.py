@@ -168,7 +168,7 @@ def main() -> int:
     scenes = load_scenes(args.scenes) if args.scenes else real_scenes()
     model, vocab = load_prior(args.prior, args.device)
     kw = dict(prior=model, motion_vocab=vocab, controlled=args.controlled, max_agents=args.max_agents, background=args.background,
-              horizon_steps=args.horizon, terminate_on=())
+              horizon_steps=args.horizon, terminate_on=(), device=args.device)
     common = dict(benchmark="env_throughput", background=args.background, prior=args.prior, controlled=args.controlled,
                   max_agents=args.max_agents, horizon_steps=args.horizon, torch_threads=args.threads, device=args.device,
                   cpu=platform.processor() or platform.machine(), scenes=len(scenes))
@@ -190,8 +190,7 @@ def main() -> int:
     sizes = [int(x) for x in args.num_scenes.split(",")]
     batched = {}
     for b in sizes:
-        env = smart_traffic_batched_v0.SmartTrafficBatchedEnv(scenarios=pool, num_scenes=b, scene_order="sequential",
-                                                              device=args.device, **kw)
+        env = smart_traffic_batched_v0.SmartTrafficBatchedEnv(scenarios=pool, num_scenes=b, scene_order="sequential", **kw)
         time_batched(env, max(args.horizon, len(pool) * args.horizon // b))  # warm-up: every scene's prior started once
         batched[b] = env
     # the repeats interleave the configurations, so that a load that comes and goes weighs on all of them alike

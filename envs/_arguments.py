@@ -36,7 +36,8 @@ import numbers
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from smart_marl.config_files import Rule, check_value, flag, integer, is_integer, number, one_of, optional, seed, shown
+from smart_marl.config_files import (Rule, check_value, device_problem, flag, integer, is_integer, number, one_of, optional, seed,
+                                     shown)
 from smart_marl.rollout import temperature_rule
 
 from ._dynamics import BACKGROUNDS
@@ -116,7 +117,7 @@ def _controlled(value: Any) -> Any:
 def check_env_arguments(*, background: Any, horizon_steps: Any, scene_order: Any, terminate_on: Any, render_mode: Any,
                         render_modes: Iterable[str], max_agents: Any, top_k: Any, temperature: Any, reference_top_k: Any,
                         render_size_px: Any, render_radius_m: Any, avoid_collisions: Any, reward: Any, observation: Any,
-                        controlled: Any) -> dict[str, Any]:
+                        controlled: Any, device: Any = "cpu") -> dict[str, Any]:
     """The constructor's arguments checked and normalised (see the module docstring), as a dict of
     the same names; :class:`~envs.errors.EnvConfigError` naming the first one that is refused."""
     return {
@@ -136,7 +137,19 @@ def check_env_arguments(*, background: Any, horizon_steps: Any, scene_order: Any
         "reward": _reward(reward),
         "observation": _observation(observation),
         "controlled": _controlled(controlled),
+        "device": _device(device),
     }
+
+
+def _device(value: Any):
+    """``value`` as a torch.device this machine runs on (``"cpu"``, ``"cuda"``, ``"cuda:1"``, a torch.device)."""
+    import torch
+
+    name = str(value) if isinstance(value, torch.device) else value
+    problem = device_problem(name)
+    if problem is not None:
+        raise (EnvConfigTypeError if not isinstance(name, str) else EnvConfigError)(f"device: {problem}")
+    return torch.device(name)
 
 
 def check_reset_arguments(seed_value: Any, options: Any, num_scenes: int) -> tuple[int | None, int | None]:

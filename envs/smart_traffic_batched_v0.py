@@ -71,14 +71,14 @@ class SmartTrafficBatchedEnv(EnvBase):
                                 terminate_on=terminate_on, render_mode=None, render_modes=(), max_agents=max_agents, top_k=top_k,
                                 temperature=temperature, reference_top_k=reference_top_k, render_size_px=400, render_radius_m=50.0,
                                 avoid_collisions=avoid_collisions, reward=reward, observation=observation or "vector",
-                                controlled=controlled)
+                                controlled=controlled, device=device)
         if a["max_agents"] is None:
             raise EnvConfigError("max_agents must be an integer >= 1: the batched env's agent group has that many slots per scene")
         for name, value, high in (("num_scenes", num_scenes, 1 << 16), ("prior_cache_size", prior_cache_size, 1 << 20),
                                   ("max_loaded_scenes", max_loaded_scenes, 1 << 20)):
             check_value(name, value, integer(1, high), EnvConfigError)
         check_value("seed", seed, seed_rule, EnvConfigError)
-        device = torch.device(device)
+        device = a["device"]
         super().__init__(device=device, batch_size=torch.Size([int(num_scenes)]), allow_done_after_reset=True)
         self.model, self.motion_vocab = load_env_prior(prior, motion_vocab, device)
         if background == "prior" and self.model is None:

@@ -106,16 +106,18 @@ class SmartTrafficEnv(ParallelEnv):
                  max_agents: int | None = None, terminate_on: Sequence[str] = TERMINATION_EVENTS,
                  scene_order: str = "sequential", motion_vocab: MotionVocabulary | None = None, top_k: int = DEFAULT_TOP_K,
                  temperature: float = 1.0, render_size_px: int = 400, render_radius_m: float = 50.0,
-                 reference_top_k: int | None = None, avoid_collisions: bool = True) -> None:
+                 reference_top_k: int | None = None, avoid_collisions: bool = True, device="cpu") -> None:
         a = check_env_arguments(background=background, horizon_steps=horizon_steps, scene_order=scene_order,
                                 terminate_on=terminate_on, render_mode=render_mode, render_modes=self.metadata["render_modes"],
                                 max_agents=max_agents, top_k=top_k, temperature=temperature, reference_top_k=reference_top_k,
                                 render_size_px=render_size_px, render_radius_m=render_radius_m,
-                                avoid_collisions=avoid_collisions, reward=reward, observation=observation, controlled=controlled)
+                                avoid_collisions=avoid_collisions, reward=reward, observation=observation, controlled=controlled,
+                                device=device)
         if render_mode == "human" and not _has_display():
             raise EnvConfigError("render_mode='human' opens a matplotlib window, but there is no display (DISPLAY and "
                                  "WAYLAND_DISPLAY are unset); use render_mode='rgb_array' (and EpisodeRecorder) instead")
-        self.model, self.motion_vocab = load_env_prior(prior, motion_vocab)
+        self.device = a["device"]
+        self.model, self.motion_vocab = load_env_prior(prior, motion_vocab, self.device)
         if background == "prior" and self.model is None:
             raise EnvConfigError("background='prior' needs a prior (prior=PATH, a model or 'embedded'); with prior=None use "
                                  "background='log' or 'constant_velocity'")
@@ -137,7 +139,7 @@ class SmartTrafficEnv(ParallelEnv):
         self.render_size_px, self.render_radius_m = a["render_size_px"], a["render_radius_m"]
         self.core = TrafficCore(self.model, self.motion_vocab, self.background, self.horizon_steps, self.reward_config,
                                 self.terminate_on, self.obs_config, self.top_k, self.temperature, self.avoid_collisions,
-                                dtype=torch.float64, prior_cache_size=self.PRIOR_STATE_CACHE, record=True)
+                                device=self.device, dtype=torch.float64, prior_cache_size=self.PRIOR_STATE_CACHE, record=True)
         self._statics: dict[int, SceneStatic] = {}
         self._obs_spaces: dict[str, spaces.Space] = {}
         self._act_spaces: dict[str, spaces.Space] = {}
@@ -366,6 +368,7 @@ class SmartTrafficEnv(ParallelEnv):
         live_names = list(self.agents)
         actions_t = torch.zeros(1, self.core.num_agents, dtype=torch.long)
         actions_t[0, : len(tokens)] = torch.from_numpy(tokens.clip(min=0))
+        actions_t = actions_t.to(self.device)
         self._last = r = self.core.step(actions_t)
         slots = self._slots(live_names)
         rewards = {a: float(r.reward[0, i]) for a, i in zip(live_names, slots)}
@@ -460,7 +463,8 @@ def parallel_env(scenarios="embedded", prior="embedded", controlled="sdc", backg
     ``scene_order`` ("sequential" or "random" with the reset seed), ``motion_vocab`` (needed with
     ``prior=None``), ``top_k``, ``temperature``, ``reference_top_k``, ``avoid_collisions`` (the prior's
     background keeps its sampled tokens out of other agents' boxes, :mod:`smart_marl.rollout.avoidance`;
-    default True), ``render_size_px``, ``render_radius_m``."""
+    default True), ``render_size_px``, ``render_radius_m``, ``device`` (``"cuda"``: the prior and the state on the
+    GPU; what a step returns is numpy as always)."""
     return SmartTrafficEnv(scenarios=scenarios, prior=prior, controlled=controlled, background=background,
                            horizon_steps=horizon_steps, reward=reward, observation=observation, render_mode=render_mode,
                            max_agents=max_agents, **kwargs)

@@ -23,7 +23,6 @@ submission in files (:mod:`smart_marl.metrics.sharding`; docs/evaluation_at_scal
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -43,7 +42,7 @@ from ..metrics.sharding import (RESULT_FILE, RunDir, RunDirError, Shard, file_sh
                                 metrics_record, parse_shard, run_shard, scene_slots, shard_from_torchrun)
 from ..metrics.submission import (ScenarioRolloutArrays, build_submission, check_against_scene, open_submission,
                                   submission_files, submission_shard_name, write_rollouts)
-from ..model.checkpoint import EMBEDDED, checkpoint_paths, load_checkpoint, load_prior, resolve_checkpoint_path
+from ..model.checkpoint import EMBEDDED, checkpoint_paths, load_prior, resolve_checkpoint_path
 from ..readers import expand_paths, read_scenarios
 from ..readers.scene_cache import atomic_write
 from ..rollout import DEFAULT_TOP_K, rollout
