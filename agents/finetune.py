@@ -84,7 +84,7 @@ from .kl_ppo import PriorKLPPOLoss
 from .prior_policy import PriorPolicy, SampledPolicy, kl_to_prior
 from .scripted import LogFollowingPolicy
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "finetune"
+CONFIG_DIR = Path(__file__).resolve().parent / "configs" / "finetune"  # inside the package: a wheel ships them
 GROUP = "agents"
 OBS_KEY = (GROUP, "observation", "observation")
 PRIOR_KEY = (GROUP, "observation", "prior_logits")

@@ -1,5 +1,6 @@
 """What-if scenarios (agents.whatif) on the real WOMD scene 637f20cafde22ff8: each kind's effect,
-the YAML scripts in examples/whatif, and the ``smart-marl whatif`` command.
+the YAML scripts the package ships (agents/whatif/examples, written for the embedded sample scene
+sumo-7-000000-03), and the ``smart-marl whatif`` command.
 
 The mechanics use a small randomly initialised SMART model whose motion vocabulary is built from
 the real scenes (a trained prior is not needed for them); the behavioural claim (vehicles behind a
@@ -11,7 +12,6 @@ Scene facts used below (current frame 10): a lane of vehicles driving towards -x
 from __future__ import annotations
 
 import csv
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,7 +19,7 @@ import torch
 
 from agents import scripted
 from agents.whatif import (
-    Brake, CutIn, Follow, Insert, Jaywalker, Prepared, Remove, StalledVehicle, Stop, TrafficLightOverride, WhatIf,
+    EXAMPLES_DIR, Brake, CutIn, Follow, Insert, Jaywalker, Prepared, Remove, StalledVehicle, Stop, TrafficLightOverride, WhatIf,
     WhatIfError, load_script, override_road_lights, prepare, run_whatif, simulate,
 )
 from smart_marl.rollout import RolloutState
@@ -28,7 +28,8 @@ from smart_marl.tokens import road_pieces
 
 VOCAB = 32  # tokens per type of conftest's womd_vocab
 ONE_SCENE = "womd_tfrecord/motion_data_one_scenario.tfrecord"
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "whatif"
+EXAMPLES = EXAMPLES_DIR
+EXAMPLE_SCENE = "sumo-7-000000-03"  # the embedded sample scene the shipped examples are written for
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
@@ -215,8 +216,17 @@ def test_table_reports_the_braking_cars_speed_drop(model, vocab, scene):
 
 
 # ------------------------------------------------------------------------------- scripts
+@pytest.fixture(scope="module")
+def example_scene_and_vocab():
+    from smart_marl.embedded import sample_scenarios
+    from smart_marl.model.checkpoint import load_prior
+
+    return next(s for s in sample_scenarios() if s.scenario_id == EXAMPLE_SCENE), load_prior("embedded")[1]
+
+
 @pytest.mark.parametrize("name", sorted(p.stem for p in EXAMPLES.glob("*.yaml")))
-def test_example_scripts_parse_and_apply_to_the_real_scene(vocab, scene, name):
+def test_example_scripts_parse_and_apply_to_the_embedded_scene(example_scene_and_vocab, name):
+    scene, vocab = example_scene_and_vocab
     script = load_script(EXAMPLES / f"{name}.yaml")
     prepared = prepare(scene, script, vocab)
     assert script.name and script.description
@@ -259,7 +269,9 @@ def test_whatif_command_writes_the_table_and_the_animation(model, vocab, scenes,
     local = np.concatenate([road_pieces(s.road_map, s.traffic_lights).local for s in scenes])
     ckpt = save_checkpoint(tmp_path / "tiny", model, vocab, build_road_vocabulary(local, 8, seed=0, progress=False))
     out = tmp_path / "out"
-    args = ["whatif", str(shared_data / ONE_SCENE), "--script", str(EXAMPLES / "brake_hard.yaml"), "--out", str(out),
+    script = tmp_path / "brake_hard.yaml"  # 1609 leads its lane of the WOMD scene
+    script.write_text("name: lead car brakes hard\nedits:\n  - {kind: brake, agent: 1609, at_s: 1.0, decel_mps2: 8.0}\n")
+    args = ["whatif", str(shared_data / ONE_SCENE), "--script", str(script), "--out", str(out),
             "--checkpoint", str(ckpt), "--rollouts", "2", "--steps", "4", "--seed", "1", "--no-realism"]
     assert main(args) == 0
     printed = capsys.readouterr().out

@@ -24,7 +24,7 @@ def register(subparsers) -> None:
         "finetune", help="fine-tune controlled agents with PPO + KL to the SMART prior (TorchRL); --evaluate compares with the prior",
         description="Fine-tune the agents a policy controls in the smart_traffic_v0 env with multi-agent PPO (MAPPO or IPPO, "
                     "TorchRL) plus beta * KL(policy || SMART prior). The config is a JSON/TOML file of FinetuneConfig fields or a "
-                    "named config (configs/finetune/: tiny, default); key=value overrides follow, e.g. scenes=DIR prior=CKPT "
+                    "named config (agents/configs/finetune/: tiny, default); key=value overrides follow, e.g. scenes=DIR prior=CKPT "
                     "beta=0.1 iterations=50 out_dir=runs/ft. Writes finetune.csv, TensorBoard logs, policy checkpoints and, "
                     "with eval_episodes > 0, evaluation.json (held-out scenes). With --evaluate CHECKPOINT, runs the expert "
                     "(log-following), the prior top-k, the prior's full softmax and that policy on held-out scenes (eval_scenes; "
