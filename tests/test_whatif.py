@@ -317,6 +317,6 @@ def test_the_braking_car_is_rarely_hit_from_behind(hard_brake):
     """Sampled plainly, the issue-13 priors' followers slow down too little for an 8 m/s2 stop and hit
     the braking car in 5-7 of 8 rollouts (the stage-1 prior: 0 of 8, because it drove everyone at half
     speed). Collision-aware sampling (smart_marl.rollout.avoidance, the default) brings it to 0 of 8
-    with the stage-5 prior; see the README's limits."""
+    with the stage-5 prior; see docs/model_card.md, Limits."""
     rows = {(r["quantity"], r["agent"]): r for r in hard_brake.table}
     assert rows[("collided_rate", "1609 (brake)")]["whatif"] <= 0.25

@@ -332,7 +332,7 @@ def resolve_checkpoint_path(path: str | os.PathLike) -> str | os.PathLike:
 
 
 def load_embedded(map_location: str | torch.device = "cpu", **config_overrides: Any) -> Checkpoint:
-    """The package's pretrained SMART prior (see the model card in the README)."""
+    """The package's pretrained SMART prior (its model card: docs/model_card.md)."""
     return load_checkpoint(EMBEDDED, map_location=map_location, **config_overrides)
 
 
