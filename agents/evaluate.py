@@ -2,11 +2,12 @@
 controlled agents of the same held-out scenes with the same seeds for the full horizon, nobody
 removed on an event, and is scored on what happened and on how human-like it drove.
 
-What comes in: a PettingZoo env ``envs.smart_traffic_v0`` (built with ``terminate_on=()``, the
-background and reference of the run), named policies (:class:`agents.prior_policy.SampledPolicy`:
-the expert :class:`agents.scripted.LogFollowingPolicy`, :class:`~agents.prior_policy.PriorPolicy`
-top-k and full softmax, a fine-tuned policy), scene indices and seeds. What goes out: one row per
-policy (:func:`evaluate_policies`):
+What comes in: the batched environment's core (:class:`envs._core.TrafficCore`, built with
+``terminate_on=()``, ``record=True``, the background of the run), the held-out scenes with their
+controlled agents, named policies that act on every scene at once (:class:`agents.policy.TensorPolicy`:
+the expert :class:`~agents.policy.ExpertTensorPolicy`, the prior at the reference's top-k and its
+full softmax :class:`~agents.policy.PriorTensorPolicy`, a fine-tuned actor), seeds, and how many
+episodes run side by side. What goes out: one row per policy (:func:`evaluate_policies`):
 
 * ``goal_rate``, ``collision_rate``, ``offroad_rate``: fractions of agent-episodes in which the
   event happened at some step; ``progress_m``: metres gained along the logged route per
@@ -22,8 +23,9 @@ policy (:func:`evaluate_policies`):
   one rollout of the scene (``meta_metric``, ``kinematic``, ``interactive``, ``map_based``,
   ``min_ade``), averaged over the scenes that fit the metrics (91 frames, 16 steps of horizon).
 
-Fairness: scene ``i`` with seed ``s`` seeds the env (the background prior's sampler) and the
-policy's sampler (:func:`agents.prior_policy.run_episode`), for every policy, scene and seed.
+Fairness: every policy runs the same episodes (scene, seed) in the same waves of ``num_envs``
+scenes, each wave's background sampler and policy sampler seeded alike, so the policies differ only
+by what they do.
 """
 
 from __future__ import annotations
@@ -32,42 +34,24 @@ import math
 from typing import Mapping, Sequence
 
 import numpy as np
+import torch
 
+from envs._core import CoreScene, TrafficCore
 from smart_marl.geometry import boxes_overlap
 from smart_marl.metrics import Rollouts, SceneNotScorableError, aggregate, logged_scene, score_rollouts
 from smart_marl.metrics.config import NUM_SIMULATION_STEPS
 from smart_marl.metrics.inputs import simulated_agent_indices
+from smart_marl.rollout import reference_name
 from smart_marl.tokens import FRAMES_PER_TOKEN
 
-from .prior_policy import SampledPolicy, run_episode
+from .policy import TensorPolicy
+from .prior_policy import kl_to_prior
 
 RATES = ("goal_rate", "collision_rate", "offroad_rate")
 COLLISION_KINDS = ("rear_ended", "front", "side")
 """Where the other agent was, one frame before a controlled agent's first collision, seen from that
 agent: behind it (more than 135 degrees off its heading), ahead (within 45 degrees) or to a side."""
 REALISM = ("meta_metric", "kinematic", "interactive", "map_based", "min_ade")
-
-
-def scene_logged(env, scene_index: int):
-    """The metrics' logged scene of ``scene_index`` with the env's controlled agents as the
-    evaluated ones, or None when the scene or the episodes do not fit the metrics (they need 91
-    frames, the full 8 s horizon and nobody removed: ``terminate_on=()``)."""
-    if env.horizon_steps * FRAMES_PER_TOKEN != NUM_SIMULATION_STEPS or env.terminate_on:
-        return None
-    env.reset(seed=0, options={"scene_index": int(scene_index)})
-    try:
-        return logged_scene(env.static.scenario, evaluated_tracks=env.ctrl_tracks)
-    except SceneNotScorableError:
-        return None
-
-
-def episode_rollout(env, sim_tracks: np.ndarray) -> np.ndarray:
-    """[A, 80, 4] x, y, z, heading of the simulated tracks in the episode just run (z held at the
-    logged z of the current frame)."""
-    poses, _ = env.trajectories()  # [N, 80, 3]
-    p = poses[sim_tracks]
-    z = np.broadcast_to(env.static.z[sim_tracks][:, None, None], (*p.shape[:2], 1))
-    return np.concatenate([p[..., :2], z, p[..., 2:]], -1)
 
 
 def first_collision_kinds(poses: np.ndarray, present: np.ndarray, box_size: np.ndarray, ctrl: Sequence[int]) -> list:
@@ -98,58 +82,100 @@ def first_collision_kinds(poses: np.ndarray, present: np.ndarray, box_size: np.n
     return kinds
 
 
-def evaluate_policies(env, policies: Mapping[str, SampledPolicy], scene_indices: Sequence[int], seeds: Sequence[int],
-                      rules: str = "2024") -> dict:
-    """Every policy on every (scene, seed) of ``env`` (see the module docstring). Returns
-    ``{"scenes": [ids], "seeds": [...], "reference": env.reference, "rules": rules,
-    "realism_scenes": [ids scored], "rows": {name: metrics}}``."""
+def scene_logged(core: TrafficCore, scene: CoreScene):
+    """The metrics' logged scene with the scene's controlled agents as the evaluated ones, or None
+    when the scene or the episodes do not fit the metrics (they need 91 frames, the full 8 s horizon
+    and nobody removed: ``terminate_on=()``)."""
+    if core.horizon_steps * FRAMES_PER_TOKEN != NUM_SIMULATION_STEPS or core.terminate_on:
+        return None
+    try:
+        return logged_scene(scene.static.scenario, evaluated_tracks=scene.controlled)
+    except SceneNotScorableError:
+        return None
+
+
+def episode_rollout(core: TrafficCore, row: int, sim_tracks: np.ndarray) -> np.ndarray:
+    """[A, 80, 4] x, y, z, heading of the simulated tracks in row ``row``'s episode (z held at the
+    logged z of the current frame)."""
+    poses, _ = core.trajectories(row)  # [N, 80, 3]
+    p = poses[sim_tracks]
+    z = np.broadcast_to(core.scenes.statics[row].z[sim_tracks][:, None, None], (*p.shape[:2], 1))
+    return np.concatenate([p[..., :2], z, p[..., 2:]], -1)
+
+
+_SUMS = ("goal", "collision", "offroad", "progress_m", "return", "kl_to_reference", "kl_to_full_prior", "steps", "n", *COLLISION_KINDS)
+
+
+def _run_wave(core: TrafficCore, scenes: Sequence[CoreScene], policy: TensorPolicy, seed: int, vocab_size: int, num_agents: int,
+              temperature: float, reference_top_k: int | None, acc: dict) -> None:
+    """One wave of episodes (one per row, the full horizon) of ``policy``; per agent-episode sums into ``acc``."""
+    core.reset(list(scenes), seed, num_agents=num_agents)
+    policy.reset(seed)
+    b, c = core.ctrl_track.shape
+    start = core.progress_m.clone()
+    acted = torch.zeros(b, c, dtype=torch.bool, device=core.device)
+    sums = {k: torch.zeros(b, c, dtype=torch.float64, device=core.device) for k in ("return", "kl_to_reference", "kl_to_full_prior",
+                                                                                   "steps", "goal", "collision", "offroad")}
+    while bool(core.live.any()):
+        live = core.live
+        obs, prior = core.observations(), core.prior_logits()[..., :vocab_size].float()
+        logp = policy.log_probs(core, obs, prior)
+        for key, k in (("kl_to_reference", reference_top_k), ("kl_to_full_prior", None)):
+            sums[key] += torch.where(live, kl_to_prior(logp, prior, temperature, k).clamp_min(0.0).double(), 0.0)
+        r = core.step(policy.act(logp))
+        acted |= live
+        sums["return"] += torch.where(live, r.reward, 0.0)
+        sums["steps"] += live
+        for key, event in (("goal", r.goal_reached), ("collision", r.collision), ("offroad", r.offroad)):
+            sums[key] = torch.maximum(sums[key], event.double())
+    sums["progress_m"] = (core.progress_m - start).double()
+    for key, value in sums.items():
+        acc[key] += float(torch.where(acted, value, 0.0).sum())
+    acc["n"] += int(acted.sum())
+    for row, scene in enumerate(scenes):
+        poses, present = core.trajectories(row)
+        for kind in first_collision_kinds(poses, present, scene.static.box_size, scene.controlled):
+            if kind is not None:
+                acc[kind] += 1
+
+
+def evaluate_policies(core: TrafficCore, scenes: Sequence[CoreScene], policies: Mapping[str, TensorPolicy], seeds: Sequence[int],
+                      num_envs: int, vocab_size: int, num_agents: int, rules: str = "2024", temperature: float = 1.0,
+                      reference_top_k: int | None = None) -> dict:
+    """Every policy on every (scene, seed) (see the module docstring), ``num_envs`` episodes at a time
+    on ``core`` (built with ``record=True`` and ``terminate_on=()``; its prior also drives the
+    background), ``num_agents`` controlled slots per scene (the policies' group size), tokens of the
+    group's ``vocab_size``. The episodes are cut into waves in the same order for every policy, and wave ``w``
+    seeds the background's sampler and the policy's with ``seeds[0] + w``. Returns ``{"scenes": [ids],
+    "seeds": [...], "reference": ..., "rules": rules, "realism_scenes": [ids scored], "rows": {name: metrics}}``."""
     seeds = [int(s) for s in seeds]
-    acc = {name: {k: 0.0 for k in ("goal", "collision", "offroad", "progress_m", "return", "kl_to_reference",
-                                    "kl_to_full_prior", "steps", "n", *COLLISION_KINDS)} for name in policies}
-    scored = {name: [] for name in policies}
-    scene_ids, realism_ids = [], []
-    for i in scene_indices:
-        logged = scene_logged(env, int(i))
-        sc = env.scenes[int(i)]
-        scene_ids.append(sc.scenario_id)
-        sim = simulated_agent_indices(sc)
-        if logged is not None:
-            realism_ids.append(sc.scenario_id)
-        for name, policy in policies.items():
-            a = acc[name]
-            rollouts = []
-            for s in seeds:
-                ep = run_episode(env, policy, seed=s, scene_index=int(i))
-                for agent in ep["return"]:
-                    for key in ("goal", "collision", "offroad", "progress_m", "return", "kl_to_reference", "kl_to_full_prior",
-                                "steps"):
-                        a[key] += ep[key][agent]
-                    a["n"] += 1
-                poses, present = env.trajectories()
-                for kind in first_collision_kinds(poses, present, env.static.box_size, env.ctrl_tracks):
-                    if kind is not None:
-                        a[kind] += 1
-                if logged is not None:
-                    rollouts.append(episode_rollout(env, sim))
-            if logged is not None:
-                traj = np.stack(rollouts)  # [R, A, 80, 4]
-                scored[name].append(score_rollouts(logged, Rollouts.from_array(sc.tracks.ids[sim], traj), rules))
+    episodes = [(i, s) for i in range(len(scenes)) for s in seeds]
+    waves = [episodes[lo:lo + num_envs] for lo in range(0, len(episodes), num_envs)]
+    logged = [scene_logged(core, sc) for sc in scenes]
+    sim = [simulated_agent_indices(sc.static.scenario) for sc in scenes]
     rows = {}
-    for name, a in acc.items():
-        n, steps = max(a["n"], 1), max(a["steps"], 1)
-        row = {"goal_rate": a["goal"] / n, "collision_rate": a["collision"] / n, "offroad_rate": a["offroad"] / n,
-               "progress_m": a["progress_m"] / n, "return": a["return"] / n, "kl_to_reference": a["kl_to_reference"] / steps,
-               "kl_to_full_prior": a["kl_to_full_prior"] / steps, "agent_episodes": int(a["n"]), "steps": int(a["steps"]),
-               "rear_ended_rate": a["rear_ended"] / n, "front_collision_rate": a["front"] / n,
-               "side_collision_rate": a["side"] / n}
-        if scored[name]:
-            agg = aggregate(scored[name], rules)
-            row.update({k: agg[k] for k in REALISM})
-        else:
-            row.update({k: math.nan for k in REALISM})
+    for name, policy in policies.items():
+        acc = {k: 0.0 for k in _SUMS}
+        rollouts: dict[int, list] = {i: [] for i in range(len(scenes))}
+        for w, wave in enumerate(waves):
+            wave_scenes = [scenes[i] for i, _ in wave]
+            _run_wave(core, wave_scenes, policy, seeds[0] + w, vocab_size, num_agents, temperature, reference_top_k, acc)
+            for row, (i, _) in enumerate(wave):
+                if logged[i] is not None:
+                    rollouts[i].append(episode_rollout(core, row, sim[i]))
+        scored = [score_rollouts(logged[i], Rollouts.from_array(scenes[i].static.scenario.tracks.ids[sim[i]], np.stack(r)), rules)
+                  for i, r in rollouts.items() if r]
+        n, steps = max(acc["n"], 1), max(acc["steps"], 1)
+        row = {"goal_rate": acc["goal"] / n, "collision_rate": acc["collision"] / n, "offroad_rate": acc["offroad"] / n,
+               "progress_m": acc["progress_m"] / n, "return": acc["return"] / n, "kl_to_reference": acc["kl_to_reference"] / steps,
+               "kl_to_full_prior": acc["kl_to_full_prior"] / steps, "agent_episodes": int(acc["n"]), "steps": int(acc["steps"]),
+               "rear_ended_rate": acc["rear_ended"] / n, "front_collision_rate": acc["front"] / n, "side_collision_rate": acc["side"] / n}
+        agg = aggregate(scored, rules) if scored else {}
+        row.update({k: agg.get(k, math.nan) for k in REALISM})
         rows[name] = row
-    return {"scenes": scene_ids, "seeds": seeds, "reference": env.reference, "rules": rules, "realism_scenes": realism_ids,
-            "rows": rows}
+    return {"scenes": [sc.static.scenario.scenario_id for sc in scenes], "seeds": seeds,
+            "reference": reference_name(reference_top_k, temperature), "rules": rules,
+            "realism_scenes": [sc.static.scenario.scenario_id for sc, lg in zip(scenes, logged) if lg is not None], "rows": rows}
 
 
 def format_table(result: dict) -> str:
@@ -169,4 +195,4 @@ def format_table(result: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["COLLISION_KINDS", "RATES", "REALISM", "evaluate_policies", "first_collision_kinds", "format_table", "scene_logged"]
+__all__ = ["COLLISION_KINDS", "RATES", "REALISM", "episode_rollout", "evaluate_policies", "first_collision_kinds", "format_table", "scene_logged"]

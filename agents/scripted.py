@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from smart_marl.errors import SmartMarlError
-from smart_marl.scenario import DT_S, wrap_angle
+from smart_marl.scenario import DT_S, AgentType, wrap_angle
 from smart_marl.tokens import FRAMES_PER_TOKEN, TOKEN_S
 from smart_marl.tokens.motion import match_token_path, path_heading_weight
 
@@ -215,12 +215,40 @@ class ScriptedPolicy:
         return actions
 
 
+def log_following_tokens(core) -> torch.Tensor:
+    """[B, C] the expert's token of every controlled slot of a :class:`envs._core.TrafficCore`: the token
+    of its type whose placed poses come closest to its logged path over the next two token steps
+    (:func:`~smart_marl.tokens.motion.match_token_path`, from the pose it has reached, so quantisation
+    errors are corrected at the next step). Frames the log misses hold the last logged pose before
+    them (the agent stops where its log ends). Padded and done slots get token 0."""
+    sb, dev = core.scenes, core.device
+    b, c = core.ctrl_track.shape
+    track = core.ctrl_track.clamp(min=0)
+    f = core.frame[:, None] + torch.arange(1, 2 * FRAMES_PER_TOKEN + 1, device=dev)  # [B, 10]
+    fi = torch.minimum(f, sb.num_frames[:, None] - 1)[:, None].expand(b, c, -1)  # [B, C, 10]
+    rows = torch.arange(b, device=dev)[:, None, None]
+    logged = sb.log_pose[rows, track[..., None], fi].to(torch.float64)  # [B, C, 10, 3]
+    valid = sb.log_valid[rows, track[..., None], fi] & (f < sb.num_frames[:, None])[:, None]
+    start = core.pose.gather(1, track[..., None].expand(-1, -1, 3)).to(torch.float64)  # [B, C, 3]
+    last, seg = start, torch.empty_like(logged)
+    for j in range(logged.shape[2]):  # frames the log misses hold the last pose
+        last = torch.where(valid[..., j, None], logged[..., j, :], last)
+        seg[..., j, :] = last
+    types = sb.types.gather(1, track)
+    live = core.live
+    out = torch.zeros(b, c, dtype=torch.long, device=dev)
+    for t in torch.unique(types[live]).tolist():
+        sel = live & (types == t)
+        vocab = core.motion_vocab[AgentType(t)]
+        out[sel] = match_token_path(torch.from_numpy(vocab.poses.astype(np.float64)).to(dev), vocab.size, start[sel], seg[sel],
+                                    path_heading_weight(t))
+    return out
+
+
 class LogFollowingPolicy(SampledPolicy):
-    """The expert: each controlled agent takes, every step, the token of its type whose placed
-    poses come closest to its logged path over the next two token steps
-    (:func:`nearest_tokens`, from the pose the env reports, so quantisation errors are corrected
-    at the next step). Frames the log misses hold the last logged pose before them (the agent
-    stops where its log ends). Deterministic: ``log_probs`` is one-hot on the chosen token."""
+    """The expert on the PettingZoo env: each controlled agent takes, every step, the token of
+    :func:`log_following_tokens` (its logged path over the next two token steps). Deterministic:
+    ``log_probs`` is one-hot on the chosen token."""
 
     name = "expert (log)"
     top_k = 1
@@ -232,24 +260,8 @@ class LogFollowingPolicy(SampledPolicy):
     def tokens(self, agents: list[str]) -> np.ndarray:
         """[A] the nearest token to each agent's logged path."""
         env = self.env
-        tr = env.static.scenario.tracks
-        frames = env.frame + np.arange(1, 2 * FRAMES_PER_TOKEN + 1)
-        out = np.zeros(len(agents), np.int64)
-        for i, name in enumerate(agents):
-            track = env.static.name_to_track[name]
-            atype = int(env.static.types[track])
-            fi = np.minimum(frames, tr.num_frames - 1)
-            valid = tr.valid[track, fi] & (frames < tr.num_frames)
-            seg = np.concatenate([tr.position[track, fi, :2], tr.heading[track, fi, None]], -1).astype(np.float64)
-            last = env.pose[track].copy()
-            for j in range(len(frames)):  # frames the log misses hold the last pose
-                last = seg[j] if valid[j] else last
-                seg[j] = last
-            vocab = env.motion_vocab[atype]
-            out[i] = int(match_token_path(torch.from_numpy(vocab.poses.astype(np.float64)), vocab.size,
-                                          torch.from_numpy(env.pose[track][None]), torch.from_numpy(seg[None]),
-                                          path_heading_weight(atype))[0])
-        return out
+        tokens = log_following_tokens(env.core)[0].cpu().numpy()
+        return np.array([tokens[env.possible_agents.index(a)] for a in agents], np.int64)
 
     def log_probs(self, agents: list[str], observations: Mapping, infos: Mapping) -> torch.Tensor:
         v = max(self.env.action_space(a).n for a in agents)

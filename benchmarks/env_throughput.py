@@ -1,152 +1,213 @@
-"""Benchmark of the environment stage: how fast ``envs.smart_traffic_v0`` steps on a real scene.
+"""Benchmark of the environment stage: how fast the environment steps, the PettingZoo env
+(``envs.smart_traffic_v0``, one scene) and the batched TorchRL env (``envs.smart_traffic_batched_v0``,
+many scenes in one SMART forward) side by side in one run, on the same scenes and prior.
 
-Prints one JSON line per (background, prior, controlled agents, raw or TorchRL-wrapped) with
-``env_steps_per_s`` (token steps of 0.5 s), ``agent_steps_per_s`` (every agent present in the
-scene advanced by one token: the scene's simulated agents, not only the controlled ones) and
-``controlled_agent_steps_per_s``. Resets are timed apart (``raw_reset_ms``, the resets after the
-first: the env keeps each scene's freshly started prior state). Actions are uniform random tokens; ``terminate_on=()`` so that every episode runs its
-full horizon. The TorchRL rate wraps the same env in ``PettingZooWrapper(use_mask=True,
-done_on_any=False)`` and steps it with random actions from its spec.
+Prints one JSON line per configuration:
 
-The default scene is WOMD 637f20cafde22ff8 (``motion_data_one_scenario.tfrecord``, 83 tracks, 50
-of them valid at the current frame). The prior is ``--checkpoint`` when given, else a randomly
-initialised ``--model`` (default smart-1m) whose vocabularies (``--vocab`` tokens per type) are
-built from the shared WOMD scenes: a trained prior costs the same per step.
+* ``env`` ``"pettingzoo"`` or ``"batched"``, ``num_scenes`` (1 for the PettingZoo env), ``background``;
+* ``agent_steps_per_s``: every agent present in a scene advanced by one 0.5 s token step (the
+  scene's simulated agents, not only the controlled ones), over the time spent in ``step``;
+  ``controlled_agent_steps_per_s``; ``env_steps_per_s`` (scene-steps);
+* ``outside_forward_share``: the share of the step's time spent outside the prior's forward (the
+  model's incremental step and heads; sampling, collision-aware token exclusion, dynamics, events,
+  rewards, observations and TorchRL's bookkeeping count as outside);
+* ``reset_ms_per_scene``: time of the resets / refills per scene started (after a warm-up pass
+  that starts every scene's prior once: both envs keep freshly started prior states);
+* ``rss_mb``: the process's resident memory (every configuration's env is alive: the last lines carry all);
+* ``speedup_vs_pettingzoo``: agent-steps/s against the PettingZoo line of the same run (medians), and
+  ``speedup_per_repeat``: the ratio within each repeat (the repeats interleave every configuration).
 
-    .venv/bin/python benchmarks/env_throughput.py [--steps 48] [--threads 1]
+Actions: each controlled agent takes its prior's most likely token; ``terminate_on=()`` so that an
+episode runs its full horizon. Scenes: ``--scenes`` (default: the shared real scenes with a moving
+vehicle to control, ../shared/data), cycled to fill the batch. Prior: ``--prior`` (default the
+embedded one). Medians of ``--repeats`` timed runs.
 
-Measured on the project's 2-core CPU machine (shared with other jobs, so +-40 %), one torch
-thread, WOMD 637f20cafde22ff8, horizon 16, raw env (TorchRL-wrapped in brackets), agent-steps/s:
-log background without a prior 14,000-23,000 (8,000-15,000) with 1 controlled agent and
-5,800-8,700 (4,000-5,900) with 8; constant velocity without a prior 17,000 (10,700) and 7,400-8,200
-(5,000-5,700); any background with a random smart-1m prior 1,400-2,000 (1,100-1,750), i.e. 30-40
-env steps/s: the prior's incremental forward dominates. Reset with the prior: ~30 ms.
+    .venv/bin/python benchmarks/env_throughput.py [--num-scenes 1,8,32,128] [--steps 32] [--threads 2] [--device cpu]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import statistics
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-DATA = ROOT.parent / "shared" / "data" / "womd_tfrecord"
+SHARED = ROOT.parent / "shared" / "data"
 
 
-def build_prior(args, scenes):
-    from smart_marl.model.smart import SMART, get_config
-    from smart_marl.tokens import build_motion_vocabulary, collect_snippets
+def real_scenes():
+    """The shared real scenes (every format) that the metrics' horizon fits: 91 frames."""
+    from smart_marl.readers import read_scenarios
 
-    if args.checkpoint:
-        from smart_marl.model.checkpoint import load_checkpoint
+    out = []
+    for sub in ("womd_tfrecord", "gpudrive_json", "nocturne_json", "scenarionet/waymo", "smart_pkl"):
+        folder = SHARED / sub
+        if folder.is_dir():
+            for path in sorted(folder.iterdir()):
+                if path.suffix in (".tfrecord", ".json", ".pkl") and "sim_agents" not in path.name:
+                    try:
+                        out.extend(s for s in read_scenarios(path) if s.tracks.num_frames == 91)
+                    except Exception as exc:  # noqa: BLE001 - a benchmark skips what it cannot read, and says so
+                        print(json.dumps({"skipped": str(path), "why": str(exc)[:120]}), file=sys.stderr)
+    return out
 
-        ck = load_checkpoint(args.checkpoint)
-        return ck.model.eval(), ck.motion_vocab, Path(args.checkpoint).name
-    snippets, _ = collect_snippets(scenes, stride=1)
-    vocab = build_motion_vocabulary(snippets, args.vocab, seed=0, progress=False)
-    cfg = get_config(args.model, motion_vocab_sizes=(args.vocab,) * 3, dropout=0.0)
-    torch.manual_seed(0)
-    model = SMART(cfg, motion_contours=[vocab[t].contour for t in range(3)]).eval()
-    return model, vocab, f"{args.model} (random init, vocab {args.vocab})"
+
+def rss_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
-def time_raw(env, steps: int, seed: int) -> tuple[float, int, int, int]:
-    """(seconds stepping, env steps, agent steps, controlled agent steps) over ``steps`` env steps;
-    ``env.reset_times_s`` gets the resets after the first (which starts the scene's prior)."""
-    rng = np.random.default_rng(seed)
-    env.reset(seed=seed)
-    env.reset_times_s = []
-    elapsed, done_steps, agent_steps, ctrl_steps = 0.0, 0, 0, 0
+def present_agents(core) -> int:
+    return int(core.present.sum())
+
+
+def time_pettingzoo(env, scene_indices, steps: int) -> dict:
+    """Step time over ``steps`` env steps cycling through the scenes (resets timed apart)."""
+    import numpy as np
+
+    step_s = reset_s = forward_s = 0.0
+    agent_steps = ctrl_steps = done_steps = resets = 0
+    k = 0
     while done_steps < steps:
-        if not env.agents:
-            t0 = time.perf_counter()
-            env.reset()
-            env.reset_times_s.append(time.perf_counter() - t0)
-        actions = {a: int(rng.integers(env.action_space(a).n)) for a in env.agents}
-        moving = int(env.present.sum())
         t0 = time.perf_counter()
-        env.step(actions)
-        elapsed += time.perf_counter() - t0
-        done_steps += 1
-        agent_steps += moving
-        ctrl_steps += len(actions)
-    return elapsed, done_steps, agent_steps, ctrl_steps
+        obs, infos = env.reset(seed=k, options={"scene_index": scene_indices[k % len(scene_indices)]})
+        reset_s += time.perf_counter() - t0
+        resets += 1
+        k += 1
+        while env.agents and done_steps < steps:
+            actions = {a: int(np.argmax(infos[a]["prior_logits"])) for a in env.agents}
+            moving = present_agents(env.core)
+            f0 = env.core.timing["forward_s"]
+            t0 = time.perf_counter()
+            obs, _, _, _, infos = env.step(actions)
+            step_s += time.perf_counter() - t0
+            forward_s += env.core.timing["forward_s"] - f0
+            done_steps += 1
+            agent_steps += moving
+            ctrl_steps += len(actions)
+    return dict(step_s=step_s, reset_s=reset_s, resets=resets, agent_steps=agent_steps, ctrl_steps=ctrl_steps, env_steps=done_steps,
+                forward_s=forward_s)
 
 
-def time_torchrl(env, steps: int, seed: int) -> tuple[float, int, int, int]:
-    from torchrl.envs import PettingZooWrapper
+def time_batched(env, steps: int) -> dict:
+    """Step time over ``steps`` batched steps (every scene steps once per batched step); refills timed apart."""
     from torchrl.envs.utils import step_mdp
 
-    wrapped = PettingZooWrapper(env, use_mask=True, done_on_any=False, categorical_actions=True)
-    wrapped.set_seed(seed)
-    td = wrapped.reset()
-    elapsed, done_steps, agent_steps, ctrl_steps = 0.0, 0, 0, 0
-    while done_steps < steps:
-        td = wrapped.full_action_spec.rand().update(td)
-        moving = int(env.present.sum())
-        live = len(env.agents)
+    core = env.core
+    td = env.reset()
+    step_s = reset_s = 0.0
+    agent_steps = ctrl_steps = env_steps = refills = 0
+    forward_steps = 0.0
+    for _ in range(steps):
+        logits = td["agents", "observation", "prior_logits"]
+        td["agents", "action"] = logits.argmax(-1)
+        moving = present_agents(core)
+        live = int(core.live.sum())
+        f0 = core.timing["forward_s"]
         t0 = time.perf_counter()
-        td = wrapped.step(td)
-        elapsed += time.perf_counter() - t0
-        done_steps += 1
+        td = env.step(td)
+        if core.device.type == "cuda":
+            torch.cuda.synchronize(core.device)
+        step_s += time.perf_counter() - t0
+        forward_steps += core.timing["forward_s"] - f0
         agent_steps += moving
         ctrl_steps += live
+        env_steps += env.num_scenes
         td = step_mdp(td)
-        if bool(td["done"].all()) or not env.agents:
-            td = wrapped.reset()
-    return elapsed, done_steps, agent_steps, ctrl_steps
+        done = td["done"].reshape(-1)
+        if bool(done.any()):
+            refills += int(done.sum())
+            t0 = time.perf_counter()
+            td = env.reset(td.set("_reset", td["done"].clone()))
+            if core.device.type == "cuda":
+                torch.cuda.synchronize(core.device)
+            reset_s += time.perf_counter() - t0
+    return dict(step_s=step_s, reset_s=reset_s, resets=refills, agent_steps=agent_steps, ctrl_steps=ctrl_steps, env_steps=env_steps,
+                forward_s=forward_steps)
+
+
+def summarise(runs: list[dict]) -> dict:
+    med = lambda key: statistics.median(r[key] for r in runs)  # noqa: E731
+    rates = [r["agent_steps"] / r["step_s"] for r in runs]
+    return dict(agent_steps_per_s=round(statistics.median(rates), 1),
+                controlled_agent_steps_per_s=round(statistics.median(r["ctrl_steps"] / r["step_s"] for r in runs), 1),
+                env_steps_per_s=round(statistics.median(r["env_steps"] / r["step_s"] for r in runs), 2),
+                outside_forward_share=round(1.0 - med("forward_s") / med("step_s"), 3),
+                reset_ms_per_scene=round(1000 * statistics.median(r["reset_s"] / max(r["resets"], 1) for r in runs), 1),
+                agent_steps_per_s_runs=[round(x, 1) for x in rates])
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--scene", default=str(DATA / "motion_data_one_scenario.tfrecord"))
-    p.add_argument("--checkpoint", default=None, help="a SMART checkpoint as the prior (default: a random --model)")
-    p.add_argument("--model", default="smart-1m")
-    p.add_argument("--vocab", type=int, default=512, help="tokens per type of the built vocabulary (random prior)")
-    p.add_argument("--steps", type=int, default=48, help="env steps timed per configuration")
+    p.add_argument("--scenes", default=None, help="scenes (any path read_scenarios reads; default: the shared real scenes)")
+    p.add_argument("--prior", default="embedded")
+    p.add_argument("--num-scenes", default="1,8,32,128", help="batch sizes of the batched env")
+    p.add_argument("--steps", type=int, default=32, help="timed steps per configuration and repeat")
+    p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--horizon", type=int, default=16)
-    p.add_argument("--threads", type=int, default=1, help="torch threads (the prior's forward)")
-    p.add_argument("--no-torchrl", action="store_true")
+    p.add_argument("--background", default="prior", choices=("prior", "log", "constant_velocity"))
+    p.add_argument("--controlled", default="moving_vehicles")
+    p.add_argument("--max-agents", type=int, default=4)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--device", default="cpu")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
 
-    from envs import smart_traffic_v0
-    from smart_marl.readers import read_scenarios
+    from envs import smart_traffic_batched_v0, smart_traffic_v0
+    from envs._setup import load_scenes
+    from smart_marl.model.checkpoint import load_prior
 
-    scene = next(iter(read_scenarios(args.scene)))
-    vocab_scenes = [s for f in sorted(DATA.glob("*.tfrecord")) for s in read_scenarios(f)]
-    model, vocab, prior_name = build_prior(args, vocab_scenes)
-    common = dict(scene=scene.scenario_id, tracks=scene.num_tracks,
-                  agents_at_current_frame=int(scene.tracks.valid[:, scene.current_frame].sum()), horizon_steps=args.horizon,
-                  torch_threads=args.threads, cpu=platform.processor() or platform.machine())
-    for background in ("prior", "log", "constant_velocity"):
-        for use_prior in ((True,) if background == "prior" else (False, True)):
-            for n_ctrl in (1, 8):
-                kw = dict(scenarios=[scene], prior=model if use_prior else None, motion_vocab=vocab, background=background,
-                          horizon_steps=args.horizon, terminate_on=(), controlled="sdc" if n_ctrl == 1 else "vehicles",
-                          max_agents=n_ctrl)
-                rates = {}
-                for kind in ("raw", "torchrl"):
-                    if kind == "torchrl" and args.no_torchrl:
-                        continue
-                    env = smart_traffic_v0.parallel_env(**kw)
-                    timer = time_raw if kind == "raw" else time_torchrl
-                    secs, steps, agent_steps, ctrl_steps = timer(env, args.steps, seed=0)
-                    rates[kind] = dict(env_steps_per_s=round(steps / secs, 2), agent_steps_per_s=round(agent_steps / secs, 1),
-                                       controlled_agent_steps_per_s=round(ctrl_steps / secs, 1))
-                    if kind == "raw" and env.reset_times_s:
-                        rates[kind]["reset_ms"] = round(1000 * float(np.mean(env.reset_times_s)), 1)
-                    env.close()
-                line = dict(benchmark="env_throughput", background=background, prior=prior_name if use_prior else None,
-                            controlled_agents=n_ctrl, **{f"{k}_{m}": v for k, r in rates.items() for m, v in r.items()}, **common)
-                print(json.dumps(line), flush=True)
+    scenes = load_scenes(args.scenes) if args.scenes else real_scenes()
+    model, vocab = load_prior(args.prior, args.device)
+    kw = dict(prior=model, motion_vocab=vocab, controlled=args.controlled, max_agents=args.max_agents, background=args.background,
+              horizon_steps=args.horizon, terminate_on=())
+    common = dict(benchmark="env_throughput", background=args.background, prior=args.prior, controlled=args.controlled,
+                  max_agents=args.max_agents, horizon_steps=args.horizon, torch_threads=args.threads, device=args.device,
+                  cpu=platform.processor() or platform.machine(), scenes=len(scenes))
+    if args.device.startswith("cuda"):
+        common["gpu"] = torch.cuda.get_device_name(args.device)
+
+    # the PettingZoo env: one scene at a time, the scenes with an agent to control
+    pz = smart_traffic_v0.parallel_env(scenarios=scenes, observation="dict", **kw)
+    usable = []
+    for i in range(len(scenes)):
+        try:
+            pz.reset(seed=0, options={"scene_index": i})
+            usable.append(i)
+        except Exception:  # noqa: BLE001 - no agent to control in this scene
+            pass
+    pz.PRIOR_STATE_CACHE = pz.core.prior_cache_size = len(usable)  # keep every scene's prior, as the batched env does
+    time_pettingzoo(pz, usable, len(usable) * args.horizon)  # warm-up: every scene's prior started once
+    pool = [scenes[i] for i in usable]
+    sizes = [int(x) for x in args.num_scenes.split(",")]
+    batched = {}
+    for b in sizes:
+        env = smart_traffic_batched_v0.SmartTrafficBatchedEnv(scenarios=pool, num_scenes=b, scene_order="sequential",
+                                                              device=args.device, **kw)
+        time_batched(env, max(args.horizon, len(pool) * args.horizon // b))  # warm-up: every scene's prior started once
+        batched[b] = env
+    # the repeats interleave the configurations, so that a load that comes and goes weighs on all of them alike
+    runs = {"pettingzoo": [], **{b: [] for b in sizes}}
+    for _ in range(args.repeats):
+        runs["pettingzoo"].append(time_pettingzoo(pz, usable, args.steps))
+        for b in sizes:
+            runs[b].append(time_batched(batched[b], args.steps))
+    base = summarise(runs["pettingzoo"])
+    print(json.dumps(dict(env="pettingzoo", num_scenes=1, **base, rss_mb=round(rss_mb()), **common)), flush=True)
+    for b in sizes:
+        line = dict(env="batched", num_scenes=b, **summarise(runs[b]), rss_mb=round(rss_mb()), **common)
+        line["speedup_vs_pettingzoo"] = round(line["agent_steps_per_s"] / base["agent_steps_per_s"], 2)
+        ratios = [(r["agent_steps"] / r["step_s"]) / (p["agent_steps"] / p["step_s"]) for r, p in zip(runs[b], runs["pettingzoo"])]
+        line["speedup_per_repeat"] = [round(x, 2) for x in ratios]
+        print(json.dumps(line), flush=True)
     return 0
 
 

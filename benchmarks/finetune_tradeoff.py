@@ -126,9 +126,11 @@ def main() -> int:
         ap.error(f"--reward: expected TERM=WEIGHT items, got {args.reward}")
 
     from agents.evaluate import evaluate_policies
-    from agents.finetune import (FinetuneConfigError, FinetunedPolicy, evaluation_policies, finetune, held_out_scenes, load_finetune_config,
-                                 load_policy, load_prior, scene_env, select_scenes)
-    from agents.prior_policy import PriorPolicy
+    from agents.finetune import (FinetuneConfigError, evaluation_core, evaluation_policies, finetune, held_out_scenes, load_finetune_config,
+                                 load_policy, load_prior, training_pool)
+    from agents.policy import FinetunedTensorPolicy, PriorTensorPolicy
+    from smart_marl.rollout import reference_name
+    from smart_marl.scenario import AgentType
 
     torch.set_num_threads(args.threads)
     run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="finetune_tradeoff_"))
@@ -150,14 +152,20 @@ def main() -> int:
         ap.error(str(exc))
     t0 = time.perf_counter()
     model, vocab = load_prior(cfg.prior)
-    training = select_scenes(cfg, model, vocab)
-    scenes = held_out_scenes(cfg, model, vocab, training)
-    env = scene_env(cfg, scenes, model, vocab, terminate_on=())
+    training = training_pool(cfg).scenario_ids()
+    scenes = held_out_scenes(cfg, vocab, training)
+    core = evaluation_core(cfg, model, vocab, len(scenes))
+    reference = reference_name(cfg.reference_top_k, cfg.temperature)
     seeds = list(range(cfg.eval_seed, cfg.eval_seed + args.rollouts))
-    idx = list(range(len(scenes)))
-    emit({"kind": "setup", "prior": args.prior, "training_scenes": [s.scenario_id for s in training],
-          "held_out_scenes": [s.scenario_id for s in scenes], "seeds": seeds, "reference": env.reference,
-          "config": cfg.to_dict(), "torch": torch.__version__})
+    held_ids = [s.static.scenario.scenario_id for s in scenes]
+
+    def evaluate(policies):
+        return evaluate_policies(core, scenes, policies, seeds, num_envs=cfg.num_envs, vocab_size=vocab[AgentType.VEHICLE].size,
+                                 num_agents=cfg.max_agents, rules=cfg.eval_rules, temperature=cfg.temperature,
+                                 reference_top_k=cfg.reference_top_k)["rows"]
+
+    emit({"kind": "setup", "prior": args.prior, "training_scenes": training, "held_out_scenes": held_ids, "seeds": seeds,
+          "reference": reference, "config": cfg.to_dict(), "torch": torch.__version__})
 
     reused_base, reused_tuned = {}, {}
     if args.reuse:
@@ -165,8 +173,7 @@ def main() -> int:
         for line in Path(args.reuse).read_text().splitlines():
             d = json.loads(line)
             if d["kind"] == "setup":
-                if (d["prior"], d["held_out_scenes"], d["seeds"], d["reference"]) != (
-                        args.prior, [s.scenario_id for s in scenes], seeds, env.reference):
+                if (d["prior"], d["held_out_scenes"], d["seeds"], d["reference"]) != (args.prior, held_ids, seeds, reference):
                     print(f"--reuse {args.reuse}: another prior, held-out scenes, seeds or reference", file=sys.stderr)
                     return 2
                 same_training = d["config"] == json.loads(json.dumps(cfg.to_dict(), default=float))
@@ -178,13 +185,13 @@ def main() -> int:
     if reused_base:
         baselines = reused_base
     else:
-        policies = evaluation_policies(cfg, env, None)
+        policies = evaluation_policies(cfg, None)
         for k in args.compare_k:
             if k and k != cfg.reference_top_k:
-                p = PriorPolicy(top_k=k, temperature=cfg.temperature)
+                p = PriorTensorPolicy(top_k=k, temperature=cfg.temperature)
                 policies[p.name] = p
         t = time.perf_counter()
-        baselines = evaluate_policies(env, policies, idx, seeds, rules=cfg.eval_rules)["rows"]
+        baselines = evaluate(policies)
         emit({"kind": "timing", "what": "baselines", "seconds": time.perf_counter() - t})
     for name, row in baselines.items():
         emit({"kind": "baseline", "policy": name, **row, **({"reused": True} if reused_base else {})})
@@ -206,21 +213,21 @@ def main() -> int:
         res = finetune(run_cfg)
         train_s = time.perf_counter() - t
         _, net, _ = load_policy(res.checkpoint)
-        row = evaluate_policies(env, {name: FinetunedPolicy(net)}, idx, seeds, rules=cfg.eval_rules)["rows"][name]
+        row = evaluate({name: FinetunedTensorPolicy(net)})[name]
         tuned[name] = row
         last = res.history[-1]
         emit({"kind": "finetuned", "policy": name, "beta": beta, "reward": reward, "train_seconds": train_s,
               "eval_seconds": time.perf_counter() - t - train_s, "train_last": {k: last[k] for k in
               ("goal_rate", "collision_rate", "offroad_rate", "kl_to_prior", "return_per_agent_episode")}, **row})
 
-    ref = baselines[env.reference]
+    ref = baselines[reference]
     best = None
     for name, row in tuned.items():
         if "log-lik" in name:
             continue
         if best is None or bad_rate(row) - row["goal_rate"] < bad_rate(tuned[best]) - tuned[best]["goal_rate"]:
             best = name
-    summary = {"kind": "summary", "seconds": time.perf_counter() - t0, "reference": env.reference, "best": best}
+    summary = {"kind": "summary", "seconds": time.perf_counter() - t0, "reference": reference, "best": best}
     if best is not None:
         b = tuned[best]
         summary["must_show"] = {
@@ -236,9 +243,9 @@ def main() -> int:
     emit(summary)
     title = (f"prior {args.prior}; {len(training)} fine-tuning scenes, {len(scenes)} held-out scenes x {len(seeds)} seeds "
              f"x {cfg.max_agents} controlled vehicles; {cfg.iterations} iterations x {cfg.frames_per_batch} env steps; "
-             f"reference {env.reference}")
-    draw(Path(args.out), {k: v for k, v in baselines.items() if k in ("expert (log)", env.reference, "prior full softmax")},
-         tuned, env.reference, title)
+             f"reference {reference}")
+    draw(Path(args.out), {k: v for k, v in baselines.items() if k in ("expert (log)", reference, "prior full softmax")},
+         tuned, reference, title)
     return 0
 
 

@@ -80,6 +80,13 @@ def rollout_speeds(ck, scene, num_rollouts: int, top_k: int, temperature: float,
     the last :data:`LATE_FRAMES` frames, and the agents (those logged on at least half of those frames)."""
     res = rollout(ck, [scene], num_rollouts=num_rollouts, num_steps=NUM_FRAMES // 5, top_k=top_k,
                   temperature=temperature, seed=seed, avoid_collisions=avoid_collisions)
+    return speed_sums(res, scene)
+
+
+def speed_sums(res, scene) -> dict:
+    """:func:`rollout_speeds`' sums from a one-scene :class:`~smart_marl.rollout.RolloutResult` of
+    :data:`NUM_FRAMES` frames (``res`` may come from elsewhere, e.g. ``benchmarks/reactivity.py``)."""
+    num_rollouts = res.trajectory.shape[0]
     tr, cf = scene.tracks, scene.current_frame
     a = res.agent_types.shape[1]
     frames = np.arange(cf + 1, cf + 1 + NUM_FRAMES)

@@ -31,7 +31,7 @@ from smart_marl.commands.eval import prior_rollouts
 from smart_marl.metrics import align_rollouts, compute_features, get_rules, logged_scene, metric_frame_rollouts
 from smart_marl.metrics.features import kinematic_validity
 from smart_marl.metrics.likelihood import histogram_log_likelihood
-from smart_marl.model.checkpoint import EMBEDDED, load_checkpoint
+from smart_marl.model.checkpoint import EMBEDDED, load_prior
 from smart_marl.readers import expand_paths, read_scenarios
 from smart_marl.rollout import DEFAULT_TOP_K
 from smart_marl.scenario import AgentType
@@ -52,7 +52,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     rules = get_rules(args.rules)
-    prior = load_checkpoint(args.prior or EMBEDDED)
+    prior = load_prior(args.prior or EMBEDDED)
     sums: dict[tuple[int, str], list[float]] = {}
     angular: dict[int, tuple[list, list]] = {}
     for path in expand_paths(args.scenes):

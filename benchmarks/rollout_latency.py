@@ -104,11 +104,11 @@ def step_times(model, vocab, scene, mode: str, steps: int, device: str) -> list[
 def avoidance_cost(args) -> None:
     """One line per real scene: median wall time of ``--rollouts`` x 8 s by the embedded prior with
     collision-aware sampling (the default) and without, runs alternating, and their ratio."""
-    from smart_marl.model.checkpoint import load_embedded
+    from smart_marl.model.checkpoint import EMBEDDED, load_prior
     from smart_marl.readers import read_scenarios
     from smart_marl.rollout import rollout
 
-    prior = load_embedded(args.device)
+    prior = load_prior(EMBEDDED, args.device)
     for f in SCENE_FILES:
         sc = next(iter(read_scenarios(DATA / f)))
         walls = {True: [], False: []}

@@ -1,22 +1,24 @@
-"""Environment stage, dynamics: every agent's motion over one token step (Waymax's "dynamics").
+"""Environment stage, dynamics: every agent's motion over one token step, for ``B`` scenes at once
+(Waymax's "dynamics"; tensors with a leading scene dimension, no loop over scenes or agents).
 
-What comes in: the scene's constants (:class:`~envs._scene.SceneStatic`), the episode's state at
-the start of the step (every track's pose, who is present, the frame), the controlled agents'
-tokens, the background mode and the prior (a :class:`smart_marl.rollout.RolloutState` with one
-group, or None). What goes out: a :class:`Motion`, every track's 5 new 10 Hz poses, who is present
-after the step and the prior's log-probability of each track's token.
+What comes in: the scenes' constants (:class:`~envs._scene_batch.SceneBatch`), the state at the
+start of the step (every track's pose, who is present, the frame of each scene), the controlled
+agents' tokens, the background mode and the prior (a :class:`smart_marl.rollout.RolloutState` with
+one group per scene, or None). What goes out: a :class:`Motion`, every track's 5 new 10 Hz poses,
+who is present after the step and the prior's log-probability of each track's token.
 
 Who moves how (see :mod:`envs.smart_traffic_v0`):
 
 * controlled agents: their tokens, placed at their poses (by the prior's step when there is one,
-  which is given the tokens as forced tokens, so it conditions everyone else on them);
+  which is given the tokens as forced tokens, so it conditions everyone else on them; without a
+  prior, the token's own contour poses);
 * background ``"prior"``: the prior's step samples every other vehicle, pedestrian and cyclist;
   agents of type OTHER move at constant velocity;
 * background ``"log"`` / ``"constant_velocity"``: the logged poses (present on the frames the log
   is valid; a missing frame keeps the last pose) / the logged velocity at the current frame,
   heading held. With a prior, the prior still steps (for its logits): the agents it simulates that
   move by the log or constant velocity are given the token nearest their move
-  (:func:`smart_marl.tokens.motion.match_token_ends`) and re-anchored at their true poses.
+  (:func:`nearest_tokens`) and re-anchored at their true poses.
 
 :func:`release` takes agents out of the prior's scene after the step (done controlled agents,
 log agents that left), so nobody's neighbourhood sees them again.
@@ -26,141 +28,160 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
 from smart_marl.rollout import RolloutState
-from smart_marl.scenario import DT_S
-from smart_marl.tokens import FRAMES_PER_TOKEN, MotionVocabulary, compose_poses, relative_poses
-from smart_marl.tokens.motion import match_token_ends
+from smart_marl.rollout.frames import compose_torch
+from smart_marl.scenario import DT_S, wrap_angle
+from smart_marl.tokens import FRAMES_PER_TOKEN
 
-from ._scene import SceneStatic
+from ._scene_batch import SceneBatch
 
 BACKGROUNDS = ("prior", "log", "constant_velocity")
+_STEP_FRAMES = torch.arange(1, FRAMES_PER_TOKEN + 1)
 
 
 @dataclass
 class Motion:
-    """One token step of every track of the scene (``N`` tracks)."""
+    """One token step of every track of ``B`` scenes (``N`` track slots each)."""
 
-    frames: np.ndarray  # [N, 5, 3] float64 x, y, heading on the step's 5 frames (local frame)
-    present: np.ndarray  # [N] bool, present after the step
-    action_log_prob: np.ndarray  # [N] float64, the prior's log-probability of the track's token (0 without one)
-
-
-def background_frames(static: SceneStatic, tracks: np.ndarray, mode: str, frame: int, pose: np.ndarray,
-                      cv_velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(poses [B, 5, 3], present after the step [B]) of ``tracks`` [B] moved by ``mode`` ("log" or
-    "constant_velocity") over the 5 frames after ``frame``; ``pose`` [N, 3] is every track's pose now
-    and ``cv_velocity`` [N, 2] its velocity at the current frame."""
-    k = np.arange(1, FRAMES_PER_TOKEN + 1)
-    tr = static.scenario.tracks
-    if mode == "log":
-        frames = frame + k
-        inside = frames < tr.num_frames
-        fi = np.minimum(frames, tr.num_frames - 1)
-        valid = tr.valid[tracks][:, fi] & inside[None]  # [B, 5]
-        pos = np.concatenate([tr.position[tracks][:, fi, :2], tr.heading[tracks][:, fi, None]], -1).astype(np.float64)
-        # frames the log misses keep the last pose
-        out = np.empty_like(pos)
-        last = pose[tracks]
-        for j in range(FRAMES_PER_TOKEN):
-            last = np.where(valid[:, j, None], pos[:, j], last)
-            out[:, j] = last
-        return out, valid[:, -1]
-    # constant velocity (also OTHER agents under the prior)
-    cf = static.scenario.current_frame
-    t = (frame - cf + k) * DT_S
-    start = np.concatenate([tr.position[tracks, cf, :2], tr.heading[tracks, cf, None]], -1).astype(np.float64)
-    out = np.repeat(start[:, None], FRAMES_PER_TOKEN, 1)
-    out[..., :2] += cv_velocity[tracks][:, None] * t[None, :, None]
-    return out, np.ones(len(tracks), bool)
+    frames: torch.Tensor  # [B, N, 5, 3] x, y, heading on the step's 5 frames (local frame)
+    present: torch.Tensor  # [B, N] bool, present after the step
+    action_log_prob: torch.Tensor  # [B, N] the prior's log-probability of the track's token (0 without one)
 
 
-def nearest_tokens(static: SceneStatic, motion_vocab: MotionVocabulary, tracks: np.ndarray, start_pose: np.ndarray,
-                   end_pose: np.ndarray) -> np.ndarray:
-    """The token of each track's type whose end best matches its move from ``start_pose`` to
-    ``end_pose`` [B, 3] (position and heading)."""
-    out = np.zeros(len(tracks), np.int64)
-    rel = relative_poses(end_pose, start_pose)  # [B, 3] the move in the track's frame
-    types = static.types[tracks]
-    for t in np.unique(types):
-        sel = types == t
-        out[sel] = match_token_ends(motion_vocab[int(t)].poses[:, -1], rel[sel])
+def log_frames(scenes: SceneBatch, frame: torch.Tensor, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(poses [B, N, 5, 3], present after the step [B, N]) of every track replayed from its log over
+    the 5 frames after ``frame`` [B]; frames the log misses keep the last pose (``pose`` [B, N, 3] now)."""
+    f = frame[:, None] + _STEP_FRAMES.to(frame.device)  # [B, 5]
+    inside = f < scenes.num_frames[:, None]
+    fi = torch.minimum(f, scenes.num_frames[:, None] - 1)
+    b, n = pose.shape[:2]
+    idx = fi[:, None, :].expand(b, n, -1)  # [B, N, 5]
+    logged = scenes.log_pose.gather(2, idx[..., None].expand(-1, -1, -1, 3))  # [B, N, 5, 3]
+    valid = scenes.log_valid.gather(2, idx) & inside[:, None]  # [B, N, 5]
+    out = torch.empty_like(logged)
+    last = pose
+    for j in range(FRAMES_PER_TOKEN):
+        last = torch.where(valid[:, :, j, None], logged[:, :, j], last)
+        out[:, :, j] = last
+    return out, valid[:, :, -1]
+
+
+def constant_velocity_frames(scenes: SceneBatch, frame: torch.Tensor) -> torch.Tensor:
+    """[B, N, 5, 3] every track at its logged current-frame velocity, heading held, over the 5 frames
+    after ``frame`` [B] (from its logged pose at the current frame)."""
+    b, n = scenes.track_valid.shape
+    t = ((frame - scenes.current_frame)[:, None] + _STEP_FRAMES.to(frame.device)).to(scenes.cv_velocity.dtype) * DT_S  # [B, 5]
+    cf = scenes.current_frame[:, None, None, None].expand(b, n, 1, 3)
+    start = scenes.log_pose.gather(2, cf)  # [B, N, 1, 3]
+    out = start.expand(b, n, FRAMES_PER_TOKEN, 3).clone()
+    out[..., :2] += scenes.cv_velocity[:, :, None] * t[:, None, :, None]
     return out
 
 
-def place_tokens(static: SceneStatic, motion_vocab: MotionVocabulary, tracks: np.ndarray, tokens: np.ndarray,
-                 pose: np.ndarray) -> np.ndarray:
-    """The 5 poses [C, 5, 3] of each track's token placed at its pose (``pose`` [N, 3], every track)."""
-    out = np.zeros((len(tracks), FRAMES_PER_TOKEN, 3))
-    types = static.types[tracks]
-    for t in np.unique(types):
-        sel = types == t
-        local = motion_vocab[int(t)].poses[tokens[sel], 1:].astype(np.float64)  # [c, 5, 3]
-        out[sel] = compose_poses(pose[tracks[sel]][:, None], local)
-    return out
+def nearest_tokens(token_ends: torch.Tensor, in_vocab: torch.Tensor, agent_type: torch.Tensor, start: torch.Tensor,
+                   end: torch.Tensor) -> torch.Tensor:
+    """[M] the token of each agent's type whose end best matches its move from ``start`` to ``end``
+    [M, 3] (squared position error plus the squared wrapped heading error, radians as metres, as
+    :func:`smart_marl.tokens.motion.match_token_ends`); ``token_ends`` [3, Vmax, 3] every type's token
+    ends in the token's start frame, ``in_vocab`` [3, Vmax] which of them are the type's tokens."""
+    c, s = start[:, 2].cos(), start[:, 2].sin()
+    dx, dy = end[:, 0] - start[:, 0], end[:, 1] - start[:, 1]
+    rel = torch.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(end[:, 2] - start[:, 2])], -1)  # [M, 3]
+    ends = token_ends[agent_type]  # [M, Vmax, 3]
+    err = (rel[:, None, :2] - ends[..., :2]).square().sum(-1) + wrap_angle(rel[:, None, 2] - ends[..., 2]).square()
+    return err.masked_fill(~in_vocab[agent_type], float("inf")).argmin(-1)
 
 
-def move(static: SceneStatic, background: str, motion_vocab: MotionVocabulary, prior: RolloutState | None,
-         slot_of_track: np.ndarray, pose: np.ndarray, present: np.ndarray, in_sim: np.ndarray, done: np.ndarray, frame: int,
-         cv_velocity: np.ndarray, ctrl: np.ndarray, ctrl_tokens: np.ndarray) -> Motion:
-    """One token step of every track (see the module docstring).
+def place_tokens(token_poses: torch.Tensor, agent_type: torch.Tensor, tokens: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
+    """[M, 5, 3] the contour poses of each token placed at ``pose`` [M, 3]; ``token_poses`` [3, Vmax, 6, 3]."""
+    local = token_poses[agent_type, tokens][:, 1:]  # [M, 5, 3]
+    return compose_torch(pose[:, None], local)
 
-    pose [N, 3] every track's pose now, present / in_sim / done [N] bool (present now, one of the
-    episode's agents, a controlled agent that is done), frame the current 10 Hz frame; ctrl [C] the
-    live controlled tracks and ctrl_tokens [C] their tokens; slot_of_track [N] each track's slot in
-    ``prior`` (-1: none). ``prior`` is stepped (and the agents that follow the log or constant
+
+def move(scenes: SceneBatch, background: str, token_poses: torch.Tensor, prior: RolloutState | None, slot_of_track: torch.Tensor,
+         pose: torch.Tensor, present: torch.Tensor, in_sim: torch.Tensor, done: torch.Tensor, frame: torch.Tensor,
+         ctrl_track: torch.Tensor, ctrl_live: torch.Tensor, actions: torch.Tensor) -> Motion:
+    """One token step of every track of every scene (module docstring).
+
+    pose [B, N, 3] every track's pose now, present / in_sim / done [B, N] bool (present now, one of the
+    episode's agents, a controlled agent that is done), frame [B] each scene's current 10 Hz frame;
+    ctrl_track [B, C] the controlled tracks (-1: none), ctrl_live [B, C] those that act this step,
+    actions [B, C] their tokens; slot_of_track [B, N] each track's slot in ``prior`` (-1: none);
+    token_poses [3, Vmax, 6, 3]. ``prior`` is stepped (and the agents that follow the log or constant
     velocity are re-anchored in it).
     """
-    n = static.num_tracks
-    is_ctrl = np.zeros(n, bool)
-    is_ctrl[ctrl] = True
+    b, n = pose.shape[:2]
+    dev = pose.device
+    rows = torch.arange(b, device=dev)[:, None].expand_as(ctrl_track)
+    lb, lt, la = rows[ctrl_live], ctrl_track[ctrl_live], actions[ctrl_live]  # the live controlled agents
+    is_ctrl = torch.zeros(b, n, dtype=torch.bool, device=dev)
+    is_ctrl[lb, lt] = True
     moving = present & ~done
-    frames = np.repeat(pose[:, None], FRAMES_PER_TOKEN, 1)  # [N, 5, 3]
-    present_after = moving.copy()
-    action_logp = np.zeros(n)
+    frames = pose[:, :, None].expand(b, n, FRAMES_PER_TOKEN, 3).clone()
+    present_after = moving.clone()
+    action_logp = torch.zeros(b, n, dtype=pose.dtype, device=dev)
 
     # background agents outside the prior's control: log or constant velocity
     if background == "prior":
-        outside = np.flatnonzero(moving & ~is_ctrl & ~static.is_motion)  # OTHER agents: constant velocity
+        outside = moving & ~is_ctrl & ~scenes.is_motion  # OTHER agents: constant velocity
     elif background == "log":  # present when the log is valid: an agent may come back after a gap
-        outside = np.flatnonzero(in_sim & ~done & ~is_ctrl)
+        outside = in_sim & ~done & ~is_ctrl
     else:
-        outside = np.flatnonzero(moving & ~is_ctrl)
-    if len(outside):
-        mode = "log" if background == "log" else "constant_velocity"
-        frames[outside], present_after[outside] = background_frames(static, outside, mode, frame, pose, cv_velocity)
+        outside = moving & ~is_ctrl
+    if bool(outside.any()):
+        if background == "log":
+            moved, logged_present = log_frames(scenes, frame, pose)
+            present_after = torch.where(outside, logged_present, present_after)
+        else:
+            moved = constant_velocity_frames(scenes, frame)
+        frames = torch.where(outside[..., None, None], moved, frames)
 
+    agent_type = scenes.types.clamp(min=0)
     if prior is None:
-        frames[ctrl] = place_tokens(static, motion_vocab, ctrl, ctrl_tokens, pose)
+        frames[lb, lt] = place_tokens(token_poses, agent_type[lb, lt], la, pose[lb, lt])
         return Motion(frames, present_after, action_logp)
 
     # the prior: controlled agents' tokens forced, log / cv agents it simulates follow their moves
-    forced = np.full(prior.num_slots, -1, np.int64)
-    forced[slot_of_track[ctrl]] = ctrl_tokens
-    follow = outside[slot_of_track[outside] >= 0] if len(outside) else outside
-    follow = follow[prior.valid[0].numpy()[slot_of_track[follow]]]
-    if len(follow):
-        forced[slot_of_track[follow]] = nearest_tokens(static, motion_vocab, follow, pose[follow], frames[follow, -1])
-    out = prior.step(torch.from_numpy(forced)[None])
-    slot_tracks = prior.track_index[0].numpy()
-    by_prior = np.flatnonzero(out.simulated[0].numpy() & (slot_tracks >= 0))
-    prior_tracks = slot_tracks[by_prior]
-    keep = ~np.isin(prior_tracks, outside)  # log / cv agents keep their own poses
-    frames[prior_tracks[keep]] = out.poses[0, by_prior[keep]].numpy().astype(np.float64)
-    action_logp[prior_tracks] = out.log_probs[0, by_prior].numpy()
-    if len(follow):  # re-anchor log / cv agents at their true poses
-        pose_t = prior.current_pose.clone()
-        mask = torch.zeros_like(prior.valid)
-        pose_t[0, slot_of_track[follow]] = torch.from_numpy(frames[follow, -1]).float()
-        mask[0, slot_of_track[follow]] = True
-        prior.set_agent_pose(pose_t, mask)
+    ns = prior.num_slots
+    forced = torch.full((b, ns), -1, dtype=torch.long, device=dev)
+    forced[lb, slot_of_track[lb, lt]] = la
+    slot_track = prior.track_index  # [B, Ns] (-1 on padding)
+    slot_valid = prior.valid & (slot_track >= 0)
+    slot_of = slot_track.clamp(min=0)
+    follow = slot_valid & outside.gather(1, slot_of)  # [B, Ns] slots moved outside the prior
+    fb, fs = follow.nonzero(as_tuple=True)
+    if len(fb):
+        ft = slot_of[fb, fs]
+        forced[fb, fs] = nearest_tokens(token_poses[:, :, -1].to(pose.dtype), _in_vocab(token_poses, prior.vocab_sizes),
+                                        agent_type[fb, ft], pose[fb, ft], frames[fb, ft, -1])
+    out = prior.step(forced)
+    by_prior = out.simulated & (slot_track >= 0)  # [B, Ns]
+    pb, ps = by_prior.nonzero(as_tuple=True)
+    pt = slot_of[pb, ps]
+    keep = ~outside[pb, pt]  # log / cv agents keep their own poses
+    frames[pb[keep], pt[keep]] = out.poses[pb[keep], ps[keep]].to(frames.dtype)
+    action_logp[pb, pt] = out.log_probs[pb, ps].to(action_logp.dtype)
+    if len(fb):  # re-anchor log / cv agents at their true poses
+        new_pose = prior.current_pose.clone()
+        new_pose[fb, fs] = frames[fb, slot_of[fb, fs], -1].to(new_pose.dtype)
+        prior.set_agent_pose(new_pose, follow)
     return Motion(frames, present_after, action_logp)
 
 
-def release(prior: RolloutState, slot_of_track: np.ndarray, gone: np.ndarray) -> None:
-    """Take the tracks ``gone`` (bool [N]) out of the prior's scene from its next step on."""
-    keep_slot = torch.ones_like(prior.valid)
-    keep_slot[0, slot_of_track[np.flatnonzero(gone & (slot_of_track >= 0))]] = False
-    prior.set_agent_valid(keep_slot)
+def _in_vocab(token_poses: torch.Tensor, vocab_sizes: torch.Tensor) -> torch.Tensor:
+    """[3, Vmax] bool, the token ids of each type's vocabulary."""
+    v = token_poses.shape[1]
+    return torch.arange(v, device=token_poses.device)[None] < vocab_sizes.to(token_poses.device)[:, None]
+
+
+def release(prior: RolloutState, slot_of_track: torch.Tensor, gone: torch.Tensor) -> None:
+    """Take the tracks ``gone`` (bool [B, N]) out of the prior's scenes from its next step on."""
+    keep = torch.ones_like(prior.valid)
+    gb, gt = (gone & (slot_of_track >= 0)).nonzero(as_tuple=True)
+    keep[gb, slot_of_track[gb, gt]] = False
+    prior.set_agent_valid(keep)
+
+
+__all__ = ["BACKGROUNDS", "Motion", "constant_velocity_frames", "log_frames", "move", "nearest_tokens", "place_tokens", "release"]

@@ -1,5 +1,6 @@
-"""Environment stage, observations: the simulated state of a scene -> one fixed-size vector per
-controlled agent, in that agent's own frame (its current pose: x forward, y left, metres, radians).
+"""Environment stage, observations: the simulated state of ``B`` scenes -> one fixed-size vector per
+controlled agent, in that agent's own frame (its current pose: x forward, y left, metres, radians),
+all scenes and agents at once.
 
 Layout (``observation_layout(config)`` gives every block's name, offset and size; defaults
 K = 8 agents, M = 32 road points, L = 2 traffic lights: 473 floats):
@@ -37,11 +38,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
+import torch
 
-from .errors import EnvConfigError
-
+from smart_marl.model.layers import smallest_k
 from smart_marl.scenario import SignalState
+
+from ._scene_batch import SceneBatch, gather_tracks
+from .errors import EnvConfigError
 
 PAST_OFFSETS_FRAMES = (5, 10, 15, 20)  # 0.5 s .. 2.0 s ago
 HISTORY_FRAMES = max(PAST_OFFSETS_FRAMES) + 1  # frames of pose history the environment keeps
@@ -84,108 +87,129 @@ def observation_size(cfg: ObservationConfig) -> int:
     return offset + size
 
 
-def _to_local(origin: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Points xy [C, K, 2] into the frames of origin poses [C, 3]."""
-    c, s = np.cos(origin[:, 2])[:, None], np.sin(origin[:, 2])[:, None]
-    d = xy - origin[:, None, :2]
-    return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1)
+def _to_local(origin: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
+    """Points xy [..., K, 2] into the frames of origin poses [..., 3]."""
+    c, s = origin[..., 2].cos()[..., None], origin[..., 2].sin()[..., None]
+    d = xy - origin[..., None, :2]
+    return torch.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1)
 
 
-def _rotate(origin_heading: np.ndarray, v: np.ndarray) -> np.ndarray:
-    c, s = np.cos(origin_heading)[:, None], np.sin(origin_heading)[:, None]
-    return np.stack([c * v[..., 0] + s * v[..., 1], -s * v[..., 0] + c * v[..., 1]], -1)
+def _rotate(heading: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Vectors v [..., K, 2] into frames of heading [...]."""
+    c, s = heading.cos()[..., None], heading.sin()[..., None]
+    return torch.stack([c * v[..., 0] + s * v[..., 1], -s * v[..., 0] + c * v[..., 1]], -1)
 
 
-def _nearest(d2: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Indices [C, k] of the k smallest finite entries per row (nearest first) and their validity."""
-    c, n = d2.shape
-    if n == 0 or k == 0:
-        return np.zeros((c, k), np.int64), np.zeros((c, k), bool)
-    kk = min(k, n)
-    part = np.argpartition(d2, kk - 1, axis=1)[:, :kk] if kk < n else np.broadcast_to(np.arange(n), (c, n)).copy()
-    order = np.argsort(np.take_along_axis(d2, part, 1), axis=1, kind="stable")
-    idx = np.take_along_axis(part, order, 1)
-    ok = np.isfinite(np.take_along_axis(d2, idx, 1))
+def _nearest(d2: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Indices [..., k] of the k smallest finite entries of each row of ``d2`` [..., M] (nearest first)
+    and their validity; rows with fewer than k entries are padded with invalid index 0."""
+    m = d2.shape[-1]
+    kk = min(k, m)
+    if kk == 0:
+        return d2.new_zeros((*d2.shape[:-1], k), dtype=torch.long), torch.zeros((*d2.shape[:-1], k), dtype=torch.bool, device=d2.device)
+    val, idx = smallest_k(d2, kk)  # ties lowest index first: the same agents however the scene is padded
+    ok = torch.isfinite(val)
     if kk < k:
-        idx = np.concatenate([idx, np.zeros((c, k - kk), np.int64)], 1)
-        ok = np.concatenate([ok, np.zeros((c, k - kk), bool)], 1)
-    return idx, ok
+        pad = (*d2.shape[:-1], k - kk)
+        idx = torch.cat([idx, idx.new_zeros(pad)], -1)
+        ok = torch.cat([ok, torch.zeros(pad, dtype=torch.bool, device=d2.device)], -1)
+    return idx.masked_fill(~ok, 0), ok
 
 
-def build_observations(cfg: ObservationConfig, static, ctrl: np.ndarray, pose: np.ndarray, velocity: np.ndarray,
-                       present: np.ndarray, hist_pose: np.ndarray, hist_valid: np.ndarray, progress_m: np.ndarray,
-                       light_state: np.ndarray, light_present: np.ndarray, time_fraction: float) -> np.ndarray:
-    """Observation vectors [C, D] (float32) of the controlled tracks ``ctrl`` [C].
+def _one_hot(index: torch.Tensor, size: int, dtype) -> torch.Tensor:
+    return torch.nn.functional.one_hot(index.clamp(0, size - 1), size).to(dtype)
 
-    pose [N, 3], velocity [N, 2] (local scene frame), present [N], hist_pose [N, H, 3] (oldest
-    first, last = now), hist_valid [N, H], progress_m [C] (route progress of each controlled
-    track), light_state / light_present [L] at the simulated frame.
+
+def _light_codes(states: torch.Tensor) -> torch.Tensor:
+    """[..., 4] one-hot red / yellow / green / unknown of SignalState codes [...]."""
+    red = sum(states == int(s) for s in _RED)
+    yellow = sum(states == int(s) for s in _YELLOW)
+    green = sum(states == int(s) for s in _GREEN)
+    known = red + yellow + green
+    return torch.stack([red, yellow, green, known == 0], -1)
+
+
+def build_observations(cfg: ObservationConfig, scenes: SceneBatch, ctrl_track: torch.Tensor, pose: torch.Tensor,
+                       velocity: torch.Tensor, present: torch.Tensor, hist_pose: torch.Tensor, hist_valid: torch.Tensor,
+                       progress_m: torch.Tensor, frame: torch.Tensor, time_fraction: torch.Tensor) -> torch.Tensor:
+    """Observation vectors [B, C, D] (float32) of the controlled tracks ``ctrl_track`` [B, C] (-1: a
+    padded slot, all zeros).
+
+    pose [B, N, 3], velocity [B, N, 2] (local scene frame), present [B, N], hist_pose [B, N, H, 3]
+    (oldest first, last = now), hist_valid [B, N, H], progress_m [B, C] (route progress of each
+    controlled track), frame [B] the simulated 10 Hz frame (lights are read there), time_fraction [B].
     """
-    c = len(ctrl)
-    out = np.zeros((c, observation_size(cfg)), np.float64)
-    if c == 0:
-        return out.astype(np.float32)
+    b, c = ctrl_track.shape
+    dtype, dev = pose.dtype, pose.device
+    real = ctrl_track >= 0
     lay = {name: (off, size) for name, off, size in observation_layout(cfg)}
-    me = pose[ctrl]  # [C, 3]
-    h0 = me[:, 2]
-
-    def put(name: str, values: np.ndarray) -> None:
-        off, size = lay[name]
-        out[:, off : off + size] = values.reshape(c, size)
-
-    v_local = _rotate(h0, velocity[ctrl][:, None])[:, 0]
-    put("ego_speed", np.linalg.norm(velocity[ctrl], axis=1))
-    put("ego_velocity", v_local)
-    put("ego_size", static.box_size[ctrl, :2])
-    put("ego_type", np.eye(3)[np.clip(static.types[ctrl], 0, 2)])
-    past_idx = hist_pose.shape[1] - 1 - np.asarray(PAST_OFFSETS_FRAMES)
-    past = hist_pose[ctrl][:, past_idx]  # [C, 4, 3]
-    pv = hist_valid[ctrl][:, past_idx]
+    parts: dict[str, torch.Tensor] = {}
+    me = gather_tracks(pose, ctrl_track)  # [B, C, 3]
+    h0 = me[..., 2]
+    my_vel = gather_tracks(velocity, ctrl_track)
+    my_type = gather_tracks(scenes.types, ctrl_track)
+    parts["ego_speed"] = my_vel.norm(dim=-1, keepdim=True)
+    parts["ego_velocity"] = _rotate(h0, my_vel[..., None, :])[..., 0, :]
+    parts["ego_size"] = gather_tracks(scenes.box_size, ctrl_track)[..., :2]
+    parts["ego_type"] = _one_hot(my_type, 3, dtype)
+    past_idx = hist_pose.shape[2] - 1 - torch.tensor(PAST_OFFSETS_FRAMES, device=dev)
+    past = gather_tracks(hist_pose[:, :, past_idx], ctrl_track)  # [B, C, 4, 3]
+    pv = gather_tracks(hist_valid[:, :, past_idx], ctrl_track)
     pxy = _to_local(me, past[..., :2])
-    dh = past[..., 2] - h0[:, None]
-    put("ego_past", np.where(pv[..., None], np.stack([np.ones_like(dh), pxy[..., 0], pxy[..., 1], np.cos(dh), np.sin(dh)], -1), 0.0))
+    dh = past[..., 2] - h0[..., None]
+    ego_past = torch.stack([torch.ones_like(dh), pxy[..., 0], pxy[..., 1], dh.cos(), dh.sin()], -1)
+    parts["ego_past"] = ego_past * pv[..., None]
 
     # K nearest other agents
-    d2 = np.sum((pose[None, :, :2] - me[:, None, :2]) ** 2, -1)  # [C, N]
-    d2 = np.where(present[None, :], d2, np.inf)
-    d2[np.arange(c), ctrl] = np.inf
-    idx, ok = _nearest(d2, cfg.num_agents)
-    oxy = _to_local(me, pose[idx][..., :2])
-    odh = pose[idx][..., 2] - h0[:, None]
-    ov = _rotate(h0, velocity[idx])
-    otype = np.eye(4)[np.clip(static.types[idx], 0, 3)]
-    feats = np.concatenate([np.ones((c, cfg.num_agents, 1)), oxy, np.cos(odh)[..., None], np.sin(odh)[..., None], ov,
-                            static.box_size[idx][..., :2], otype], -1)
-    put("agents", np.where(ok[..., None], feats, 0.0))
+    k = cfg.num_agents
+    d2 = (pose[:, None, :, :2] - me[:, :, None, :2]).square().sum(-1)  # [B, C, N]
+    others = present[:, None, :] & (torch.arange(pose.shape[1], device=dev)[None, None] != ctrl_track[..., None])
+    idx, ok = _nearest(d2.masked_fill(~others, float("inf")), k)  # [B, C, K]
+    other_pose = pose.gather(1, idx.reshape(b, -1, 1).expand(-1, -1, 3)).view(b, c, k, 3)
+    oxy = _to_local(me, other_pose[..., :2])
+    odh = other_pose[..., 2] - h0[..., None]
+    ov = _rotate(h0, velocity.gather(1, idx.reshape(b, -1, 1).expand(-1, -1, 2)).view(b, c, k, 2))
+    osize = scenes.box_size.gather(1, idx.reshape(b, -1, 1).expand(-1, -1, 3)).view(b, c, k, 3)[..., :2]
+    otype = _one_hot(scenes.types.gather(1, idx.reshape(b, -1)).view(b, c, k), 4, dtype)
+    feats = torch.cat([torch.ones_like(odh)[..., None], oxy, odh.cos()[..., None], odh.sin()[..., None], ov, osize, otype], -1)
+    parts["agents"] = feats * ok[..., None]
 
     # M nearest road points
     m = cfg.num_road_points
-    if len(static.road_xy) and m:
-        rd2 = np.sum((static.road_xy[None] - me[:, None, :2]) ** 2, -1)  # [C, P]
-        ridx, rok = _nearest(rd2, m)
-        rxy = _to_local(me, static.road_xy[ridx])
-        rtype = np.eye(NUM_MAP_TYPES)[np.clip(static.road_type[ridx], 0, NUM_MAP_TYPES - 1)]
-        put("road", np.where(rok[..., None], np.concatenate([np.ones((c, m, 1)), rxy, rtype], -1), 0.0))
+    rd2 = (scenes.road_xy[:, None] - me[:, :, None, :2]).square().sum(-1).masked_fill(~scenes.road_valid[:, None], float("inf"))
+    ridx, rok = _nearest(rd2, m)  # [B, C, M]
+    rxy = _to_local(me, scenes.road_xy.gather(1, ridx.reshape(b, -1, 1).expand(-1, -1, 2)).view(b, c, m, 2))
+    rtype = _one_hot(scenes.road_type.gather(1, ridx.reshape(b, -1)).view(b, c, m), NUM_MAP_TYPES, dtype)
+    parts["road"] = torch.cat([torch.ones_like(rxy[..., :1]), rxy, rtype], -1) * rok[..., None]
 
     # logged goal and route progress
-    length = static.route_length_m[ctrl]
-    gxy = _to_local(me, static.goal_xy[ctrl][:, None])[:, 0]
-    has_goal = static.route_valid[ctrl].any(1)
-    frac = np.where(length > 0, progress_m / np.maximum(length, 1e-9), 1.0)
-    goal = np.stack([np.ones(c), gxy[:, 0], gxy[:, 1], np.linalg.norm(gxy, axis=1), frac, np.maximum(length - progress_m, 0.0)], -1)
-    put("goal", np.where(has_goal[:, None], goal, 0.0))
+    length = gather_tracks(scenes.route_length_m, ctrl_track)
+    gxy = _to_local(me, gather_tracks(scenes.goal_xy, ctrl_track)[..., None, :])[..., 0, :]
+    has_goal = gather_tracks(scenes.route_valid, ctrl_track).any(-1)
+    frac = torch.where(length > 0, progress_m / length.clamp(min=1e-9), torch.ones_like(length))
+    goal = torch.stack([torch.ones_like(length), gxy[..., 0], gxy[..., 1], gxy.norm(dim=-1), frac,
+                        (length - progress_m).clamp(min=0.0)], -1)
+    parts["goal"] = goal * has_goal[..., None]
 
     # traffic lights ahead
     nl = cfg.num_lights
-    if len(static.light_xy) and nl:
-        lxy = _to_local(me, np.broadcast_to(static.light_xy[None], (c, *static.light_xy.shape)))
-        ld2 = np.sum(lxy ** 2, -1)
-        ahead = (lxy[..., 0] > 0) & (ld2 <= cfg.light_radius_m ** 2) & light_present[None]
-        lidx, lok = _nearest(np.where(ahead, ld2, np.inf), nl)
-        st = light_state[lidx]
-        onehot = np.stack([np.isin(st, list(_RED)), np.isin(st, list(_YELLOW)), np.isin(st, list(_GREEN)),
-                           ~np.isin(st, list(_RED | _YELLOW | _GREEN))], -1).astype(np.float64)
-        sel = np.take_along_axis(lxy, lidx[..., None], 1)
-        put("lights", np.where(lok[..., None], np.concatenate([np.ones((c, nl, 1)), sel, onehot], -1), 0.0))
-    put("time", np.full(c, float(time_fraction)))
-    return out.astype(np.float32)
+    f = torch.minimum(frame, scenes.num_frames - 1)
+    state = scenes.light_state.gather(1, f[:, None, None].expand(-1, 1, scenes.light_state.shape[2]))[:, 0]  # [B, L]
+    lpresent = scenes.light_present.gather(1, f[:, None, None].expand(-1, 1, scenes.light_present.shape[2]))[:, 0]
+    lxy = _to_local(me, scenes.light_xy[:, None].expand(b, c, -1, 2))  # [B, C, L, 2]
+    ld2 = lxy.square().sum(-1)
+    ahead = (lxy[..., 0] > 0) & (ld2 <= cfg.light_radius_m ** 2) & (lpresent & scenes.light_valid)[:, None]
+    lidx, lok = _nearest(ld2.masked_fill(~ahead, float("inf")), nl)  # [B, C, nl]
+    codes = _light_codes(state.gather(1, lidx.reshape(b, -1)).view(b, c, nl)).to(dtype)
+    sel = lxy.gather(2, lidx[..., None].expand(-1, -1, -1, 2))
+    parts["lights"] = torch.cat([torch.ones_like(sel[..., :1]), sel, codes], -1) * lok[..., None]
+    parts["time"] = time_fraction.to(dtype)[:, None, None].expand(b, c, 1)
+
+    out = torch.zeros(b, c, observation_size(cfg), dtype=dtype, device=dev)
+    for name, (off, size) in lay.items():
+        out[..., off:off + size] = parts[name].reshape(b, c, size).to(dtype)
+    return (out * real[..., None]).to(torch.float32)
+
+
+__all__ = ["HISTORY_FRAMES", "NUM_MAP_TYPES", "ObservationConfig", "PAST_OFFSETS_FRAMES", "build_observations", "observation_layout",
+           "observation_size"]

@@ -23,10 +23,12 @@ id of their type's vocabulary: Discrete(V)); every other agent follows the backg
 With a prior and a non-prior background, the prior still runs (for the logits it exposes): the
 background agents' moves are fed to it as the nearest token, re-anchored at their true poses.
 
-One step, in four files: :meth:`SmartTrafficEnv.step` here calls the dynamics
-(:func:`envs._dynamics.move`: every agent's 5 new frames, the prior's step), updates the state,
-calls the reward (:func:`envs._reward.step_reward`: events, reward terms, termination), lets the
-prior forget agents that are done (:func:`envs._dynamics.release`) and builds the observations
+This module is the environment's PettingZoo face: one scene at a time, dicts keyed by agent name.
+Underneath is the batched core (:class:`envs._core.TrafficCore`, here with one scene), which the
+TorchRL face :mod:`envs.smart_traffic_batched_v0` runs with many: one step is the dynamics
+(:func:`envs._dynamics.move`: every agent's 5 new frames, the prior's step), the state update, the
+reward (:func:`envs._reward.step_reward`: events, reward terms, termination), the prior forgetting
+agents that are done (:func:`envs._dynamics.release`), and the observations
 (:mod:`envs._observation`). Per-scene constants are computed once per scene (:mod:`envs._scene`).
 
 Agents: ``possible_agents`` are the controlled tracks of the current scene, named
@@ -48,10 +50,11 @@ full softmax), ``action_log_prob`` (the prior's full-softmax log-probability of 
 ``collision``, ``offroad``, ``goal_reached`` (this step), ``route_progress_m`` and
 ``reward_terms`` [6] (see :mod:`envs._reward`). Without a prior the three prior keys are absent.
 
-Errors: an action outside the agent's vocabulary, a name that is not an agent of this episode,
-a missing action for a live agent, a step after every agent is done, a scene with no
-controllable agent, and ``prior="embedded"`` before an embedded checkpoint ships all raise
-clear errors. Actions given for agents that are already done are ignored (TorchRL sends one for
+Errors: every argument of the constructor and of ``reset`` is checked before any state is built
+(:mod:`envs._arguments`: its type, range and integrality, an ``EnvConfigError`` naming it); an
+action outside the agent's vocabulary, a name that is not an agent of this episode, a missing action
+for a live agent, a step after every agent is done, a scene with no controllable agent and a prior
+that cannot be loaded all raise clear errors (:mod:`envs.errors`). Actions given for agents that are already done are ignored (TorchRL sends one for
 every agent of its group).
 """
 
@@ -60,7 +63,7 @@ from __future__ import annotations
 import os
 import sys
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Sequence
 
 import gymnasium
 import numpy as np
@@ -70,91 +73,19 @@ from pettingzoo import ParallelEnv
 from pettingzoo.utils import wrappers
 from pettingzoo.utils.conversions import parallel_to_aec_wrapper
 
-from smart_marl.embedded import sample_scenarios
-from smart_marl.model.checkpoint import CheckpointError, load_prior
-from smart_marl.readers import read_scenarios
 from smart_marl.render import BevRenderer, EpisodeRecorder
-from smart_marl.rollout import DEFAULT_TOP_K, RolloutState, reference_log_probs, reference_name, top_k_mask
-from smart_marl.scenario import DT_S, AgentType, Scenario
+from smart_marl.rollout import DEFAULT_TOP_K, reference_log_probs, reference_name, top_k_mask
+from smart_marl.scenario import DT_S, AgentType
 from smart_marl.tokens import FRAMES_PER_TOKEN, MotionVocabulary
 
-from ._dynamics import BACKGROUNDS, Motion, move, release
-from .errors import ActionError, ActionTypeError, EnvConfigError, EnvError, EnvStateError, UnknownAgentError
-from ._observation import HISTORY_FRAMES, ObservationConfig, build_observations, observation_layout, observation_size
-from ._reward import REWARD_TERMS, TERMINATION_EVENTS, RewardConfig, StepReward, route_progress_m, step_reward
+from ._arguments import check_env_arguments, check_reset_arguments
+from ._core import CoreScene, CoreStep, TrafficCore
+from ._dynamics import BACKGROUNDS
+from ._observation import ObservationConfig, observation_layout, observation_size
+from ._reward import REWARD_TERMS, TERMINATION_EVENTS, RewardConfig
 from ._scene import SceneStatic, scene_static
-
-
-# ----------------------------------------------------------------------------- construction
-def _load_prior(prior, motion_vocab: MotionVocabulary | None):
-    """(model or None, motion vocabulary) from the ``prior`` argument (:func:`load_prior`)."""
-    if prior is None:
-        if motion_vocab is None:
-            raise EnvConfigError("prior=None needs motion_vocab=...: the action spaces are the vocabulary's tokens")
-        return None, motion_vocab
-    try:
-        model, vocab = load_prior(prior, "cpu")
-    except CheckpointError as exc:
-        raise EnvConfigError(f"prior: {exc}") from exc
-    return model, motion_vocab if motion_vocab is not None else vocab
-
-
-def _load_scenes(scenarios) -> list[Scenario]:
-    if isinstance(scenarios, Scenario):
-        return [scenarios]
-    if isinstance(scenarios, str) and scenarios == "embedded":
-        return sample_scenarios()
-    if isinstance(scenarios, (str, os.PathLike)):
-        scenes = list(read_scenarios(scenarios))
-    elif isinstance(scenarios, Iterable):
-        scenes = list(scenarios)
-        bad = [type(s).__name__ for s in scenes if not isinstance(s, Scenario)]
-        if bad:
-            raise EnvConfigError(f"scenarios: a list must hold Scenario objects, got {bad[:3]}")
-    else:
-        raise EnvConfigError(f"scenarios must be a path, a Scenario, a list of Scenario or 'embedded', got {type(scenarios).__name__}")
-    if not scenes:
-        raise EnvConfigError(f"scenarios: no scene in {scenarios!r}")
-    return scenes
-
-
-def _controlled_mask(controlled, static: SceneStatic) -> np.ndarray:
-    """[N] bool of the tracks the ``controlled`` selection picks (before max_agents)."""
-    sc = static.scenario
-    n = static.num_tracks
-    if callable(controlled) and not isinstance(controlled, str):
-        mask = np.asarray(controlled(sc), bool)
-        if mask.shape != (n,):
-            raise EnvConfigError(f"controlled: the callable must return a [{n}] bool mask for scene {sc.scenario_id}, got {mask.shape}")
-        return mask & static.controllable
-    mask = np.zeros(n, bool)
-    if controlled == "sdc":
-        if sc.sdc_index >= 0:
-            mask[sc.sdc_index] = True
-        return mask & static.controllable
-    if controlled == "predict":
-        mask[np.asarray(sc.predict_indices, np.int64)] = True
-        return mask & static.controllable
-    if controlled == "vehicles":
-        return static.controllable & (static.types == int(AgentType.VEHICLE))
-    if controlled == "all":
-        return static.controllable.copy()
-    if isinstance(controlled, str):
-        raise EnvConfigError(f"controlled must be 'sdc', 'predict', 'vehicles', 'all', a list of track ids or names, or a "
-                             f"callable(scene) -> mask; got {controlled!r}")
-    ids = {int(i): k for k, i in enumerate(sc.tracks.ids)}
-    for item in controlled:
-        if isinstance(item, str):
-            k = static.name_to_track.get(item)
-        else:
-            k = ids.get(int(item))
-        if k is None:
-            raise EnvConfigError(f"controlled: {item!r} is not a track of scene {sc.scenario_id}")
-        if not static.controllable[k]:
-            raise EnvConfigError(f"controlled: {static.names[k]} of scene {sc.scenario_id} cannot be controlled (only vehicles, "
-                                 f"pedestrians and cyclists present at the current frame can)")
-        mask[k] = True
-    return mask
+from ._setup import load_env_prior, load_scenes, select_controlled
+from .errors import ActionError, ActionTypeError, EnvConfigError, EnvError, EnvStateError, UnknownAgentError
 
 
 def _has_display() -> bool:
@@ -176,50 +107,38 @@ class SmartTrafficEnv(ParallelEnv):
                  scene_order: str = "sequential", motion_vocab: MotionVocabulary | None = None, top_k: int = DEFAULT_TOP_K,
                  temperature: float = 1.0, render_size_px: int = 400, render_radius_m: float = 50.0,
                  reference_top_k: int | None = None, avoid_collisions: bool = True) -> None:
-        if background not in BACKGROUNDS:
-            raise EnvConfigError(f"background must be one of {BACKGROUNDS}, got {background!r}")
-        if int(horizon_steps) < 1:
-            raise EnvConfigError(f"horizon_steps must be >= 1, got {horizon_steps}")
-        if scene_order not in ("sequential", "random"):
-            raise EnvConfigError(f"scene_order must be 'sequential' or 'random', got {scene_order!r}")
-        bad = sorted(set(terminate_on) - set(TERMINATION_EVENTS))
-        if bad:
-            raise EnvConfigError(f"terminate_on: unknown event(s) {bad}; known: {TERMINATION_EVENTS}")
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise EnvConfigError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        a = check_env_arguments(background=background, horizon_steps=horizon_steps, scene_order=scene_order,
+                                terminate_on=terminate_on, render_mode=render_mode, render_modes=self.metadata["render_modes"],
+                                max_agents=max_agents, top_k=top_k, temperature=temperature, reference_top_k=reference_top_k,
+                                render_size_px=render_size_px, render_radius_m=render_radius_m,
+                                avoid_collisions=avoid_collisions, reward=reward, observation=observation, controlled=controlled)
         if render_mode == "human" and not _has_display():
             raise EnvConfigError("render_mode='human' opens a matplotlib window, but there is no display (DISPLAY and "
                                  "WAYLAND_DISPLAY are unset); use render_mode='rgb_array' (and EpisodeRecorder) instead")
-        if max_agents is not None and int(max_agents) < 1:
-            raise EnvConfigError(f"max_agents must be >= 1 or None, got {max_agents}")
-        self.model, self.motion_vocab = _load_prior(prior, motion_vocab)
+        self.model, self.motion_vocab = load_env_prior(prior, motion_vocab)
         if background == "prior" and self.model is None:
             raise EnvConfigError("background='prior' needs a prior (prior=PATH, a model or 'embedded'); with prior=None use "
                                  "background='log' or 'constant_velocity'")
         self.vocab_sizes = {int(t): v.size for t, v in self.motion_vocab.types.items()}
-        if self.model is not None:
-            model_sizes = tuple(int(v) for v in self.model.config.motion_vocab_sizes)
-            if tuple(self.vocab_sizes.get(t, 0) for t in range(3)) != model_sizes:
-                raise EnvConfigError(f"motion_vocab sizes {self.vocab_sizes} do not match the prior's {model_sizes}")
-        self.scenes = _load_scenes(scenarios)
-        self.controlled = controlled
-        self.background = background
-        self.horizon_steps = int(horizon_steps)
-        self.reward_config = RewardConfig.from_any(reward)
-        self.obs_config = observation if isinstance(observation, ObservationConfig) else ObservationConfig(kind=observation)
-        self.render_mode = render_mode
-        self.max_agents = None if max_agents is None else int(max_agents)
-        self.terminate_on = frozenset(terminate_on)
-        self.scene_order = scene_order
-        self.top_k, self.temperature = int(top_k), float(temperature)
-        self.avoid_collisions = bool(avoid_collisions)
-        if reference_top_k is not None and int(reference_top_k) < 1:
-            raise EnvConfigError(f"reference_top_k must be None (the full softmax) or >= 1, got {reference_top_k}")
-        self.reference_top_k = None if reference_top_k is None else int(reference_top_k)
+        self.scenes = load_scenes(scenarios)
+        self.controlled = a["controlled"]
+        self.background = a["background"]
+        self.horizon_steps = a["horizon_steps"]
+        self.reward_config = a["reward"]
+        self.obs_config = a["observation"]
+        self.render_mode = a["render_mode"]
+        self.max_agents = a["max_agents"]
+        self.terminate_on = a["terminate_on"]
+        self.scene_order = a["scene_order"]
+        self.top_k, self.temperature = a["top_k"], a["temperature"]
+        self.avoid_collisions = a["avoid_collisions"]
+        self.reference_top_k = a["reference_top_k"]
         self.reference = reference_name(self.reference_top_k, self.temperature)
-        self.render_size_px, self.render_radius_m = int(render_size_px), float(render_radius_m)
+        self.render_size_px, self.render_radius_m = a["render_size_px"], a["render_radius_m"]
+        self.core = TrafficCore(self.model, self.motion_vocab, self.background, self.horizon_steps, self.reward_config,
+                                self.terminate_on, self.obs_config, self.top_k, self.temperature, self.avoid_collisions,
+                                dtype=torch.float64, prior_cache_size=self.PRIOR_STATE_CACHE, record=True)
         self._statics: dict[int, SceneStatic] = {}
-        self._prior_states: dict[int, RolloutState] = {}
         self._obs_spaces: dict[str, spaces.Space] = {}
         self._act_spaces: dict[str, spaces.Space] = {}
         self._np_random = np.random.default_rng()
@@ -228,9 +147,9 @@ class SmartTrafficEnv(ParallelEnv):
         self._renderer_scene = None
         self._recorder = None
         self._human_fig = None
-        self.rollout_state = None
         self.scene_index = -1
         self.agents: list[str] = []
+        self._last: CoreStep | None = None
         # the first scene's agents, so that spaces and possible_agents exist before reset()
         self._select_scene(0)
 
@@ -261,7 +180,7 @@ class SmartTrafficEnv(ParallelEnv):
     def _agent_type_of_name(self, agent: str) -> int:
         if agent not in self._obs_spaces and agent not in self._act_spaces and agent not in self.possible_agents:
             raise UnknownAgentError(f"unknown agent {agent!r}: the agents of this episode are {self.possible_agents[:8]}"
-                           f"{' ...' if len(self.possible_agents) > 8 else ''}")
+                                    f"{' ...' if len(self.possible_agents) > 8 else ''}")
         return int(AgentType[agent.rsplit("_", 1)[0].upper()])
 
     # ------------------------------------------------------------------------------- scenes
@@ -273,17 +192,10 @@ class SmartTrafficEnv(ParallelEnv):
 
     def _select_scene(self, index: int) -> None:
         st = self._static(index)
-        mask = _controlled_mask(self.controlled, st)
-        ctrl = np.flatnonzero(mask)
+        ctrl = select_controlled(self.controlled, st, self.max_agents)
         if len(ctrl) == 0:
             raise EnvConfigError(f"scene {st.scenario.scenario_id} has no controllable agent for controlled={self.controlled!r} "
                                  f"(only vehicles, pedestrians and cyclists present at the current frame can be controlled)")
-        if self.max_agents is not None and len(ctrl) > self.max_agents:
-            sc = st.scenario
-            cf = sc.current_frame
-            ref = sc.tracks.position[sc.sdc_index, cf, :2] if sc.sdc_index >= 0 else sc.tracks.position[ctrl, cf, :2].mean(0)
-            d = np.linalg.norm(sc.tracks.position[ctrl, cf, :2] - ref, axis=1)
-            ctrl = np.sort(ctrl[np.argsort(d, kind="stable")[: self.max_agents]])
         self.scene_index = index
         self.static = st
         self.ctrl_tracks = ctrl  # [C] track indices of possible_agents, in order
@@ -292,58 +204,18 @@ class SmartTrafficEnv(ParallelEnv):
 
     # -------------------------------------------------------------------------------- reset
     def reset(self, seed: int | None = None, options: dict | None = None):
-        options = options or {}
+        seed, index = check_reset_arguments(seed, options, len(self.scenes))  # envs._arguments: refused with a named error
         if seed is not None:
             self._np_random = np.random.default_rng(seed)
-        if "scene_index" in options:
-            index = int(options["scene_index"])
-            if not 0 <= index < len(self.scenes):
-                raise EnvConfigError(f"options['scene_index'] = {index} is outside 0..{len(self.scenes) - 1}")
-        elif self.scene_order == "random":
-            index = int(self._np_random.integers(len(self.scenes)))
-        else:
-            index = self._next_scene % len(self.scenes)
+        if index is None:
+            index = (int(self._np_random.integers(len(self.scenes))) if self.scene_order == "random"
+                     else self._next_scene % len(self.scenes))
         self._next_scene = index + 1
         self._select_scene(index)
         prior_seed = int(seed) if seed is not None else int(self._np_random.integers(2**31))
-        st = self.static
-        sc = st.scenario
-        tr, cf = sc.tracks, sc.current_frame
-        n = st.num_tracks
-        self.frame = cf
-        self.step_count = 0
-        self.pose = np.concatenate([tr.position[:, cf, :2], tr.heading[:, cf, None]], -1).astype(np.float64)  # [N, 3]
-        self.velocity = tr.velocity[:, cf].astype(np.float64)
-        self.present = tr.valid[:, cf].copy()
-        self.in_sim = self.present.copy()  # the agents of this episode: valid at the current frame (WOSAC's rule)
-        self.cv_velocity = self.velocity.copy()
-        h0 = cf + 1 - HISTORY_FRAMES
-        lo = max(h0, 0)
-        self.hist_pose = np.zeros((n, HISTORY_FRAMES, 3))
-        self.hist_valid = np.zeros((n, HISTORY_FRAMES), bool)
-        self.hist_pose[:, lo - h0 :, :2] = tr.position[:, lo : cf + 1, :2]
-        self.hist_pose[:, lo - h0 :, 2] = tr.heading[:, lo : cf + 1]
-        self.hist_valid[:, lo - h0 :] = tr.valid[:, lo : cf + 1]
-        self.episode_poses: list[np.ndarray] = []  # per step [N, 5, 3]
-        self.episode_present: list[np.ndarray] = []  # per step [N]
+        self.core.reset([CoreScene(self.static, self.ctrl_tracks, key=index)], prior_seed)
         self.agents = list(self.possible_agents)
-        self._done_tracks = np.zeros(n, bool)
-        self._goal_done = np.zeros(n, bool)
-        self.progress_m = np.zeros(n)
-        self.progress_m[self.ctrl_tracks] = route_progress_m(st, self.ctrl_tracks, self.pose[self.ctrl_tracks, :2])
-        # the prior
-        self.rollout_state = None
-        self.slot_of_track = np.full(n, -1, np.int64)
-        self._next_logits = None
-        if self.model is not None:
-            self.rollout_state = self._start_prior(index, prior_seed)
-            ti = self.rollout_state.track_index[0].cpu().numpy()
-            ok = ti >= 0
-            self.slot_of_track[ti[ok]] = np.flatnonzero(ok)
-            self._next_logits = self.rollout_state.logits()[0]
-        self._last_events = {k: np.zeros(n, bool) for k in ("collision", "offroad", "goal_reached")}
-        self._last_terms = np.zeros((n, len(REWARD_TERMS)))
-        self._last_action_logp = np.zeros(n)
+        self._last = None
         obs = self._observations(self.agents)
         infos = self._infos(self.agents)
         if self._recorder is not None:
@@ -353,22 +225,51 @@ class SmartTrafficEnv(ParallelEnv):
             self.render()
         return obs, infos
 
-    def _start_prior(self, index: int, seed: int) -> RolloutState:
-        """A fresh :class:`RolloutState` of scene ``index`` whose sampler is seeded with ``seed``.
+    # ------------------------------------------------------- the core's state, as numpy (scene 0)
+    def _row(self, t: torch.Tensor) -> np.ndarray:
+        return t[0, : self.static.num_tracks].cpu().numpy()
 
-        Starting one tokenizes the history and encodes the road (~0.4 s for smart-1m on an
-        80-agent scene); a state is deterministic up to its generator, which is not used before the
-        first step, so the env keeps each scene's freshly started state (up to
-        ``PRIOR_STATE_CACHE`` scenes) and hands out forks of it (:meth:`RolloutState.fork`)."""
-        pristine = self._prior_states.pop(index, None)
-        if pristine is None:
-            pristine = RolloutState.start(self.model, self.scenes[index], num_rollouts=1, seed=0, top_k=self.top_k,
-                                          temperature=self.temperature, motion_vocab=self.motion_vocab,
-                                          avoid_collisions=self.avoid_collisions)
-        self._prior_states[index] = pristine  # most recent last
-        while len(self._prior_states) > self.PRIOR_STATE_CACHE:
-            self._prior_states.pop(next(iter(self._prior_states)))
-        return pristine.fork(seed)
+    @property
+    def pose(self) -> np.ndarray:
+        """[N, 3] every track's pose now (x, y, heading, the scene's local frame)."""
+        return self._row(self.core.pose)
+
+    @property
+    def velocity(self) -> np.ndarray:
+        """[N, 2] every track's velocity over the last 0.1 s (m/s)."""
+        return self._row(self.core.velocity)
+
+    @property
+    def present(self) -> np.ndarray:
+        """[N] bool, the tracks in the scene now."""
+        return self._row(self.core.present)
+
+    @property
+    def hist_pose(self) -> np.ndarray:
+        return self._row(self.core.hist_pose)
+
+    @property
+    def hist_valid(self) -> np.ndarray:
+        return self._row(self.core.hist_valid)
+
+    @property
+    def frame(self) -> int:
+        """The simulated 10 Hz frame of the scene."""
+        return int(self.core.frame[0])
+
+    @property
+    def step_count(self) -> int:
+        return int(self.core.step_count[0])
+
+    @property
+    def slot_of_track(self) -> np.ndarray:
+        """[N] each track's slot in the prior's state (-1: none)."""
+        return self._row(self.core.slot_of_track)
+
+    @property
+    def rollout_state(self):
+        """The prior's :class:`~smart_marl.rollout.RolloutState` of this episode (None without a prior)."""
+        return self.core.prior
 
     # ------------------------------------------------------------------------ observations
     def _light_state(self) -> tuple[np.ndarray, np.ndarray]:
@@ -376,49 +277,48 @@ class SmartTrafficEnv(ParallelEnv):
         f = min(self.frame, tl.num_frames - 1)
         return tl.states[f].astype(np.int64), tl.present[f]
 
+    def _slots(self, agents: list[str]) -> list[int]:
+        return [self.possible_agents.index(a) for a in agents]
+
+    def _prior_rows(self) -> np.ndarray | None:
+        """[C, Vmax] the prior's logits of each controlled agent's next token (zeros when done)."""
+        logits = self.core.prior_logits()
+        return None if logits is None else logits[0].to(torch.float32).cpu().numpy()
+
     def _observations(self, agents: list[str]) -> dict[str, Any]:
         if not agents:
             return {}
-        tracks = np.array([self._agent_track[a] for a in agents], np.int64)
-        state, present = self._light_state()
-        vec = build_observations(self.obs_config, self.static, tracks, self.pose, self.velocity, self.present, self.hist_pose,
-                                 self.hist_valid, self.progress_m[tracks], state, present, self.step_count / self.horizon_steps)
+        vec = self.core.observations()[0].cpu().numpy()
+        slots = self._slots(agents)
         if self.obs_config.kind == "vector":
-            return {a: vec[i] for i, a in enumerate(agents)}
+            return {a: vec[i] for a, i in zip(agents, slots)}
+        prior = self._prior_rows()
         out = {}
-        for i, (a, k) in enumerate(zip(agents, tracks)):
-            v = self.vocab_sizes[int(self.static.types[k])]
+        for a, i in zip(agents, slots):
+            v = self.vocab_sizes[int(self.static.types[self.ctrl_tracks[i]])]
             d = {"observation": vec[i], "action_mask": np.ones(v, np.int8)}
-            if self.model is not None:
-                d["prior_logits"] = self._agent_logits(k, v)
+            if prior is not None:
+                d["prior_logits"] = prior[i, :v].copy()
                 if self.reference_top_k and d["prior_logits"].any():
                     d["action_mask"] = top_k_mask(torch.from_numpy(d["prior_logits"]), self.reference_top_k).numpy().astype(np.int8)
             out[a] = d
         return out
 
-    def _agent_logits(self, track: int, v: int) -> np.ndarray:
-        """The prior's logits [V] of a track's next token (zeros when it is done or not simulated)."""
-        if self._next_logits is None or self._done_tracks[track] or self.slot_of_track[track] < 0:
-            return np.zeros(v, np.float32)
-        row = self._next_logits[self.slot_of_track[track], :v]
-        if not torch.isfinite(row).all():
-            return np.zeros(v, np.float32)
-        return row.numpy().astype(np.float32)
-
     def _infos(self, agents: list[str]) -> dict[str, dict]:
+        last = self._last
+        prior = self._prior_rows() if self.model is not None else None
         out = {}
-        for a in agents:
-            k = self._agent_track[a]
+        for a, i in zip(agents, self._slots(agents)):
             info = {
-                "collision": bool(self._last_events["collision"][k]),
-                "offroad": bool(self._last_events["offroad"][k]),
-                "goal_reached": bool(self._last_events["goal_reached"][k]),
-                "route_progress_m": float(self.progress_m[k]),
-                "reward_terms": self._last_terms[k].astype(np.float32),
+                "collision": bool(last.collision[0, i]) if last is not None else False,
+                "offroad": bool(last.offroad[0, i]) if last is not None else False,
+                "goal_reached": bool(last.goal_reached[0, i]) if last is not None else False,
+                "route_progress_m": float(self.core.progress_m[0, i]),
+                "reward_terms": (last.terms[0, i].cpu().numpy() if last is not None else np.zeros(len(REWARD_TERMS))).astype(np.float32),
             }
-            if self.model is not None:
-                v = self.vocab_sizes[int(self.static.types[k])]
-                logits = self._agent_logits(k, v)
+            if prior is not None:
+                v = self.vocab_sizes[int(self.static.types[self.ctrl_tracks[i]])]
+                logits = prior[i, :v].copy()
                 info["prior_logits"] = logits
                 if logits.any():
                     info["prior_log_probs"] = reference_log_probs(torch.from_numpy(logits), self.reference_top_k,
@@ -426,7 +326,7 @@ class SmartTrafficEnv(ParallelEnv):
                 else:
                     info["prior_log_probs"] = np.zeros(v, np.float32)
                 info["reference_top_k"] = int(self.reference_top_k or 0)
-                info["action_log_prob"] = float(self._last_action_logp[k])
+                info["action_log_prob"] = float(last.action_log_prob[0, i]) if last is not None else 0.0
             out[a] = info
         return out
 
@@ -440,7 +340,7 @@ class SmartTrafficEnv(ParallelEnv):
         unknown = [a for a in actions if a not in self._agent_track]
         if unknown:
             raise UnknownAgentError(f"unknown agent(s) {unknown[:5]}: the agents of this episode are {self.possible_agents[:8]}"
-                           f"{' ...' if len(self.possible_agents) > 8 else ''}")
+                                    f"{' ...' if len(self.possible_agents) > 8 else ''}")
         missing = [a for a in self.agents if a not in actions]
         if missing:
             raise ActionError(f"no action for live agent(s) {missing[:5]}: every agent in env.agents needs a token id")
@@ -464,76 +364,27 @@ class SmartTrafficEnv(ParallelEnv):
     def step(self, actions: dict):
         tokens = self._check_actions(actions)
         live_names = list(self.agents)
-        ctrl, ctrl_tokens = self.ctrl_tracks[tokens >= 0], tokens[tokens >= 0]  # the live controlled agents
-        # 1. dynamics: every agent's 5 new frames (the prior, if any, takes its step here)
-        motion = move(self.static, self.background, self.motion_vocab, self.rollout_state, self.slot_of_track, self.pose,
-                      self.present, self.in_sim, self._done_tracks, self.frame, self.cv_velocity, ctrl, ctrl_tokens)
-        self._advance(motion)
-        # 2. events, rewards and termination of the controlled agents
-        r = step_reward(self.static, self.reward_config, self.terminate_on, ctrl, motion.frames, motion.present,
-                        self.hist_pose[ctrl], self.hist_valid[ctrl], self.progress_m[ctrl], self._goal_done[ctrl],
-                        motion.action_log_prob[ctrl])
-        truncated = self.step_count >= self.horizon_steps
-        done = r.terminated | truncated
-        self._record_outcome(ctrl, r, motion.action_log_prob, done)
-        # 3. the prior forgets done agents and log agents that left; its logits of the next step
-        if self.rollout_state is not None:
-            release(self.rollout_state, self.slot_of_track, self._done_tracks | ~self.present)
-            self._next_logits = self.rollout_state.logits()[0] if not bool(done.all()) else None
-        # a terminated controlled agent leaves the scene (truncation ends the episode: everyone stays drawn)
-        self.present[ctrl[r.terminated]] = False
-
+        actions_t = torch.zeros(1, self.core.num_agents, dtype=torch.long)
+        actions_t[0, : len(tokens)] = torch.from_numpy(tokens.clip(min=0))
+        self._last = r = self.core.step(actions_t)
+        slots = self._slots(live_names)
+        rewards = {a: float(r.reward[0, i]) for a, i in zip(live_names, slots)}
+        terminations = {a: bool(r.terminated[0, i]) for a, i in zip(live_names, slots)}
+        truncations = {a: bool(r.truncated[0, i]) for a, i in zip(live_names, slots)}
         obs = self._observations(live_names)
         infos = self._infos(live_names)
-        rewards = {a: float(x) for a, x in zip(live_names, r.reward)}
-        terminations = {a: bool(t) for a, t in zip(live_names, r.terminated)}
-        truncations = {a: bool(truncated and not t) for a, t in zip(live_names, r.terminated)}
-        self.agents = [a for a, d in zip(live_names, done) if not d]
+        self.agents = [a for a in live_names if not (terminations[a] or truncations[a])]
         if self._recorder is not None:
             self._recorder.add(self._render_frame())
         if self.render_mode == "human":
             self.render()
         return obs, rewards, terminations, truncations, infos
 
-    def _advance(self, motion: Motion) -> None:
-        """The state update of a step: poses, velocities, the pose history, who is present, the clock."""
-        frames = motion.frames
-        self.pose = frames[:, -1].copy()
-        self.velocity = (frames[:, -1, :2] - frames[:, -2, :2]) / DT_S
-        self.hist_pose = np.concatenate([self.hist_pose[:, FRAMES_PER_TOKEN:], frames], 1)
-        self.hist_valid = np.concatenate([self.hist_valid[:, FRAMES_PER_TOKEN:],
-                                          np.repeat(motion.present[:, None], FRAMES_PER_TOKEN, 1)], 1)
-        self.present = motion.present
-        self.frame += FRAMES_PER_TOKEN
-        self.step_count += 1
-        self.episode_poses.append(frames.copy())
-        self.episode_present.append(motion.present.copy())
-
-    def _record_outcome(self, ctrl: np.ndarray, r: StepReward, action_log_prob: np.ndarray, done: np.ndarray) -> None:
-        """Per-track bookkeeping of the controlled agents' outcome (what infos report), and who is done."""
-        n = self.static.num_tracks
-        self.progress_m[ctrl] = r.progress_m
-        self._goal_done[ctrl] |= r.goal_reached
-        self._last_terms = np.zeros((n, len(REWARD_TERMS)))
-        self._last_terms[ctrl] = r.terms
-        self._last_action_logp = np.zeros(n)
-        self._last_action_logp[ctrl] = action_log_prob[ctrl]
-        self._last_events = {k: np.zeros(n, bool) for k in ("collision", "offroad", "goal_reached")}
-        self._last_events["collision"][ctrl] = r.collision
-        self._last_events["offroad"][ctrl] = r.offroad
-        self._last_events["goal_reached"][ctrl] = r.goal_reached
-        self._done_tracks[ctrl[done]] = True
-
     # ----------------------------------------------------------------------------- results
     def trajectories(self) -> tuple[np.ndarray, np.ndarray]:
         """This episode's 10 Hz poses so far: ([N, 5 * steps, 3] x, y, heading in the scene's local
         frame, [N, 5 * steps] present), every track of the scene (frames current + 1 ...)."""
-        n = self.static.num_tracks
-        if not self.episode_poses:
-            return np.zeros((n, 0, 3)), np.zeros((n, 0), bool)
-        poses = np.concatenate(self.episode_poses, 1)
-        present = np.repeat(np.stack(self.episode_present, 1), FRAMES_PER_TOKEN, 1)
-        return poses, present
+        return self.core.trajectories(0)
 
     # --------------------------------------------------------------------------- rendering
     def _render_frame(self) -> np.ndarray:
@@ -556,7 +407,7 @@ class SmartTrafficEnv(ParallelEnv):
         if self.render_mode is None:
             gymnasium.logger.warn("render() without a render_mode: pass render_mode='rgb_array' or 'human' to parallel_env()")
             return None
-        if not hasattr(self, "pose"):
+        if self.core.scenes is None:
             raise EnvStateError("render() before reset()")
         frame = self._render_frame()
         if self.render_mode == "rgb_array":
@@ -575,7 +426,7 @@ class SmartTrafficEnv(ParallelEnv):
     def start_recording(self, path: str | os.PathLike, fps: float | None = None) -> None:
         """Record one bird's-eye frame per token step (from the next reset or now) to a GIF or MP4."""
         self._recorder = EpisodeRecorder(path, fps=fps or self.metadata["render_fps"])
-        if hasattr(self, "pose"):
+        if self.core.scenes is not None:
             self._recorder.add(self._render_frame())
 
     def save_recording(self) -> Path:

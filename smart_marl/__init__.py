@@ -8,6 +8,7 @@ SMART model -> rollouts -> PettingZoo environment -> fine-tuning -> metrics.
 from .errors import ScenarioReadError, ScenarioValidationError, SmartMarlError, UnknownFormatError
 from .readers import detect_format, read_scenario, read_scenarios
 from .scenario import (
+    CURRENT_FRAME,
     DT_S,
     AgentType,
     LaneType,
@@ -25,7 +26,7 @@ from .scenario import (
 from .version import __version__
 
 __all__ = [
-    "DT_S", "AgentType", "LaneType", "LinkType", "MapFeatureType", "RoadEdgeType", "RoadLineType",
+    "CURRENT_FRAME", "DT_S", "AgentType", "LaneType", "LinkType", "MapFeatureType", "RoadEdgeType", "RoadLineType",
     "RoadMap", "SceneFrame", "Scenario", "SignalState", "TrafficLights", "Tracks",
     "ScenarioReadError", "ScenarioValidationError", "SmartMarlError", "UnknownFormatError",
     "detect_format", "read_scenario", "read_scenarios", "__version__",

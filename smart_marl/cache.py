@@ -31,8 +31,8 @@ from tqdm import tqdm
 from .errors import ScenarioReadError, SmartMarlError, UsageError
 from .readers import expand_paths, read_scenarios
 from .readers.scene_cache import (
-    MANIFEST, MANIFEST_KIND, SHARD_SUFFIX, ShardReader, atomic_write, is_cache_dir, load_manifest, read_manifest, scene_entry,
-    shard_name_problem, write_manifest, write_shard,
+    MANIFEST, MANIFEST_KIND, SHARD_SUFFIX, ShardReader, atomic_write, file_sha256, is_cache_dir, listed_scene, load_manifest,
+    open_listed_shard, read_manifest, scene_entry, shard_name_problem, write_manifest, write_shard,
 )
 from .scenario import Scenario
 from .workers import worker_pool
@@ -72,22 +72,12 @@ class SceneCache:
     def _reader(self, k: int) -> ShardReader:
         reader = self._readers.get(k)
         if reader is None:
-            shard = self.manifest["shards"][k]
-            reader = ShardReader(self.root / shard["file"])
-            if len(reader) != len(shard["scenes"]):
-                reader.close()
-                raise ScenarioReadError(reader.path, f"holds {len(reader)} scenes, the manifest lists {len(shard['scenes'])}")
-            self._readers[k] = reader
+            reader = self._readers[k] = open_listed_shard(self.root, self.manifest["shards"][k])
         return reader
 
     def __getitem__(self, i: int) -> Scenario:
         k, j = self._locations[i]
-        scenario = self._reader(k)[j]
-        listed = self.manifest["shards"][k]["scenes"][j]["scenario_id"]
-        if scenario.scenario_id != listed:
-            raise ScenarioReadError(self._readers[k].path, f"holds scene {scenario.scenario_id!r} where the manifest lists "
-                                                           f"{listed!r}", record=j)
-        return scenario
+        return listed_scene(self._reader(k), self.manifest["shards"][k], j)
 
     def __iter__(self) -> Iterator[Scenario]:
         for i in range(len(self)):
@@ -133,7 +123,7 @@ def _process_file(path: str, out: str, scenes_per_shard: int, reader_format: str
         nonlocal nbytes
         name = f"{stem}-{key[:8]}-{len(shards):04d}{SHARD_SUFFIX}"
         nbytes += write_shard(out_dir / name, pending)
-        shards.append({"file": name, "scenes": [scene_entry(s, name) for s in pending]})
+        shards.append({"file": name, "scenes": [scene_entry(s, name) for s in pending], "sha256": file_sha256(out_dir / name)})
         pending.clear()
 
     try:
@@ -173,7 +163,8 @@ def _load_marker(out_dir: Path, path: str, check_stamp: bool = True) -> dict[str
 
 def _write_manifest(out_dir: Path, inputs: list[str], markers: dict[str, dict], skipped: list[dict]) -> None:
     """The manifest of a preprocess run: the shards of every finished input, in input order."""
-    shards = [{"file": shard["file"], "input": markers[path]["input"], "scenes": shard["scenes"]}
+    shards = [{"file": shard["file"], "input": markers[path]["input"], "scenes": shard["scenes"],
+               **({"sha256": shard["sha256"]} if isinstance(shard.get("sha256"), str) else {})}
               for path in inputs if markers.get(path) for shard in markers[path]["shards"]]
     write_manifest(out_dir, shards, inputs=[os.path.abspath(p) for p in inputs], skipped=skipped)
 

@@ -1,6 +1,7 @@
 """Config files and ``key=value`` overrides, the one reader that ``smart-marl train`` and
 ``smart-marl finetune`` share, and the checks of the values in them: :func:`check_fields` with the
-rules :func:`integer`, :func:`number`, :func:`text`, :func:`flag`, :func:`optional`, and the
+rules :func:`integer`, :func:`number`, :func:`seed`, :func:`text`, :func:`flag`, :func:`optional`,
+:func:`one_of`, :func:`sequence`, :func:`interval`, :func:`probabilities` (and :func:`check_value` for a single value), and the
 problems of a device name (:func:`device_problem`) or an output folder (:func:`output_dir_problem`),
 which the command line's argument types use too."""
 
@@ -9,12 +10,15 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import numbers
 import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from .errors import check_regular_file
+import numpy as np
+
+from .errors import check_regular_file, on_kernel_file_system
 
 Rule = Callable[[Any], "str | None"]
 """A check of one config value: None when it is fine, else what is wrong with it."""
@@ -31,6 +35,22 @@ def parse_value(text: str) -> Any:
         if low in ("true", "false"):
             return low == "true"
         return text
+
+
+def strict_json(value: Any, **kwargs: Any) -> str:
+    """``json.dumps`` that writes JSON: NaN and infinities (which Python writes as ``NaN``/``Infinity``,
+    which no JSON parser takes) become ``null``; numpy numbers and other objects go through ``float``."""
+    def clean(v):
+        if isinstance(v, (float, np.floating)):
+            v = float(v)
+            return v if math.isfinite(v) else None
+        if isinstance(v, Mapping):
+            return {k: clean(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [clean(x) for x in v]
+        return v
+    return json.dumps(clean(value), allow_nan=False, **kwargs,
+                      default=lambda v: int(v) if isinstance(v, numbers.Integral) else clean(float(v)))
 
 
 def split_override(text: str, error: type[Exception]) -> tuple[str, Any]:
@@ -67,7 +87,9 @@ def apply_overrides(values: dict[str, Any], overrides, fields_of: type, nested: 
     for key, val in items:
         if key.startswith(prefix + "."):
             group[key[len(prefix) + 1:]] = val
-        elif key == nested and isinstance(val, Mapping):
+        elif key == nested:
+            if not isinstance(val, Mapping):  # it would be dropped for the file's: refuse it instead
+                raise error(f"{what} config: {nested} must be a mapping ({{...}}) or set as {prefix}.KEY=VALUE, got {val!r}")
             group = dict(val)
         else:
             values[key] = val
@@ -89,42 +111,87 @@ def apply_command_flags(cfg, args) -> None:
 
 
 # ------------------------------------------------------------------------------ value checks
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
+# The one way a value a user gives is checked (issue 34): a rule takes the value and says what is wrong
+# with it (None when it is fine), naming the value and what is allowed; :func:`check_value` and
+# :func:`check_fields` turn a problem into the caller's SmartMarlError naming the argument. The
+# environment's arguments (envs/_arguments.py), every config dataclass (train, finetune, SUMO, the model,
+# what-if edits) and the command line's argument types (smart_marl.commands.arguments) use these rules.
+MAX_SEED = 2**63 - 1
+"""The largest seed taken anywhere (numpy, torch and Python generators all accept 0..2**63 - 1)."""
 
 
-def integer(low: int | None = None) -> Rule:
-    """An int (not a bool, not a float) >= ``low``."""
+def is_integer(value: Any) -> bool:
+    """An int or a numpy integer; never a bool, a float (not even 2.0) or a string."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def is_number(value: Any) -> bool:
+    """A finite int or float (numpy ones too) that a float64 holds; never a bool, NaN, an infinity, an
+    integer beyond 1.7e308 or a string."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return False
+    if isinstance(value, numbers.Integral):
+        return abs(int(value)) <= 1.7e308  # exact comparison: math.isfinite would overflow on 10**400
+    return math.isfinite(value)
+
+
+def shown(value: Any, form=repr, width: int = 80) -> str:
+    """``value`` for an error message: its repr (or ``form``), cut to ``width`` characters."""
+    text = form(value)
+    return text if len(text) <= width else text[: width - 3] + "..."
+
+
+def _limit(high, why: str) -> str:
+    return f"{high}{f' ({why})' if why else ''}"
+
+
+def integer(low: int | None = None, high: int | None = None, why: str = "") -> Rule:
+    """An integer (:func:`is_integer`) in [low, high]; ``why`` says where the upper limit comes from."""
+    allowed = (f"{low}..{high}" if low is not None and high is not None else f">= {low}" if low is not None
+               else f"<= {high}" if high is not None else "")
+
     def rule(value):
-        if not _is_int(value):
-            return f"must be an integer, got {value!r}"
+        if not is_integer(value):
+            return f"must be an integer, got {shown(value)}" + (f" (allowed: {allowed})" if allowed else "")
         if low is not None and value < low:
-            return f"must be at least {low}, got {value}"
+            return f"must be at least {low}, got {shown(value, str)}"
+        if high is not None and value > high:
+            return f"must be at most {_limit(high, why)}, got {shown(value, str)}"
         return None
     return rule
 
 
-def number(low: float | None = None, high: float | None = None, low_open: bool = False, high_open: bool = False) -> Rule:
-    """A finite int or float in [low, high] (an open end with ``low_open`` / ``high_open``)."""
+def number(low: float | None = None, high: float | None = None, low_open: bool = False, high_open: bool = False,
+           why: str = "") -> Rule:
+    """A finite number (:func:`is_number`) in [low, high] (an open end with ``low_open`` / ``high_open``);
+    ``why`` says where the upper limit comes from."""
+    lows = f"{'>' if low_open else '>='} {low}" if low is not None else ""
+    highs = f"{'<' if high_open else '<='} {high}" if high is not None else ""
+    allowed = " and ".join(x for x in (lows, highs) if x)
+
     def rule(value):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            return f"must be a finite number, got {value!r}"
+        if not is_number(value):
+            return f"must be a finite number, got {shown(value)}" + (f" (allowed: {allowed})" if allowed else "")
         if low is not None and (value <= low if low_open else value < low):
-            return f"must be {'>' if low_open else '>='} {low}, got {value}"
+            return f"must be {lows}, got {shown(value, str)}"
         if high is not None and (value >= high if high_open else value > high):
-            return f"must be {'<' if high_open else '<='} {high}, got {value}"
+            return f"must be {'<' if high_open else '<='} {_limit(high, why)}, got {shown(value, str)}"
         return None
     return rule
+
+
+seed = integer(0, MAX_SEED, "the largest seed the random generators take")
+"""A random seed: an integer in 0..2**63 - 1."""
 
 
 def text(value: Any) -> str | None:
     """A string."""
-    return None if isinstance(value, str) else f"must be a string, got {value!r}"
+    return None if isinstance(value, str) else f"must be a string, got {shown(value)}"
 
 
 def flag(value: Any) -> str | None:
-    """A boolean (true/false)."""
-    return None if isinstance(value, bool) else f"must be true or false, got {value!r}"
+    """A boolean (true/false; a numpy bool too), never the string "false" or a number."""
+    return None if isinstance(value, (bool, np.bool_)) else f"must be true or false, got {shown(value)}"
 
 
 def optional(rule: Rule) -> Rule:
@@ -132,12 +199,78 @@ def optional(rule: Rule) -> Rule:
     return lambda value: None if value is None else rule(value)
 
 
+def one_of(*options: Any) -> Rule:
+    """One of ``options`` (compared with ==; a value of another type is refused, not converted)."""
+    def rule(value):
+        try:
+            ok = any(type(value) is type(o) and value == o for o in options)
+        except Exception:  # noqa: BLE001 - a value whose == raises (an array...) is not an option
+            ok = False
+        return None if ok else f"must be one of {', '.join(map(repr, options))}, got {shown(value)}"
+    return rule
+
+
+def sequence(rule: Rule, length: int | None = None, min_length: int = 0, max_length: int | None = None) -> Rule:
+    """A list or tuple whose items each pass ``rule``: exactly ``length`` items, or min..max_length."""
+    def check(value):
+        if not isinstance(value, (list, tuple)):
+            return f"must be a list, got {shown(value)}"
+        n = len(value)
+        if length is not None and n != length:
+            return f"must be a list of {length} item(s), got {n}"
+        if n < min_length or (max_length is not None and n > max_length):
+            return f"must be a list of {min_length}..{max_length if max_length is not None else 'any'} items, got {n}"
+        for i, item in enumerate(value):
+            problem = rule(item)
+            if problem:
+                return f"[{i}] {problem}"
+        return None
+    return check
+
+
+def interval(low: float | None = None, high: float | None = None, low_open: bool = False) -> Rule:
+    """A (lo, hi) pair of finite numbers in [low, high] (lo > low with ``low_open``) with lo <= hi."""
+    item = number(low, high, low_open=low_open)
+    pair = sequence(item, length=2)
+
+    def rule(value):
+        problem = pair(value)
+        if problem:
+            return problem
+        return None if value[0] <= value[1] else f"must be a range (low, high) with low <= high, got {shown(value)}"
+    return rule
+
+
+def probabilities(length: int | None = None) -> Rule:
+    """A list of ``length`` finite numbers >= 0 that add up to 1 (a probability per choice)."""
+    items = sequence(number(0.0, 1.0), length=length, min_length=1)
+
+    def rule(value):
+        problem = items(value)
+        if problem:
+            return problem
+        return None if abs(sum(value) - 1.0) <= 1e-6 else f"must add up to 1 (probabilities), got {shown(value)} (sum {sum(value):g})"
+    return rule
+
+
+def check_value(name: str, value: Any, rule: Rule, error: Callable[[str], Exception], what: str = "") -> Any:
+    """``value`` when ``rule`` accepts it, else ``error("{what}: {name} {problem}")`` (the argument, the
+    value and what is allowed, in one line)."""
+    problem = rule(value)
+    if problem:
+        raise error(f"{what + ': ' if what else ''}{name} {problem}")
+    return value
+
+
 def check_fields(cfg: Any, rules: Mapping[str, Rule], what: str, error: type[Exception]) -> None:
     """Raise ``error`` naming the first field of ``cfg`` whose value its rule refuses."""
     for name, rule in rules.items():
-        problem = rule(getattr(cfg, name))
-        if problem:
-            raise error(f"{what} config: {name} {problem}")
+        check_value(name, getattr(cfg, name), rule, error, f"{what} config")
+
+
+def unruled_fields(cls: type, rules: Mapping[str, Rule]) -> list[str]:
+    """The fields of the dataclass ``cls`` that ``rules`` has no rule for (every one should have one)."""
+    return sorted({f.name for f in dataclasses.fields(cls)} - set(rules))
 
 
 def device_problem(name: Any) -> str | None:
@@ -164,9 +297,32 @@ def device_problem(name: Any) -> str | None:
 
 
 def output_dir_problem(path: Any) -> str | None:
-    """Why ``path`` cannot be the folder a command writes into (it is an existing file...), or None."""
+    """Why ``path`` cannot be the folder a command writes into (an existing file, a path below a file,
+    a folder under /proc or /sys, a parent this user cannot write into...), or None."""
     if not isinstance(path, (str, os.PathLike)) or not os.fspath(path):
         return f"the output folder must be a path, got {path!r}"
-    if os.path.exists(path) and not os.path.isdir(path):
-        return f"{os.fspath(path)} exists and is not a folder"
+    path = os.fspath(path)
+    if "\0" in path:
+        return f"the output folder {path!r} holds a NUL character"
+    if on_kernel_file_system(path):
+        return f"{path} is under /proc or /sys (a kernel file system, not a place to write results)"
+    if os.path.exists(path):
+        return None if os.path.isdir(path) else f"{path} exists and is not a folder"
+    parent = os.path.dirname(os.path.abspath(path))
+    while not os.path.exists(parent):  # the nearest existing folder above: it must be a folder we can write into
+        parent = os.path.dirname(parent)
+    if not os.path.isdir(parent):
+        return f"{path} cannot be created: {parent} is a file, not a folder"
+    if not os.access(parent, os.W_OK | os.X_OK):
+        return f"{path} cannot be created: {parent} is not writable"
     return None
+
+
+def output_file_problem(path: Any) -> str | None:
+    """Why ``path`` cannot be a file (or a file name stem) a command writes: an existing folder, or a
+    folder above it that :func:`output_dir_problem` refuses; None when it can."""
+    if not isinstance(path, (str, os.PathLike)) or not os.fspath(path):
+        return f"the output file must be a path, got {path!r}"
+    if os.path.isdir(path):
+        return f"{os.fspath(path)} is a folder, not a file name"
+    return output_dir_problem(os.path.dirname(os.path.abspath(path)))

@@ -10,7 +10,7 @@ bad argument or config value: the command line exits with 2 on it (1 on every ot
 :class:`SmartMarlError`).
 
 :func:`check_regular_file` is the one check every reader of user files runs before opening one: a
-FIFO, a device or a socket given as input would block or stream forever.
+FIFO, a device, a socket or a file of /proc or /sys given as input would block or stream forever.
 """
 
 from __future__ import annotations
@@ -56,13 +56,26 @@ class UnknownFormatError(ScenarioReadError):
     """No reader recognises the file."""
 
 
+KERNEL_FILE_SYSTEMS = ("/proc", "/sys")
+"""Folders whose files are the kernel's, not data: they read forever, block, or change as they are read."""
+
+
+def on_kernel_file_system(path: str | os.PathLike) -> bool:
+    """Whether ``path`` (links followed) lies under /proc or /sys."""
+    real = os.path.realpath(os.fspath(path))
+    return any(real == root or real.startswith(root + os.sep) for root in KERNEL_FILE_SYSTEMS)
+
+
 def regular_file_problem(path: str | os.PathLike) -> str | None:
-    """Why ``path`` cannot be read as an input file (missing, a folder, a FIFO, a device...), or None."""
+    """Why ``path`` cannot be read as an input file (missing, a folder, a FIFO, a device, a file of
+    /proc or /sys...), or None."""
     try:
         mode = os.stat(path).st_mode
-    except OSError as exc:
-        return f"cannot open: {exc.strerror or exc}"
+    except (OSError, ValueError) as exc:  # ValueError: a NUL in the path
+        return f"cannot open: {getattr(exc, 'strerror', None) or exc}"
     if stat.S_ISREG(mode):
+        if on_kernel_file_system(path):
+            return "is a file of /proc or /sys, not a regular data file (it would block or never end)"
         return None
     if stat.S_ISDIR(mode):
         return "is a folder, not a file"

@@ -35,6 +35,10 @@ from .errors import ScenarioValidationError
 
 DT_S = 0.1
 """Seconds between two frames (10 Hz)."""
+CURRENT_FRAME = 10
+"""The current frame of a WOMD-style scene (91 frames at 10 Hz: 1 s of history up to it, 8 s to simulate
+after it). The one definition: the readers whose format does not store it default to it, the SUMO and
+synthetic scenes use it, and WOSAC scores from it (:data:`smart_marl.metrics.config.CURRENT_STEP`)."""
 
 
 class AgentType(IntEnum):
@@ -391,6 +395,10 @@ class Tracks:
         )
 
 
+MAX_SPEED_LIMIT_MPH = 500.0
+"""The largest speed limit a lane may carry (mph; no road posts more than 100)."""
+
+
 @dataclass(frozen=True, eq=False)
 class RoadMap:
     """The vector map: ``F`` typed features whose points are concatenated (CSR form).
@@ -436,6 +444,9 @@ class RoadMap:
         )
         _check(bool(np.all(np.diff(self.point_offsets) >= 1)), "RoadMap: every feature needs at least one point")
         _check(bool(np.isfinite(self.points).all()), "RoadMap.points are not all finite")
+        bad_speed = ~(np.isfinite(self.speed_limit_mph) & (self.speed_limit_mph >= 0) & (self.speed_limit_mph <= MAX_SPEED_LIMIT_MPH))
+        _check(not bad_speed.any(), f"RoadMap.speed_limit_mph must be finite and in 0..{MAX_SPEED_LIMIT_MPH:g} mph "
+               f"(0: unknown); feature {self.ids[bad_speed][:1].tolist()} has {self.speed_limit_mph[bad_speed][:1].tolist()}")
         _check(len(np.unique(self.ids)) == f, "RoadMap.ids are not unique")
         _check(bool(np.all((self.types >= 0) & (self.types <= MapFeatureType.DRIVEWAY))), "RoadMap.types outside MapFeatureType")
         _check(self.links.shape[1:] == (2,), f"RoadMap.links has shape {self.links.shape}, expected [E, 2]")

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from .scenario import (
-    DT_S, AgentType, LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadMap, SceneFrame, Scenario, SignalState,
+    CURRENT_FRAME, DT_S, AgentType, LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadMap, SceneFrame, Scenario, SignalState,
     TrafficLights, Tracks,
 )
 
@@ -71,7 +71,7 @@ def synthetic_scenario(seed: int = 0, num_frames: int = 91, num_vehicles: int = 
         size[i] = (0.8, 0.8, 1.8)
     pos[..., 2] = 0.8
     # Like the readers: the local frame's origin is the self-driving car at the current frame.
-    current = min(10, num_frames - 1)
+    current = min(CURRENT_FRAME, num_frames - 1)
     offset = pos[0, current].copy()
     pos -= offset
     road_map = road_map._transform(lambda p: (p - offset).astype(np.float32))

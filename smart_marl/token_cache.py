@@ -34,7 +34,7 @@ from typing import Any, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from .errors import ScenarioReadError, SmartMarlError
+from .errors import ScenarioReadError, SmartMarlError, regular_file_problem
 from .model.batch import scene_road, scene_tensors
 from .readers import expand_paths, read_scenarios
 from .readers.scene_cache import atomic_write
@@ -206,6 +206,9 @@ def pretokenize(sources, out_dir: str | os.PathLike, motion_vocab: MotionVocabul
 # ------------------------------------------------------------------------------------- reading
 def _read_manifest(root: Path) -> dict[str, Any]:
     path = root / MANIFEST
+    problem = regular_file_problem(path)
+    if problem:
+        raise TokenCacheError(f"{path}: not a readable token cache manifest ({problem})")
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError) as exc:
@@ -263,6 +266,9 @@ class TokenCache(Sequence):
         shard = self._shards.get(s)
         if shard is None:
             path = self.root / self.manifest["shards"][s]["file"]
+            problem = regular_file_problem(path)
+            if problem:
+                raise TokenCacheError(f"{path}: unreadable token shard ({problem})")
             try:
                 with np.load(path, allow_pickle=False) as z:
                     arrays = {k: z[k] for k in z.files}

@@ -29,6 +29,7 @@ and rank 0 writes checkpoints and logs.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import random
@@ -47,15 +48,16 @@ from tqdm import tqdm
 
 from .cache import SceneCache, is_cache_dir
 from .catk import catk_tokens
-from .config_files import (apply_overrides, check_fields, device_problem, flag, integer, number, optional, output_dir_problem,
-                           read_config_file, text)
+from .config_files import (apply_overrides, check_fields, device_problem, flag, integer, is_number, number, optional,
+                           output_dir_problem, read_config_file, text)
+from .config_files import seed as seed_rule
 from .cpu_memory import keep_freed_memory
 from .errors import SmartMarlError, UsageError
 from .model.batch import RoadArrays, SmartBatch, collate_scenes, scene_road, scene_tensors
-from .model.checkpoint import (VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
+from .model.checkpoint import (CheckpointError, VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
                                save_checkpoint)
 from .model.losses import NextTokenLoss, summarise
-from .model.smart import NAMED_CONFIGS, SMART, SmartConfig, get_config
+from .model.smart import NAMED_CONFIGS, SMART, ModelConfigError, SmartConfig, get_config
 from .readers import read_scenarios
 from .runlog import RunLog
 from .scenario import AgentType, Scenario
@@ -72,6 +74,11 @@ class TrainError(SmartMarlError, ValueError):
 
 class TrainConfigError(TrainError, UsageError):
     """A config key or value that is not a valid TrainConfig (the command line exits with 2)."""
+
+
+class NonFiniteLossError(TrainError):
+    """A training step whose loss or gradient is NaN or infinite: the run stops before the optimizer
+    takes the step, so the weights and the last checkpoint on disk stay the last good ones."""
 
 
 @dataclass
@@ -179,18 +186,31 @@ def _betas(value) -> str | None:
     return None
 
 
+ROAD_KEEP_RADIUS_RULE = lambda v: (number(-1.0, 10_000.0)(v)  # noqa: E731
+                                   or (None if v == -1 or v >= 0 else f"must be -1 (lossless) or >= 0, got {v}"))
+"""What ``road_keep_radius_m`` (and ``pretokenize --road-keep-radius``) takes: -1 (the lossless radius of the
+model config) or a finite distance >= 0 in metres."""
+MAX_BATCH_SIZE = 1024
+"""The most scenes one training step takes per rank."""
+MAX_STEPS = 10**9
+"""The most optimizer steps a run takes."""
+MAX_WORKERS = 4 * (os.cpu_count() or 1)
+"""The most DataLoader workers: 4 per CPU of this machine (more only wait for a CPU)."""
+
 _TRAIN_RULES = {
     "model_overrides": lambda v: None if isinstance(v, dict) else f"must be a mapping, got {v!r}",
     "data": text, "val_data": optional(text), "extra_data": optional(text),
     "extra_data_share": number(0.0, 1.0, low_open=True, high_open=True), "out_dir": lambda v: text(v) or output_dir_problem(v),
-    "motion_vocab": optional(text), "road_vocab": optional(text), "vocab_scenes": integer(1), "vocab_seed": integer(),
-    "batch_size": integer(1), "num_workers": integer(0), "max_steps": integer(1), "lr": number(0.0, low_open=True),
-    "weight_decay": number(0.0), "betas": _betas, "warmup_steps": integer(0), "grad_clip": number(0.0),
+    "motion_vocab": optional(text), "road_vocab": optional(text), "vocab_scenes": integer(1), "vocab_seed": seed_rule,
+    "batch_size": integer(1, MAX_BATCH_SIZE, "scenes per step a machine holds"),
+    "num_workers": integer(0, MAX_WORKERS, "4 processes per CPU of this machine"),
+    "max_steps": integer(1, MAX_STEPS, "a billion steps"), "lr": number(0.0, 1.0, low_open=True, why="larger diverges at once"),
+    "weight_decay": number(0.0, 10.0), "betas": _betas, "warmup_steps": integer(0, MAX_STEPS), "grad_clip": number(0.0),
     "dropout": number(0.0, 1.0, high_open=True), "label_smoothing": number(0.0, 1.0, high_open=True),
     "speed_trend_weights": _trend_weights, "train_only": _prefixes,
     "token_noise_topk": integer(0), "catk_top_k": integer(0), "cache_scenes": integer(0), "road_mask_prob": number(0.0, 1.0),
-    "road_keep_radius_m": optional(lambda v: number()(v) or (None if v == -1 or v >= 0 else f"must be -1 or >= 0, got {v}")),
-    "log_every": integer(1), "val_every": integer(0), "val_scenes": integer(0), "ckpt_every": integer(0), "seed": integer(),
+    "road_keep_radius_m": optional(ROAD_KEEP_RADIUS_RULE),
+    "log_every": integer(1), "val_every": integer(0), "val_scenes": integer(0), "ckpt_every": integer(0), "seed": seed_rule,
     "device": lambda v: None if v == "auto" else device_problem(v), "amp": flag, "init": optional(text),
     "tensorboard": flag, "progress": flag,
 }
@@ -206,6 +226,10 @@ def check_train_config(cfg: TrainConfig) -> None:
     elif not isinstance(cfg.model, dict):
         raise TrainConfigError(f"training config: model must be a config name or a mapping of SMART fields, got {cfg.model!r}")
     check_fields(cfg, _TRAIN_RULES, "training", TrainConfigError)
+    try:  # the model fields (model=, model.FIELD=) make a SMART config of sane size
+        get_config(cfg.model, **{"dropout": cfg.dropout, **cfg.model_overrides})
+    except ModelConfigError as exc:
+        raise TrainConfigError(f"training config: model: {exc}") from exc
 
 
 # --------------------------------------------------------------------------------------- data
@@ -462,6 +486,12 @@ def train_step(loss_module: torch.nn.Module, optimizer: torch.optim.Optimizer, s
     optimizer.zero_grad(set_to_none=True)
     out["loss"].backward()
     grad_norm = torch.nn.utils.clip_grad_norm_(loss_module.parameters(), grad_clip) if grad_clip and grad_clip > 0 else torch.zeros(())
+    bad = (~torch.isfinite(out["loss"].detach().float()) | ~torch.isfinite(grad_norm.detach().float())).float().reshape(1)
+    if info.enabled:  # every rank stops, or none
+        dist.all_reduce(bad, op=dist.ReduceOp.MAX)
+    if bool(bad.item()):
+        raise NonFiniteLossError(f"the loss is {float(out['loss'].detach()):g} and the gradient norm {float(grad_norm):g} "
+                                 f"(non-finite: the learning rate or the data is off)")
     optimizer.step()
     scheduler.step()
     res = {k: float(v.detach()) for k, v in out.items()}
@@ -527,6 +557,69 @@ class TrainResult:
     last_val: dict[str, float]
     checkpoint: Path | None
     resumed_from: int = 0
+
+
+def _saved_step(meta: Path) -> int | str:
+    try:
+        return int(json.loads(meta.read_text()).get("step", "?"))
+    except (OSError, ValueError, TypeError, AttributeError):
+        return "?"
+
+
+def _finite_numbers(values) -> bool:
+    return isinstance(values, (list, tuple)) and all(is_number(v) for v in values)
+
+
+def check_train_state(state: Mapping[str, Any], optimizer: torch.optim.Optimizer, max_steps: int, path: Path) -> None:
+    """Before a resumed run trains: the training state (:func:`load_train_state`) fits the optimizer it is
+    loaded into (as many parameter groups and parameters, moment tensors of the parameters' shapes,
+    finite learning rates and moments), its scheduler is a LambdaLR's, and its step lies within the run
+    (0..max_steps); else :class:`CheckpointError` naming the file and what is off."""
+    step = state["step"]
+    if not 0 <= step <= max_steps:
+        raise CheckpointError(path, f"the training state is at step {step}, outside this run's 0..max_steps={max_steps} "
+                                    f"(raise max_steps to train on, or start a new out_dir)")
+    groups, saved = optimizer.param_groups, state["optimizer"]
+    saved_groups = saved["param_groups"]
+    if len(saved_groups) != len(groups) or not all(isinstance(g, dict) for g in saved_groups):
+        raise CheckpointError(path, f"the optimizer state has {len(saved_groups)} parameter group(s), this run's optimizer "
+                                    f"{len(groups)} (another model, or train_only differs)")
+    params = [p for g in groups for p in g["params"]]
+    for k, (g, sg) in enumerate(zip(groups, saved_groups)):
+        ids = sg.get("params")
+        if not isinstance(ids, list) or len(ids) != len(g["params"]):
+            raise CheckpointError(path, f"the optimizer state's parameter group {k} does not hold this model's "
+                                        f"{len(g['params'])} parameters")
+        for key in ("lr", "weight_decay", "eps"):
+            if key in sg and not (is_number(sg[key]) and sg[key] >= 0):
+                raise CheckpointError(path, f"the optimizer state's parameter group {k} has {key} {sg[key]!r}, "
+                                            f"not a finite number >= 0")
+        if "betas" in sg and not (_finite_numbers(sg["betas"]) and len(sg["betas"]) == 2):
+            raise CheckpointError(path, f"the optimizer state's parameter group {k} has betas {sg['betas']!r}")
+    order = [i for sg in saved_groups for i in sg["params"]]
+    shapes = {i: p.shape for i, p in zip(order, params)}
+    for i, entry in saved["state"].items():
+        if i not in shapes or not isinstance(entry, dict):
+            raise CheckpointError(path, f"the optimizer state holds moments of parameter {i!r}, which no group lists")
+        for name, value in entry.items():
+            if not isinstance(value, torch.Tensor):
+                raise CheckpointError(path, f"the optimizer state's {name} of parameter {i} is a {type(value).__name__}, "
+                                            f"not a tensor")
+            if name != "step" and tuple(value.shape) != tuple(shapes[i]):
+                raise CheckpointError(path, f"the optimizer state's {name} of parameter {i} has shape {list(value.shape)}, "
+                                            f"the parameter {list(shapes[i])}")
+            if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+                raise CheckpointError(path, f"the optimizer state's {name} of parameter {i} holds NaN or infinite values")
+    sched = state["scheduler"]
+    last = sched.get("last_epoch")
+    if not (isinstance(last, int) and not isinstance(last, bool) and 0 <= last <= max(step, 0) + 1):
+        raise CheckpointError(path, f"the scheduler state's last_epoch {last!r} does not match the state's step {step}")
+    for key in ("base_lrs", "_last_lr"):
+        if key in sched and not (_finite_numbers(sched[key]) and len(sched[key]) == len(groups)):
+            raise CheckpointError(path, f"the scheduler state's {key} {sched.get(key)!r} is not one finite learning rate "
+                                        f"per parameter group")
+    if "base_lrs" not in sched:
+        raise CheckpointError(path, "the scheduler state has no base_lrs (not a LambdaLR state)")
 
 
 def _rng_state() -> dict[str, Any]:
@@ -646,6 +739,7 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
                              **{k: v for k, v in cfg.model_overrides.items() if k not in ("motion_vocab_sizes", "road_vocab_size")})
         model.load_state_dict(ck.model.state_dict())
         st = load_train_state(last)
+        check_train_state(st, optimizer, cfg.max_steps, checkpoint_paths(last)["train_state"])
         optimizer.load_state_dict(st["optimizer"])
         scheduler.load_state_dict(st["scheduler"])
         _set_rng_state(st["rng"])
@@ -713,7 +807,13 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
         if getattr(train_set, "closed_loop", False):
             batch = closed_loop_batch(model, batch, mv, cfg.catk_top_k, cfg.road_mask_prob, keep, cfg.seed, device)
         lr = scheduler.get_last_lr()[0]
-        res = train_step(wrapped, optimizer, scheduler, batch, cfg.grad_clip, info, device, cfg.amp)
+        try:
+            res = train_step(wrapped, optimizer, scheduler, batch, cfg.grad_clip, info, device, cfg.amp)
+        except NonFiniteLossError as exc:
+            kept = checkpoint_paths(last)["meta"]
+            raise NonFiniteLossError(f"{out_dir}: step {step + 1}: {exc}; the run stopped before the optimizer took that "
+                                     f"step: " + (f"the last good checkpoint is {kept} (step {_saved_step(kept)})"
+                                                  if kept.is_file() else "no checkpoint was written before it")) from None
         step += 1
         for k, v in res.items():
             acc[k] = acc.get(k, 0.0) + v

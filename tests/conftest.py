@@ -1,13 +1,25 @@
 """Shared fixtures. Real scenes come from ../shared/data beside the project; tests that need them
-skip with a reason when that folder is absent (it is never copied into the repository)."""
+skip with a reason when that folder is absent (it is never copied into the repository). Tests that
+need only *some* scene use the package's embedded samples (``sample_scenes`` and friends below).
+
+``SMART_MARL_SHARED_DATA=PATH`` points the real-scene tests at another folder; a folder that does
+not exist (``SMART_MARL_SHARED_DATA=/nonexistent pytest``) runs the suite as a user without the
+shared data runs it."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+SHARED_DATA = Path(os.environ.get("SMART_MARL_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
+
+# One torch (OpenMP) thread for the whole run, this process and the commands and workers it starts:
+# on a shared 2-core machine torch's threads fighting other processes make small-model steps about
+# 10x slower (an eval of a tiny prior on one sample scene: 218 s with the default threads, 21 s with
+# one, while other jobs loaded the machine). Set OMP_NUM_THREADS yourself to run with more.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
 @pytest.fixture(scope="session")
@@ -18,10 +30,22 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _torch_threads_from_the_environment():
+    """torch's thread count as OMP_NUM_THREADS says (1 unless set; see above), also when torch was
+    imported before this file set it."""
+    import torch
+
+    threads = os.environ["OMP_NUM_THREADS"]
+    if threads.isdigit() and int(threads) > 0:
+        torch.set_num_threads(int(threads))
+
+
 @pytest.fixture(scope="module")
 def one_torch_thread():
-    """One torch thread for a module of small-model tests: on a shared 2-core machine, torch's threads
-    fighting other processes make these small steps about 10x slower."""
+    """One torch thread for a module of small-model tests, whatever OMP_NUM_THREADS says: on a shared
+    2-core machine, torch's threads fighting other processes make these small steps about 10x slower
+    (and the pinned rollouts are pinned on one thread)."""
     import torch
 
     before = torch.get_num_threads()
@@ -51,6 +75,39 @@ def kdisks_vocab():
         return build_motion_vocabulary(snippets, size, seed=0, progress=False)
 
     return build
+
+
+@pytest.fixture(scope="session")
+def sample_scenes():
+    """The package's embedded sample scenes (smart_marl.embedded; SUMO, 91 frames, current frame 10):
+    sumo-7-000000-00 .. -03 with 22, 25, 44 and 10 tracks (vehicles, pedestrians and cyclists; no OTHER).
+    Tests that need *some* real-looking scene use these, so they run without ../shared/data."""
+    from smart_marl.embedded import sample_scenarios
+
+    return sample_scenarios()
+
+
+@pytest.fixture(scope="session")
+def sample_scene_file(sample_scenes, tmp_path_factory) -> Path:
+    """The first sample scene (sumo-7-000000-00, 22 tracks) alone in a scene file, for commands that
+    take a path."""
+    from smart_marl.cache import write_shard
+
+    path = tmp_path_factory.mktemp("sample_scene") / "sumo-7-000000-00.smsc"
+    write_shard(path, sample_scenes[:1])
+    return path
+
+
+@pytest.fixture(scope="session")
+def sample_vocab(sample_scenes, kdisks_vocab):
+    """32 k-disks tokens per type from the four sample scenes (the sample-scene twin of ``womd_vocab``)."""
+    return kdisks_vocab(sample_scenes)
+
+
+@pytest.fixture(scope="session")
+def sample_model(sample_vocab):
+    """The tiny random model (:func:`_tiny_smart`) over ``sample_vocab``."""
+    return _tiny_smart(sample_vocab)
 
 
 @pytest.fixture(scope="session")
@@ -115,10 +172,10 @@ def save_tiny_prior(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def tiny_prior(womd_scenes, save_tiny_prior):
-    """The tiny random checkpoint over a 16-token uniform-grid vocabulary from the two real WOMD
+def tiny_prior(sample_scenes, save_tiny_prior):
+    """The tiny random checkpoint over a 16-token uniform-grid vocabulary from the package's sample
     scenes. Returns the checkpoint's JSON path."""
     from smart_marl.tokens import collect_snippets, uniform_grid_vocabulary
 
-    snippets, _ = collect_snippets(womd_scenes)
+    snippets, _ = collect_snippets(sample_scenes)
     return save_tiny_prior(uniform_grid_vocabulary(snippets, 16))

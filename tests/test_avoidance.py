@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from smart_marl import geometry
-from smart_marl.embedded import sample_scenarios
+from smart_marl.embedded import sample_files, sample_scenarios
 from smart_marl.model.checkpoint import load_embedded
 from smart_marl.readers import read_scenarios
 from smart_marl.rollout import RolloutState, sample_tokens
@@ -103,6 +103,21 @@ def test_the_other_agent_is_checked_where_it_will_be_at_constant_velocity():
     logits = torch.tensor([[0.0, 5.0, 4.0, 0.0, 0.0]])
     out = excluded_tokens(logits, torch.tensor([0]), pose, prev, size, present, types, _poses(ENDS), top_k=0)
     assert out.tolist() == [[True, False, True, True, False]]  # 2 m ahead now collides too; stopping does not
+
+
+def test_a_forced_neighbour_is_checked_on_the_frames_its_token_really_takes_it_to():
+    """Issue 33: a leader whose token is forced (a policy's controlled car, a scripted braking car) is seen where
+    that token puts it, not at constant velocity."""
+    pose, prev, size, present, types = _scene(third_present=False)
+    prev[0, 1, 0] = 3.0  # the car ahead drives away at 4 m per token: at constant velocity it will be at x = 11 (9 to 13 m)
+    logits = torch.tensor([[5.0, 0.0, 4.0, 3.0, 0.0]])
+    args = (logits, torch.tensor([0]), pose, prev, size, present, types, _poses(ENDS))
+    assert excluded_tokens(*args, top_k=0).tolist() == [[False, False, False, True, False]]  # only 8 m ahead reaches it
+    # its forced token this step stands still at x = 7: then 5 m ahead runs into it as well
+    known = torch.tensor([[False, True, False]])
+    frames = pose[:, :, None, :].expand(-1, -1, 5, -1).clone()
+    got = excluded_tokens(*args, top_k=0, known_frames=frames, known=known)
+    assert got.tolist() == [[True, False, False, True, False]]
 
 
 @pytest.mark.parametrize("interpolation", ["spline", "contour"])
@@ -219,7 +234,7 @@ def test_whatif_passes_the_choice_to_both_of_its_runs_and_on_to_the_engine(monke
     assert started == [False]
 
 
-def test_eval_hands_the_flag_to_the_rollouts(monkeypatch, shared_data):
+def test_eval_hands_the_flag_to_the_rollouts(monkeypatch):
     from smart_marl.cli import main
 
     eval_module = importlib.import_module("smart_marl.commands.eval")
@@ -230,7 +245,7 @@ def test_eval_hands_the_flag_to_the_rollouts(monkeypatch, shared_data):
         raise StopIteration  # the choice is all this test needs
 
     monkeypatch.setattr(eval_module, "rollout", fake_rollout)
-    scene = str(shared_data / "womd_tfrecord" / "motion_data_one_scenario.tfrecord")
+    scene = str(sample_files()[0])  # the package's sample scenes
     for extra, want in (([], True), (["--no-collision-avoidance"], False)):
         with pytest.raises(StopIteration):
             main(["eval", "--scenes", scene, "--policy", "prior", "--rules", "2024"] + extra)

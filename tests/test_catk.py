@@ -14,19 +14,19 @@ from smart_marl.tokens.road import RoadVocabulary, road_pieces
 
 
 @pytest.fixture(scope="module")
-def road_vocab(womd_scenes):
-    pieces = road_pieces(womd_scenes[0].road_map).local
+def road_vocab(sample_scenes):
+    pieces = road_pieces(sample_scenes[0].road_map).local
     return RoadVocabulary(points=pieces[np.random.default_rng(0).choice(len(pieces), 8)], tolerance_m=0.0, requested_size=8)
 
 
-def test_catk_with_every_token_allowed_is_the_logged_rolling_matching(womd_scenes, womd_vocab, tiny_smart, road_vocab,
+def test_catk_with_every_token_allowed_is_the_logged_rolling_matching(sample_scenes, sample_vocab, tiny_smart, road_vocab,
                                                                        one_torch_thread):
-    model = tiny_smart(womd_vocab)
-    scenes = womd_scenes
+    model = tiny_smart(sample_vocab)
+    scenes = sample_scenes
     roads = [scene_road(sc, road_vocab) for sc in scenes]
-    got = catk_tokens(model, scenes, roads, womd_vocab, top_k=max(v.size for v in womd_vocab.types.values()))
+    got = catk_tokens(model, scenes, roads, sample_vocab, top_k=max(v.size for v in sample_vocab.types.values()))
     for sc, mt in zip(scenes, got):
-        log = tokenize_motion(sc, womd_vocab)
+        log = tokenize_motion(sc, sample_vocab)
         assert mt.valid.sum() > 100
         np.testing.assert_array_equal(mt.valid, log.valid)
         np.testing.assert_array_equal(mt.ids[mt.valid], log.ids[log.valid])
@@ -34,16 +34,16 @@ def test_catk_with_every_token_allowed_is_the_logged_rolling_matching(womd_scene
         np.testing.assert_allclose(mt.reached, log.reached, atol=1e-5)
 
 
-def test_catk_token_is_the_closest_of_the_models_top_k(womd_scenes, womd_vocab, tiny_smart, road_vocab, one_torch_thread):
+def test_catk_token_is_the_closest_of_the_models_top_k(sample_scenes, sample_vocab, tiny_smart, road_vocab, one_torch_thread):
     """Checked independently: the full (not incremental) forward over the CAT-K sequence gives the
     top-K at each future step; among them, the token whose placed box contours are nearest the logged
     boxes (mean corner distance over the token's frames) is the one taken."""
     top_k = 3
-    model = tiny_smart(womd_vocab)
-    sc = womd_scenes[0]
+    model = tiny_smart(sample_vocab)
+    sc = sample_scenes[2]  # 43 agents valid at the current frame
     road = scene_road(sc, road_vocab)
-    mt = catk_tokens(model, [sc], [road], womd_vocab, top_k=top_k)[0]
-    batch = collate_scenes([scene_tensors(sc, womd_vocab, road, road_mask_prob=0.0, rng=0, motion_tokens=mt)])
+    mt = catk_tokens(model, [sc], [road], sample_vocab, top_k=top_k)[0]
+    batch = collate_scenes([scene_tensors(sc, sample_vocab, road, road_mask_prob=0.0, rng=0, motion_tokens=mt)])
     with torch.no_grad():
         feats, _ = model(batch)
     keep = np.flatnonzero(mt.valid.any(1))
@@ -56,7 +56,7 @@ def test_catk_token_is_the_closest_of_the_models_top_k(womd_scenes, womd_vocab, 
             if not (mt.valid[row, k] and mt.valid[row, k - 1]):
                 continue
             t = int(tr.types[row])
-            v = womd_vocab[t]
+            v = sample_vocab[t]
             logits = model.motion_heads[t](feats[0, j, k - 1])
             top = logits.topk(top_k).indices.numpy()
             frames = np.arange(b0 + 1, b1 + 1)
@@ -88,15 +88,14 @@ class _StopsAtRead(list):
         return super().__getitem__(i)
 
 
-def test_catk_training_mode_trains_on_its_rollouts_and_resumes_exactly(shared_data, womd_vocab, tmp_path, one_torch_thread):
+def test_catk_training_mode_trains_on_its_rollouts_and_resumes_exactly(sample_scenes, sample_vocab, tmp_path, one_torch_thread):
     from smart_marl.model.checkpoint import load_checkpoint
-    from smart_marl.readers import read_scenarios
     from smart_marl.tokens.vocab_io import save_motion_vocabulary, save_road_vocabulary
     from smart_marl.train import load_train_config, train
 
-    scenes = list(read_scenarios(shared_data / "gpudrive_json" / "tfrecord-00001-of-01000_307.json"))
+    scenes = sample_scenes[3:]  # one scene, 10 tracks
     pieces = road_pieces(scenes[0].road_map).local
-    save_motion_vocabulary(womd_vocab, tmp_path / "mv")
+    save_motion_vocabulary(sample_vocab, tmp_path / "mv")
     save_road_vocabulary(RoadVocabulary(points=pieces[:16], tolerance_m=0.0, requested_size=16), tmp_path / "rv")
     base = {"motion_vocab": str(tmp_path / "mv"), "road_vocab": str(tmp_path / "rv"), "batch_size": 1, "num_workers": 0,
             "max_steps": 4, "lr": 1e-3, "log_every": 1, "val_every": 0, "ckpt_every": 2, "tensorboard": False, "progress": False,

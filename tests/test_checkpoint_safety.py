@@ -24,8 +24,6 @@ from smart_marl.model.checkpoint import (CheckpointError, checkpoint_paths, load
 from smart_marl.tokens.vocab_io import VocabularyFileError, load_motion_vocabulary
 from smart_marl.train import TrainConfig, _rng_state, _set_rng_state, make_optimizer, make_scheduler
 
-WOMD = "womd_tfrecord/motion_data_one_scenario.tfrecord"
-
 
 class _RunsCode:
     """Unpickling this runs ``touch marker`` (what a crafted ``last.train_state.pt`` would do)."""
@@ -70,7 +68,7 @@ def test_hostile_training_state_is_refused_and_runs_nothing(tiny_prior, tmp_path
     assert not marker.exists()
 
 
-def test_train_resuming_from_a_hostile_run_folder_exits_1_and_runs_nothing(shared_data, tiny_prior, tmp_path, capsys):
+def test_train_resuming_from_a_hostile_run_folder_exits_1_and_runs_nothing(sample_scene_file, tiny_prior, tmp_path, capsys):
     """`smart-marl train --out DIR` resumes from DIR/checkpoints/last: a crafted training state there
     stops the run with a named error; the command it holds never runs."""
     from smart_marl.tokens.vocab_io import save_motion_vocabulary, save_road_vocabulary
@@ -83,7 +81,7 @@ def test_train_resuming_from_a_hostile_run_folder_exits_1_and_runs_nothing(share
     marker = tmp_path / "pwned"
     torch.save({**_train_state(ck.model), "rng": _RunsCode(marker)}, checkpoint_paths(last)["train_state"])
     config = tmp_path / "train.json"
-    config.write_text(json.dumps({"model": ck.meta["model_config"], "data": str(shared_data / WOMD), "num_workers": 0,
+    config.write_text(json.dumps({"model": ck.meta["model_config"], "data": str(sample_scene_file), "num_workers": 0,
                                   "tensorboard": False, "progress": False, "max_steps": 5, "device": "cpu"}))
     assert main(["train", "--config", str(config), "--out", str(run)]) == 1
     err = capsys.readouterr().err

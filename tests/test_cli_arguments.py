@@ -10,11 +10,7 @@ import numpy as np
 import pytest
 
 from smart_marl.cache import write_shard
-from smart_marl.readers import read_scenario
 from test_commands_consistency import _exit_code as _run  # (exit code, stdout, stderr) of the command line
-
-WOMD = "womd_tfrecord/motion_data_one_scenario.tfrecord"
-SUBMISSION = "womd_tfrecord/sim_agents_test_submission.binproto"
 
 
 @pytest.mark.parametrize("argv, names", [
@@ -30,7 +26,7 @@ SUBMISSION = "womd_tfrecord/sim_agents_test_submission.binproto"
     (["generate-sumo", "--scenes", "1", "--out", "OUT", "--workers", "0"], "--workers"),
     (["generate-sumo", "--scenes", "1", "--out", "OUT", "--speed-weights", "1,2"], "--speed-weights: needs --speed-limits"),
     (["generate-sumo", "--scenes", "1", "--out", "OUT", "--speed-limits", "30,fast"], "--speed-limits"),
-    (["generate-sumo", "--scenes", "1", "--out", "OUT", "--speed-limits", "0,50"], "--speed-limits: every value must be > 0"),
+    (["generate-sumo", "--scenes", "1", "--out", "OUT", "--speed-limits", "0,50"], "--speed-limits: every value must be >= 5"),
     (["generate-sumo", "--scenes", "1", "--out", "OUT", "--speed-limits", "30,50", "--speed-weights", "1"],
      "--speed-weights: 1 weights for 2 speed limits"),
     (["vocab", "build", "SRC", "--out", "FILE"], "--out"),
@@ -55,7 +51,7 @@ SUBMISSION = "womd_tfrecord/sim_agents_test_submission.binproto"
     (["finetune", "--config", "tiny", "--device", "bogus"], "--device"),
     (["finetune", "--config", "tiny", "lr=abc", "--print-config"], "fine-tuning config: lr must be a finite number"),
     (["finetune", "--config", "tiny", "iterations=0", "--print-config"], "fine-tuning config: iterations must be at least 1"),
-    (["whatif", "SRC", "--script", "SRC", "--out", "OUT", "--steps", "1000"], "--steps: at most 64"),
+    (["whatif", "SRC", "--script", "SRC", "--out", "OUT", "--steps", "1000"], "--steps: must be at most 64"),
     (["whatif", "SRC", "--script", "SRC", "--out", "OUT", "--rollouts", "0"], "--rollouts"),
 ], ids=lambda a: " ".join(a) if isinstance(a, list) else None)
 def test_bad_arguments_exit_2_with_one_error_line_before_any_work(argv, names, tmp_path, capsys):
@@ -80,19 +76,19 @@ def _scene_without_evaluated_agents(scenario):
     return Scenario.from_arrays(arrays, {**meta, "sdc_index": -1, "scenario_id": "no-evaluated-agent"})
 
 
-def test_metrics_name_a_scene_without_evaluated_agents_instead_of_returning_nan(shared_data):
+def test_metrics_name_a_scene_without_evaluated_agents_instead_of_returning_nan(sample_scenes):
     from smart_marl.metrics import SceneNotScorableError, logged_scene
 
-    scene = _scene_without_evaluated_agents(read_scenario(shared_data / WOMD))
+    scene = _scene_without_evaluated_agents(sample_scenes[0])
     with pytest.raises(SceneNotScorableError, match="no-evaluated-agent: no agent to evaluate"):
         logged_scene(scene)
 
 
-def test_eval_over_a_folder_skips_unscorable_scenes_by_name_and_averages_the_rest(shared_data, tmp_path, capsys):
-    scenario = read_scenario(shared_data / WOMD)
+def test_eval_over_a_folder_skips_unscorable_scenes_by_name_and_averages_the_rest(sample_scenes, tmp_path, capsys):
+    scenario = sample_scenes[0]
     folder = tmp_path / "scenes"
     folder.mkdir()
-    (folder / "a.tfrecord").write_bytes((shared_data / WOMD).read_bytes())
+    write_shard(folder / "a.smsc", [scenario])
     write_shard(folder / "short.smsc", [scenario.window(0, 11)])  # an 11-frame scene
     write_shard(folder / "none.smsc", [_scene_without_evaluated_agents(scenario)])
     code, out, err = _run(["eval", "--scenes", str(folder), "--policy", "constant_velocity", "--rollouts", "2", "--json"],
@@ -108,10 +104,10 @@ def test_eval_over_a_folder_skips_unscorable_scenes_by_name_and_averages_the_res
     assert any("short.smsc: skipped" in w for w in warnings) and any("none.smsc: skipped" in w for w in warnings)
 
 
-def test_eval_stops_on_an_unreadable_file_unless_skip_bad(shared_data, tmp_path, capsys):
+def test_eval_stops_on_an_unreadable_file_unless_skip_bad(sample_scene_file, tmp_path, capsys):
     folder = tmp_path / "scenes"
     folder.mkdir()
-    (folder / "a.tfrecord").write_bytes((shared_data / WOMD).read_bytes())
+    (folder / "a.smsc").write_bytes(sample_scene_file.read_bytes())
     (folder / "b.json").write_text('{"objects": [{"position": []}], "roads": []}')
     argv = ["eval", "--scenes", str(folder), "--policy", "constant_velocity", "--rollouts", "2", "--json"]
     code, _, err = _run(argv, capsys)
@@ -121,11 +117,23 @@ def test_eval_stops_on_an_unreadable_file_unless_skip_bad(shared_data, tmp_path,
     assert "warning: skipped the bad file" in err and "b.json" in err
 
 
+@pytest.fixture(scope="module")
+def random_submission(sample_scenes) -> bytes:
+    """A submission of 32 random rollouts of the first sample scene (what the eval command scores)."""
+    from smart_marl.metrics.baselines import random_rollouts
+    from smart_marl.metrics.submission import ScenarioRolloutArrays, build_submission
+
+    scenario = sample_scenes[0]
+    ro = random_rollouts(scenario, 32)
+    arrays = ScenarioRolloutArrays(scenario.scenario_id, ro.object_ids, ro.to_source(scenario.frame).astype(np.float32))
+    return build_submission([arrays]).SerializeToString()
+
+
 @pytest.mark.parametrize("count", [1, 31, 40])
-def test_eval_refuses_a_submission_without_32_rollouts_unless_asked(shared_data, tmp_path, capsys, count):
+def test_eval_refuses_a_submission_without_32_rollouts_unless_asked(random_submission, sample_scene_file, tmp_path, capsys, count):
     from smart_marl.proto.womd import SimAgentsChallengeSubmission
 
-    message = SimAgentsChallengeSubmission.FromString((shared_data / SUBMISSION).read_bytes())
+    message = SimAgentsChallengeSubmission.FromString(random_submission)
     scenes = message.scenario_rollouts[0].joint_scenes
     assert len(scenes) == 32
     if count < 32:
@@ -135,7 +143,7 @@ def test_eval_refuses_a_submission_without_32_rollouts_unless_asked(shared_data,
             scenes.add().CopyFrom(scenes[k])
     path = tmp_path / "sub.binproto"
     path.write_bytes(message.SerializeToString())
-    argv = ["eval", "--scenes", str(shared_data / WOMD), "--submission", str(path), "--json", "--rules", "2024"]
+    argv = ["eval", "--scenes", str(sample_scene_file), "--submission", str(path), "--json", "--rules", "2024"]
     code, _, err = _run(argv, capsys)
     assert code == 1 and f"{count} rollouts (joint scenes), WOSAC requires 32" in err and str(path) in err
     code, out, err = _run([*argv, "--any-rollout-count"], capsys)

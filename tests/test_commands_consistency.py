@@ -17,6 +17,7 @@ import pytest
 
 from smart_marl import cli
 from smart_marl.cli import build_parser, main
+from smart_marl.commands.arguments import seed as seed_type
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
@@ -101,7 +102,7 @@ def test_no_command_exits_2(capsys):
 def test_shared_flags_where_the_command_needs_them(name):
     opts = _options(COMMANDS[name])
     if name in RANDOM:
-        assert "--seed" in opts and opts["--seed"].type is int, f"smart-marl {name} has randomness but no --seed"
+        assert "--seed" in opts and opts["--seed"].type is seed_type, f"smart-marl {name} has randomness but no checked --seed"
     if name in RUNS_A_MODEL or "--checkpoint" in opts:
         assert "--device" in opts, f"smart-marl {name} runs a model but has no --device"
     if name in WRITES_A_FOLDER:

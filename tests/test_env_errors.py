@@ -18,8 +18,8 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.p
 
 
 @pytest.fixture(scope="module")
-def env(womd_scenes, womd_vocab, tiny_smart):
-    env = smart_traffic_v0.parallel_env(scenarios=womd_scenes[:1], prior=tiny_smart(womd_vocab), motion_vocab=womd_vocab,
+def env(sample_scenes, sample_vocab, tiny_smart):
+    env = smart_traffic_v0.parallel_env(scenarios=sample_scenes[:1], prior=tiny_smart(sample_vocab), motion_vocab=sample_vocab,
                                         controlled="vehicles", max_agents=2, horizon_steps=2, background="log")
     env.reset(seed=0)
     return env
@@ -35,7 +35,7 @@ def test_a_nan_infinite_or_non_integer_action_is_a_named_action_error(env, bad):
     assert (env.frame, list(env.agents)) == before  # nothing moved
 
 
-def test_env_errors_keep_their_builtin_bases(env, womd_scenes, womd_vocab, tiny_smart):
+def test_env_errors_keep_their_builtin_bases(env, sample_scenes, sample_vocab, tiny_smart):
     good = {x: 0 for x in env.agents}
     with pytest.raises(UnknownAgentError) as info:
         env.step({**good, "vehicle_999999": 0})
@@ -46,12 +46,12 @@ def test_env_errors_keep_their_builtin_bases(env, womd_scenes, womd_vocab, tiny_
         env.step([0, 0])
     assert isinstance(info.value, TypeError) and isinstance(info.value, ValueError)
     with pytest.raises(EnvConfigError, match="observation kind"):
-        smart_traffic_v0.parallel_env(scenarios=womd_scenes[:1], prior=None, motion_vocab=womd_vocab, background="log",
+        smart_traffic_v0.parallel_env(scenarios=sample_scenes[:1], prior=None, motion_vocab=sample_vocab, background="log",
                                       observation="pixels")
     with pytest.raises(EnvConfigError, match="unknown reward term"):
-        smart_traffic_v0.parallel_env(scenarios=womd_scenes[:1], prior=None, motion_vocab=womd_vocab, background="log",
+        smart_traffic_v0.parallel_env(scenarios=sample_scenes[:1], prior=None, motion_vocab=sample_vocab, background="log",
                                       reward={"speed": 1.0})
-    done = smart_traffic_v0.parallel_env(scenarios=womd_scenes[:1], prior=tiny_smart(womd_vocab), motion_vocab=womd_vocab,
+    done = smart_traffic_v0.parallel_env(scenarios=sample_scenes[:1], prior=tiny_smart(sample_vocab), motion_vocab=sample_vocab,
                                          controlled="sdc", horizon_steps=1, background="log")
     done.reset(seed=0)
     done.step({a: 0 for a in done.agents})
@@ -60,10 +60,10 @@ def test_env_errors_keep_their_builtin_bases(env, womd_scenes, womd_vocab, tiny_
     assert isinstance(info.value, RuntimeError) and "call reset()" in str(info.value)
 
 
-def test_prior_logits_of_an_env_without_a_prior_is_a_named_key_error(womd_scenes, womd_vocab):
+def test_prior_logits_of_an_env_without_a_prior_is_a_named_key_error(sample_scenes, sample_vocab):
     from agents.prior_policy import prior_logits_of
 
-    env = smart_traffic_v0.parallel_env(scenarios=womd_scenes[:1], prior=None, motion_vocab=womd_vocab, background="log",
+    env = smart_traffic_v0.parallel_env(scenarios=sample_scenes[:1], prior=None, motion_vocab=sample_vocab, background="log",
                                         controlled="sdc")
     observations, infos = env.reset(seed=0)
     with pytest.raises(NoPriorLogitsError, match="needs a prior") as info:

@@ -239,14 +239,17 @@ def test_driving_through_the_car_ahead_is_a_collision_that_terminates_the_agent(
 
 
 def test_collisions_match_overlapping_and_separated_boxes():
-    frames = np.zeros((3, 5, 3))
-    frames[1, :, 0] = 3.0  # 3 m ahead of track 0: overlaps a 4.5 m car
-    frames[2, :, 0] = 30.0
-    size = np.array([[4.5, 2.0, 1.5]] * 3)
-    hit = collisions(np.array([0, 2]), frames, np.ones(3, bool), size)
-    assert hit.tolist() == [True, False]
-    hit = collisions(np.array([0]), frames, np.array([True, False, True]), size)  # an absent agent is never hit
-    assert hit.tolist() == [False]
+    frames = torch.zeros(1, 3, 5, 3, dtype=torch.float64)
+    frames[0, 1, :, 0] = 3.0  # 3 m ahead of track 0: overlaps a 4.5 m car
+    frames[0, 2, :, 0] = 30.0
+    size = torch.tensor([[[4.5, 2.0, 1.5]] * 3], dtype=torch.float64)
+    both = torch.ones(1, 2, dtype=torch.bool)
+    hit = collisions(torch.tensor([[0, 2]]), both, frames, torch.ones(1, 3, dtype=torch.bool), size)
+    assert hit.tolist() == [[True, False]]
+    hit = collisions(torch.tensor([[0]]), both[:, :1], frames, torch.tensor([[True, False, True]]), size)  # an absent agent is never hit
+    assert hit.tolist() == [[False]]
+    hit = collisions(torch.tensor([[0, 2]]), torch.tensor([[False, True]]), frames, torch.ones(1, 3, dtype=torch.bool), size)
+    assert hit.tolist() == [[False, False]]  # an agent that does not act this step has no event
 
 
 def test_observation_blocks_match_independent_computations(scenes, vocab):
@@ -292,28 +295,6 @@ def test_bad_inputs_are_clear_errors(scenes, vocab, model):
         make(scenes, vocab, None, background="prior")
     with pytest.raises(smart_traffic_v0.EnvConfigError, match="background"):
         make(scenes, vocab, model, background="replay")
-
-
-def test_cropped_road_edges_give_the_same_offroad_distances_as_all_edges(scenes):
-    from envs._reward import crop_road_edges
-    from envs._scene import scene_static
-    from smart_marl.geometry import box_corners_float32, box_distance_to_road_edge
-
-    st = scene_static(scenes[0])
-    rng = np.random.default_rng(0)
-    tr, cf = scenes[0].tracks, scenes[0].current_frame
-    base = tr.position[tr.valid[:, cf], cf, :2]
-    n = 200
-    x, y = (base[rng.integers(len(base), size=n)] + rng.normal(0, 8, (n, 2))).T
-    h = rng.uniform(-np.pi, np.pi, n)
-    z = np.full(n, float(np.median(tr.position[tr.valid[:, cf], cf, 2])))
-    size = (np.full(n, 4.5), np.full(n, 2.0), np.full(n, 1.6))
-    full = box_distance_to_road_edge(x, y, z, *size, h, st.road_edges)
-    corners = box_corners_float32(x, y, size[0], size[1], h, z=z, height=size[2]).reshape(-1, 3)
-    cropped = crop_road_edges(st.road_edges, corners)
-    assert cropped.num_segments < st.road_edges.num_segments / 2
-    np.testing.assert_array_equal(box_distance_to_road_edge(x, y, z, *size, h, cropped), full)
-    assert (full > 0).sum() > 10 and (full < 0).sum() > 10  # both sides of the edge are exercised
 
 
 def test_controlled_selection_by_names_ids_predict_and_a_path(shared_data, scenes, vocab):

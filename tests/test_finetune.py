@@ -22,10 +22,13 @@ pytest.importorskip("torchrl", reason="the rl extra (torchrl) is not installed")
 from agents import PriorPolicy, kl_to_prior, run_episode  # noqa: E402
 from agents.evaluate import evaluate_policies, first_collision_kinds  # noqa: E402
 from agents.finetune import (  # noqa: E402
-    FinetuneError, FinetunedPolicy, PolicyLogits, build_modules, evaluation_policies, finetune, held_out_scenes, load_finetune_config,
-    load_policy, load_prior, scene_env, select_scenes, token_motion_features,
+    FinetuneError, build_modules, controlled_selection, core_scenes, evaluation_core, evaluation_policies, finetune, held_out_scenes,
+    load_finetune_config, load_policy, load_prior, training_env, training_pool,
 )
 from agents.kl_ppo import PriorKLPPOLoss  # noqa: E402
+from agents.policy import FinetunedTensorPolicy, PolicyError, PolicyLogits, PriorTensorPolicy, token_motion_features  # noqa: E402
+from envs import smart_traffic_v0  # noqa: E402
+from envs._core import TrafficCore  # noqa: E402
 from smart_marl.rollout import DEFAULT_TOP_K, reference_log_probs, sample_tokens  # noqa: E402
 
 VOCAB = 32  # tokens per type of conftest's womd_vocab
@@ -50,6 +53,19 @@ def tiny(shared_data, prior_path, out_dir, **over) -> dict:
             "eval_scenes": str(shared_data / GPUDRIVE), "eval_num_scenes": 1, "reference_top_k": 5, "top_k": 5, **over}
 
 
+def pettingzoo_env(cfg, model, vocab, scenes, **kw):
+    """The one-scene PettingZoo env with the run's settings."""
+    return smart_traffic_v0.parallel_env(scenarios=scenes, prior=model, motion_vocab=vocab, controlled=controlled_selection(cfg),
+                                         max_agents=cfg.max_agents, background=cfg.background, horizon_steps=cfg.horizon_steps,
+                                         observation="dict", top_k=cfg.top_k, temperature=cfg.temperature,
+                                         reference_top_k=cfg.reference_top_k, **kw)
+
+
+def training_scenes(cfg):
+    pool = training_pool(cfg)
+    return [pool.scenario(i) for i in range(len(pool))]
+
+
 @pytest.fixture(scope="module")
 def tiny_run(shared_data, prior_path, tmp_path_factory):
     """The named ``tiny`` config on the two real scenes: about one minute on one CPU thread (measured
@@ -62,17 +78,17 @@ def tiny_run(shared_data, prior_path, tmp_path_factory):
 def test_evaluation_has_a_row_for_the_reference_k_and_one_for_the_background_k_when_they_differ():
     """The defaults: a top-3 reference and a background sampling DEFAULT_TOP_K; each k gets its row, once."""
     cfg = load_finetune_config("tiny", {"reference_top_k": 3, "top_k": DEFAULT_TOP_K})
-    names = list(evaluation_policies(cfg, env=None, net=None))
+    names = list(evaluation_policies(cfg, net=None))
     assert names == ["expert (log)", "prior top-3", f"prior top-{DEFAULT_TOP_K}", "prior full softmax"]
     same = load_finetune_config("tiny", {"reference_top_k": 5, "top_k": 5})
-    assert list(evaluation_policies(same, env=None, net=None)) == ["expert (log)", "prior top-5", "prior full softmax"]
+    assert list(evaluation_policies(same, net=None)) == ["expert (log)", "prior top-5", "prior full softmax"]
 
 
 # ------------------------------------------------------------------------------- the prior
 def test_prior_policy_samples_the_infos_logits_and_has_zero_kl(shared_data, prior_path):
     cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, "unused"))
     model, vocab = load_prior(cfg.prior)
-    env = scene_env(cfg, select_scenes(cfg, model, vocab), model, vocab)
+    env = pettingzoo_env(cfg, model, vocab, training_scenes(cfg))
     obs, infos = env.reset(seed=3)
     policy = PriorPolicy(top_k=None)
     policy.reset(3)
@@ -132,7 +148,7 @@ def test_first_collision_kinds_say_who_ran_into_whom():
 def test_env_action_mask_and_infos_carry_the_top_k_reference(shared_data, prior_path):
     cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, "unused", reference_top_k=3))
     model, vocab = load_prior(cfg.prior)
-    env = scene_env(cfg, select_scenes(cfg, model, vocab), model, vocab)
+    env = pettingzoo_env(cfg, model, vocab, training_scenes(cfg))
     obs, infos = env.reset(seed=1)
     assert env.reference == "prior top-3"
     for a in env.agents:
@@ -159,11 +175,12 @@ def test_residual_actor_with_a_top_k_reference_starts_at_it_and_samples_what_the
     logp = torch.log_softmax(net(obs, prior), -1)
     torch.testing.assert_close(logp, reference_log_probs(prior, 5, 0.5), rtol=0, atol=1e-6)
     assert float(kl_to_prior(logp, prior, 0.5, 5).abs().max()) < 1e-6
-    tuned, prior_top5 = FinetunedPolicy(net), PriorPolicy(top_k=5, temperature=0.5)
+    tuned, prior_top5 = FinetunedTensorPolicy(net), PriorTensorPolicy(top_k=5, temperature=0.5)
     for seed in range(3):
         tuned.reset(seed)
         prior_top5.reset(seed)
-        a, b = tuned.sample(logp[seed]), prior_top5.sample(reference_log_probs(prior[seed], 5, 0.5))
+        a = tuned.act(tuned.log_probs(None, obs, prior))
+        b = prior_top5.act(prior_top5.log_probs(None, obs, prior))
         assert a.tolist() == b.tolist()
 
 
@@ -197,7 +214,7 @@ def test_motion_head_scores_each_token_by_its_types_motion_features_and_starts_a
     torch.testing.assert_close(delta[:, 0], (feats[0] @ w).expand(5, -1), rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(delta[:, 1], (feats[1] @ w).expand(5, -1), rtol=1e-5, atol=1e-5)
     assert delta[:, 2].abs().max() == 0
-    with pytest.raises(FinetuneError, match="motion_features"):
+    with pytest.raises(PolicyError, match="motion_features"):
         PolicyLogits(obs_dim, VOCAB + 1, n_agents=3, hidden=16, depth=2, motion_features=feats)
 
 
@@ -261,12 +278,14 @@ def test_tiny_finetuning_reaches_logged_goals_more_often_than_the_prior(tiny_run
     (the reference they started from), by at least 3 agent-episodes in 64, with the KL reported."""
     cfg, result = tiny_run
     model, vocab = load_prior(cfg.prior)
-    training = select_scenes(cfg, model, vocab)
-    assert [sc.scenario_id for sc in training] == result.scene_ids
-    env = scene_env(cfg, training, model, vocab)
+    pool = training_pool(cfg)
+    assert pool.scenario_ids() == result.scene_ids
+    scenes = core_scenes(cfg, pool, vocab, len(pool))
+    core = TrafficCore(model, vocab, cfg.background, cfg.horizon_steps, terminate_on=cfg.terminate_on, top_k=cfg.top_k, record=True)
     _, net, _ = load_policy(result.checkpoint)
     seeds = list(range(cfg.eval_seed, cfg.eval_seed + 8))
-    rows = evaluate_policies(env, {"prior top-5": PriorPolicy(top_k=5), "fine-tuned": FinetunedPolicy(net)}, [0, 1], seeds)["rows"]
+    rows = evaluate_policies(core, scenes, {"prior top-5": PriorTensorPolicy(top_k=5), "fine-tuned": FinetunedTensorPolicy(net)},
+                             seeds, num_envs=4, vocab_size=VOCAB, num_agents=cfg.max_agents, reference_top_k=5)["rows"]
     prior, tuned = rows["prior top-5"], rows["fine-tuned"]
     print("\n" + json.dumps(rows, indent=1))
     assert prior["agent_episodes"] == tuned["agent_episodes"] == 2 * 4 * 8
@@ -281,6 +300,22 @@ def test_tiny_finetuning_reaches_logged_goals_more_often_than_the_prior(tiny_run
     assert len(hist) == cfg.iterations and hist[0]["kl_to_prior"] < 1e-3 < hist[-1]["kl_to_prior"]
     csv_rows = (result.out_dir / "finetune.csv").read_text().splitlines()
     assert len(csv_rows) == 1 + cfg.iterations and csv_rows[0].startswith("iteration,frames")
+
+
+def test_evaluation_refuses_an_override_of_the_saved_policys_network(tiny_run, capsys):
+    """Issue 34: ``hidden=128`` at evaluation was ignored (the network is the checkpoint's); it is refused, before
+    anything runs, as is ``--episodes 0`` (which became one seed)."""
+    from agents.finetune import FinetuneConfigError, evaluate_checkpoint
+    from smart_marl.cli import main
+
+    cfg, result = tiny_run
+    assert main(["finetune", "--evaluate", str(result.checkpoint), "hidden=128"]) == 2
+    err = capsys.readouterr().err
+    assert f"hidden=128 (the checkpoint's: {cfg.hidden})" in err and "the policy's network was built with" in err
+    with pytest.raises(FinetuneConfigError, match="--episodes must be at least 1, got 0"):
+        evaluate_checkpoint(result.checkpoint, episodes=0)
+    with pytest.raises(FinetuneConfigError, match=r"--episodes must be at least 1, got -3"):
+        evaluate_checkpoint(result.checkpoint, episodes=-3)
 
 
 def test_policy_checkpoint_round_trips_and_evaluate_command_prints_the_table(tiny_run, capsys):
@@ -357,15 +392,15 @@ def test_with_a_large_beta_the_kl_stays_near_zero_and_behaviour_matches_the_prio
         assert abs(tuned[key] - prior[key]) <= 0.15, (key, prior, tuned)
     # state by state: the fine-tuned action distribution is the prior's (total variation, Pinsker: <= sqrt(KL / 2))
     model, vocab = load_prior(cfg.prior)
-    env = scene_env(cfg, select_scenes(cfg, model, vocab), model, vocab)
+    env = training_env(cfg, training_pool(cfg), model, vocab, seed=0)
     _, net, _ = load_policy(result.checkpoint)
-    tv = []
-    for seed in range(4):
-        obs, infos = env.reset(seed=seed, options={"scene_index": seed % 2})
-        p_prior = PriorPolicy(top_k=5).log_probs(env.agents, obs, infos).exp()
-        p_tuned = FinetunedPolicy(net).log_probs(env.agents, obs, infos).exp()
-        tv.append(0.5 * (p_prior - p_tuned).abs().sum(-1))
-    assert float(torch.cat(tv).max()) < 0.05
+    td = env.reset()
+    obs, prior = td["agents", "observation", "observation"], td["agents", "observation", "prior_logits"]
+    mask = td["agents", "mask"]
+    p_prior = PriorTensorPolicy(top_k=5).log_probs(env.core, obs, prior).exp()
+    p_tuned = FinetunedTensorPolicy(net).log_probs(env.core, obs, prior).exp()
+    tv = 0.5 * (p_prior - p_tuned).abs().sum(-1)
+    assert mask.sum() >= 4 and float(tv[mask].max()) < 0.05
 
 
 # ------------------------------------------------------------------------------- the config
@@ -387,40 +422,61 @@ def test_config_names_overrides_and_errors(shared_data, prior_path):
         load_prior(str(prior_path.parent / "missing"))
     # the named configs' default scenes: the package's SUMO samples
     cfg = load_finetune_config("tiny", {"prior": str(prior_path)})
-    assert [sc.scenario_id[:4] for sc in select_scenes(cfg, *load_prior(cfg.prior))] == ["sumo", "sumo"]
-    cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, "unused", max_agents=40))
-    with pytest.raises(FinetuneError, match="40 controllable agents"):
-        select_scenes(cfg, *load_prior(cfg.prior))
+    assert [i[:4] for i in training_pool(cfg).scenario_ids()] == ["sumo", "sumo"]
+    cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, "unused", num_scenes=40))
+    with pytest.raises(FinetuneError, match="holds 2 scene"):
+        training_pool(cfg)
+    with pytest.raises(FinetuneError, match="num_envs"):
+        load_finetune_config("tiny", ["num_envs=200"])
 
 
 # ------------------------------------------------------------------------------- the evaluation
-class _Spy(PriorPolicy):
-    """The prior top-5, recording the (scene, seed) of every episode it drives."""
+class _Spy(PriorTensorPolicy):
+    """The prior top-5, recording the scenes and seed of every wave of episodes it drives."""
 
-    def __init__(self, env):
+    def __init__(self):
         super().__init__(top_k=5)
-        self.env, self.episodes = env, []
+        self.waves, self.core = [], None
+
+    def log_probs(self, core, observation, prior_logits):
+        if self.core is None:
+            self.core = core
+            self.waves.append(([st.scenario.scenario_id for st in core.scenes.statics], self.seed))
+        return super().log_probs(core, observation, prior_logits)
 
     def reset(self, seed):
         super().reset(seed)
-        self.episodes.append((self.env.static.scenario.scenario_id, int(seed)))
+        self.core, self.seed = None, int(seed)
 
 
 def test_evaluation_runs_every_policy_on_the_same_scenes_and_seeds(shared_data, prior_path):
-    """Every policy drives the same (scene, seed) episodes; two copies of one policy therefore give
-    identical rows, realism of the controlled agents included (the full 8 s, nobody removed)."""
-    cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, "unused", background="prior"))
+    """Every policy drives the same (scene, seed) episodes in the same waves; two copies of one policy
+    therefore give identical rows, realism of the controlled agents included (the full 8 s, nobody removed)."""
+    cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, "unused", background="prior", eval_num_scenes=2))
     model, vocab = load_prior(cfg.prior)
-    scenes = held_out_scenes(cfg, model, vocab, select_scenes(cfg, model, vocab))
-    env = scene_env(cfg, scenes, model, vocab, terminate_on=())
-    spies = {"a": _Spy(env), "b": _Spy(env), "full": PriorPolicy(top_k=None)}
-    result = evaluate_policies(env, spies, [0], [7, 8])
-    assert spies["a"].episodes == spies["b"].episodes == [(scenes[0].scenario_id, 7), (scenes[0].scenario_id, 8)]
+    scenes = held_out_scenes(cfg, vocab, training_pool(cfg).scenario_ids())
+    core = evaluation_core(cfg, model, vocab, len(scenes))
+    spies = {"a": _Spy(), "b": _Spy(), "full": PriorTensorPolicy(top_k=None)}
+    result = evaluate_policies(core, scenes, spies, [7, 8], num_envs=3, vocab_size=VOCAB, num_agents=cfg.max_agents,
+                               reference_top_k=5)
+    ids = [sc.static.scenario.scenario_id for sc in scenes]
+    assert spies["a"].waves == spies["b"].waves == [([ids[0], ids[0], ids[1]], 7), ([ids[1]], 8)]  # 4 episodes, 3 at a time
     assert result["rows"]["a"] == result["rows"]["b"]
     a, full = result["rows"]["a"], result["rows"]["full"]
     assert a["steps"] == a["agent_episodes"] * cfg.horizon_steps  # no termination: every agent drives the horizon
-    assert result["realism_scenes"] == [scenes[0].scenario_id] and 0 < a["meta_metric"] < 1 and a["min_ade"] >= 0
+    assert result["realism_scenes"] == ids and 0 < a["meta_metric"] < 1 and a["min_ade"] >= 0
     assert a != full and full["kl_to_reference"] == float("inf") and full["kl_to_full_prior"] < 1e-5
+
+
+def test_a_run_on_a_pool_larger_than_its_batch_plays_every_scene(tmp_path):
+    """The package's 4 sample scenes, 2 at a time, episodes of 2 steps: finished scenes are refilled
+    from the pool, so after 3 iterations of 8 scene-steps every scene has been played."""
+    cfg = load_finetune_config("tiny", {"num_scenes": 4, "num_envs": 2, "horizon_steps": 2, "iterations": 3, "frames_per_batch": 8,
+                                        "minibatch_size": 8, "ppo_epochs": 1, "eval_episodes": 0, "out_dir": str(tmp_path),
+                                        "tensorboard": False, "controlled": "vehicles"})
+    result = finetune(cfg)
+    assert [r["scenes_seen"] for r in result.history][-1] == 4
+    assert result.history[-1]["frames"] == 24 and result.history[0]["agent_episodes"] > 0
 
 
 def test_tiny_finetune_then_evaluate_on_held_out_scenes(shared_data, prior_path, tmp_path):

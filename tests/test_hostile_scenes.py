@@ -200,10 +200,9 @@ def test_preprocess_skip_bad_records_a_wrongly_typed_file_and_goes_on(shared_dat
 
 # -------------------------------------------------------------- item 4: the scene cache
 @pytest.fixture
-def shard(shared_data, tmp_path):
-    scene = next(read_scenarios(shared_data / SMART))
+def shard(sample_scenes, tmp_path):
     path = tmp_path / "a.smsc"
-    write_shard(path, [scene])
+    write_shard(path, sample_scenes[3:])  # the smallest sample scene (10 tracks)
     return path
 
 
@@ -223,7 +222,8 @@ def _write_header(path: Path, header: dict, data: bytes) -> None:
     (lambda h: h["scenes"][0]["arrays"]["tracks.position"].__setitem__(0, "<f8"), "has dtype '<f8', expected '<f4'"),
     (lambda h: h["scenes"][0]["arrays"]["tracks.ids"].__setitem__(0, "|O"), "has dtype '|O'"),
     (lambda h: h["scenes"][0]["arrays"]["tracks.heading"].__setitem__(2, 10**12), "runs past the end of the file"),
-    (lambda h: h["scenes"][0]["arrays"]["tracks.heading"].__setitem__(1, [91, 18]), "Tracks.heading has shape (91, 18)"),
+    # the 10-track scene's [10, 91] headings declared transposed (the same bytes): a wrong shape, not wrong data
+    (lambda h: h["scenes"][0]["arrays"]["tracks.heading"].__setitem__(1, [91, 10]), "Tracks.heading has shape (91, 10)"),
     (lambda h: h["scenes"][0]["meta"].__setitem__("sdc_index", 999), "sdc_index 999 outside"),
     (lambda h: h["scenes"][0]["meta"].__setitem__("current_frame", "10"), "current_frame: expected an integer"),
     (lambda h: h["scenes"][0]["arrays"].pop("tracks.valid"), "missing or unknown: ['tracks.valid']"),
@@ -242,13 +242,22 @@ def test_truncated_shard_is_one_named_error_without_a_buffer_error(shard):
     assert "runs past the end of the file" in str(err)
 
 
-def _cache_of(shared_data, out: Path, *names: str) -> Path:
-    preprocess([shared_data / n for n in names], out, workers=1, progress=False)
+def _cache_of(out: Path, *sources: Path) -> Path:
+    preprocess(list(sources), out, workers=1, progress=False)
     return out
 
 
-def test_manifest_entry_outside_the_cache_folder_is_refused(shared_data, tmp_path):
-    cache = _cache_of(shared_data, tmp_path / "c", SMART)
+@pytest.fixture
+def second_scene_file(sample_scenes, tmp_path) -> Path:
+    """The second sample scene (sumo-7-000000-01) alone in a scene file: another input than ``sample_scene_file``."""
+    path = tmp_path / "other" / "sumo-7-000000-01.smsc"
+    path.parent.mkdir()
+    write_shard(path, sample_scenes[1:2])
+    return path
+
+
+def test_manifest_entry_outside_the_cache_folder_is_refused(sample_scene_file, tmp_path):
+    cache = _cache_of(tmp_path / "c", sample_scene_file)
     manifest = json.loads((cache / "manifest.json").read_text())
     outside = tmp_path / "elsewhere.smsc"
     outside.write_bytes((cache / manifest["shards"][0]["file"]).read_bytes())
@@ -259,12 +268,12 @@ def test_manifest_entry_outside_the_cache_folder_is_refused(shared_data, tmp_pat
             SceneCache(cache)
 
 
-def test_manifest_ids_are_checked_against_the_shards(shared_data, tmp_path):
-    cache = _cache_of(shared_data, tmp_path / "c", SMART)
+def test_manifest_ids_are_checked_against_the_shards(sample_scene_file, tmp_path):
+    cache = _cache_of(tmp_path / "c", sample_scene_file)
     manifest = json.loads((cache / "manifest.json").read_text())
     manifest["shards"][0]["scenes"][0]["scenario_id"] = "someone-else"
     (cache / "manifest.json").write_text(json.dumps(manifest))
-    with pytest.raises(ScenarioReadError, match="holds scene '1d71990efc3c6c0e' where the manifest lists 'someone-else'"):
+    with pytest.raises(ScenarioReadError, match="holds scene 'sumo-7-000000-00' where the manifest lists 'someone-else'"):
         SceneCache(cache)[0]
     manifest["shards"][0]["scenes"].append(dict(manifest["shards"][0]["scenes"][0]))
     (cache / "manifest.json").write_text(json.dumps(manifest))
@@ -272,17 +281,18 @@ def test_manifest_ids_are_checked_against_the_shards(shared_data, tmp_path):
         SceneCache(cache)[0]
 
 
-def test_preprocess_over_a_cache_of_other_inputs_is_refused_and_append_keeps_both(shared_data, tmp_path):
-    cache = _cache_of(shared_data, tmp_path / "c", SMART)
+def test_preprocess_over_a_cache_of_other_inputs_is_refused_and_append_keeps_both(sample_scene_file, second_scene_file, tmp_path):
+    first, other = sample_scene_file, second_scene_file
+    cache = _cache_of(tmp_path / "c", first)
     with pytest.raises(UsageError, match="already holds a scene cache of 1 other input"):
-        preprocess([shared_data / GPUDRIVE], cache, workers=1, progress=False)
-    assert [s.scenario_id for s in SceneCache(cache)] == ["1d71990efc3c6c0e"]  # untouched
-    assert main(["preprocess", str(shared_data / GPUDRIVE), "--out", str(cache), "--quiet", "--workers", "1"]) == 2
-    report = preprocess([shared_data / GPUDRIVE], cache, workers=1, progress=False, append=True)
+        preprocess([other], cache, workers=1, progress=False)
+    assert [s.scenario_id for s in SceneCache(cache)] == ["sumo-7-000000-00"]  # untouched
+    assert main(["preprocess", str(other), "--out", str(cache), "--quiet", "--workers", "1"]) == 2
+    report = preprocess([other], cache, workers=1, progress=False, append=True)
     assert report.scenes == 2
-    assert [s.scenario_id for s in SceneCache(cache)] == ["1d71990efc3c6c0e", "1c365f15b70ebdbf"]
+    assert [s.scenario_id for s in SceneCache(cache)] == ["sumo-7-000000-00", "sumo-7-000000-01"]
     # rerunning with the same inputs (resume) is no conflict
-    assert preprocess([shared_data / SMART, shared_data / GPUDRIVE], cache, workers=1, progress=False).files_done_before == 2
+    assert preprocess([first, other], cache, workers=1, progress=False).files_done_before == 2
 
 
 # ------------------------------------------------------------ item 5: memory and hangs

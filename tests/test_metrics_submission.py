@@ -68,8 +68,8 @@ def test_submission_checks_name_file_scenario_and_object(tmp_path):
         rollouts_from_submission(path)
 
 
-def test_eval_command_scores_a_written_policy_submission_identically(tmp_path, capsys, shared_data):
-    scenes = str(shared_data / "womd_tfrecord" / "motion_data_one_scenario.tfrecord")
+def test_eval_command_scores_a_written_policy_submission_identically(tmp_path, capsys, sample_scene_file):
+    scenes = str(sample_scene_file)
     sub = tmp_path / "cv.binproto"
     assert main(["eval", "--scenes", scenes, "--policy", "random", "--rollouts", "4", "--seed", "1", "--json",
                  "--rules", "2024", "--write-submission", str(sub)]) == 0
@@ -96,7 +96,7 @@ def test_eval_command_table_and_errors(tmp_path, capsys, shared_data):
     assert "no rollouts for scenario ee519cf571686d19" in capsys.readouterr().err
 
 
-def test_eval_policy_prior_scores_the_rollout_engines_rollouts(shared_data, tiny_prior, capsys):
+def test_eval_policy_prior_scores_the_rollout_engines_rollouts(sample_scene_file, tiny_prior, capsys):
     import json
 
     from smart_marl.cli import main
@@ -105,7 +105,7 @@ def test_eval_policy_prior_scores_the_rollout_engines_rollouts(shared_data, tiny
     from smart_marl.model.checkpoint import load_checkpoint
     from smart_marl.readers import read_scenario
 
-    path = shared_data / "womd_tfrecord" / "motion_data_one_scenario.tfrecord"
+    path = sample_scene_file
     assert main(["eval", "--scenes", str(path), "--policy", "prior", "--checkpoint", str(tiny_prior),
                  "--rollouts", "4", "--rules", "2024", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
@@ -121,7 +121,7 @@ def test_eval_policy_prior_scores_the_rollout_engines_rollouts(shared_data, tiny
     assert np.all(np.isfinite(first)) and first.max() < 5e3
 
 
-def test_eval_policy_prior_samples_with_the_given_top_k(shared_data, tiny_prior, capsys):
+def test_eval_policy_prior_samples_with_the_given_top_k(sample_scene_file, tiny_prior, capsys):
     """``--top-k 1`` drives by argmax, so the seed changes nothing; the default top-k samples, and
     ``--temperature`` changes what it samples."""
     import json
@@ -131,7 +131,8 @@ def test_eval_policy_prior_samples_with_the_given_top_k(shared_data, tiny_prior,
     from smart_marl.model.checkpoint import load_checkpoint
     from smart_marl.readers import read_scenario
 
-    path = shared_data / "womd_tfrecord" / "motion_data_one_scenario.tfrecord"
+    path = sample_scene_file
+
     def scores(*flags):
         assert main(["eval", "--scenes", str(path), "--policy", "prior", "--checkpoint", str(tiny_prior), "--rollouts", "2",
                      "--rules", "2024", "--json", *flags]) == 0

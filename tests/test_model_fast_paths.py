@@ -1,5 +1,6 @@
 """The training-speed rewrites of the model's two hottest layers compute what the straightforward
-implementations computed: the same loss and the same gradients on real scenes, within float tolerance.
+implementations computed: the same loss and the same gradients on the package's sample scenes, within
+float tolerance.
 
 The reference forwards below are the project's previous implementations, kept verbatim (one batched
 einsum over the Fourier dimensions, every row embedded, padded neighbour pairs included; relative
@@ -92,30 +93,36 @@ def _loss_and_grads(model: SMART, batch) -> tuple[dict[str, float], dict[str, to
             {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None})
 
 
-def _womd_items(womd_scenes, womd_vocab, steps: slice, road_keep_radius_m: float = 40.0) -> tuple[list[dict], dict]:
-    """Training items of both real scenes (83 and 257 tracks, so that a batch of them pads agents and
-    road pieces) over the token ``steps``, and the config fields that fit them (vocabulary sizes)."""
-    pieces = np.concatenate([road_pieces(sc.road_map).local for sc in womd_scenes])
+@pytest.fixture(scope="module")
+def two_scenes(sample_scenes):
+    """Sample scenes sumo-7-000000-02 and -00 (44 and 22 tracks, so that a batch of them pads agents and road pieces)."""
+    return [sample_scenes[2], sample_scenes[0]]
+
+
+def _scene_items(scenes, vocab, steps: slice, road_keep_radius_m: float = 40.0) -> tuple[list[dict], dict]:
+    """Training items of the scenes over the token ``steps``, and the config fields that fit them
+    (vocabulary sizes)."""
+    pieces = np.concatenate([road_pieces(sc.road_map).local for sc in scenes])
     rv = RoadVocabulary(points=pieces[np.random.default_rng(0).choice(len(pieces), 64)], tolerance_m=0.0, requested_size=64)
     items = []
-    for i, scene in enumerate(womd_scenes):
-        arrays = scene_tensors(scene, womd_vocab, scene_road(scene, rv), noise_topk=5, rng=i, road_keep_radius_m=road_keep_radius_m)
+    for i, scene in enumerate(scenes):
+        arrays = scene_tensors(scene, vocab, scene_road(scene, rv), noise_topk=5, rng=i, road_keep_radius_m=road_keep_radius_m)
         for k in ("agent_tokens", "agent_valid", "agent_start_pose", "agent_pose", "target_tokens", "target_valid"):
             arrays[k] = arrays[k][:, steps]
         items.append(arrays)
-    return items, dict(motion_vocab_sizes=tuple(womd_vocab[t].size for t in range(3)), road_vocab_size=64, dropout=0.0)
+    return items, dict(motion_vocab_sizes=tuple(vocab[t].size for t in range(3)), road_vocab_size=64, dropout=0.0)
 
 
 @pytest.mark.parametrize("size", ["smart-1m", "smart-7m"])
-def test_fast_layers_give_the_reference_loss_and_gradients_on_real_scenes(womd_scenes, womd_vocab, size, one_torch_thread,
-                                                                          monkeypatch):
+def test_fast_layers_give_the_reference_loss_and_gradients_on_sample_scenes(two_scenes, sample_vocab, size, one_torch_thread,
+                                                                            monkeypatch):
     # the first 6 token steps keep the test fast
-    items, fields = _womd_items(womd_scenes, womd_vocab, slice(4, 10))
+    items, fields = _scene_items(two_scenes, sample_vocab, slice(4, 10))
     cfg = get_config(size, **fields, num_agent_blocks=1 if size == "smart-7m" else 2)
     batch = collate_scenes(items)
     assert not batch.road_valid.all() and not batch.agent_valid.all()  # padding that the fast paths skip
     torch.manual_seed(0)
-    model = SMART(cfg, [womd_vocab[t].contour for t in range(3)]).train()  # dropout 0: deterministic
+    model = SMART(cfg, [sample_vocab[t].contour for t in range(3)]).train()  # dropout 0: deterministic
     fast_losses, fast_grads = _loss_and_grads(model, batch)
     monkeypatch.setattr(layers.FourierEmbedding, "forward", reference_fourier_forward)
     monkeypatch.setattr(layers.NeighbourAttention, "forward", reference_attention_forward)
@@ -135,11 +142,11 @@ def test_fast_layers_give_the_reference_loss_and_gradients_on_real_scenes(womd_s
         assert float((fast_grads[name] - g).abs().max()) <= 1e-4 * scale + 1e-8, name
 
 
-def test_rows_after_the_last_target_are_skipped_without_changing_the_loss(womd_scenes, womd_vocab, one_torch_thread,
+def test_rows_after_the_last_target_are_skipped_without_changing_the_loss(two_scenes, sample_vocab, one_torch_thread,
                                                                           monkeypatch):
-    # the last 5 token steps of both real scenes: the final step has no next token, so no target; the
+    # the last 5 token steps of both scenes: the final step has no next token, so no target; the
     # second scene's targets are all dropped, so none of its rows can reach the loss
-    items, fields = _womd_items(womd_scenes, womd_vocab, slice(-5, None))
+    items, fields = _scene_items(two_scenes, sample_vocab, slice(-5, None))
     cfg = get_config("smart-1m", **fields)
     items[1]["target_valid"][:] = False
     batch = collate_scenes(items)
@@ -148,7 +155,7 @@ def test_rows_after_the_last_target_are_skipped_without_changing_the_loss(womd_s
     assert not needed[:, :, -1].any() and not needed[1].any()  # the final step and the target-less scene are skipped
     assert torch.equal(needed[0, :, :-1], batch.agent_valid[0, :, :-1])  # every other row is kept
     torch.manual_seed(0)
-    model = SMART(cfg, [womd_vocab[t].contour for t in range(3)]).train()
+    model = SMART(cfg, [sample_vocab[t].contour for t in range(3)]).train()
     skipped_losses, skipped_grads = _loss_and_grads(model, batch)
     monkeypatch.setattr(losses, "rows_reaching_targets", lambda b: b.agent_valid)  # every valid row
     all_losses, all_grads = _loss_and_grads(model, batch)
@@ -164,14 +171,14 @@ def _close(a: torch.Tensor, b: torch.Tensor) -> bool:
     return float((a - b).abs().max()) <= 1e-5 * float(b.abs().max()) + 1e-7
 
 
-def test_road_pieces_that_nothing_reads_are_skipped_without_changing_the_loss(womd_scenes, womd_vocab, one_torch_thread,
+def test_road_pieces_that_nothing_reads_are_skipped_without_changing_the_loss(two_scenes, sample_vocab, one_torch_thread,
                                                                             monkeypatch):
     # three road layers, so that each layer's pieces are the next layer's plus their neighbours
-    items, fields = _womd_items(womd_scenes, womd_vocab, slice(4, 8), road_keep_radius_m=60.0)
+    items, fields = _scene_items(two_scenes, sample_vocab, slice(4, 8), road_keep_radius_m=60.0)
     cfg = get_config("smart-1m", **fields, num_road_layers=3)
     batch = collate_scenes(items)
     torch.manual_seed(0)
-    model = SMART(cfg, [womd_vocab[t].contour for t in range(3)]).train()
+    model = SMART(cfg, [sample_vocab[t].contour for t in range(3)]).train()
     layer_queries = []
     road_forward, layer_forward = roadnet.RoadNet.forward, layers.NeighbourAttention.forward
 

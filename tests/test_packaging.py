@@ -30,16 +30,33 @@ def test_the_environment_and_its_spaces_come_with_the_core_install():
     assert "hypothesis" in EXTRAS["dev"] and "pytest" in EXTRAS["dev"]
 
 
-def test_every_package_the_environment_imports_on_load_is_a_core_dependency():
-    """Top-level imports of envs/*.py (not the lazy ones inside functions) map to core distributions."""
-    dists = packages_distributions()
+#: the TorchRL face of the batched core is the one environment module that needs the rl extra
+TORCHRL_FACE = "smart_traffic_batched_v0.py"
+
+
+def _top_level_imports(path: Path) -> set[str]:
     imported = set()
-    for path in (ROOT / "envs").glob("*.py"):
-        for node in ast.parse(path.read_text()).body:
-            if isinstance(node, ast.Import):
-                imported |= {a.name.split(".")[0] for a in node.names}
-            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                imported.add(node.module.split(".")[0])
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, ast.Import):
+            imported |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            imported.add(node.module.split(".")[0])
+    return imported
+
+
+def test_the_torchrl_environment_needs_only_the_rl_extra():
+    dists = packages_distributions()
+    third_party = {m for m in _top_level_imports(ROOT / "envs" / TORCHRL_FACE)
+                   if m not in sys.stdlib_module_names and m not in ("smart_marl", "envs", "__future__")}
+    needed = {d.lower() for m in third_party for d in dists.get(m, [m])}
+    assert "torchrl" in needed and needed <= CORE | EXTRAS["rl"], sorted(needed - CORE - EXTRAS["rl"])
+
+
+def test_every_package_the_environment_imports_on_load_is_a_core_dependency():
+    """Top-level imports of envs/*.py (not the lazy ones inside functions; not the TorchRL face) map to
+    core distributions."""
+    dists = packages_distributions()
+    imported = set().union(*(_top_level_imports(p) for p in (ROOT / "envs").glob("*.py") if p.name != TORCHRL_FACE))
     third_party = {m for m in imported if m not in sys.stdlib_module_names and m not in ("smart_marl", "envs", "__future__")}
     needed = {d.lower() for m in third_party for d in dists.get(m, [m])}
     assert {"pettingzoo", "gymnasium"} <= needed

@@ -11,7 +11,7 @@ import pytest
 pytest.importorskip("matplotlib", reason="the render extra (matplotlib) is not installed")
 pytest.importorskip("imageio", reason="the render extra (imageio) is not installed")
 
-from smart_marl import AgentType, MapFeatureType, RoadMap, SignalState, TrafficLights, read_scenario  # noqa: E402
+from smart_marl import AgentType, MapFeatureType, RoadMap, SignalState, TrafficLights  # noqa: E402
 from smart_marl.render import (  # noqa: E402
     AGENT_COLORS, EGO_COLOR, LIGHT_GREEN, LIGHT_RED, ROAD_EDGE_COLOR, BevRenderer, EpisodeRecorder, color_uint8,
     render_log_replay, render_scenario_frame,
@@ -22,8 +22,10 @@ SIZE_PX = 300  # small images keep the tests fast; the view transform is the sam
 
 
 @pytest.fixture(scope="module")
-def womd(shared_data):
-    return read_scenario(shared_data / "womd_tfrecord" / "motion_data_one_scenario.tfrecord")
+def scene(sample_scenes):
+    """A scene with a map, lights and traffic: the sample scene sumo-7-000000-02 (44 tracks, 155
+    signalised lanes, 7 vehicles within 35 m of the SDC)."""
+    return sample_scenes[2]
 
 
 def _pixel(image: np.ndarray, renderer: BevRenderer, xy, center) -> np.ndarray:
@@ -41,31 +43,38 @@ def _logged(scenario, f):
                 valid=tr.valid[:, f], types=tr.types)
 
 
-def test_womd_frame_is_an_rgb_image_with_the_ego_colour_at_the_sdc(womd):
-    renderer = BevRenderer(womd, size_px=SIZE_PX, view_radius_m=40.0, center="sdc")
-    f = womd.current_frame
+def test_a_frame_is_an_rgb_image_with_the_ego_colour_at_the_sdc(scene):
+    renderer = BevRenderer(scene, size_px=SIZE_PX, view_radius_m=40.0, center="sdc")
+    f = scene.current_frame
     image = renderer.render_logged(f)
     assert image.shape == (SIZE_PX, SIZE_PX, 3) and image.dtype == np.uint8
     assert len(np.unique(image.reshape(-1, 3), axis=0)) >= 8  # map, lines, agents, lights, text: not blank
-    sdc_xy = womd.tracks.position[womd.sdc_index, f, :2]
-    center = renderer.view_center(womd.tracks.position[:, f, :2], womd.tracks.valid[:, f])
+    sdc_xy = scene.tracks.position[scene.sdc_index, f, :2]
+    center = renderer.view_center(scene.tracks.position[:, f, :2], scene.tracks.valid[:, f])
     np.testing.assert_allclose(center, sdc_xy)
     np.testing.assert_allclose(renderer.world_to_pixel(sdc_xy, center), [SIZE_PX / 2, SIZE_PX / 2])
     assert np.array_equal(_pixel(image, renderer, sdc_xy, center), color_uint8(EGO_COLOR))
-    # a controlled (to-predict) vehicle other than the SDC, inside the view, has the controlled colour
-    shown = [i for i in womd.predict_indices if i != womd.sdc_index and womd.tracks.valid[i, f]
-             and np.abs(womd.tracks.position[i, f, :2] - sdc_xy).max() < 35]
+    # a controlled (to-predict) agent other than the SDC, inside the view and not under the title's box
+    # (the top-left 40 rows x 3/4 of the width, see test_text_overlay_is_confined_to_the_top_left_corner),
+    # has the controlled colour
+    def under_title(xy):
+        row, col = renderer.world_to_pixel(np.asarray(xy, np.float64), center)
+        return row < 40 and col < SIZE_PX * 0.75
+
+    shown = [i for i in scene.predict_indices if i != scene.sdc_index and scene.tracks.valid[i, f]
+             and np.abs(scene.tracks.position[i, f, :2] - sdc_xy).max() < 35 and not under_title(scene.tracks.position[i, f, :2])]
+    assert len(shown) == 6
     for i in shown:
-        want = AGENT_COLORS[AgentType(int(womd.tracks.types[i]))][0]
-        assert np.array_equal(_pixel(image, renderer, womd.tracks.position[i, f, :2], center), color_uint8(want))
+        want = AGENT_COLORS[AgentType(int(scene.tracks.types[i]))][0]
+        assert np.array_equal(_pixel(image, renderer, scene.tracks.position[i, f, :2], center), color_uint8(want))
 
 
-def test_background_vehicles_have_their_type_colour(womd):
-    renderer = BevRenderer(womd, size_px=SIZE_PX, view_radius_m=40.0, center="sdc")
-    f = womd.current_frame
-    state = _logged(womd, f)
+def test_background_vehicles_have_their_type_colour(scene):
+    renderer = BevRenderer(scene, size_px=SIZE_PX, view_radius_m=40.0, center="sdc")
+    f = scene.current_frame
+    state = _logged(scene, f)
     image = renderer.render(**state, controlled=None, ego_index=-1, center=(0.0, 0.0))
-    vehicles = np.flatnonzero(state["valid"] & (womd.tracks.types == AgentType.VEHICLE)
+    vehicles = np.flatnonzero(state["valid"] & (scene.tracks.types == AgentType.VEHICLE)
                               & (np.abs(state["positions"]).max(axis=1) < 35))
     assert len(vehicles) >= 5
     colour = color_uint8(AGENT_COLORS[AgentType.VEHICLE][1])
@@ -73,23 +82,23 @@ def test_background_vehicles_have_their_type_colour(womd):
     assert np.mean(hits) >= 0.8  # all but those covered by a neighbour's box or a light
 
 
-def test_rendering_is_deterministic_and_independent_of_earlier_frames(womd):
-    a = BevRenderer(womd, size_px=SIZE_PX, center="agents")
+def test_rendering_is_deterministic_and_independent_of_earlier_frames(scene):
+    a = BevRenderer(scene, size_px=SIZE_PX, center="agents")
     first = a.render_logged(20)
     a.render_logged(60)  # the cached background is reused; nothing of frame 60 may stay behind
     again = a.render_logged(20)
-    fresh = BevRenderer(womd, size_px=SIZE_PX, center="agents").render_logged(20)
+    fresh = BevRenderer(scene, size_px=SIZE_PX, center="agents").render_logged(20)
     assert np.array_equal(first, again) and np.array_equal(first, fresh)
-    b = BevRenderer(womd, size_px=SIZE_PX, center="sdc")
-    assert np.array_equal(b.render_logged(15), BevRenderer(womd, size_px=SIZE_PX, center="sdc").render_logged(15))
+    b = BevRenderer(scene, size_px=SIZE_PX, center="sdc")
+    assert np.array_equal(b.render_logged(15), BevRenderer(scene, size_px=SIZE_PX, center="sdc").render_logged(15))
 
 
-def test_moving_one_agent_changes_the_image_only_near_it(womd):
-    renderer = BevRenderer(womd, size_px=SIZE_PX, view_radius_m=40.0, center=(0.0, 0.0))
-    f = womd.current_frame
-    state = _logged(womd, f)
+def test_moving_one_agent_changes_the_image_only_near_it(scene):
+    renderer = BevRenderer(scene, size_px=SIZE_PX, view_radius_m=40.0, center=(0.0, 0.0))
+    f = scene.current_frame
+    state = _logged(scene, f)
     pos = state["positions"].astype(np.float64)
-    far = np.flatnonzero(state["valid"] & (np.linalg.norm(pos, axis=1) > 15) & (np.abs(pos).max(axis=1) < 30))
+    far = np.flatnonzero(state["valid"] & (np.linalg.norm(pos, axis=1) > 15) & (np.abs(pos).max(axis=1) < 35))  # in the 40 m view
     j = int(far[0])
     before = renderer.render(**state)
     moved = dict(state, positions=pos.copy())
@@ -103,23 +112,25 @@ def test_moving_one_agent_changes_the_image_only_near_it(womd):
     assert dist.max() <= reach_px
 
 
-def test_traffic_lights_are_dots_in_their_state_colour_at_the_stop_points(womd):
-    tl = womd.traffic_lights
+def test_traffic_lights_are_dots_in_their_state_colour_at_the_stop_points(scene):
+    tl = scene.traffic_lights
     center = tuple(float(v) for v in tl.stop_points[:, :2].mean(axis=0))
-    renderer = BevRenderer(womd, size_px=SIZE_PX, view_radius_m=50.0, center=center)
-    n = womd.num_tracks
+    renderer = BevRenderer(scene, size_px=SIZE_PX, view_radius_m=50.0, center=center)
+    n = scene.num_tracks
     nobody = dict(positions=np.zeros((n, 2)), headings=np.zeros(n), sizes=np.ones((n, 2)), valid=np.zeros(n, bool),
-                  types=womd.tracks.types)
+                  types=scene.tracks.types)
+    in_view = tl.stop_points[np.abs(tl.stop_points[:, :2] - center).max(axis=1) < 45, :2]  # a SUMO network reaches further
+    assert len(in_view) >= 3
     for state, colour in ((SignalState.STOP, LIGHT_RED), (SignalState.GO, LIGHT_GREEN)):
         image = renderer.render(**nobody, light_states=np.full(len(tl.lane_ids), state))
-        for xy in tl.stop_points[:, :2]:
+        for xy in in_view:
             assert np.array_equal(_pixel(image, renderer, xy, center), color_uint8(colour))
     hidden = renderer.render(**nobody, light_states=np.full(len(tl.lane_ids), SignalState.GO),
                              light_present=np.zeros(len(tl.lane_ids), bool))
     assert _count_color(hidden, LIGHT_GREEN) == 0
     # the logged frame: the three lanes in front of the SDC show red at frame 10
-    logged = renderer.render_logged(womd.current_frame, history_frames=0)
-    red = tl.states[womd.current_frame] == SignalState.STOP
+    logged = renderer.render_logged(scene.current_frame, history_frames=0)
+    red = tl.states[scene.current_frame] == SignalState.STOP
     assert red.sum() >= 3 and _count_color(logged, LIGHT_RED) > 0
 
 
@@ -233,8 +244,8 @@ def test_map_and_agents_stay_aligned_while_the_view_follows_the_sdc_across_tiles
         assert np.array_equal(again.render_logged(f, history_frames=0, text=None), images[f])
 
 
-def test_text_overlay_is_confined_to_the_top_left_corner(womd):
-    renderer = BevRenderer(womd, size_px=SIZE_PX, center="agents")
+def test_text_overlay_is_confined_to_the_top_left_corner(scene):
+    renderer = BevRenderer(scene, size_px=SIZE_PX, center="agents")
     plain = renderer.render_logged(10, text=None)
     titled = renderer.render_logged(10, text="step 3  t=1.5 s")
     changed = np.argwhere(np.any(plain != titled, axis=-1))

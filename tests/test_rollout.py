@@ -1,8 +1,11 @@
 """Closed-loop rollouts (smart_marl.rollout): the KV cache equals a full re-computation, sampling
-respects top-k / temperature / forced tokens, outputs are sane on real scenes and reproducible.
+respects top-k / temperature / forced tokens, outputs are sane on the package's sample scenes and
+reproducible.
 
-A small randomly initialised smart-1m (vocabularies of 16 tokens per type built from the real
-scenes' snippets) is enough: none of these properties needs a trained model.
+A small randomly initialised smart-1m (vocabularies of 16 tokens per type built from the sample
+scenes' snippets) is enough: none of these properties needs a trained model. The sample scenes
+(sumo-7-000000-00 .. -03) have 22, 25, 44 and 10 tracks, 22, 22, 43 and 10 of them valid at the
+current frame.
 """
 
 from __future__ import annotations
@@ -17,23 +20,18 @@ import torch
 from smart_marl.model.batch import SmartBatch
 from smart_marl.model.checkpoint import load_embedded
 from smart_marl.model.smart import SMART, get_config
-from smart_marl.readers import read_scenarios
 from smart_marl.rollout import RolloutState, rollout, sample_tokens
 from smart_marl.rollout.frames import hermite_frames
 from smart_marl.tokens import token_poses_from_contours
 from smart_marl.scenario import AgentType, SignalState
 from smart_marl.tokens import collect_snippets, compose_poses, uniform_grid_vocabulary
 
-SCENE_FILES = ("womd_tfrecord/motion_data_one_scenario.tfrecord", "womd_tfrecord/womd_scenario_input.tfrecord",
-               "gpudrive_json/tfrecord-00000-of-01000_4.json")
-
-
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 
 
 @pytest.fixture(scope="module")
-def scenes(shared_data):
-    return [next(iter(read_scenarios(shared_data / f))) for f in SCENE_FILES]
+def scenes(sample_scenes):
+    return sample_scenes
 
 
 @pytest.fixture(scope="module")
@@ -56,10 +54,10 @@ def _start(model, vocab, scenes, mode="cached", **kw):
 
 
 def test_incremental_logits_equal_full_recomputation_at_every_step(model, vocab, scenes):
-    two = [scenes[0], scenes[2]]  # WOMD (83 tracks) and GPUDrive (81): the full path is slow on the 257-track scene
+    two = [scenes[0], scenes[2]]  # 22 and 43 agents valid at the current frame
     cached = _start(model, vocab, two, num_rollouts=1, seed=3)
     full = _start(model, vocab, two, mode="full", num_rollouts=1, seed=3)
-    assert cached.num_history_steps == 2  # WOMD: tokens 0-5 and 5-10 before the current frame
+    assert cached.num_history_steps == 2  # tokens 0-5 and 5-10 before the current frame
     worst = 0.0
     for k in range(16):
         if k == 9:  # removing an agent mid-rollout keeps both paths equal
@@ -71,7 +69,7 @@ def test_incremental_logits_equal_full_recomputation_at_every_step(model, vocab,
         b = full.step(a.tokens)  # the same tokens, so the two histories stay identical
         finite = torch.isfinite(a.logits)
         assert torch.equal(finite, torch.isfinite(b.logits))
-        assert finite.any(-1).sum() == a.simulated.sum() > 90
+        assert finite.any(-1).sum() == a.simulated.sum() >= 64  # 65, one removed from step 9 on
         worst = max(worst, float((a.logits[finite] - b.logits[finite]).abs().max()))
     print(f"max |incremental - full| logit error over 16 steps: {worst:.3g}")
     assert worst < 1e-4, worst
@@ -97,10 +95,21 @@ def test_incremental_logits_equal_full_recomputation_at_every_step(model, vocab,
     assert torch.allclose(ref, cached.logits()[veh][:, :16], atol=1e-4)
 
 
+def _appearing_late(scene, count: int):
+    """``scene`` with its first ``count`` non-SDC tracks valid at the current frame first seen 3 frames
+    before it (less than a token: no complete history token)."""
+    tr, cf = scene.tracks, scene.current_frame
+    picked = [i for i in np.flatnonzero(tr.valid[:, cf]) if i != scene.sdc_index][:count]
+    valid = tr.valid.copy()
+    valid[picked, : cf - 3] = False
+    return dataclasses.replace(scene, tracks=dataclasses.replace(tr, valid=valid))
+
+
 def test_rollouts_are_finite_wrapped_in_vocabulary_and_in_the_source_frame(model, vocab, scenes):
+    scenes = [scenes[0], _appearing_late(scenes[1], 7), *scenes[2:]]
     res = rollout(model, scenes, num_rollouts=3, num_steps=16, seed=0, motion_vocab=vocab)
     g = len(scenes) * 3
-    assert res.trajectory.shape == (g, 257, 80, 4) and res.tokens.shape == (g, 257, 16)
+    assert res.trajectory.shape == (g, 44, 80, 4) and res.tokens.shape == (g, 44, 16)  # padded to the largest scene
     assert np.isfinite(res.trajectory).all() and np.isfinite(res.log_probs).all()
     heading = res.trajectory[..., 3]
     assert (heading >= -math.pi).all() and (heading < math.pi).all()
@@ -150,7 +159,7 @@ def test_sampled_tokens_are_inside_the_top_k_with_unclipped_log_probs(model, voc
         expected = torch.log_softmax(logits / 0.7, -1).gather(1, chosen[:, None])[:, 0]
         assert torch.allclose(out.log_probs[sim], expected, atol=1e-6)
         assert (out.tokens[~sim] == -1).all() and torch.isinf(out.logits[~sim]).all()
-    # with 8 copies x ~100 agents x 3 steps, more than one of the top 3 is used
+    # with 8 copies x 44 agents (22 + 22) x 3 steps, more than one of the top 3 is used
     assert len(torch.unique(out.tokens[sim])) > 1
 
 
@@ -218,11 +227,12 @@ def test_hermite_frames_continue_steady_motion_and_wrap_headings():
 def test_spline_frames_keep_the_closed_loop_and_smooth_the_speed(scenes):
     """The interpolation only draws the frames between token ends: same tokens, same token-end
     poses as the contour frames; the 10 Hz speed changes less across token boundaries (the
-    embedded prior on a real scene: realistic tokens). Plain sampling: collision-aware sampling
+    embedded prior on a sample scene: realistic tokens). Plain sampling: collision-aware sampling
     checks candidate tokens along the frames the rollout draws, so its tokens may differ."""
     prior = load_embedded()
-    spline = rollout(prior, scenes[0], num_rollouts=2, num_steps=6, seed=4, avoid_collisions=False)
-    contour = rollout(prior, scenes[0], num_rollouts=2, num_steps=6, seed=4, interpolation="contour", avoid_collisions=False)
+    scene = scenes[2]  # 26 agents faster than 2 m/s
+    spline = rollout(prior, scene, num_rollouts=2, num_steps=6, seed=4, avoid_collisions=False)
+    contour = rollout(prior, scene, num_rollouts=2, num_steps=6, seed=4, interpolation="contour", avoid_collisions=False)
     np.testing.assert_array_equal(spline.tokens, contour.tokens)
     np.testing.assert_allclose(spline.trajectory[:, :, 4::5], contour.trajectory[:, :, 4::5], atol=1e-4)
     assert not np.allclose(spline.trajectory, contour.trajectory, atol=1e-3)
@@ -234,7 +244,8 @@ def test_spline_frames_keep_the_closed_loop_and_smooth_the_speed(scenes):
         after = speed[:, :, 4::5]  # the 10 Hz step that leaves each token end
         return np.abs(after - speed[:, :, 3::5][:, :, : after.shape[2]]).mean()  # against the step that reaches it
 
-    assert boundary_speed_jumps(spline) < 0.7 * boundary_speed_jumps(contour)  # measured: 0.20 vs 0.35 m/s
+    # measured on sumo-7-000000-02: 0.14 vs 0.39 m/s (on the real WOMD scene 637f20cafde22ff8, before: 0.20 vs 0.35)
+    assert boundary_speed_jumps(spline) < 0.7 * boundary_speed_jumps(contour)
     with pytest.raises(ValueError, match="interpolation"):
         RolloutState.start(prior, scenes[0], interpolation="linear")
 
@@ -259,7 +270,7 @@ def test_removed_agent_stops_and_overridden_pose_is_used(model, vocab, scenes):
 
 
 def test_other_agents_move_at_constant_velocity(model, vocab, scenes):
-    sc = scenes[0]
+    sc = scenes[2]  # 26 agents faster than 2 m/s
     tr, cf = sc.tracks, sc.current_frame
     moving = np.flatnonzero(tr.valid[:, cf] & (np.linalg.norm(tr.velocity[:, cf], axis=-1) > 2.0))[:2]
     types = tr.types.copy()
@@ -293,8 +304,8 @@ def test_rollout_from_a_checkpoint_path_equals_rollout_from_its_model(model, voc
 
 
 def test_scenes_with_different_history_lengths_batch_together_and_stay_exact(model, vocab, scenes):
-    # GPUDrive scene cut to start at frame 4: current frame 6, one history token (frames 1-6), next to
-    # the WOMD scene's two; histories are right-aligned so both end at their current frame
+    # a scene cut to start at frame 4: current frame 6, one history token (frames 1-6), next to a
+    # whole scene's two; histories are right-aligned so both end at their current frame
     short = scenes[2].window(4, 91)
     assert short.current_frame == 6
     pair = [scenes[0], short]

@@ -52,13 +52,15 @@ PINS = {  # regenerated when collision-aware sampling became the default (stage 
         "log_prob_sum": -606.4080134108663,
         "path_length_m": 938.9321361192233,
     },
-    "sumo-sample-0": {
+    "sumo-sample-0": {  # re-pinned 2026-11-26: knn_within went to exact distances with ties taken lowest index first
+        # (c672e82, so that a scene's neighbourhoods do not depend on the scenes batched with it; bisected to it): the
+        # first tokens are unchanged, later ones moved (+0.1 m of path over 22 agents); the WOMD pins did not move
         "simulated": 22,
-        "tokens_sha256": "a8641703127db0608de0c38913af924e4a8b1fbf23758bc35b81e44fce967037",
+        "tokens_sha256": "0a44dd2fa9fee7ef1a93dbcd76ee255819b32c33edf0df90426106a223193321",
         "first_tokens": [[[122, 73, 138, 73], [5, 5, 5, 5], [5, 5, 5, 5], [32, 5, 5, 5]],
                          [[122, 139, 138, 73], [5, 32, 5, 5], [5, 5, 5, 5], [5, 5, 5, 5]]],
-        "log_prob_sum": -139.78666654974222,
-        "path_length_m": 44.19782234392829,
+        "log_prob_sum": -139.78396518528461,
+        "path_length_m": 44.29867252700619,
     },
 }
 

@@ -36,6 +36,14 @@ def scenes() -> list[Scenario]:
     return out
 
 
+@pytest.fixture(scope="module")
+def without_parked_cars() -> list[Scenario]:
+    """Simulation 0 of seed 0 as in ``scenes``, without parked cars (two tests compare against it)."""
+    from dataclasses import replace
+
+    return simulate_scenes(0, 0, replace(SMALL, parked_occupancy=(0.0, 0.0)))
+
+
 def lane_polylines(scenario: Scenario) -> dict[int, np.ndarray]:
     rm = scenario.road_map
     return {int(rm.ids[i]): rm.feature_points(i)[:, :2].astype(np.float64) for i in rm.indices_of(MapFeatureType.LANE)}
@@ -475,7 +483,7 @@ def test_generated_pedestrians_sway_like_logged_ones_unless_switched_off(scenes)
     assert straight[key]["p50"] < 0.005
 
 
-def test_cyclist_sway_is_off_by_default_and_turns_only_the_cyclists():
+def test_cyclist_sway_is_off_by_default_and_turns_only_the_cyclists(without_parked_cars):
     """``cyclist_sway_m`` (default 0: cyclists ride SUMO's lane lines) sways moving cyclists as
     :func:`sway_walkers` sways pedestrians, without the heading jitter; vehicles keep their tracks."""
     from smart_marl.sources.scene_stats import yaw_rate_radps
@@ -483,7 +491,7 @@ def test_cyclist_sway_is_off_by_default_and_turns_only_the_cyclists():
     # without parked cars: a swaying cyclist keeps other kerb slots free (add_parked_vehicles), which would
     # change the parked cars between the two
     swayed = simulate_scenes(0, 0, SumoConfig(**SMALL_FIELDS, cyclist_sway_m=0.22, cyclist_sway_s=0.65, parked_occupancy=(0.0, 0.0)))
-    plain = simulate_scenes(0, 0, SumoConfig(**SMALL_FIELDS, parked_occupancy=(0.0, 0.0)))
+    plain = without_parked_cars  # SumoConfig(**SMALL_FIELDS, parked_occupancy=(0.0, 0.0))
     assert len(plain) == len(swayed)
     rates = {"plain": [], "swayed": []}
     for a, b in zip(plain, swayed):
@@ -571,14 +579,12 @@ def test_parked_cars_line_the_kerb_to_the_right_of_travel_and_clear_of_every_age
     assert gaps.min() >= 5.5 and np.median(gaps) < 8.0
 
 
-def test_no_parked_cars_at_zero_occupancy_and_the_same_traffic_either_way():
+def test_no_parked_cars_at_zero_occupancy_and_the_same_traffic_either_way(scenes, without_parked_cars):
     """parked_occupancy=(0, 0) (the legacy generator's) adds none; with cars parked, the scenes hold
     every track of the scenes without them, frame for frame, the same self-driving cars, map and
     lights: the parked cars have their own random stream and SUMO's traffic never sees them."""
-    from dataclasses import replace
-
-    with_cars = simulate_scenes(0, 0, SMALL)
-    without = simulate_scenes(0, 0, replace(SMALL, parked_occupancy=(0.0, 0.0)))
+    with_cars = [s for s in scenes if s.metadata["sim_index"] == 0]  # simulate_scenes(0, 0, SMALL)
+    without = without_parked_cars
     assert sum(s.metadata["parked_vehicles"] for s in with_cars) > 0
     assert all(s.metadata["parked_vehicles"] == 0 for s in without)
     assert [s.scenario_id for s in with_cars] == [s.scenario_id for s in without]

@@ -1,5 +1,8 @@
 """Road-vector tokens: 5 m pieces that cover every polyline, the road vocabulary, and the piece
-sequences along lanes and successor links (checked on a known lane chain of the WOMD test scene)."""
+sequences along lanes and successor links (checked on a known lane chain of the WOMD test scene).
+
+The general properties run on the package's sample scenes and, where ../shared/data is present, on
+the real scenes of every format too."""
 
 from __future__ import annotations
 
@@ -18,7 +21,7 @@ SCENE_FOLDERS = ("womd_tfrecord", "scenarionet", "gpudrive_json", "nocturne_json
 
 
 @pytest.fixture(scope="module")
-def scenes(shared_data):
+def real_scenes(shared_data):
     out = []
     for folder in SCENE_FOLDERS:
         out.extend(read_scenarios(shared_data / folder))
@@ -26,9 +29,21 @@ def scenes(shared_data):
     return out
 
 
+@pytest.fixture(scope="module", params=["sample", "real"])
+def scenes(request, sample_scenes):
+    """The four sample scenes (SUMO), or the real scenes of every format."""
+    return sample_scenes if request.param == "sample" else request.getfixturevalue("real_scenes")
+
+
 @pytest.fixture(scope="module")
 def womd_scene(shared_data):
     return next(read_scenarios(shared_data / "womd_tfrecord" / "motion_data_one_scenario.tfrecord"))
+
+
+@pytest.fixture(scope="module", params=["sample", "womd"])
+def scene(request, sample_scenes):
+    """The sample scene sumo-7-000000-02 (155 signalised lanes), or the real WOMD scene."""
+    return sample_scenes[2] if request.param == "sample" else request.getfixturevalue("womd_scene")
 
 
 def _polyline(rm, f) -> np.ndarray:
@@ -36,7 +51,7 @@ def _polyline(rm, f) -> np.ndarray:
     return np.concatenate([p, p[:1]]) if rm.types[f] in POLYGON_FEATURES else p
 
 
-def test_road_pieces_cover_every_polyline_of_the_real_scenes_and_are_at_most_5m(scenes):
+def test_road_pieces_cover_every_polyline_of_the_scenes_and_are_at_most_5m(scenes):
     for sc in scenes:
         rm = sc.road_map
         pieces = road_pieces(rm, sc.traffic_lights)
@@ -61,8 +76,8 @@ def test_road_pieces_cover_every_polyline_of_the_real_scenes_and_are_at_most_5m(
             np.testing.assert_allclose(pieces.points[sel[1:], 0], pieces.points[sel[:-1], -1], atol=1e-3)
 
 
-def test_piece_frame_has_origin_at_the_first_point_and_x_towards_the_last(womd_scene):
-    p = road_pieces(womd_scene.road_map)
+def test_piece_frame_has_origin_at_the_first_point_and_x_towards_the_last(scene):
+    p = road_pieces(scene.road_map)
     np.testing.assert_allclose(p.local[:, 0], 0.0, atol=1e-6)
     long_enough = np.linalg.norm(p.points[:, -1] - p.points[:, 0], axis=-1) > 0.1
     np.testing.assert_allclose(p.local[long_enough, -1, 1], 0.0, atol=1e-4)
@@ -73,8 +88,8 @@ def test_piece_frame_has_origin_at_the_first_point_and_x_towards_the_last(womd_s
     np.testing.assert_allclose(world, p.points, atol=1e-3)
 
 
-def test_signalised_lanes_link_their_pieces_to_the_traffic_light(womd_scene):
-    sc = womd_scene
+def test_signalised_lanes_link_their_pieces_to_the_traffic_light(scene):
+    sc = scene
     p = road_pieces(sc.road_map, sc.traffic_lights)
     linked = p.traffic_light_index >= 0
     assert linked.any()
@@ -117,8 +132,8 @@ def test_road_sequences_follow_a_known_lane_chain(womd_scene):
     assert (p.piece_in_feature[k1[:, 1]] == 0).all()
 
 
-def test_sampled_walks_only_step_along_pairs(womd_scene):
-    rm = womd_scene.road_map
+def test_sampled_walks_only_step_along_pairs(scene):
+    rm = scene.road_map
     p = road_pieces(rm)
     pairs, _ = road_successor_pairs(p, rm)
     walks = sample_road_walks(pairs, p.num_pieces, 12, 300, rng=0)

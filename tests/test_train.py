@@ -1,4 +1,7 @@
-"""SMART training: overfitting two real scenes, DDP equivalence, exact resume after a kill, clear errors."""
+"""SMART training: overfitting two real scenes, DDP equivalence, exact resume after a kill, clear errors.
+
+The training runs (resume, mixing, fine-tuning, train_only) read the package's sample scenes, each
+written to its own scene file; overfitting real scenes reads ../shared/data."""
 
 from __future__ import annotations
 
@@ -30,12 +33,8 @@ GPUDRIVE = "gpudrive_json"
 TWO_SCENES = ("tfrecord-00001-of-01000_307.json", "tfrecord-00002-of-01000_407.json")  # 19 and 14 agents, 175 and 163 tokens
 
 
-def _vocab_files(shared_data: Path, tmp: Path, motion_size: int, road_size: int) -> dict[str, str]:
-    """Small k-disks vocabularies (the tokenizer's builders) from the 11 GPUDrive scenes: the two
-    training scenes alone hold no cyclist, and a vocabulary needs every type."""
-    from smart_marl.readers import read_scenarios
-
-    scenes = list(read_scenarios(shared_data / GPUDRIVE))
+def _vocab_files(scenes, tmp: Path, motion_size: int, road_size: int) -> dict[str, str]:
+    """Small k-disks vocabularies (the tokenizer's builders) from ``scenes``."""
     cfg = tiny_config(motion_vocab_sizes=(motion_size,) * 3, road_vocab_size=road_size)
     mv, rv = build_vocabularies(scenes, cfg, len(scenes), seed=0)
     save_motion_vocabulary(mv, tmp / "motion_vocab")
@@ -47,7 +46,10 @@ def _vocab_files(shared_data: Path, tmp: Path, motion_size: int, road_size: int)
 def test_smart_1m_overfits_two_real_scenes_to_90_percent_top1(shared_data, tmp_path):
     """smart-1m (its parameters; dense neighbourhoods trimmed to K = 4 road / 4 map / 8 agents for
     CPU speed), 16-token vocabularies per type and 64 road tokens, no token noise, no dropout."""
-    vocab = _vocab_files(shared_data, tmp_path, 16, 64)
+    from smart_marl.readers import read_scenarios
+
+    # from the 11 GPUDrive scenes: the two training scenes alone hold no cyclist, and a vocabulary needs every type
+    vocab = _vocab_files(list(read_scenarios(shared_data / GPUDRIVE)), tmp_path, 16, 64)
     data = [str(shared_data / GPUDRIVE / f) for f in TWO_SCENES]
     cfg = load_train_config("smart-1m", {
         "data": data[0], "out_dir": str(tmp_path / "run"), **vocab, "batch_size": 2, "num_workers": 0, "max_steps": 60, "lr": 5e-3,
@@ -130,14 +132,31 @@ def test_ddp_step_on_two_gloo_ranks_equals_one_process_on_the_union(tmp_path):
 
 
 # ---------------------------------------------------------------------------------- resume
+@pytest.fixture(scope="module")
+def sample_data(sample_scenes, tmp_path_factory) -> Path:
+    """The four sample scenes, one scene file each (scene_0.smsc .. scene_3.smsc), in one folder."""
+    from smart_marl.cache import write_shard
+
+    folder = tmp_path_factory.mktemp("sample_data")
+    for i, scene in enumerate(sample_scenes):
+        write_shard(folder / f"scene_{i}.smsc", [scene])
+    return folder
+
+
+@pytest.fixture
+def small_vocab(sample_scenes, tmp_path) -> dict[str, str]:
+    """8 motion tokens per type and 16 road tokens from the four sample scenes, as files."""
+    return _vocab_files(sample_scenes, tmp_path, 8, 16)
+
+
 def _losses(run: Path) -> list[tuple[str, str, str]]:
     with open(run / "train.csv", newline="") as f:
         return [(r["step"], r["loss"], r["motion_top1_acc"]) for r in csv.DictReader(f)]
 
 
-def test_run_killed_and_resumed_matches_an_uninterrupted_run(shared_data, tmp_path):
-    vocab = _vocab_files(shared_data, tmp_path, 8, 16)
-    base = {"data": str(shared_data / GPUDRIVE / TWO_SCENES[0]), **vocab, "batch_size": 1, "num_workers": 0, "max_steps": 6,
+def test_run_killed_and_resumed_matches_an_uninterrupted_run(sample_data, small_vocab, tmp_path):
+    vocab = small_vocab
+    base = {"data": str(sample_data / "scene_0.smsc"), **vocab, "batch_size": 1, "num_workers": 0, "max_steps": 6,
             "lr": 1e-3, "log_every": 1, "val_every": 3, "val_scenes": 1, "ckpt_every": 2, "tensorboard": False, "progress": False,
             "token_noise_topk": 3, "dropout": 0.1, "road_keep_radius_m": 20.0,
             "model_overrides": {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
@@ -182,9 +201,9 @@ def test_mixed_scenes_give_the_extra_scenes_their_share_of_samples():
     assert MixedScenes(["m"], extra, 0.01).repeat == 1  # every extra scene is sampled at least once per epoch
 
 
-def test_a_run_records_the_mixed_in_data_and_rejects_a_bad_share(shared_data, tmp_path):
-    vocab = _vocab_files(shared_data, tmp_path, 8, 16)
-    cfg = {"data": str(shared_data / GPUDRIVE / TWO_SCENES[0]), "extra_data": str(shared_data / GPUDRIVE / TWO_SCENES[1]),
+def test_a_run_records_the_mixed_in_data_and_rejects_a_bad_share(sample_data, small_vocab, tmp_path):
+    vocab = small_vocab
+    cfg = {"data": str(sample_data / "scene_0.smsc"), "extra_data": str(sample_data / "scene_1.smsc"),
            "extra_data_share": 0.5, **vocab, "batch_size": 1, "num_workers": 0, "max_steps": 1, "log_every": 1, "val_every": 0,
            "ckpt_every": 0, "tensorboard": False, "progress": False, "out_dir": str(tmp_path / "run"),
            "model_overrides": {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
@@ -192,7 +211,7 @@ def test_a_run_records_the_mixed_in_data_and_rejects_a_bad_share(shared_data, tm
     result = train(load_train_config(cfg))
     data = json.loads(Path(result.checkpoint).read_text())["data"]
     assert data["num_scenes"] == 2 and data["extra_scenes"] == 1 and data["extra_share"] == 0.5
-    assert data["extra_data"].endswith(TWO_SCENES[1])
+    assert data["extra_data"].endswith("scene_1.smsc")
     for share in (0, 1, 1.5):
         with pytest.raises(TrainError, match="extra_data_share"):
             load_train_config(cfg, [f"extra_data_share={share}"])
@@ -221,13 +240,13 @@ def test_models_command_prints_every_named_config_with_its_parameter_count(capsy
         assert abs(r["parameters"] / r["paper_parameters"] - 1) < 0.1
 
 
-def test_fine_tuning_warns_when_the_run_config_differs_from_the_checkpoints(shared_data, tmp_path):
+def test_fine_tuning_warns_when_the_run_config_differs_from_the_checkpoints(sample_data, small_vocab, tmp_path):
     """With init=, the run's model config wins; a field that changes behaviour but not the weights'
     shapes (road_types here) must not change silently."""
-    vocab = _vocab_files(shared_data, tmp_path, 8, 16)
+    vocab = small_vocab
     small = {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
              "map_neighbours": 4, "road_neighbours": 4, "agent_neighbours": 4}
-    base = {"data": str(shared_data / GPUDRIVE / TWO_SCENES[0]), **vocab, "batch_size": 1, "num_workers": 0, "max_steps": 1,
+    base = {"data": str(sample_data / "scene_0.smsc"), **vocab, "batch_size": 1, "num_workers": 0, "max_steps": 1,
             "log_every": 1, "val_every": 0, "ckpt_every": 0, "tensorboard": False, "progress": False}
     first = train(load_train_config({**base, "model_overrides": {**small, "road_types": "sumo"}, "out_dir": str(tmp_path / "a")}))
     init = str(first.checkpoint)
@@ -293,12 +312,12 @@ def test_speed_trend_weights_config_is_checked():
             load_train_config("smart-1m", [f"speed_trend_weights={bad}"])
 
 
-def test_train_only_trains_the_named_parameters_and_freezes_the_rest(shared_data, tmp_path):
+def test_train_only_trains_the_named_parameters_and_freezes_the_rest(sample_data, small_vocab, tmp_path):
     """train_only=["motion_heads.1"]: a step from a checkpoint moves the pedestrian head and nothing else."""
-    vocab = _vocab_files(shared_data, tmp_path, 8, 16)
+    vocab = small_vocab
     small = {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
              "map_neighbours": 4, "road_neighbours": 4, "agent_neighbours": 4}
-    base = {"data": str(shared_data / GPUDRIVE), **vocab, "model_overrides": small, "batch_size": 4, "num_workers": 0,
+    base = {"data": str(sample_data), **vocab, "model_overrides": small, "batch_size": 4, "num_workers": 0,
             "max_steps": 2, "lr": 1e-2, "log_every": 1, "val_every": 0, "ckpt_every": 0, "tensorboard": False, "progress": False}
     first = train(load_train_config({**base, "out_dir": str(tmp_path / "a")}))
     second = train(load_train_config({**base, "init": str(first.checkpoint), "train_only": ["motion_heads.1"],

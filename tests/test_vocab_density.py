@@ -36,13 +36,13 @@ def test_given_tolerance_that_covers_everything_with_fewer_centres_falls_back_to
     assert len(res.centre_indices) == 60 and res.tolerance_m < 100.0
 
 
-def test_cli_vocab_build_takes_per_type_sizes_and_tolerances(shared_data, tmp_path):
+def test_cli_vocab_build_takes_per_type_sizes_and_tolerances(sample_scene_file, tmp_path):
     from smart_marl.cli import main
 
-    src = shared_data / "womd_tfrecord" / "womd_scenario_input.tfrecord"
+    src = sample_scene_file  # 16 vehicles, 3 pedestrians, 3 cyclists
     assert main(["vocab", "build", str(src), "--sizes", "48/16/16", "--tolerance", "0.05/0/0", "--road-size", "0",
                  "--out", str(tmp_path), "--no-progress"]) == 0
     v = load_motion_vocabulary(tmp_path / "motion_48-16-16")
-    assert v.sizes() == {"vehicle": 48, "pedestrian": 16}  # no cyclist in that scene
+    assert v.sizes() == {"vehicle": 48, "pedestrian": 16, "cyclist": 16}
     assert v[0].tolerance_m == 0.05 and v[1].tolerance_m != 0.05
     assert main(["vocab", "build", str(src), "--sizes", "48/16", "--out", str(tmp_path), "--no-progress"]) == 2

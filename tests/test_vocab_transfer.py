@@ -25,13 +25,13 @@ def test_nearest_tokens_picks_the_closest_contour():
     assert nearest_tokens(old, new).tolist() == [2, 0, 1, 1]
 
 
-def test_transfer_to_a_vocabulary_holding_each_old_token_twice_splits_its_probability(womd_vocab, tiny_smart):
-    model = tiny_smart(womd_vocab)
-    order = {t: np.concatenate([np.arange(v.size)[::-1], np.arange(v.size)]) for t, v in womd_vocab.types.items()}
+def test_transfer_to_a_vocabulary_holding_each_old_token_twice_splits_its_probability(sample_vocab, tiny_smart):
+    model = tiny_smart(sample_vocab)
+    order = {t: np.concatenate([np.arange(v.size)[::-1], np.arange(v.size)]) for t, v in sample_vocab.types.items()}
     doubled = MotionVocabulary(types={t: TypeVocab.from_poses(v.poses[order[t]], v.length_m, v.width_m)
-                                      for t, v in womd_vocab.types.items()})
+                                      for t, v in sample_vocab.types.items()})
     road = RoadVocabulary(points=np.zeros((8, 11, 2), np.float32), tolerance_m=0.0, requested_size=8)
-    new = transfer_motion_vocabulary(Checkpoint(model=model, motion_vocab=womd_vocab, road_vocab=road), doubled).model.eval()
+    new = transfer_motion_vocabulary(Checkpoint(model=model, motion_vocab=sample_vocab, road_vocab=road), doubled).model.eval()
 
     features = torch.randn(50, model.config.hidden_dim, generator=torch.Generator().manual_seed(0))
     with torch.no_grad():
@@ -52,20 +52,20 @@ def test_transfer_to_a_vocabulary_holding_each_old_token_twice_splits_its_probab
         torch.testing.assert_close(new.state_dict()[k], v)
 
 
-def test_vocab_transfer_command_writes_a_checkpoint_that_loads_with_the_new_vocabulary(tiny_prior, womd_vocab, tmp_path, capsys):
+def test_vocab_transfer_command_writes_a_checkpoint_that_loads_with_the_new_vocabulary(tiny_prior, sample_vocab, tmp_path, capsys):
     from smart_marl.cli import main
     from smart_marl.model.checkpoint import load_checkpoint
     from smart_marl.tokens import save_motion_vocabulary
 
-    npz, _ = save_motion_vocabulary(womd_vocab, tmp_path / "motion_32")
+    npz, _ = save_motion_vocabulary(sample_vocab, tmp_path / "motion_32")
     assert main(["vocab", "transfer", str(tiny_prior), "--motion-vocab", str(npz), "--out", str(tmp_path / "moved")]) == 0
-    ck = load_checkpoint(tmp_path / "moved.json", motion_vocab=womd_vocab)
-    assert tuple(ck.model.config.motion_vocab_sizes) == tuple(womd_vocab[t].size for t in range(3))
+    ck = load_checkpoint(tmp_path / "moved.json", motion_vocab=sample_vocab)
+    assert tuple(ck.model.config.motion_vocab_sizes) == tuple(sample_vocab[t].size for t in range(3))
     assert ck.meta["data"]["transferred_from"].endswith(".json")
     assert '"motion_sizes"' in capsys.readouterr().out
 
 
-def test_transfer_of_one_type_keeps_the_other_types_tokens_and_head_rows_exactly(womd_vocab, tiny_smart, tiny_prior, tmp_path, capsys):
+def test_transfer_of_one_type_keeps_the_other_types_tokens_and_head_rows_exactly(sample_vocab, tiny_smart, tiny_prior, tmp_path, capsys):
     """types=["pedestrian"]: vehicles and cyclists keep their vocabularies and logits bit for bit; only
     the pedestrian tokens and head rows change (here to a reversed copy of another vocabulary)."""
     from smart_marl.cli import main
@@ -74,13 +74,13 @@ def test_transfer_of_one_type_keeps_the_other_types_tokens_and_head_rows_exactly
     from smart_marl.scenario import AgentType
     from smart_marl.tokens import save_motion_vocabulary
 
-    model = tiny_smart(womd_vocab)
+    model = tiny_smart(sample_vocab)
     road = RoadVocabulary(points=np.zeros((8, 11, 2), np.float32), tolerance_m=0.0, requested_size=8)
     other = MotionVocabulary(types={t: TypeVocab.from_poses(v.poses[::-1][: v.size // 2], v.length_m, v.width_m)
-                                    for t, v in womd_vocab.types.items()})
-    moved = transfer_motion_vocabulary(Checkpoint(model=model, motion_vocab=womd_vocab, road_vocab=road), other, ["pedestrian"])
-    assert moved.motion_vocab[AgentType.VEHICLE] is womd_vocab[AgentType.VEHICLE]
-    assert moved.motion_vocab[AgentType.CYCLIST] is womd_vocab[AgentType.CYCLIST]
+                                    for t, v in sample_vocab.types.items()})
+    moved = transfer_motion_vocabulary(Checkpoint(model=model, motion_vocab=sample_vocab, road_vocab=road), other, ["pedestrian"])
+    assert moved.motion_vocab[AgentType.VEHICLE] is sample_vocab[AgentType.VEHICLE]
+    assert moved.motion_vocab[AgentType.CYCLIST] is sample_vocab[AgentType.CYCLIST]
     assert moved.motion_vocab[AgentType.PEDESTRIAN] is other[AgentType.PEDESTRIAN]
     features = torch.randn(20, model.config.hidden_dim, generator=torch.Generator().manual_seed(1))
     with torch.no_grad():
@@ -89,7 +89,7 @@ def test_transfer_of_one_type_keeps_the_other_types_tokens_and_head_rows_exactly
         assert torch.equal(new_logits[t], old_logits[t])
     assert new_logits[AgentType.PEDESTRIAN].shape[1] == other[AgentType.PEDESTRIAN].size
     with pytest.raises(ValueError, match="no tokens for pedestrian"):
-        merge_vocabularies(womd_vocab, MotionVocabulary(types={AgentType.VEHICLE: womd_vocab[AgentType.VEHICLE]}), ["pedestrian"])
+        merge_vocabularies(sample_vocab, MotionVocabulary(types={AgentType.VEHICLE: sample_vocab[AgentType.VEHICLE]}), ["pedestrian"])
 
     npz, _ = save_motion_vocabulary(other, tmp_path / "motion_other")
     assert main(["vocab", "transfer", str(tiny_prior), "--motion-vocab", str(npz), "--types", "pedestrian",

@@ -41,28 +41,28 @@ def test_bad_values_in_a_script_are_named_when_it_is_loaded(tmp_path, text, prob
     assert str(path) in str(info.value) and problem in str(info.value), str(info.value)
 
 
-def test_out_of_vocabulary_tokens_are_refused_before_any_rollout(womd_scenes, womd_vocab, tiny_smart, tmp_path, monkeypatch):
+def test_out_of_vocabulary_tokens_are_refused_before_any_rollout(sample_scenes, sample_vocab, sample_model, tmp_path, monkeypatch):
     """Before: a follow with tokens outside the vocabulary failed after the baseline rollouts."""
     def no_rollout(*args, **kwargs):
         raise AssertionError("a rollout ran before the script was checked")
 
     monkeypatch.setattr(sys.modules["agents.whatif.compare"], "simulate", no_rollout)  # what run_whatif calls
     path = tmp_path / "tokens.yaml"
-    path.write_text("edits: [{kind: follow, agent: 1645, tokens: [3, 32, 40]}]")
+    path.write_text("edits: [{kind: follow, agent: 51, tokens: [3, 32, 40]}]")  # 51: sumo-7-000000-00's SDC, a vehicle
     with pytest.raises(WhatIfError, match=r"tokens.yaml: edit 0: tokens \[32, 40\] are outside the vehicle vocabulary \[0, 32\)"):
-        run_whatif(tiny_smart(womd_vocab), womd_scenes[0], load_script(path), num_rollouts=1, num_steps=2)
+        run_whatif(sample_model, sample_scenes[0], load_script(path), num_rollouts=1, num_steps=2)
     with pytest.raises(WhatIfError, match=f"num_steps must be 1..{MAX_STEPS}"):
-        run_whatif(tiny_smart(womd_vocab), womd_scenes[0], load_script(path), num_rollouts=1, num_steps=1000)
+        run_whatif(sample_model, sample_scenes[0], load_script(path), num_rollouts=1, num_steps=1000)
 
 
-def test_whatif_command_refuses_an_existing_file_as_out_before_simulating(shared_data, tmp_path, capsys):
+def test_whatif_command_refuses_an_existing_file_as_out_before_simulating(sample_scene_file, tmp_path, capsys):
     from smart_marl.cli import main
 
     out = tmp_path / "table.csv"
     out.write_text("keep me")
     code = None
     try:
-        code = main(["whatif", str(shared_data / "womd_tfrecord" / "motion_data_one_scenario.tfrecord"), "--script",
+        code = main(["whatif", str(sample_scene_file), "--script",
                      str(EXAMPLES / "brake_hard.yaml"), "--out", str(out)])
     except SystemExit as exc:
         code = exc.code

@@ -1,6 +1,7 @@
 """WOMD: the project's own protobuf schema, TFRecord framing (CRC32C), the Scenario reader and
 writer, and the sim-agents submission helpers. Numbers are pinned from the real test files in
-../shared/data/womd_tfrecord (skipped when absent)."""
+../shared/data/womd_tfrecord (skipped when absent); the reader's handling of damaged input is also
+checked on a record the writer made of the package's sample scene sumo-7-000000-02."""
 
 from __future__ import annotations
 
@@ -29,16 +30,42 @@ def one_path(shared_data):
     return shared_data / ONE_SCENARIO
 
 
+def _only_scenario(path):
+    [scenario] = list(womd.read(path))
+    return scenario
+
+
+def _only_proto(path):
+    [payload] = list(tfrecord.iter_records(path))
+    return pb.Scenario.FromString(payload)
+
+
 @pytest.fixture(scope="module")
 def one_scenario(one_path):
-    [scenario] = list(womd.read(one_path))
-    return scenario
+    return _only_scenario(one_path)
 
 
 @pytest.fixture(scope="module")
 def one_proto(one_path):
-    [payload] = list(tfrecord.iter_records(one_path))
-    return pb.Scenario.FromString(payload)
+    return _only_proto(one_path)
+
+
+@pytest.fixture(scope="module")
+def sample_path(sample_scenes, tmp_path_factory):
+    """The sample scene sumo-7-000000-02 (44 tracks) as a one-record WOMD TFRecord (about 1.1 MB)."""
+    path = tmp_path_factory.mktemp("womd") / "sample.tfrecord"
+    womd.write_womd_tfrecord([sample_scenes[2]], path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def sample_record_scenario(sample_path):
+    return _only_scenario(sample_path)
+
+
+@pytest.fixture(scope="module")
+def sample_proto(sample_path):
+    return _only_proto(sample_path)
 
 
 def _write_raw_records(path, payloads):
@@ -163,8 +190,8 @@ def test_flipped_payload_byte_is_a_data_crc_error(tmp_path):
         list(tfrecord.iter_records(path))
 
 
-def test_flipped_payload_byte_in_the_real_file_is_caught(tmp_path, one_path):
-    data = bytearray(one_path.read_bytes())
+def test_flipped_payload_byte_in_a_scene_file_is_caught(tmp_path, sample_path):
+    data = bytearray(sample_path.read_bytes())
     data[500_000] ^= 0x10
     path = tmp_path / "bad.tfrecord"
     path.write_bytes(bytes(data))
@@ -314,15 +341,15 @@ def test_record_that_is_not_a_scenario_is_a_clear_error(tmp_path):
         list(womd.read(path))
 
 
-def test_nan_position_on_a_valid_frame_names_file_record_and_problem(tmp_path, one_proto):
+def test_nan_position_on_a_valid_frame_names_file_record_and_problem(tmp_path, sample_proto):
     bad = pb.Scenario()
-    bad.CopyFrom(one_proto)
+    bad.CopyFrom(sample_proto)
     assert bad.tracks[5].states[20].valid
     bad.tracks[5].states[20].center_y = math.nan
     path = tmp_path / "nan.tfrecord"
-    _write_raw_records(path, [one_proto.SerializeToString(), bad.SerializeToString()])
+    _write_raw_records(path, [sample_proto.SerializeToString(), bad.SerializeToString()])
     reader = womd.read(path)
-    assert next(reader).scenario_id == "637f20cafde22ff8"
+    assert next(reader).scenario_id == "sumo-7-000000-02"
     with pytest.raises(ScenarioReadError) as info:
         next(reader)
     assert info.value.record == 1 and info.value.path == str(path)
@@ -331,9 +358,9 @@ def test_nan_position_on_a_valid_frame_names_file_record_and_problem(tmp_path, o
     assert "track 5" in message and "frame 20" in message
 
 
-def test_decode_scenario_from_bytes_checks_state_counts(one_proto):
+def test_decode_scenario_from_bytes_checks_state_counts(sample_proto):
     bad = pb.Scenario()
-    bad.CopyFrom(one_proto)
+    bad.CopyFrom(sample_proto)
     del bad.tracks[3].states[-1]
     with pytest.raises(ScenarioReadError, match=r"<bytes>, record 0: .*track 3 \(id \d+\) has 90 states but there are 91"):
         womd.decode_scenario(bad.SerializeToString())
@@ -349,15 +376,15 @@ def test_read_scenarios_on_the_directory_picks_womd_and_skips_the_binproto(share
     assert {s.source for s in scenes} == {"womd"}
 
 
-def test_gzip_copy_reads_identically_and_is_sniffed(shared_data, tmp_path, one_scenario):
-    src = shared_data / ONE_SCENARIO
+def test_gzip_copy_reads_identically_and_is_sniffed(sample_path, tmp_path, sample_record_scenario):
+    src = sample_path
     gz = tmp_path / "copy.tfrecord.gz"
     with open(src, "rb") as fin, gzip.open(gz, "wb") as fout:
         shutil.copyfileobj(fin, fout)
     head = gz.read_bytes()[:4096]
     assert womd.sniff(str(gz), head)
     [again] = list(womd.read(gz))
-    assert again.equals(one_scenario)
+    assert again.equals(sample_record_scenario)
 
 
 def test_sniff_rejects_other_files(shared_data):
@@ -403,13 +430,13 @@ def test_numpy_scanner_path_equals_the_plain_protobuf_path(shared_data, name):
     assert fast.equals(plain, ignore=())
 
 
-def test_unknown_field_inside_a_map_point_falls_back_to_protobuf(one_proto):
-    view = pb.RAW_POINTS["Scenario"].FromString(one_proto.SerializeToString())
+def test_unknown_field_inside_a_map_point_falls_back_to_protobuf(sample_proto):
+    view = pb.RAW_POINTS["Scenario"].FromString(sample_proto.SerializeToString())
     lane = next(f for f in view.map_features if f.HasField("lane"))
     lane.lane.polyline[0] = lane.lane.polyline[0] + b"\x20\x05"  # field 4, varint 5: unknown to MapPoint
     with_unknown = view.SerializeToString()
     assert womd.scan_fixed_width_messages([lane.lane.polyline[0]], womd._MAP_POINT_FIELDS) is None
-    assert womd.decode_scenario(with_unknown).equals(womd.decode_scenario(one_proto.SerializeToString()))
+    assert womd.decode_scenario(with_unknown).equals(womd.decode_scenario(sample_proto.SerializeToString()))
 
 
 def test_scanner_decodes_fields_in_any_order_and_absent_ones_as_zero():
@@ -426,23 +453,27 @@ def test_scanner_decodes_fields_in_any_order_and_absent_ones_as_zero():
     assert out["valid"].tolist() == [1, 0, 0, 0]
 
 
-def test_numpy_encoding_is_what_protobuf_itself_writes(one_scenario):
-    encoded = womd.encode_scenario(one_scenario)
+@pytest.mark.parametrize("which", ["sample", "real"])
+def test_numpy_encoding_is_what_protobuf_itself_writes(request, which):
+    """On the sample scene and on the real WOMD scene (more kinds of map features)."""
+    scene = request.getfixturevalue("sample_record_scenario" if which == "sample" else "one_scenario")
+    encoded = womd.encode_scenario(scene)
     assert pb.Scenario.FromString(encoded).SerializeToString() == encoded
-    rotated = one_scenario.to_frame(3.0, 4.0, 1.1)  # float64 velocities cast to the float fields
+    rotated = scene.to_frame(3.0, 4.0, 1.1)  # float64 velocities cast to the float fields
     encoded = womd.encode_scenario(rotated)
     assert pb.Scenario.FromString(encoded).SerializeToString() == encoded
 
 
-def test_truncated_gzip_file_names_file_and_record(tmp_path, one_path):
+def test_truncated_gzip_file_names_file_and_record(tmp_path, sample_path):
     gz = tmp_path / "cut.tfrecord.gz"
-    gz.write_bytes(gzip.compress(one_path.read_bytes())[:200_000])
+    whole = gzip.compress(sample_path.read_bytes())
+    gz.write_bytes(whole[: len(whole) // 2])
     with pytest.raises(ScenarioReadError, match=r"cut\.tfrecord\.gz, record 0: ") as info:
         list(womd.read(gz))
     assert info.value.record == 0
 
 
-def test_reading_with_the_numpy_crc_gives_the_same_scene(monkeypatch, one_path, one_scenario):
+def test_reading_with_the_numpy_crc_gives_the_same_scene(monkeypatch, sample_path, sample_record_scenario):
     monkeypatch.setattr(tfrecord, "_crc32c_fast", None)  # as without the crc32c package
-    [again] = list(womd.read(one_path))
-    assert again.equals(one_scenario)
+    [again] = list(womd.read(sample_path))
+    assert again.equals(sample_record_scenario)

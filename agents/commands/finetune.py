@@ -15,8 +15,8 @@ from __future__ import annotations
 import json
 import sys
 
-from smart_marl.commands.arguments import device, output_dir
-from smart_marl.config_files import apply_command_flags
+from smart_marl.commands.arguments import device, output_dir, positive_int, seed
+from smart_marl.config_files import apply_command_flags, strict_json
 
 
 def register(subparsers) -> None:
@@ -35,9 +35,9 @@ def register(subparsers) -> None:
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides, values parsed as JSON when they parse")
     p.add_argument("--out", default=None, type=output_dir, metavar="DIR", help="the run's folder (default: the config's out_dir)")
     p.add_argument("--device", default=None, type=device, help="torch device for the policy and its updates (default: the config's, cpu)")
-    p.add_argument("--seed", type=int, default=None, help="random seed (default: the config's); with --evaluate, the first evaluation seed")
+    p.add_argument("--seed", type=seed, default=None, help="random seed (default: the config's); with --evaluate, the first evaluation seed")
     p.add_argument("--evaluate", default=None, metavar="CHECKPOINT", help="evaluate this policy checkpoint next to the expert and the prior on held-out scenes and exit")
-    p.add_argument("--episodes", type=int, default=None, help="with --evaluate: rollouts (seeds) per held-out scene (default: the config's eval_episodes)")
+    p.add_argument("--episodes", type=positive_int, default=None, help="with --evaluate: rollouts (seeds) per held-out scene (default: the config's eval_episodes)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     p.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
     p.set_defaults(func=run)
@@ -58,7 +58,7 @@ def run(args) -> int:
         if args.device:
             overrides.append(f"device={args.device}")
         result = evaluate_checkpoint(args.evaluate, overrides, episodes=args.episodes, seed=args.seed)
-        print(json.dumps(result, default=float) if args.json else format_table(result))
+        print(strict_json(result) if args.json else format_table(result))
         return 0
     if not args.config:
         print("smart-marl finetune: error: --config FILE|NAME is required (or --evaluate CHECKPOINT)", file=sys.stderr)
@@ -82,5 +82,5 @@ def run(args) -> int:
             summary["evaluation"] = result.evaluation
         else:
             print(format_table(result.evaluation))
-    print(json.dumps(summary, default=float))
+    print(strict_json(summary))
     return 0

@@ -12,10 +12,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from smart_marl.commands.arguments import collision_avoidance_flag, device, output_dir, positive_int
-from smart_marl.embedded import SAMPLES_DIR
-from smart_marl.errors import SmartMarlError, UsageError
-from smart_marl.model.checkpoint import EMBEDDED
+from smart_marl.commands.arguments import bounded_int, collision_avoidance_flag, device, output_dir, rollouts, seed
+from smart_marl.embedded import scene_sources
+from smart_marl.errors import SmartMarlError
 from smart_marl.readers import read_scenarios
 
 from ..whatif import MAX_STEPS, example_scripts, format_table, load_script, render_comparison, run_whatif, script_path, write_table_csv
@@ -32,9 +31,9 @@ def register(subparsers) -> None:
     p.add_argument("--script", required=True, metavar="FILE", help="the what-if script (.yaml), or the name of a shipped "
                                                                     f"example ({', '.join(example_scripts())})")
     p.add_argument("--out", required=True, type=output_dir, metavar="DIR", help="output folder (created if missing)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the rollouts (default 0)")
-    p.add_argument("--rollouts", type=positive_int, default=8, help="rollouts per run (default 8)")
-    p.add_argument("--steps", type=positive_int, default=16, help="token steps of 0.5 s (default 16: 8 s; at most 64)")
+    p.add_argument("--seed", type=seed, default=0, help="random seed of the rollouts (default 0)")
+    p.add_argument("--rollouts", type=rollouts, default=8, help="rollouts per run (default 8)")
+    p.add_argument("--steps", type=bounded_int(1, MAX_STEPS, "32 s"), default=16, help="token steps of 0.5 s (default 16: 8 s; at most 64)")
     p.add_argument("--checkpoint", metavar="C", default=None, help="SMART checkpoint (default: the embedded prior)")
     p.add_argument("--device", default="cpu", type=device, help="torch device the model runs on (default cpu)")
     p.add_argument("--scenario-id", default=None, help="pick this scene when SCENE holds several")
@@ -45,11 +44,9 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    if args.steps > MAX_STEPS:
-        raise UsageError(f"argument --steps: at most {MAX_STEPS} token steps (32 s), got {args.steps}")
     script = load_script(script_path(args.script))  # every edit's values checked here, before the scene is read
     scene = None
-    for sc in read_scenarios(SAMPLES_DIR if args.scene == EMBEDDED else args.scene):
+    for sc in read_scenarios(scene_sources(args.scene)):
         if args.scenario_id is None or sc.scenario_id == args.scenario_id:
             scene = sc
             break

@@ -20,9 +20,9 @@ from smart_marl.metrics.config import CURRENT_STEP, NUM_SIMULATION_STEPS, NUM_ST
 from smart_marl.model.checkpoint import EMBEDDED, load_prior
 from smart_marl.rollout import DEFAULT_TOP_K
 from smart_marl.scenario import AgentType, Scenario
-from smart_marl.tokens import FRAMES_PER_TOKEN
+from smart_marl.tokens import FRAMES_PER_TOKEN, TOKEN_S
 
-from .edits import MAX_STEPS, WhatIf, WhatIfError
+from .edits import KIND_OF, MAX_STEPS, WhatIf, WhatIfError
 from .prepare import Prepared, prepare
 from .simulate import SimRollouts, simulate
 
@@ -45,6 +45,12 @@ def run_whatif(prior, scene: Scenario, whatif: WhatIf, num_rollouts: int = 8, se
     plainly (the weights' own answer to the what-if; scripted agents are never restricted)."""
     if isinstance(num_steps, bool) or not isinstance(num_steps, int) or not 1 <= num_steps <= MAX_STEPS:
         raise WhatIfError(whatif.path, f"num_steps must be 1..{MAX_STEPS} token steps of 0.5 s, got {num_steps!r}")
+    end_s = num_steps * TOKEN_S
+    for i, edit in enumerate(whatif.edits):  # an onset after the rollout's end would be found only after simulating
+        at_s = getattr(edit, "at_s", 0.0)
+        if isinstance(at_s, (int, float)) and round(float(at_s) / TOKEN_S) >= num_steps:
+            raise WhatIfError(whatif.path, f"{KIND_OF[type(edit)]}: at_s {at_s} is at or after the rollout's end ({num_steps} "
+                                           f"steps = {end_s:g} s): give more steps (--steps) or an earlier at_s", i)
     model, vocab = load_prior(EMBEDDED if prior is None else prior, device)
     prepared = prepare(scene, whatif, vocab)  # every edit checked against the scene and the vocabulary before any rollout
     base_prep = Prepared(scene=scene, scripts=[], removals=[], lights=[], affected={}, followers={}, onset_step={})

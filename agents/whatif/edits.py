@@ -13,11 +13,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence, Union
 
-import math
-
 import numpy as np
 
-from smart_marl.config_files import integer, number, optional
+from smart_marl.config_files import integer, is_integer, is_number, number, optional
+from smart_marl.model.smart import MAX_VOCAB_SIZE
 from smart_marl.errors import SmartMarlError, check_regular_file
 from smart_marl.scenario import SignalState
 
@@ -153,19 +152,38 @@ KIND_OF = {cls: kind for kind, cls in KINDS.items()}
 
 MAX_STEPS = 64
 """Most token steps (0.5 s each: 32 s) a what-if rolls out; ``smart-marl whatif --steps`` refuses more."""
+MAX_SCRIPT_BYTES = 1_000_000
+"""The largest what-if script file."""
+MAX_SCRIPT_NODES = 100_000
+"""The most values a what-if script may hold once its YAML aliases are expanded (an alias bomb is refused)."""
 
 
 # ---------------------------------------------------------------------------- value checks
 # Every key of every kind has a rule (smart_marl.config_files' rules, or the ones below) that a
 # script's values must pass when it is loaded, before a scene is read or a rollout runs.
+MAX_COORDINATE_M = 1e6
+"""The largest coordinate (metres) or heading a what-if script may give: farther than any map."""
+MAX_SPEED_MPS = 100.0
+"""The fastest scripted agent (360 km/h): faster would leave the map within a token step."""
+MAX_SIZE_M = 30.0
+"""The largest box side of an inserted agent (a long truck is 25 m)."""
+MAX_DURATION_S = MAX_STEPS * 0.5
+"""The latest onset, wait or manoeuvre duration: the longest rollout."""
+MAX_POINTS = 10_000
+"""The most points of a trajectory or path."""
+MAX_TRACK_ID = 2**62
+"""The largest track id (ids are int64)."""
+
+
 def _is_number(v) -> bool:
-    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_)) and math.isfinite(v)
+    """A finite number within :data:`MAX_COORDINATE_M` (coordinates, headings)."""
+    return is_number(v) and abs(v) <= MAX_COORDINATE_M
 
 
 def _agent_ref(v):
     if isinstance(v, str) and v:
         return None
-    return None if isinstance(v, (int, np.integer)) and not isinstance(v, bool) else f"must be a track id or 'sdc', got {v!r}"
+    return None if is_integer(v) and abs(v) <= MAX_TRACK_ID else f"must be a track id or 'sdc', got {v!r}"
 
 
 def _agent_refs(v):
@@ -182,26 +200,30 @@ def _points(widths: tuple[int, ...], count: int | None = None):
         if len({len(r) for r in rows}) != 1 or len(rows[0]) not in widths:
             return f"must be points of {' or '.join(map(str, widths))} numbers each (a rectangular list), got {v!r}"
         if not all(_is_number(x) for r in rows for x in r):
-            return f"must hold finite numbers only, got {v!r}"
+            return f"must hold finite numbers within +-{MAX_COORDINATE_M:g} only, got {v!r}"
+        if len(rows) > MAX_POINTS:
+            return f"must be at most {MAX_POINTS} points, got {len(rows)}"
         if count is not None and len(rows) != count:
             return f"must be {count} point(s), got {len(rows)}"
         return None
     return rule
 
 
-def _vector(n: int, positive: bool = False):
-    """``n`` finite numbers (positive ones with ``positive``)."""
+def _vector(n: int, positive: bool = False, high: float = MAX_COORDINATE_M):
+    """``n`` finite numbers within +-``high`` (positive ones with ``positive``)."""
     def rule(v):
-        if not (isinstance(v, (list, tuple)) and len(v) == n and all(_is_number(x) for x in v)) or (positive and min(v) <= 0):
-            return f"must be {n} finite{' positive' if positive else ''} numbers, got {v!r}"
+        if not (isinstance(v, (list, tuple)) and len(v) == n and all(is_number(x) and abs(x) <= high for x in v)) or \
+                (positive and min(v) <= 0):
+            return f"must be {n} finite{' positive' if positive else ''} numbers within +-{high:g}, got {v!r}"
         return None
     return rule
 
 
 def _tokens(v):
-    if not isinstance(v, (list, tuple)) or not v or not all(isinstance(t, (int, np.integer)) and not isinstance(t, bool) and t >= 0
-                                                             for t in v):
-        return f"must be a non-empty list of token ids (integers >= 0), got {v!r}"
+    if not isinstance(v, (list, tuple)) or not v or not all(is_integer(t) and 0 <= t < MAX_VOCAB_SIZE for t in v):
+        return f"must be a non-empty list of token ids (integers in 0..{MAX_VOCAB_SIZE - 1}), got {v!r}"
+    if len(v) > MAX_POINTS:
+        return f"must be at most {MAX_POINTS} token ids, got {len(v)}"
     return None
 
 
@@ -219,22 +241,25 @@ def _lanes(v):
 
 _SIGNAL_NAMES = tuple(s.name.lower() for s in SignalState)
 _PLACEMENT = {"frame": _choice("source", "local"), "relative_to": optional(_agent_ref)}
-_AT = {"at_s": number(0.0)}
+_SECONDS = number(0.0, MAX_DURATION_S, why="the longest rollout")
+_SPEED = number(0.0, MAX_SPEED_MPS, why="360 km/h")
+_SIZE = _vector(3, positive=True, high=MAX_SIZE_M)
+_ID = integer(0, MAX_TRACK_ID)
+_AT = {"at_s": _SECONDS}
 _EDIT_RULES = {
     Remove: {"agents": _agent_refs, **_AT},
     Insert: {"type": _choice("vehicle", "pedestrian", "cyclist"), "trajectory": optional(_points((2, 3))),
-             "path": optional(_points((2,))), "speed_mps": number(0.0), "wait_s": number(0.0), "tokens": optional(_tokens),
-             "pose": optional(_vector(3)), "id": optional(integer()), "size_m": optional(_vector(3, positive=True)),
+             "path": optional(_points((2,))), "speed_mps": _SPEED, "wait_s": _SECONDS, "tokens": optional(_tokens),
+             "pose": optional(_vector(3)), "id": optional(_ID), "size_m": optional(_SIZE),
              "then": _choice("release", "hold")},
-    Brake: {"agent": _agent_ref, **_AT, "decel_mps2": number(0.0, low_open=True)},
-    CutIn: {"agent": _agent_ref, **_AT, "lateral_m": number(), "duration_s": number(0.0, low_open=True),
-            "speed_mps": optional(number(0.0))},
-    Follow: {"agent": _agent_ref, **_AT, "path": optional(_points((2,))), "speed_mps": optional(number(0.0)),
+    Brake: {"agent": _agent_ref, **_AT, "decel_mps2": number(0.0, 20.0, low_open=True, why="2 g")},
+    CutIn: {"agent": _agent_ref, **_AT, "lateral_m": number(-20.0, 20.0, why="five lanes"),
+            "duration_s": number(0.0, MAX_DURATION_S, low_open=True, why="the longest rollout"), "speed_mps": optional(_SPEED)},
+    Follow: {"agent": _agent_ref, **_AT, "path": optional(_points((2,))), "speed_mps": optional(_SPEED),
              "tokens": optional(_tokens), "then": _choice("release", "hold")},
-    StalledVehicle: {"agent": optional(_agent_ref), "pose": optional(_vector(3)), "id": optional(integer()),
-                     "size_m": optional(_vector(3, positive=True))},
-    Jaywalker: {"start": _vector(2), "end": _vector(2), "speed_mps": number(0.0, low_open=True), "wait_s": number(0.0),
-                "id": optional(integer())},
+    StalledVehicle: {"agent": optional(_agent_ref), "pose": optional(_vector(3)), "id": optional(_ID), "size_m": optional(_SIZE)},
+    Jaywalker: {"start": _vector(2), "end": _vector(2), "speed_mps": number(0.0, MAX_SPEED_MPS, low_open=True),
+                "wait_s": _SECONDS, "id": optional(_ID)},
     TrafficLightOverride: {"lanes": _lanes, "state": lambda v: _choice(*_SIGNAL_NAMES)(str(v).lower()), **_AT},
 }
 _EDIT_RULES[Stop] = _EDIT_RULES[Brake]
@@ -321,10 +346,44 @@ def load_script(path: str | os.PathLike) -> WhatIf:
         import yaml
     except ImportError as exc:  # pragma: no cover - pyyaml is in the whatif extra
         raise WhatIfError(p, "reading YAML scripts needs pyyaml (pip install 'smart-marl[whatif]')") from exc
+    if p.stat().st_size > MAX_SCRIPT_BYTES:
+        raise WhatIfError(p, f"{p.stat().st_size} bytes: a what-if script is at most {MAX_SCRIPT_BYTES} bytes")
     try:
-        data = yaml.safe_load(p.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
+        loader = yaml.SafeLoader(p.read_text())
+        try:
+            node = loader.get_single_node()
+            nodes = _expanded_nodes(node, {}, set())
+            data = loader.construct_document(node) if node is not None and nodes <= MAX_SCRIPT_NODES else None
+        finally:
+            loader.dispose()
+    except (yaml.YAMLError, ValueError, RecursionError) as exc:  # ValueError: UnicodeDecodeError, a recursive alias
         raise WhatIfError(p, f"not valid YAML: {type(exc).__name__}: {exc}") from exc
+    if nodes > MAX_SCRIPT_NODES:
+        raise WhatIfError(p, f"the YAML expands to more than {MAX_SCRIPT_NODES} values through its aliases (&anchor / "
+                             f"*alias): {nodes} counted before stopping; a what-if script holds at most {MAX_SCRIPT_NODES}")
     return WhatIf.from_dict(data, str(p))
+
+
+def _expanded_nodes(node, sizes: dict, visiting: set) -> int:
+    """How many values the YAML node stands for once its aliases are expanded (an alias counts as
+    many times as it is used); a node that contains itself is refused."""
+    if node is None:
+        return 0
+    key = id(node)
+    if key in sizes:
+        return sizes[key]
+    if key in visiting:
+        raise ValueError("a recursive alias (a value that contains itself)")
+    visiting.add(key)
+    children = node.value if isinstance(node.value, list) else []
+    total = 1
+    for child in children:
+        total += sum(_expanded_nodes(c, sizes, visiting) for c in child) if isinstance(child, tuple) else \
+            _expanded_nodes(child, sizes, visiting)
+        if total > MAX_SCRIPT_NODES:  # stop early: the count of a bomb grows geometrically
+            break
+    visiting.discard(key)
+    sizes[key] = total
+    return total
 
 

@@ -168,7 +168,9 @@ def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
     affected, followers, onset, approaching = {}, {}, {}, []
     next_id = int(scene.tracks.ids.max()) + 1 if scene.num_tracks else 1
     horizon = scene.num_frames - scene.current_frame  # frames of script a new track stores
+    edit_of_script: list[int] = []  # the edit each script comes from
     for i, e in enumerate(whatif.edits):
+        edit_of_script += [i - 1] * (len(scripts) - len(edit_of_script))
         check_edit(e, path, i)
         kind = KIND_OF[type(e)]
         if kind == "remove":
@@ -319,6 +321,14 @@ def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
             approaching.append((step, _approaching(scene, tl.stop_points[lanes, :2].astype(np.float64))))
         else:  # pragma: no cover
             raise WhatIfError(path, f"kind {kind} not handled", i)
+    edit_of_script += [len(whatif.edits) - 1] * (len(scripts) - len(edit_of_script))
+    first: dict[int, int] = {}
+    for sc, i in zip(scripts, edit_of_script):  # one agent follows one script: a second would silently win or be dropped
+        if sc.track_id in first and first[sc.track_id] != i:
+            j = first[sc.track_id]
+            raise WhatIfError(path, f"{KIND_OF[type(whatif.edits[i])]}: agent {sc.track_id} is already driven by edit {j} "
+                                    f"({KIND_OF[type(whatif.edits[j])]}); an agent takes one scripted edit", i)
+        first.setdefault(sc.track_id, i)
     return Prepared(scene=scene, scripts=scripts, removals=removals, lights=lights, affected=affected, followers=followers,
                     onset_step=onset, approaching=approaching)
 

@@ -1,11 +1,15 @@
 """Argument types the subcommands share: each refuses a bad value while the command line is parsed
 (exit code 2 and one ``error:`` line naming the argument), before any work starts.
 
-``type=positive_int`` (``--workers``, ``--scenes-per-shard``...), ``type=non_negative_int``
-(``--top-k``: 0 means none), ``type=positive_number`` (``--temperature``), ``type=positive_numbers``
+Each is :func:`checked`: the text parsed, then a rule of :mod:`smart_marl.config_files`, the one way
+every value is checked. ``type=positive_int`` (``--workers``, ``--scenes-per-shard``...),
+``type=non_negative_int`` (``--top-k``: 0 means none), ``type=seed`` (``--seed``: 0..2**63 - 1),
+``bounded_int(low, high)`` / ``bounded_number(...)`` (a size with its limit named),
+``type=workers`` (``--workers``: 1..4 per CPU), ``type=positive_number``, ``type=positive_numbers``
 (``--speed-limits 30,50``: comma-separated numbers > 0), ``type=motion_types`` (``--types
 pedestrian,cyclist``: agent types that have motion tokens), ``type=output_dir`` (``--out``:
-anything but an existing file), ``type=device`` (``--device``: a torch device this machine has;
+anything but an existing file or a path below one), ``type=output_file`` (a file name to write),
+``type=device`` (``--device``: a torch device this machine has;
 ``device_or_auto`` also takes ``auto``), :func:`reader_formats` (the ``choices`` of ``--format``)
 and :func:`collision_avoidance_flag` (``--no-collision-avoidance`` on every command that rolls out
 the prior).
@@ -14,52 +18,84 @@ the prior).
 from __future__ import annotations
 
 import argparse
+import os
+from typing import Any, Callable
 
-from ..config_files import device_problem, output_dir_problem
+from ..config_files import (Rule, device_problem, integer, number, output_dir_problem, output_file_problem,
+                            seed as seed_rule)
 from ..readers import format_names
+from ..rollout.sampling import temperature_rule
 from ..tokens.motion import MOTION_TYPES
 
 
-def _integer_at_least(text: str, low: int) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < low:
-        raise argparse.ArgumentTypeError(f"must be at least {low}, got {value}")
-    return value
+def checked(rule: Rule, parse: Callable[[str], Any] = int, what: str = "an integer", name: str = "") -> Callable[[str], Any]:
+    """An argparse ``type``: the text parsed with ``parse`` (``what`` it must be), then checked with a
+    rule of :mod:`smart_marl.config_files` (the one way every value is checked); argparse prints the
+    problem on one ``error:`` line naming the argument and exits with 2."""
+    def convert(text: str):
+        try:
+            value = parse(text)
+        except (ValueError, OverflowError):
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+        problem = rule(value)
+        if problem:
+            raise argparse.ArgumentTypeError(problem)
+        return value
+    convert.__name__ = name or getattr(rule, "__name__", "value")
+    return convert
 
 
-def positive_int(text: str) -> int:
-    """An integer >= 1."""
-    return _integer_at_least(text, 1)
+positive_int = checked(integer(1), name="positive_int")
+"""An integer >= 1."""
+non_negative_int = checked(integer(0), name="non_negative_int")
+"""An integer >= 0."""
+seed = checked(seed_rule, name="seed")
+"""A random seed: an integer in 0..2**63 - 1."""
+positive_number = checked(number(0.0, low_open=True), float, "a number", "positive_number")
+"""A finite number > 0."""
 
 
-def non_negative_int(text: str) -> int:
-    """An integer >= 0."""
-    return _integer_at_least(text, 0)
+def bounded_int(low: int, high: int, why: str = "") -> Callable[[str], int]:
+    """An integer in low..high (``why``: where the upper limit comes from)."""
+    return checked(integer(low, high, why), name="bounded_int")
 
 
-def positive_number(text: str) -> float:
-    """A finite number > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (0 < value < float("inf")):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
-    return value
+def bounded_number(low: float | None = None, high: float | None = None, low_open: bool = False,
+                   why: str = "") -> Callable[[str], float]:
+    """A finite number in [low, high] (> low with ``low_open``)."""
+    return checked(number(low, high, low_open=low_open, why=why), float, "a number", "bounded_number")
 
 
-def positive_numbers(text: str) -> tuple[float, ...]:
-    """Comma-separated numbers, each > 0."""
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
-    if not all(v > 0 for v in values):
-        raise argparse.ArgumentTypeError(f"every value must be > 0, got {text!r}")
-    return values
+def numbers_list(rule: Rule, name: str = "numbers") -> Callable[[str], tuple[float, ...]]:
+    """Comma-separated numbers, each passing ``rule``."""
+    def convert(text: str) -> tuple[float, ...]:
+        try:
+            values = tuple(float(v) for v in text.split(","))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+        bad = next((p for p in map(rule, values) if p), None)
+        if bad:
+            raise argparse.ArgumentTypeError(f"every value {bad}")
+        return values
+    convert.__name__ = name
+    return convert
+
+
+positive_numbers = numbers_list(number(0.0, low_open=True), "positive_numbers")
+"""Comma-separated finite numbers, each > 0."""
+
+
+MAX_ROLLOUTS = 1024
+"""The most rollouts per scene a command generates (32x WOSAC's 32)."""
+rollouts = bounded_int(1, MAX_ROLLOUTS, "32x WOSAC's 32")
+"""``--rollouts``: an integer in 1..:data:`MAX_ROLLOUTS`."""
+temperature = checked(temperature_rule, float, "a number", "temperature")
+"""``--temperature``: a finite number in :data:`smart_marl.rollout.TEMPERATURE_RANGE`."""
+
+MAX_WORKERS = 4 * (os.cpu_count() or 1)
+"""The most worker processes a command starts: 4 per CPU of this machine (more only wait for a CPU)."""
+workers = bounded_int(1, MAX_WORKERS, "4 per CPU of this machine")
+"""``--workers``: an integer in 1..:data:`MAX_WORKERS`."""
 
 
 def motion_types(text: str) -> list[str]:
@@ -77,6 +113,14 @@ def collision_avoidance_flag(parser: argparse.ArgumentParser, who: str = "the pr
     parser.add_argument("--no-collision-avoidance", dest="avoid_collisions", action="store_false",
                         help=f"{who} samples plainly, without keeping its tokens out of other agents' boxes "
                              "(default: collision-aware sampling, smart_marl.rollout.avoidance)")
+
+
+def output_file(text: str) -> str:
+    """A file (or checkpoint name) to write: not a folder, in a folder that exists or can be created."""
+    problem = output_file_problem(text)
+    if problem:
+        raise argparse.ArgumentTypeError(problem)
+    return text
 
 
 def output_dir(text: str) -> str:
@@ -111,4 +155,5 @@ def reader_formats() -> list[str]:
     return format_names()
 
 
-__all__ = ["positive_int", "non_negative_int", "positive_number", "positive_numbers", "motion_types", "collision_avoidance_flag", "output_dir", "device", "device_or_auto", "reader_formats"]
+__all__ = ["checked", "numbers_list", "workers", "MAX_WORKERS", "rollouts", "MAX_ROLLOUTS", "temperature", "positive_int", "non_negative_int", "seed", "positive_number", "bounded_int", "bounded_number",
+           "positive_numbers", "output_file", "motion_types", "collision_avoidance_flag", "output_dir", "device", "device_or_auto", "reader_formats"]

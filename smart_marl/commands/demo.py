@@ -16,13 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..embedded import sample_scenarios
+from ..embedded import EMBEDDED, sample_scenarios
 from ..metrics import aggregate, logged_scene, score_rollouts
 from ..metrics.baselines import policy_rollouts
-from ..model.checkpoint import EMBEDDED, load_checkpoint
+from ..model.checkpoint import load_prior, read_meta, resolve_checkpoint_path
 from ..render import BevRenderer, EpisodeRecorder
 from ..rollout import rollout
-from .arguments import device, output_dir, positive_int
+from .arguments import device, output_dir, rollouts, seed
 from .eval import format_table, prior_rollouts
 
 
@@ -30,8 +30,8 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("demo", help="simulate the built-in sample scenes with the embedded SMART prior",
                               description=__doc__.split("\n\n")[1])
     p.add_argument("--out", default="out/demo", type=output_dir, help="output folder (default: out/demo)")
-    p.add_argument("--rollouts", type=positive_int, default=32, help="rollouts per scene (default 32, as the metrics expect)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the rollouts (default 0)")
+    p.add_argument("--rollouts", type=rollouts, default=32, help="rollouts per scene (default 32, as the metrics expect)")
+    p.add_argument("--seed", type=seed, default=0, help="random seed of the rollouts (default 0)")
     p.add_argument("--checkpoint", default=None, help="a SMART checkpoint instead of the embedded prior")
     p.add_argument("--device", default="cpu", type=device, help="torch device (default cpu)")
     p.add_argument("--format", choices=("mp4", "gif"), default="mp4", help="animation format (default mp4)")
@@ -67,11 +67,11 @@ def run(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    prior = load_checkpoint(args.checkpoint or EMBEDDED, map_location=args.device)
+    spec = args.checkpoint or EMBEDDED
+    prior = load_prior(spec, args.device)
     scenes = sample_scenarios()
-    meta = prior.meta
-    print(f"SMART prior: {args.checkpoint or 'embedded'} ({meta.get('model_config', {}).get('name', '?')}, "
-          f"step {prior.step}); {len(scenes)} sample scenes; {args.rollouts} rollouts of 8 s each")
+    print(f"SMART prior: {spec} ({prior.model.config.name}, step {read_meta(resolve_checkpoint_path(spec)).get('step', 0)}); "
+          f"{len(scenes)} sample scenes; {args.rollouts} rollouts of 8 s each")
 
     first = scenes[0]
     t1 = time.perf_counter()

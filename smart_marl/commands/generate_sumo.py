@@ -7,7 +7,13 @@ import os
 
 from ..errors import SmartMarlError, UsageError
 from ..sources.sumo import SumoConfig, SumoUnavailableError, generate_to_dir
-from .arguments import output_dir, positive_int, positive_numbers
+from ..sources.sumo_sim import MAX_SPEED_LIMIT_MPS, MIN_SPEED_LIMIT_MPS
+from ..config_files import number
+from .arguments import bounded_int, bounded_number, numbers_list, output_dir, positive_int, positive_numbers, seed, workers
+
+speed_limits_kmh = numbers_list(number(round(MIN_SPEED_LIMIT_MPS * 3.6), round(MAX_SPEED_LIMIT_MPS * 3.6),
+                                       why="km/h; netgenerate fails on limits near 0"), "speed_limits_kmh")
+"""``--speed-limits``: comma-separated km/h, each within the limits a SUMO network takes (5-200)."""
 
 
 def register(subparsers) -> None:
@@ -18,13 +24,13 @@ def register(subparsers) -> None:
                     "written straight into a scene cache (default) or as WOMD TFRecords. Same seed, same scenes.")
     p.add_argument("--scenes", type=positive_int, required=True, help="number of scenes to generate")
     p.add_argument("--out", required=True, type=output_dir, help="output folder (created if missing)")
-    p.add_argument("--workers", type=positive_int, default=max(1, min(4, os.cpu_count() or 1)),
+    p.add_argument("--workers", type=workers, default=max(1, min(4, os.cpu_count() or 1)),
                    help="parallel processes, one SUMO simulation each")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the networks and traffic (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="random seed of the networks and traffic (default 0)")
     p.add_argument("--format", choices=("cache", "womd"), default="cache",
                    help="cache: scene-cache shards + manifest.json; womd: WOMD scenario TFRecords")
-    p.add_argument("--scenes-per-sim", type=positive_int, default=8, help="scenes cut from each simulation")
-    p.add_argument("--radius", type=float, default=80.0, help="agents within this many metres of the SDC are kept")
+    p.add_argument("--scenes-per-sim", type=bounded_int(1, 64), default=8, help="scenes cut from each simulation")
+    p.add_argument("--radius", type=bounded_number(0.0, 1000.0, low_open=True), default=80.0, help="agents within this many metres of the SDC are kept")
     p.add_argument("--no-pedestrians", action="store_true", help="no pedestrians in the simulations")
     p.add_argument("--no-bicycles", action="store_true", help="no bicycles in the simulations")
     p.add_argument("--sublane", action="store_true",
@@ -32,10 +38,10 @@ def register(subparsers) -> None:
     p.add_argument("--legacy", action="store_true",
                    help="the first generator's traffic (SumoConfig.legacy(): the embedded prior's training data) "
                         "instead of the defaults tuned toward real traffic")
-    p.add_argument("--demand-scale", type=float, default=None, metavar="X",
+    p.add_argument("--demand-scale", type=bounded_number(0.0, 100.0, low_open=True), default=None, metavar="X",
                    help="multiplies the traffic demand (default: the config's, 2.5 for the tuned traffic, 1 with --legacy)")
-    p.add_argument("--speed-limits", type=positive_numbers, default=None, metavar="KMH[,KMH...]",
-                   help="the networks' speed limits to draw from, km/h (default: the config's, 30-70 km/h)")
+    p.add_argument("--speed-limits", type=speed_limits_kmh, default=None, metavar="KMH[,KMH...]",
+                   help="the networks' speed limits to draw from, km/h, each 5-200 (default: the config's, 30-70 km/h)")
     p.add_argument("--speed-weights", type=positive_numbers, default=None, metavar="W[,W...]",
                    help="their probabilities, one per limit (normalised; default: the config's with the default "
                         "limits, uniform with --speed-limits)")
@@ -64,8 +70,6 @@ def speed_changes(limits_kmh: tuple[float, ...] | None, w: tuple[float, ...] | N
 
 
 def run(args) -> int:
-    if args.demand_scale is not None and not args.demand_scale > 0:
-        raise UsageError(f"argument --demand-scale: must be > 0, got {args.demand_scale}")
     make_config = SumoConfig.legacy if args.legacy else SumoConfig
     changes = {} if args.demand_scale is None else {"demand_scale": args.demand_scale}
     if args.straight_walkers:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 
 from ..cache import preprocess
-from .arguments import output_dir, positive_int, reader_formats
+from .arguments import bounded_int, output_dir, reader_formats, workers
 
 
 def register(subparsers) -> None:
@@ -15,8 +15,9 @@ def register(subparsers) -> None:
                                           "skips inputs already converted; a killed run leaves no partial shard.")
     p.add_argument("sources", nargs="+", metavar="SRC", help="scene files, folders or globs")
     p.add_argument("--out", required=True, type=output_dir, help="the cache folder (created if missing)")
-    p.add_argument("--workers", type=positive_int, default=max(1, min(4, os.cpu_count() or 1)), help="parallel processes")
-    p.add_argument("--scenes-per-shard", type=positive_int, default=64, help="scenes per shard file (default 64)")
+    p.add_argument("--workers", type=workers, default=max(1, min(4, os.cpu_count() or 1)), help="parallel processes")
+    p.add_argument("--scenes-per-shard", type=bounded_int(1, 10_000, "a shard is held in memory until it is written"),
+                   default=64, help="scenes per shard file (default 64, at most 10,000)")
     p.add_argument("--skip-bad", action="store_true",
                    help="report bad input files, record them in the manifest and go on (default: stop)")
     p.add_argument("--append", action="store_true",

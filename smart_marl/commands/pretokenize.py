@@ -6,8 +6,12 @@ import os
 
 from ..model.checkpoint import EMBEDDED, load_checkpoint
 from ..token_cache import pretokenize
-from ..train import road_keep_radius
-from .arguments import output_dir, positive_int
+from ..train import ROAD_KEEP_RADIUS_RULE, road_keep_radius
+from .arguments import checked, output_dir, workers
+
+
+road_keep_radius_m = checked(ROAD_KEEP_RADIUS_RULE, float, "a number", "road_keep_radius_m")
+"""``--road-keep-radius``: what the training config's ``road_keep_radius_m`` takes (-1 or a finite number >= 0)."""
 
 
 def register(subparsers) -> None:
@@ -21,10 +25,10 @@ def register(subparsers) -> None:
     p.add_argument("--vocab-from", default=EMBEDDED, metavar="CKPT",
                    help="the checkpoint whose vocabularies and road types the training run uses; only these are read, "
                         "the model is not run (default: the embedded prior)")
-    p.add_argument("--road-keep-radius", type=float, default=-1.0, metavar="M",
+    p.add_argument("--road-keep-radius", type=road_keep_radius_m, default=-1.0, metavar="M",
                    help="the run's road_keep_radius_m: road pieces farther than M metres from every agent are dropped "
                         "(default -1: the lossless radius of the checkpoint's model config)")
-    p.add_argument("--workers", type=positive_int, default=max(1, min(4, os.cpu_count() or 1)), help="parallel processes")
+    p.add_argument("--workers", type=workers, default=max(1, min(4, os.cpu_count() or 1)), help="parallel processes")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 

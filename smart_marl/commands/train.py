@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import json
 
-from ..config_files import apply_command_flags
+from ..config_files import apply_command_flags, strict_json
 from ..train import load_train_config, train
-from .arguments import device_or_auto, output_dir
+from .arguments import device_or_auto, output_dir, seed
 
 
 def register(subparsers) -> None:
@@ -24,7 +24,7 @@ def register(subparsers) -> None:
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides, values parsed as JSON when they parse")
     p.add_argument("--init", default=None, metavar="CHECKPOINT", help="start from these weights (fine-tuning)")
     p.add_argument("--out", default=None, type=output_dir, metavar="DIR", help="run folder (the config's out_dir; default runs/smart)")
-    p.add_argument("--seed", type=int, default=None, help="random seed (the config's seed; default 0)")
+    p.add_argument("--seed", type=seed, default=None, help="random seed (the config's seed; default 0)")
     p.add_argument("--device", default=None, type=device_or_auto,
                    help="torch device (the config's device; default auto: cuda when available)")
     p.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
@@ -43,5 +43,5 @@ def run(args) -> int:
     if result.checkpoint is not None:
         summary = {"step": result.step, "resumed_from": result.resumed_from, "checkpoint": str(result.checkpoint),
                    "train": result.last_train, "val": result.last_val}
-        print(json.dumps(summary, default=float))
+        print(strict_json(summary))
     return 0

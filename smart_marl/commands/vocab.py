@@ -20,7 +20,13 @@ from ..tokens import (
     save_road_vocabulary,
 )
 from ..tokens.motion import MOTION_TYPES
-from .arguments import motion_types, output_dir
+from ..config_files import check_value, integer, number
+from ..errors import UsageError
+from ..model.smart import MAX_VOCAB_SIZE
+from .arguments import bounded_int, motion_types, output_dir, output_file, seed
+
+MOTION_SIZE_RULE = integer(1, MAX_VOCAB_SIZE, "the largest vocabulary")
+"""A motion vocabulary size ``vocab build --sizes`` takes."""
 
 
 def register(subparsers) -> None:
@@ -38,10 +44,10 @@ def register(subparsers) -> None:
     b.add_argument("--tolerance", default="0", metavar="T",
                    help="k-disks disk radius in metres, T or VEH/PED/CYC; 0 (default): the radius that covers every "
                         "snippet is searched; smaller: the tokens go to the common motions first (e.g. 0.05/0/0)")
-    b.add_argument("--road-size", type=int, default=1024, help="road vocabulary size (0: no road vocabulary)")
+    b.add_argument("--road-size", type=bounded_int(0, MAX_VOCAB_SIZE, "the largest vocabulary"), default=1024, help="road vocabulary size (0: no road vocabulary)")
     b.add_argument("--out", required=True, type=lambda text: Path(output_dir(text)), help="output folder")
-    b.add_argument("--seed", type=int, default=0, help="random seed of k-disks (default 0)")
-    b.add_argument("--stride", type=int, default=1, help="frames between the starts of collected snippets")
+    b.add_argument("--seed", type=seed, default=0, help="random seed of k-disks (default 0)")
+    b.add_argument("--stride", type=bounded_int(1, 1000), default=1, help="frames between the starts of collected snippets")
     b.add_argument("--no-progress", action="store_true", help="no progress bars")
     b.set_defaults(func=run_build)
     t = sub.add_parser("transfer", help="a checkpoint moved onto another motion vocabulary (warm start for training)",
@@ -51,31 +57,33 @@ def register(subparsers) -> None:
                                    "with `smart-marl train ... motion_vocab=V road_vocab=<its road vocabulary> --init OUT.json`.")
     t.add_argument("checkpoint", metavar="CHECKPOINT", help="a checkpoint's .json, or 'embedded'")
     t.add_argument("--motion-vocab", required=True, metavar="V", help="the new motion vocabulary (.npz)")
-    t.add_argument("--out", required=True, type=Path, metavar="NAME", help="the new checkpoint (writes NAME.json, .safetensors...)")
+    t.add_argument("--out", required=True, type=lambda text: Path(output_file(text)), metavar="NAME", help="the new checkpoint (writes NAME.json, .safetensors...)")
     t.add_argument("--types", type=motion_types, default=None, metavar="TYPE[,TYPE]",
                    help="only these agent types (vehicle, pedestrian, cyclist) take the new vocabulary; the others keep "
                         "the checkpoint's tokens and head rows (default: every type)")
     t.set_defaults(func=run_transfer)
 
 
-def run_build(args) -> int:
-    def per_type(text: str, cast) -> tuple:
-        values = tuple(cast(v) for v in text.split("/"))
-        if len(values) == 1:
-            values = values * len(MOTION_TYPES)
-        if len(values) != len(MOTION_TYPES):
-            raise ValueError(text)
-        return values
-
+def _per_type(text: str, flag: str, cast, rule) -> tuple:
+    """``N`` (every motion type) or ``VEH/PED/CYC`` -> one value per type, each checked with ``rule``."""
     try:
-        sizes = [per_type(s.strip(), int) for s in str(args.sizes).split(",") if s.strip()]
-        tolerance = per_type(str(args.tolerance), float)
+        values = tuple(cast(v) for v in text.split("/"))
     except ValueError:
-        sizes, tolerance = [], ()
-    if not sizes or min(min(s) for s in sizes) < 1 or not tolerance or min(tolerance) < 0 or args.road_size < 0 or args.stride < 1:
-        print(f"smart-marl vocab build: error: --sizes must be positive integers N or VEH/PED/CYC (got {args.sizes!r}), "
-              f"--tolerance T or VEH/PED/CYC metres >= 0 (got {args.tolerance!r}), --road-size >= 0, --stride >= 1", file=sys.stderr)
-        return 2
+        raise UsageError(f"argument {flag}: {text!r} is not N or VEH/PED/CYC") from None
+    if len(values) == 1:
+        values = values * len(MOTION_TYPES)
+    if len(values) != len(MOTION_TYPES):
+        raise UsageError(f"argument {flag}: {text!r} gives {len(values)} values; give one, or three (VEH/PED/CYC)")
+    for v in values:
+        check_value(f"argument {flag}:", v, rule, UsageError)
+    return values
+
+
+def run_build(args) -> int:
+    sizes = [_per_type(s.strip(), "--sizes", int, MOTION_SIZE_RULE) for s in str(args.sizes).split(",") if s.strip()]
+    if not sizes:
+        raise UsageError(f"argument --sizes: no size in {args.sizes!r} (e.g. 512,1024 or 1024/512/512)")
+    tolerance = _per_type(str(args.tolerance), "--tolerance", float, number(0.0, 100.0, why="metres"))
     files = expand_paths(args.sources)
     parts = {t: [] for t in MOTION_TYPES}
     road_parts, scenes = [], []
@@ -96,6 +104,13 @@ def run_build(args) -> int:
                   "snippets": {t.name.lower(): int(len(v)) for t, v in snippets.items()}}
     print(f"read {len(scenes)} scenes from {len(files)} files in {time.time() - t0:.1f}s: snippets "
           + ", ".join(f"{k} {v}" for k, v in provenance["snippets"].items()), file=sys.stderr)
+    for size in sizes:  # k-disks runs in time proportional to the size: more tokens than motions would run for minutes
+        for t, n in zip(MOTION_TYPES, size):
+            have = len(snippets[t])
+            if have and n > have:
+                raise UsageError(f"argument --sizes: {n} {t.name.lower()} tokens from {have} {t.name.lower()} snippets: a "
+                                 f"vocabulary has at most as many tokens as the motions it is built from (give more scenes, "
+                                 f"or per-type sizes VEH/PED/CYC)")
     args.out.mkdir(parents=True, exist_ok=True)
     for size in sizes:
         vocab = build_motion_vocabulary(snippets, dict(zip(MOTION_TYPES, size)), seed=args.seed, provenance=provenance,

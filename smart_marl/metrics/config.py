@@ -13,11 +13,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..scenario import DT_S
+from ..scenario import CURRENT_FRAME, DT_S
 
-NUM_HISTORY_STEPS = 11
+CURRENT_STEP = CURRENT_FRAME
+"""The step the simulation starts from: the scenes' current frame (10)."""
+NUM_HISTORY_STEPS = CURRENT_STEP + 1
 """Logged steps before the simulation (indices 0-10; the current step is 10)."""
-CURRENT_STEP = 10
 NUM_SIMULATION_STEPS = 80
 NUM_STEPS = NUM_HISTORY_STEPS + NUM_SIMULATION_STEPS
 NUM_ROLLOUTS = 32

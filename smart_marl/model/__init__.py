@@ -10,13 +10,15 @@ and configs; ``forward`` for training, ``encode_road`` / ``start_cache`` / ``ste
 """
 
 from .batch import SmartBatch, collate_scenes, scene_road, scene_tensors
-from .checkpoint import Checkpoint, CheckpointError, VocabularyMismatchError, load_checkpoint, load_prior, save_checkpoint
+from .checkpoint import (
+    Checkpoint, CheckpointError, Prior, VocabularyMismatchError, load_checkpoint, load_prior, save_checkpoint,
+)
 from .losses import NextTokenLoss
 from .motionnet import MotionCache
 from .smart import NAMED_CONFIGS, SMART, ModelConfigError, SmartConfig, get_config, model_parameter_count
 
 __all__ = [
-    "Checkpoint", "CheckpointError", "ModelConfigError", "MotionCache", "NAMED_CONFIGS", "NextTokenLoss", "SMART", "SmartBatch",
+    "Checkpoint", "CheckpointError", "ModelConfigError", "MotionCache", "NAMED_CONFIGS", "NextTokenLoss", "Prior", "SMART", "SmartBatch",
     "SmartConfig", "VocabularyMismatchError", "collate_scenes", "get_config", "load_checkpoint", "load_prior",
     "model_parameter_count", "save_checkpoint",
     "scene_road", "scene_tensors",

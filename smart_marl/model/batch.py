@@ -113,18 +113,33 @@ def road_type_ids(feature_type: np.ndarray, subtype: np.ndarray, road_types: str
     return ftype * _SUBTYPES + sub, keep
 
 
+def light_codes(traffic_lights, light_index: np.ndarray, frame: int) -> np.ndarray:
+    """[R] the light codes of road pieces whose traffic-light lane index is ``light_index`` [R] (-1: none) at
+    ``frame`` (held at the scene's last frame beyond it): the signal's state, UNKNOWN where it is not logged
+    then, NO_LIGHT on pieces without a signal."""
+    light = np.full(len(light_index), NO_LIGHT, np.int64)
+    has = light_index >= 0
+    if has.any():
+        f = min(int(frame), traffic_lights.states.shape[0] - 1)
+        li = light_index[has]
+        light[has] = np.where(traffic_lights.present[f, li], traffic_lights.states[f, li], int(SignalState.UNKNOWN))
+    return light
+
+
+def road_light_index(scenario: Scenario, road_types: str = "all") -> np.ndarray:
+    """[R] each road piece's traffic-light lane index (-1: none), for the pieces of :func:`scene_road` in its order
+    (so that :func:`light_codes` gives their codes at any frame)."""
+    pieces = road_pieces(scenario.road_map, scenario.traffic_lights)
+    _, keep = road_type_ids(pieces.feature_type, pieces.feature_subtype, road_types)
+    return pieces.traffic_light_index[keep]
+
+
 def scene_road(scenario: Scenario, road_vocab: RoadVocabulary, road_types: str = "all") -> RoadArrays:
     """Road pieces, their tokens, types (:func:`road_type_ids`), light states (at the current frame)
     and successor pairs."""
     pieces = road_pieces(scenario.road_map, scenario.traffic_lights)
     ids, _, _ = match_road_pieces(pieces.local, road_vocab) if pieces.num_pieces else (np.zeros(0, np.int64),) * 3
-    light = np.full(pieces.num_pieces, NO_LIGHT, np.int64)
-    tl = scenario.traffic_lights
-    has = pieces.traffic_light_index >= 0
-    if has.any():
-        f = scenario.current_frame
-        li = pieces.traffic_light_index[has]
-        light[has] = np.where(tl.present[f, li], tl.states[f, li], int(SignalState.UNKNOWN))
+    light = light_codes(scenario.traffic_lights, pieces.traffic_light_index, scenario.current_frame)
     pairs, _ = road_successor_pairs(pieces, scenario.road_map)
     type_id, keep = road_type_ids(pieces.feature_type, pieces.feature_subtype, road_types)
     road = RoadArrays(local=pieces.local, pose=pieces.pose, type_id=type_id, light=light, token=ids, pairs=pairs)

@@ -28,12 +28,13 @@ import os
 import pickle
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
+from ..embedded import EMBEDDED, is_embedded
 from ..errors import SmartMarlError, regular_file_problem
 from ..tokens import BOX_SIZE_M, MOTION_TYPES, MotionVocabulary, TypeVocab, token_poses_from_contours
 from ..tokens.road import RoadVocabulary
@@ -313,8 +314,6 @@ def _rng_problem(rng: dict) -> str | None:
 
 EMBEDDED_DIR = Path(__file__).resolve().parents[1] / "checkpoints" / "embedded"
 """Where the package ships its pretrained prior (``prior="embedded"``)."""
-EMBEDDED = "embedded"
-"""The name that stands for the package's embedded prior wherever a checkpoint path is taken."""
 
 
 def embedded_checkpoint_path() -> Path:
@@ -328,11 +327,12 @@ def embedded_checkpoint_path() -> Path:
 
 def resolve_checkpoint_path(path: str | os.PathLike) -> str | os.PathLike:
     """``path``, or the embedded prior's checkpoint for ``"embedded"``."""
-    return embedded_checkpoint_path() if isinstance(path, str) and path == EMBEDDED else path
+    return embedded_checkpoint_path() if is_embedded(path) else path
 
 
 def load_embedded(map_location: str | torch.device = "cpu", **config_overrides: Any) -> Checkpoint:
-    """The package's pretrained SMART prior (its model card: docs/model_card.md)."""
+    """The package's pretrained SMART prior as a :class:`Checkpoint` (weights, both vocabularies and
+    provenance; its model card: docs/model_card.md). To drive with it, :func:`load_prior` ``("embedded")``."""
     return load_checkpoint(EMBEDDED, map_location=map_location, **config_overrides)
 
 
@@ -346,23 +346,31 @@ def motion_vocabulary_from_model(model: SMART) -> MotionVocabulary:
     return MotionVocabulary(types=types, method="from_model")
 
 
-def load_prior(prior, map_location: str | torch.device = "cpu") -> tuple[SMART, MotionVocabulary]:
+class Prior(NamedTuple):
+    """A SMART prior ready to drive: the model (eval mode) and the motion vocabulary its tokens are
+    placed with. What :func:`load_prior` returns; unpacks as ``model, vocab = load_prior(...)``."""
+
+    model: SMART
+    motion_vocab: MotionVocabulary
+
+
+def load_prior(prior, map_location: str | torch.device = "cpu") -> Prior:
     """The one way to get a SMART prior: (model in eval mode on ``map_location``, its motion
     vocabulary) from ``"embedded"`` (the package's prior), a checkpoint path (``NAME`` or
-    ``NAME.json``), a :class:`Checkpoint`, or a SMART model (its vocabulary rebuilt from its contour
-    buffers). A path with no checkpoint raises :class:`CheckpointError`."""
+    ``NAME.json``), a :class:`Checkpoint`, a :class:`Prior`, or a SMART model (its vocabulary rebuilt
+    from its contour buffers). A path with no checkpoint raises :class:`CheckpointError`."""
     if isinstance(prior, (str, os.PathLike)):
         path = resolve_checkpoint_path(prior)
         meta = checkpoint_paths(path)["meta"]
         if not meta.is_file():
             raise CheckpointError(path, f"no checkpoint at this path (expected {meta.name} next to its .safetensors)")
         prior = load_checkpoint(path, map_location=map_location)
-    if isinstance(prior, Checkpoint):
+    if isinstance(prior, (Checkpoint, Prior)):
         model, vocab = prior.model, prior.motion_vocab
     else:
         model, vocab = prior, None
     model = model.to(map_location).eval()
-    return model, vocab if vocab is not None else motion_vocabulary_from_model(model)
+    return Prior(model, vocab if vocab is not None else motion_vocabulary_from_model(model))
 
 
 def export_checkpoint(src: str | os.PathLike, dst: str | os.PathLike) -> Path:

@@ -193,12 +193,50 @@ def knn_within(query_xy: torch.Tensor, key_xy: torch.Tensor, radius_m: float, k:
     kk = min(int(k), m)
     if kk == 0:
         return query_xy.new_zeros((g, q, 0), dtype=torch.long), torch.zeros((g, q, 0), dtype=torch.bool, device=query_xy.device)
-    dist = torch.cdist(query_xy.float(), key_xy.float())  # (G, Q, M)
-    ok = query_valid[:, :, None] & key_valid[:, None, :] & (dist <= radius_m)
-    dist = dist.masked_fill(~ok, float("inf"))
-    d_sel, idx = torch.topk(dist, kk, dim=-1, largest=False)  # (G, Q, K)
+    # squared distances pair by pair (not the |a|^2 + |b|^2 - 2ab expansion, whose rounding depends on the
+    # tensors' sizes and would let a batch's padding change which near-tied neighbours are picked): a scene's
+    # neighbourhoods, and so its rollouts, do not depend on the scenes it is batched with. Plain elementwise
+    # work: as fast as torch.cdist's exact mode on a CPU, tens of times faster on a GPU
+    q, key = query_xy.float(), key_xy.float()
+    dx = q[..., 0, None] - key[:, None, :, 0]
+    dy = q[..., 1, None] - key[:, None, :, 1]
+    dist2 = dx * dx + dy * dy  # (G, Q, M)
+    ok = query_valid[:, :, None] & key_valid[:, None, :] & (dist2 <= float(radius_m) ** 2)
+    dist2 = dist2.masked_fill(~ok, float("inf"))
+    d_sel, idx = smallest_k(dist2, kk)  # (G, Q, K)
     mask = torch.isfinite(d_sel)
     return idx.masked_fill(~mask, 0), mask
+
+
+def smallest_k(values: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(values, indices) [..., k] of the ``k`` smallest entries of each row of ``values`` [..., M],
+    smallest first and, among equal values, lowest index first (entries tied at the k-th value are
+    taken lowest index first): the result is that of a stable sort, so it does not depend on how many
+    entries follow them (``torch.topk`` alone may break such
+    ties differently for a row padded to another length, e.g. a scene batched with larger ones).
+    Only rows whose (k+1)-th smallest value equals their k-th are re-chosen."""
+    m = values.shape[-1]
+    if k >= m:
+        return torch.sort(values, dim=-1, stable=True)
+    vals, idx = torch.topk(values, k + 1, dim=-1, largest=False)
+    ambiguous = vals[..., k] == vals[..., k - 1]  # a tie across the boundary: topk's pick is arbitrary
+    vals, idx = vals[..., :k], idx[..., :k]
+    by_index = idx.sort(dim=-1).indices  # ties inside the k in index order too: the result is a function of the row
+    vals, idx = vals.gather(-1, by_index), idx.gather(-1, by_index)
+    by_value = torch.sort(vals, dim=-1, stable=True).indices
+    vals, idx = vals.gather(-1, by_value), idx.gather(-1, by_value)
+    if bool(ambiguous.any()):
+        rows = ambiguous.nonzero(as_tuple=True)
+        v = values[rows]  # (A, M)
+        thr = vals[rows][:, -1:]
+        below, tied = v < thr, v == thr
+        take = below | (tied & (tied.cumsum(-1) <= k - below.sum(-1, keepdim=True)))  # k true per row
+        chosen = take.nonzero()[:, -1].view(-1, k)  # increasing index
+        chosen_vals = v.gather(-1, chosen)
+        order = torch.sort(chosen_vals, dim=-1, stable=True).indices
+        vals, idx = vals.clone(), idx.clone()
+        vals[rows], idx[rows] = chosen_vals.gather(-1, order), chosen.gather(-1, order)
+    return vals, idx
 
 
 def knn_grouped(query_xy: torch.Tensor, group: torch.Tensor, key_xy: torch.Tensor, radius_m: float, k: int,

@@ -23,13 +23,13 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from ..scenario import AgentType
+from ..tokens.motion import TOKEN_S
 from .batch import SmartBatch
 from .motionnet import NUM_MOTION_TYPES
 from .smart import SMART
 
 TYPE_NAMES = ("vehicle", "pedestrian", "cyclist")
 
-TOKEN_S = 0.5
 TREND_NOW_STEP = 1  # the token that ends at the current frame (91-frame scenes whose current frame is 10)
 TREND_LATE_STEPS = (16, 17)  # the two tokens that end 7.5 and 8 s after it
 TREND_FAST_MPS = 5.0  # only vehicles faster than this now are weighted

@@ -27,6 +27,7 @@ import torch
 import torch.nn as nn
 
 from ..scenario import wrap_angle
+from ..padding import grow, put_rows
 from ..tokens.motion import TOKEN_S
 from .layers import (FourierEmbedding, NeighbourAttention, knn_grouped, knn_within, mlp, neighbour_keys, normalise,
                      relative_pose_features, trim_neighbours, valid_rows)
@@ -297,3 +298,87 @@ class MotionCache:
         out = copy.copy(self)
         out.src = list(self.src)
         return out
+
+    @classmethod
+    def stack(cls, caches: list["MotionCache"]) -> "MotionCache":
+        """One cache of every group of ``caches`` in order (caches of the same model whose road tables
+        are their own scenes'), slots and road pieces padded to the largest: a state started on
+        several scenes at once gives the same numbers."""
+        n = max(c.num_slots for c in caches)
+        r = max(c.num_road_pieces for c in caches)
+
+        def slots(c: "MotionCache", t: torch.Tensor, fill=0) -> torch.Tensor:  # flat [G * N, ...] -> [G, n, ...]
+            return grow(t.view(c.num_groups, c.num_slots, *t.shape[1:]), {1: n}, fill)
+
+        def scene_rows(c: "MotionCache", t: torch.Tensor) -> torch.Tensor:  # flat [B * R, ...] -> [B, r, ...]
+            return grow(t.view(-1, max(c.num_road_pieces, 1), *t.shape[1:]), {1: r})
+
+        cat = lambda parts: torch.cat(parts).flatten(0, 1)  # noqa: E731
+        first = caches[0]
+        offsets = [0]
+        for c in caches[:-1]:
+            offsets.append(offsets[-1] + c.road_pose_flat.shape[0] // max(c.num_road_pieces, 1))
+        return cls(
+            num_groups=sum(c.num_groups for c in caches), num_slots=n,
+            scene_of_group=torch.cat([c.scene_of_group + o for c, o in zip(caches, offsets)]),
+            agent_type=cat([slots(c, c.agent_type) for c in caches]),
+            agent_categorical=cat([slots(c, c.agent_categorical) for c in caches]), token_table=first.token_table,
+            road_pose=torch.cat([grow(c.road_pose, {1: r}) for c in caches]),
+            road_valid=torch.cat([grow(c.road_valid, {1: r}, False) for c in caches]),
+            road_pose_flat=cat([scene_rows(c, c.road_pose_flat) for c in caches]),
+            road_rows=cat([scene_rows(c, c.road_rows) for c in caches]),
+            src=[cat([slots(c, c.src[k]) for c in caches]) for k in range(len(first.src))],
+            pose=cat([slots(c, c.pose) for c in caches]), valid=cat([slots(c, c.valid, False) for c in caches]),
+            steps_done=first.steps_done)
+
+    def take(self, groups: torch.Tensor, scenes: torch.Tensor, num_slots: int, num_pieces: int) -> "MotionCache":
+        """A cache of groups ``groups`` of this one (whose scenes are ``scenes``, in the order of the
+        groups' ``scene_of_group``), cut to their first ``num_slots`` slots and ``num_pieces`` road pieces."""
+        n, r, b = self.num_slots, self.num_road_pieces, self.road_pose_flat.shape[0] // max(self.num_road_pieces, 1)
+        slots = lambda t: t.view(self.num_groups, n, *t.shape[1:])[groups, :num_slots].flatten(0, 1)  # noqa: E731
+        pieces = lambda t: t.view(b, r, *t.shape[1:])[scenes, :num_pieces].flatten(0, 1)  # noqa: E731
+        local = torch.full((b,), -1, dtype=torch.long, device=scenes.device)
+        local[scenes] = torch.arange(len(scenes), device=scenes.device)
+        return MotionCache(
+            num_groups=len(groups), num_slots=num_slots, scene_of_group=local[self.scene_of_group[groups]],
+            agent_type=slots(self.agent_type), agent_categorical=slots(self.agent_categorical), token_table=self.token_table,
+            road_pose=self.road_pose[groups, :num_pieces], road_valid=self.road_valid[groups, :num_pieces],
+            road_pose_flat=pieces(self.road_pose_flat), road_rows=pieces(self.road_rows), src=[slots(t) for t in self.src],
+            pose=slots(self.pose), valid=slots(self.valid), steps_done=self.steps_done)
+
+    @property
+    def num_road_pieces(self) -> int:
+        return int(self.road_pose.shape[1])
+
+    def replace(self, groups: torch.Tensor, scenes: torch.Tensor, other: "MotionCache") -> None:
+        """Put every group of ``other`` (a cache of the same model) in place of this cache's groups
+        ``groups`` [G_o] and its scenes' road rows in place of scenes ``scenes`` [B_o] (the scene of
+        ``groups[i]`` must be ``scenes[other.scene_of_group[i]]``): their KV cache, constants and
+        road, so that they step on as ``other``'s would. Slots and road pieces grow to the larger of
+        the two (padding is never valid). Unlike a step this writes into the tensors: :meth:`fork`
+        copies that share them see it, so replace in a state no fork of which is still used."""
+        n, r = max(self.num_slots, other.num_slots), max(self.num_road_pieces, other.num_road_pieces)
+        g, b = self.num_groups, self.road_pose_flat.shape[0] // max(self.num_road_pieces, 1)
+        if n > self.num_slots:  # per-slot tensors are flat [G * N, ...]: grow as [G, N, ...]
+            per_slot = lambda t, fill=0: grow(t.view(g, self.num_slots, *t.shape[1:]), {1: n}, fill).reshape(g * n, *t.shape[1:])  # noqa: E731
+            self.agent_type, self.agent_categorical = per_slot(self.agent_type), per_slot(self.agent_categorical)
+            self.src = [per_slot(t) for t in self.src]
+            self.pose, self.valid = per_slot(self.pose), per_slot(self.valid, False)
+            self.num_slots = n
+        if r > self.num_road_pieces:
+            self.road_pose_flat = grow(self.road_pose_flat.view(b, -1, 3), {1: r}).reshape(b * r, 3)
+            self.road_rows = grow(self.road_rows.view(b, -1, self.road_rows.shape[-1]), {1: r}).reshape(b * r, -1)
+            self.road_pose, self.road_valid = grow(self.road_pose, {1: r}), grow(self.road_valid, {1: r}, False)
+        go, no = other.num_groups, other.num_slots
+        slot = lambda t: t.view(g, n, *t.shape[1:])  # noqa: E731
+        put_rows(slot(self.agent_type), groups, other.agent_type.view(go, no))
+        put_rows(slot(self.agent_categorical), groups, other.agent_categorical.view(go, no, -1))
+        for mine, theirs in zip(self.src, other.src):
+            put_rows(slot(mine), groups, theirs.view(go, no, *theirs.shape[1:]))
+        put_rows(slot(self.pose), groups, other.pose.view(go, no, *other.pose.shape[1:]))
+        put_rows(slot(self.valid), groups, other.valid.view(go, no, -1), False)
+        put_rows(self.road_pose, groups, other.road_pose)
+        put_rows(self.road_valid, groups, other.road_valid, False)
+        bo, ro = other.road_pose_flat.shape[0] // max(other.num_road_pieces, 1), other.num_road_pieces
+        put_rows(self.road_pose_flat.view(b, r, 3), scenes, other.road_pose_flat.view(bo, ro, 3))
+        put_rows(self.road_rows.view(b, r, -1), scenes, other.road_rows.view(bo, ro, -1))

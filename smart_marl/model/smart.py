@@ -17,6 +17,7 @@ from typing import Any, Mapping, NamedTuple
 import torch
 import torch.nn as nn
 
+from ..config_files import check_fields, integer, number, one_of, sequence, text
 from ..errors import SmartMarlError
 from .layers import mlp
 from .motionnet import NUM_MOTION_TYPES, MotionCache, MotionNet
@@ -52,18 +53,47 @@ class SmartConfig:
     road_types: str = "all"  # the road kinds the type embedding tells apart (batch.ROAD_TYPE_SETS): "all" or "sumo"
 
     def __post_init__(self) -> None:
+        check_fields(self, MODEL_RULES, "model", ModelConfigError)
         self.motion_vocab_sizes = tuple(int(v) for v in self.motion_vocab_sizes)
-        if len(self.motion_vocab_sizes) != NUM_MOTION_TYPES:
-            raise ModelConfigError(f"motion_vocab_sizes needs 3 sizes (vehicle, pedestrian, cyclist), got {self.motion_vocab_sizes}")
-        if self.road_types not in ("all", "sumo"):
-            raise ModelConfigError(f"road_types must be 'all' or 'sumo', got {self.road_types!r}")
         if self.num_heads * self.head_dim != self.hidden_dim:
             raise ModelConfigError(f"num_heads * head_dim must equal hidden_dim, got {self.num_heads} * {self.head_dim} != {self.hidden_dim}")
+        size = self.approx_parameters()
+        if size > MAX_MODEL_PARAMETERS:
+            raise ModelConfigError(f"model config: about {size:.3g} parameters (hidden_dim {self.hidden_dim}, "
+                                   f"{self.num_road_layers} road layers, {self.num_agent_blocks} agent blocks), more than the "
+                                   f"limit of {MAX_MODEL_PARAMETERS:.0e} (10x smart-101m, the largest named config)")
+
+    def approx_parameters(self) -> float:
+        """About how many parameters the model has (attention layers: 12 d^2 each, three per agent block
+        and one per road layer, plus the heads' last layers): within a factor 2 of the exact count."""
+        d = self.hidden_dim
+        layers = self.num_road_layers + 3 * self.num_agent_blocks
+        return float(12 * d * d * layers + d * (sum(self.motion_vocab_sizes) + self.road_vocab_size))
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d["motion_vocab_sizes"] = list(self.motion_vocab_sizes)
         return d
+
+
+MAX_MODEL_PARAMETERS = 1e9
+"""The largest model a config may describe (about 10x smart-101m): a checkpoint or a training config that
+asks for more is refused before anything is allocated."""
+MAX_VOCAB_SIZE = 8192
+"""The largest motion or road vocabulary (4x smart-101m's 2048 motion tokens per type)."""
+_RADIUS = number(0.0, 1000.0, low_open=True, why="metres, far beyond any scene")
+MODEL_RULES = {
+    "name": text, "hidden_dim": integer(1, 8192), "num_heads": integer(1, 256), "head_dim": integer(1, 8192),
+    "num_road_layers": integer(1, 64), "num_agent_blocks": integer(1, 64),
+    "motion_vocab_sizes": sequence(integer(1, MAX_VOCAB_SIZE, "the largest vocabulary"), length=NUM_MOTION_TYPES),
+    "road_vocab_size": integer(1, MAX_VOCAB_SIZE, "the largest vocabulary"), "agent_radius_m": _RADIUS,
+    "map_radius_m": _RADIUS, "road_radius_m": _RADIUS, "temporal_window_tokens": integer(1, 64, "32 s of history"),
+    "agent_neighbours": integer(1, 1024), "map_neighbours": integer(1, 1024), "road_neighbours": integer(1, 1024),
+    "road_piece_points": integer(2, 64), "num_freq_bands": integer(1, 1024), "dropout": number(0.0, 1.0, high_open=True),
+    "road_types": one_of("all", "sumo"),
+}
+"""What each SmartConfig field takes (:mod:`smart_marl.config_files` rules), checked whenever a config is made:
+from a name, a training config's overrides or a checkpoint's ``model_config``."""
 
 
 NAMED_CONFIGS: dict[str, dict[str, Any]] = {

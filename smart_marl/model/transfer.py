@@ -14,10 +14,16 @@ import dataclasses
 
 import torch
 
+from ..errors import SmartMarlError
 from ..scenario import AgentType
 from ..tokens import MotionVocabulary
+from ..tokens.motion import MOTION_TYPES
 from .checkpoint import Checkpoint
 from .smart import SMART
+
+
+class TransferError(SmartMarlError, ValueError):
+    """A motion vocabulary a checkpoint cannot be moved onto (a type without tokens, an unknown type)."""
 
 
 def nearest_tokens(old_contour: torch.Tensor, new_contour: torch.Tensor) -> torch.Tensor:
@@ -31,10 +37,13 @@ def nearest_tokens(old_contour: torch.Tensor, new_contour: torch.Tensor) -> torc
 
 def merge_vocabularies(base: MotionVocabulary, new: MotionVocabulary, types) -> MotionVocabulary:
     """``base`` with the agent ``types`` (AgentType values or names, e.g. "pedestrian") taken from ``new``."""
-    chosen = {AgentType[t.upper()] if isinstance(t, str) else AgentType(int(t)) for t in types}
-    missing = sorted(t.name.lower() for t in chosen if t not in new.types)
+    try:
+        chosen = {AgentType[t.upper()] if isinstance(t, str) else AgentType(int(t)) for t in types}
+    except (KeyError, ValueError, TypeError) as exc:
+        raise TransferError(f"types: {list(types)!r} are not all agent types (vehicle, pedestrian, cyclist)") from exc
+    missing = sorted(t.name.lower() for t in chosen if t not in new.types or new.types[t].size < 1)
     if missing:
-        raise ValueError(f"the new motion vocabulary has no tokens for {', '.join(missing)}")
+        raise TransferError(f"the new motion vocabulary has no tokens for {', '.join(missing)}")
     merged = {t: (new.types[t] if t in chosen else v) for t, v in base.types.items()}
     merged.update({t: new.types[t] for t in chosen if t not in merged})
     summary = {k: v for k, v in new.provenance.items() if k != "scenes"}  # the base keeps its own scene list
@@ -53,6 +62,12 @@ def transfer_motion_vocabulary(ck: Checkpoint, motion_vocab: MotionVocabulary, t
     ``meta['transferred_from']`` records the source checkpoint."""
     if types is not None:
         motion_vocab = merge_vocabularies(ck.motion_vocab, motion_vocab, types)
+    missing = [t.name.lower() for t in MOTION_TYPES if t not in motion_vocab.types or motion_vocab.types[t].size < 1]
+    other = [AgentType(t).name.lower() for t in motion_vocab.types if t not in MOTION_TYPES]
+    if missing or other:
+        raise TransferError(f"the motion vocabulary has no tokens for {', '.join(missing)}: the model needs tokens of every "
+                            f"motion type (pass --types with the types it has)" if missing else
+                            f"the motion vocabulary holds tokens of {', '.join(other)}, which no motion head speaks")
     sizes = tuple(motion_vocab[t].size for t in range(len(ck.model.motion_contours)))
     config = dataclasses.replace(ck.model.config, motion_vocab_sizes=sizes)
     new_contours = [torch.as_tensor(motion_vocab[t].contour, dtype=torch.float32) for t in range(len(sizes))]

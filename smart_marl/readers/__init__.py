@@ -27,7 +27,7 @@ from typing import Iterable, Iterator
 
 from ..errors import ScenarioReadError, SmartMarlError, UnknownFormatError, UsageError, check_regular_file
 from ..scenario import Scenario
-from .scene_cache import is_cache_dir, shard_paths
+from .scene_cache import is_cache_dir, read_cache, shard_paths
 
 # Order matters: the first module whose sniff() accepts a file reads it.
 _FORMAT_MODULES = ("scene_cache", "womd", "scenarionet", "smart_pkl", "gpudrive_json", "av2")
@@ -120,10 +120,27 @@ def read_scenarios(path_or_glob, format: str | None = None) -> Iterator[Scenario
     modules = {m.NAME: m for m in _formats()}
     if format is not None and format not in modules:
         raise UnknownFormatNameError(f"unknown format {format!r}; known: {', '.join(modules)}")
-    for path in expand_paths(path_or_glob):
-        name = format or detect_format(path)
-        check_regular_file(path)
-        yield from _guarded(modules[name], path)
+    for path, is_cache in _inputs(path_or_glob):
+        if is_cache and format in (None, "scene_cache"):  # its shards, checked against the manifest (as SceneCache does)
+            yield from read_cache(path)
+            continue
+        for file in expand_paths(path) if is_cache else [path]:
+            name = format or detect_format(file)
+            check_regular_file(file)
+            yield from _guarded(modules[name], file)
+
+
+def _inputs(path_or_glob) -> Iterator[tuple[str, bool]]:
+    """(path, whether it is a scene-cache folder) of every input :func:`expand_paths` would expand."""
+    if not isinstance(path_or_glob, (str, os.PathLike)):
+        for item in path_or_glob:
+            yield from _inputs(item)
+        return
+    text = os.fspath(path_or_glob)
+    if os.path.isdir(text) and is_cache_dir(text):
+        yield text, True
+    else:
+        yield from ((p, False) for p in expand_paths(text))
 
 
 def _guarded(module, path: str) -> Iterator[Scenario]:

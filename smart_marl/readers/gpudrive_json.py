@@ -53,15 +53,12 @@ import numpy as np
 
 from ..errors import ScenarioReadError
 from ..scenario import (
-    DT_S, AgentType, MapFeatureType, RoadMap, Scenario, SignalState, TrafficLights, Tracks, as_int, as_integers,
+    CURRENT_FRAME, DT_S, AgentType, MapFeatureType, RoadMap, Scenario, SignalState, TrafficLights, Tracks, as_int, as_integers,
     choose_frame, wrap_angle,
 )
 from .common import is_json_number, json_point, load_json_object, read_errors
 
 NAME = "gpudrive_json"
-
-WOMD_CURRENT_FRAME = 10
-"""Current frame of a WOMD-derived scene (11 frames of history)."""
 
 DEFAULT_HEIGHT_M = {
     AgentType.VEHICLE: 1.6,
@@ -162,7 +159,7 @@ def scenario_from_json(data: dict[str, Any], path: str = "<memory>") -> Scenario
     road = _read_roads(roads, path)
     flavour = _flavour(data, objects, roads, track["has_z"] or road["has_z"])
 
-    current_frame = WOMD_CURRENT_FRAME if num_frames > WOMD_CURRENT_FRAME else num_frames - 1
+    current_frame = CURRENT_FRAME if num_frames > CURRENT_FRAME else num_frames - 1
     with read_errors(path, "metadata"):
         sdc_index = as_int(metadata_in.get("sdc_track_index", -1), "sdc_track_index")
     if not -1 <= sdc_index < len(objects):

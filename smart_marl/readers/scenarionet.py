@@ -28,7 +28,7 @@ Mapping onto the Scenario:
   ``TRAFFIC_LIGHT_RED / YELLOW / GREEN / UNKNOWN`` onto STOP / CAUTION / GO / UNKNOWN; a ``None``
   state means the light was not reported on that frame (``present`` False).
 * time: ``metadata["ts"]`` when it has one entry per frame, else ``0.1 * arange``; the current frame
-  is ``metadata["current_time_index"]`` when present, else :data:`DEFAULT_CURRENT_FRAME` (the WOMD /
+  is ``metadata["current_time_index"]`` when present, else :data:`~smart_marl.scenario.CURRENT_FRAME` (the WOMD /
   SMART convention of 11 history frames; nuScenes conversions carry no current frame). Every frame of
   the file is kept (20 s nuScenes and Waymo 1.2 scenes included).
 * space: positions are shifted into the local frame of :func:`smart_marl.scenario.choose_frame`
@@ -46,6 +46,7 @@ import numpy as np
 
 from ..errors import ScenarioReadError
 from ..scenario import (
+    CURRENT_FRAME,
     DT_S,
     AgentType,
     LaneType,
@@ -67,9 +68,6 @@ from .common import read_errors
 from .safe_pickle import SCENARIONET_GLOBALS, load_restricted, looks_like_pickle
 
 NAME = "scenarionet"
-
-DEFAULT_CURRENT_FRAME = 10
-"""Current frame of scenes whose metadata has no ``current_time_index`` (when they are long enough)."""
 
 _KMH_PER_MPH = 1.609344
 
@@ -238,7 +236,7 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
     timestamps = ts if ts is not None and ts.shape == (num_frames,) and np.isfinite(ts).all() else DT_S * np.arange(num_frames)
     current = meta.get("current_time_index")
     if current is None:
-        current = DEFAULT_CURRENT_FRAME if num_frames > DEFAULT_CURRENT_FRAME else 0
+        current = CURRENT_FRAME if num_frames > CURRENT_FRAME else 0
     with read_errors(path, "metadata"):
         current = as_int(current, "current_time_index")
     if not 0 <= current < num_frames:
@@ -290,6 +288,8 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
     index_of_key = {str(k): i for i, k in enumerate(track_keys)}
     sdc_key = meta.get("sdc_id")
     sdc_index = index_of_key.get(str(sdc_key), -1) if sdc_key is not None else -1
+    if sdc_key is not None and sdc_index < 0:  # a named self-driving car that is not there is a broken file, not "none"
+        raise ScenarioReadError(path, f"sdc_id {sdc_key!r} names no track (tracks: {list(index_of_key)[:5]}...)", "metadata")
 
     predict, difficulty = [], []
     to_predict = meta.get("tracks_to_predict") or {}
@@ -443,4 +443,4 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
         )
 
 
-__all__ = ["NAME", "DEFAULT_CURRENT_FRAME", "sniff", "read", "scenario_from_dict"]
+__all__ = ["NAME", "sniff", "read", "scenario_from_dict"]

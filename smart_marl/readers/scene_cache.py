@@ -6,12 +6,15 @@ A shard holds up to ``scenes_per_shard`` Scenarios as raw little-endian arrays b
 (one file: magic, header length, header, 64-byte aligned array data); reading one is an ``mmap``
 plus ``np.frombuffer`` views (:class:`ShardReader`): no decoding, no copy until a batch is built.
 ``manifest.json`` lists every scene (scenario id, source, frames, agent counts per type, shard),
-every input and every input that was skipped as bad (:func:`write_manifest`, :func:`read_manifest`).
+every input and every input that was skipped as bad (:func:`write_manifest`, :func:`read_manifest`),
+and each shard's SHA-256 (``sha256``), which a reader checks when it opens the shard (a manifest written
+before the checksums has none: its shards are read as before).
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import math
 import mmap
@@ -171,6 +174,10 @@ class ShardReader:
         for i in range(len(self)):
             yield self[i]
 
+    def content(self) -> memoryview:
+        """The shard file's bytes (a view of the memory map)."""
+        return memoryview(self._map)
+
     def close(self) -> None:
         try:
             self._map.close()
@@ -186,6 +193,7 @@ def is_shard(head: bytes) -> bool:
 # --------------------------------------------------------------------------------------- manifest
 def load_manifest(path: str | os.PathLike) -> Any:
     """The JSON content of a manifest file (not yet checked), a named error when it does not parse."""
+    check_regular_file(path)
     try:
         return json.loads(Path(path).read_text())
     except (ValueError, RecursionError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
@@ -234,6 +242,10 @@ def read_manifest(root: str | os.PathLike) -> dict[str, Any]:
         problem = shard_name_problem(shard.get("file"))
         if problem:
             raise ScenarioReadError(manifest_path, problem, record=f"shards[{k}]")
+        digest = shard.get("sha256")
+        if digest is not None and not (isinstance(digest, str) and len(digest) == 64
+                                       and all(c in "0123456789abcdef" for c in digest)):
+            raise ScenarioReadError(manifest_path, f"sha256 {digest!r} is not a SHA-256 hex digest", record=f"shards[{k}]")
     return manifest
 
 
@@ -243,6 +255,56 @@ def shard_paths(root: str | os.PathLike) -> list[Path]:
     if not any(shard["scenes"] for shard in shards):
         raise ScenarioReadError(root, "the scene cache holds no scene")
     return [Path(root) / shard["file"] for shard in shards]
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """The SHA-256 (hex) of a file's content, read in 1 MiB blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def open_listed_shard(root: str | os.PathLike, shard: dict[str, Any]) -> ShardReader:
+    """A manifest's shard entry opened, checked to hold as many scenes as the entry lists and, when the
+    entry records one, to have the content checksum the manifest says."""
+    reader = ShardReader(Path(root) / shard["file"])
+    if "sha256" in shard and hashlib.sha256(reader.content()).hexdigest() != shard["sha256"]:
+        reader.close()
+        raise ScenarioReadError(reader.path, "its content differs from the checksum the manifest recorded (sha256): the "
+                                             "shard changed after it was written")
+    if len(reader) != len(shard["scenes"]):
+        reader.close()
+        raise ScenarioReadError(reader.path, f"holds {len(reader)} scenes, the manifest lists {len(shard['scenes'])}")
+    return reader
+
+
+def listed_scene(reader: ShardReader, shard: dict[str, Any], j: int) -> Scenario:
+    """Scene ``j`` of a shard opened with :func:`open_listed_shard`, checked to be the scene its manifest
+    entry lists (the same scenario id)."""
+    scenario = reader[j]
+    listed = shard["scenes"][j]["scenario_id"]
+    if scenario.scenario_id != listed:
+        raise ScenarioReadError(reader.path, f"holds scene {scenario.scenario_id!r} where the manifest lists {listed!r}",
+                                record=j)
+    return scenario
+
+
+def read_cache(root: str | os.PathLike) -> Iterator[Scenario]:
+    """Every scene of a cache folder, in manifest order, checked against the manifest as
+    :class:`smart_marl.cache.SceneCache` checks them (a scene missing from a shard, other scenario
+    ids, a manifest that lists no scene: :class:`ScenarioReadError`)."""
+    manifest = read_manifest(root)
+    if not any(shard["scenes"] for shard in manifest["shards"]):
+        raise ScenarioReadError(root, "the scene cache holds no scene")
+    for shard in manifest["shards"]:
+        reader = open_listed_shard(root, shard)
+        try:
+            for j in range(len(reader)):
+                yield Scenario.from_arrays(*_copied(listed_scene(reader, shard, j)), validate=False)
+        finally:
+            reader.close()
 
 
 def scene_entry(scenario: Scenario, shard_file: str) -> dict[str, Any]:
@@ -261,7 +323,9 @@ def scene_entry(scenario: Scenario, shard_file: str) -> dict[str, Any]:
 def write_manifest(out: str | os.PathLike, shards: list[dict[str, Any]], inputs: Sequence[str] = (),
                    skipped: Sequence[dict[str, str]] = ()) -> None:
     """Write ``manifest.json`` (atomically) for shards written with :func:`write_shard`.
-    ``shards``: ``{"file", "input", "scenes": [scene_entry(...)]}``."""
+    ``shards``: ``{"file", "input", "scenes": [scene_entry(...)]}``; each gets the ``sha256`` of its file
+    (computed here unless the entry has it)."""
+    shards = [shard if "sha256" in shard else {**shard, "sha256": file_sha256(Path(out) / shard["file"])} for shard in shards]
     manifest = {
         "kind": MANIFEST_KIND,
         "version": 1,

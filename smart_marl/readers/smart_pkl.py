@@ -46,6 +46,7 @@ import numpy as np
 
 from ..errors import ScenarioReadError
 from ..scenario import (
+    CURRENT_FRAME,
     DT_S,
     AgentType,
     LaneType,
@@ -70,7 +71,6 @@ from .safe_pickle import load_restricted, looks_like_pickle, smart_pickle_global
 
 NAME = "smart_pkl"
 
-CURRENT_FRAME = 10
 LIGHT_SOURCE_FRAME = 11
 """The frame whose light states the SMART preprocessing stored (``time_step == "11"``)."""
 
@@ -308,4 +308,4 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
         )
 
 
-__all__ = ["NAME", "CURRENT_FRAME", "sniff", "read", "scenario_from_dict"]
+__all__ = ["NAME", "sniff", "read", "scenario_from_dict"]

@@ -13,7 +13,7 @@ import os
 
 from google.protobuf.message import DecodeError
 
-from ..errors import ScenarioReadError
+from ..errors import ScenarioReadError, check_regular_file
 from ..proto.womd import SimAgentsChallengeSubmission
 
 __all__ = ["SimAgentsChallengeSubmission", "read_submission", "write_submission", "parse_submission"]
@@ -33,6 +33,7 @@ def parse_submission(payload: bytes, path: str = "<bytes>") -> SimAgentsChalleng
 def read_submission(path: str | os.PathLike) -> SimAgentsChallengeSubmission:
     """The ``SimAgentsChallengeSubmission`` stored in ``path``."""
     path = os.fspath(path)
+    check_regular_file(path)  # a FIFO, a device, a link to /dev/urandom, /proc: refused before it is opened
     try:
         with open(path, "rb") as f:
             payload = f.read()

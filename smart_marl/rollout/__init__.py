@@ -9,9 +9,13 @@ from .engine import (
     MODES, RolloutResult, RolloutState, SceneHistory, StepOutput, TrackFrames, collect_result, rollout, scene_history,
     track_frames,
 )
-from .sampling import DEFAULT_TOP_K, reference_log_probs, reference_name, sample_tokens, top_k_mask
+from .sampling import (
+    DEFAULT_TOP_K, TEMPERATURE_RANGE, has_prior_logits, no_prior_logits, reference_log_probs, reference_name, sample_tokens,
+    temperature_rule, top_k_mask,
+)
 
 __all__ = [
     "MODES", "RolloutResult", "RolloutState", "SceneHistory", "StepOutput", "TrackFrames", "collect_result", "rollout",
-    "DEFAULT_TOP_K", "reference_log_probs", "reference_name", "sample_tokens", "scene_history", "top_k_mask", "track_frames",
+    "DEFAULT_TOP_K", "TEMPERATURE_RANGE", "has_prior_logits", "no_prior_logits", "reference_log_probs", "reference_name",
+    "sample_tokens", "scene_history", "temperature_rule", "top_k_mask", "track_frames",
 ]

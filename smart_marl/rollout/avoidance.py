@@ -9,7 +9,9 @@ The rule, per sampling agent ``i`` (a vehicle, pedestrian or cyclist whose token
 forced): a token is excluded when, on any of the token's five 10 Hz frames (drawn as the rollout
 draws them, :mod:`~smart_marl.rollout.frames`), the agent's box overlaps the box of one of its
 ``NEIGHBOURS`` nearest present agents ``j`` on the same frame, ``j`` moving at constant velocity
-(its last token's displacement repeated, heading held). Pairs whose boxes overlap already at the
+(its last token's displacement repeated, heading held), or, where ``j``'s token of this step is
+forced (a policy's controlled agent, a scripted what-if agent), on the frames that token really
+takes it to (``known_frames``). Pairs whose boxes overlap already at the
 current poses are left alone: pedestrians walking in a group, or boxes that overlap in the log,
 keep doing what the model says. Tokens are checked most likely first until ``k`` are free (or the
 type's vocabulary is exhausted), so excluding them and then sampling the top ``k`` is the same as
@@ -34,6 +36,7 @@ from typing import Callable
 
 import torch
 
+from ..geometry_torch import boxes_overlap
 from ..tokens import FRAMES_PER_TOKEN
 from .frames import token_frames
 
@@ -43,22 +46,6 @@ NEIGHBOURS = 16
 SORTED_DEPTH = 64
 """How many of each row's most likely tokens are ranked up front (the rest only for the rare row that
 gets that deep)."""
-
-
-def boxes_overlap(a_xy: torch.Tensor, a_heading: torch.Tensor, a_half: torch.Tensor, b_xy: torch.Tensor,
-                  b_heading: torch.Tensor, b_half: torch.Tensor) -> torch.Tensor:
-    """bool [...]: do oriented boxes ``a`` and ``b`` overlap (separating axis theorem; touching is
-    not overlapping). ``xy`` [..., 2], ``heading`` [...], ``half`` [..., 2] half length and half
-    width; all broadcast."""
-    d = b_xy - a_xy
-    ca, sa, cb, sb = a_heading.cos(), a_heading.sin(), b_heading.cos(), b_heading.sin()
-    hit = None
-    for ux, uy in ((ca, sa), (-sa, ca), (cb, sb), (-sb, cb)):  # the four edge normals
-        ext_a = a_half[..., 0] * (ux * ca + uy * sa).abs() + a_half[..., 1] * (uy * ca - ux * sa).abs()
-        ext_b = b_half[..., 0] * (ux * cb + uy * sb).abs() + b_half[..., 1] * (uy * cb - ux * sb).abs()
-        sep = (d[..., 0] * ux + d[..., 1] * uy).abs() < ext_a + ext_b
-        hit = sep if hit is None else hit & sep
-    return hit
 
 
 def boxes_overlap_near(a_xy: torch.Tensor, a_heading: torch.Tensor, a_half: torch.Tensor, b_xy: torch.Tensor,
@@ -88,7 +75,8 @@ def constant_velocity_pose(pose: torch.Tensor, previous_pose: torch.Tensor) -> t
 
 def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor, previous_pose: torch.Tensor,
                     size: torch.Tensor, present: torch.Tensor, agent_type: torch.Tensor, token_poses: torch.Tensor,
-                    top_k: int, interpolation: str = "spline") -> torch.Tensor:
+                    top_k: int, interpolation: str = "spline", known_frames: torch.Tensor | None = None,
+                    known: torch.Tensor | None = None) -> torch.Tensor:
     """bool [M, V]: the tokens that sampling rows ``rows`` [M] (flat indices into the G x N slots)
     must not draw (module docstring).
 
@@ -97,15 +85,36 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     that are on the road this step (they block others), ``agent_type`` [G, N], ``token_poses``
     [types, V, 6, 3] every token's poses in its start frame, ``top_k`` the sampler's k (<= 0: the
     whole vocabulary is checked), ``interpolation`` how the token's frames are drawn
-    (:func:`~smart_marl.rollout.frames.token_frames`)."""
+    (:func:`~smart_marl.rollout.frames.token_frames`). ``known_frames`` [G, N, 5, 3] and ``known`` [G, N]: the
+    slots whose frames of this step are known before the draw (their token is forced: a policy's or a
+    script's), checked against where they will really be instead of at constant velocity."""
     n = pose.shape[1]
     m, v = logits.shape
+    out = torch.zeros(m, v, dtype=torch.bool, device=logits.device)
     if m == 0 or n < 2:
-        return torch.zeros(m, v, dtype=torch.bool, device=logits.device)
+        return out
     half = size[..., :2].to(pose.dtype) / 2
     ahead = constant_velocity_pose(pose, previous_pose)
+    travel = (ahead - pose)[..., :2].norm(dim=-1)  # [G, N] how far each agent gets from its pose during the step
+    if known is not None:
+        known_frames = known_frames.to(pose.dtype)
+        ahead = torch.where(known[..., None], known_frames[:, :, -1], ahead)
+        travel = torch.where(known, (known_frames[..., :2] - pose[:, :, None, :2]).norm(dim=-1).amax(-1), travel)
+    # 1. the rows that need checking: those whose first tokens (the top k) can reach another agent; the
+    # others draw their top k whatever is excluded further down, so nothing of theirs is
     gi, si = rows // n, rows % n
-    # each row's NEIGHBOURS nearest present others, not overlapping it now
+    first = torch.topk(logits, v if top_k is None or top_k <= 0 else min(int(top_k), v), dim=-1).indices  # [M, k]
+    reach = token_reach(token_poses)[agent_type[gi, si][:, None], first].amax(-1)  # [M] farthest a first token goes
+    own_xy, own_r = pose[gi, si, :2], half[gi, si].norm(dim=-1)
+    gap = (pose[gi][:, :, :2] - own_xy[:, None]).norm(dim=-1) - travel[gi]  # [M, N] nearest they come
+    maybe = present[gi] & (gap < reach[:, None] + own_r[:, None] + half[gi].norm(dim=-1))
+    maybe[torch.arange(m, device=rows.device), si] = False
+    sub = maybe.any(-1).nonzero().squeeze(1)
+    if not len(sub):
+        return out
+    logits, rows, gi, si = logits[sub], rows[sub], gi[sub], si[sub]
+    m = len(sub)
+    # 2. each such row's NEIGHBOURS nearest present others, not overlapping it now
     own_pose, own_before, own_half, own_type = pose[gi, si], previous_pose[gi, si], half[gi, si], agent_type[gi, si]
     dist = (ahead[gi][:, :, :2] - own_pose[:, None, :2]).norm(dim=-1)  # [M, N]
     blocked_now = boxes_overlap_near(own_pose[:, None, :2], own_pose[:, None, 2], own_half[:, None], pose[gi][:, :, :2],
@@ -119,6 +128,13 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     now_xy, step_xy = pose[gi[:, None], near, :2], ahead[gi[:, None], near, :2] - pose[gi[:, None], near, :2]
     other_xy = now_xy[:, None] + s[None, :, None, None] * step_xy[:, None]
     other_h, other_half = pose[gi[:, None], near, 2], half[gi[:, None], near]
+    if known is not None:  # forced neighbours: their own frames of this step
+        kn = known[gi[:, None], near]  # [M, K]
+        kf = known_frames[gi[:, None], near].transpose(1, 2)  # [M, 5, K, 3]
+        other_xy = torch.where(kn[:, None, :, None], kf[..., :2], other_xy)
+        other_h = torch.where(kn[:, None, :], kf[..., 2], other_h[:, None, :].expand(-1, FRAMES_PER_TOKEN, -1))
+    else:
+        other_h = other_h[:, None, :]
 
     def collides(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
         """[R, c]: does token ``tok`` [R, c] of rows ``r`` [R] overlap a neighbour on any of its frames."""
@@ -126,7 +142,7 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
         frames = token_frames(local, own_pose[r][:, None].expand(-1, tok.shape[1], -1),
                               own_before[r][:, None].expand(-1, tok.shape[1], -1), interpolation)  # [R, c, 5, 3]
         hit = boxes_overlap_near(frames[:, :, :, None, :2], frames[:, :, :, None, 2], own_half[r][:, None, None, None],
-                                 other_xy[r][:, None], other_h[r][:, None, None], other_half[r][:, None, None],
+                                 other_xy[r][:, None], other_h[r][:, None], other_half[r][:, None, None],
                                  where=near_ok[r][:, None, None])  # [R, c, 5, K]
         return hit.flatten(2).any(-1)
 
@@ -134,7 +150,17 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     want = finite if top_k is None or top_k <= 0 else finite.clamp(max=int(top_k))
     excluded = _exclude_in_order(logits, finite, want, near_ok.any(-1), collides)
     excluded[excluded.sum(-1) >= finite] = False  # every token of the type is excluded: leave the row alone
-    return excluded
+    out[sub] = excluded
+    return out
+
+
+def token_reach(token_poses: torch.Tensor) -> torch.Tensor:
+    """[types, V] how far from its start any of a token's 10 Hz frames can be (m), with either
+    interpolation: the contour's own poses, or the spline's, which stays within 1.42 times the end's
+    distance (its start tangent is capped at ``frames.MAX_LEAD`` times the chord: 4/27 * 2.8 + 1); 1.5
+    times it here."""
+    xy = token_poses[..., 1:, :2].norm(dim=-1)  # [types, V, 5]
+    return torch.maximum(xy.amax(-1), 1.5 * xy[..., -1])
 
 
 def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Tensor, todo: torch.Tensor,

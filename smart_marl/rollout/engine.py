@@ -54,7 +54,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..model.batch import scene_road
+from ..model.batch import light_codes, road_light_index, scene_road
 from ..model.checkpoint import load_prior
 from ..model.motionnet import NUM_MOTION_TYPES
 from ..scenario import DT_S, Scenario
@@ -66,6 +66,10 @@ from .frames import INTERPOLATIONS, token_frames
 from .sampling import DEFAULT_TOP_K, sample_tokens
 
 MODES = ("cached", "full")
+LIGHTS = ("current", "log")
+"""What the model sees of the traffic lights in closed loop: "current" (the light states of the current frame, held
+for the whole rollout: what training showed it) or "log" (before every step, the scene's logged states of the frame
+that step starts at, held after the scene's last frame: lights that follow the clock, issue 33)."""
 
 
 # ------------------------------------------------------------------------------ model inputs
@@ -179,7 +183,10 @@ class RolloutState:
 
     def __init__(self, model, vocab: MotionVocabulary, scenes: Sequence[Scenario], num_rollouts: int, seed: int, top_k: int,
                  temperature: float, device, mode: str, road_vocab: RoadVocabulary | None = None,
-                 interpolation: str = "spline", avoid_collisions: bool = True) -> None:
+                 interpolation: str = "spline", avoid_collisions: bool = True, lights: str = "current") -> None:
+        if lights not in LIGHTS:
+            raise ValueError(f"lights must be one of {LIGHTS}, got {lights!r}")
+        self.lights = lights
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         if interpolation not in INTERPOLATIONS:
@@ -226,6 +233,7 @@ class RolloutState:
         self.road_points = t(_pad_stack([rd.local.astype(np.float32).reshape(-1, p, 2) for rd in roads], (rmax, p, 2)))
         self.road_type = t(_pad_stack([rd.type_id for rd in roads], (rmax,)))
         self.road_light = t(_pad_stack([rd.light for rd in roads], (rmax,)))
+        self._light_index = [road_light_index(sc, cfg.road_types) for sc in self.scenes] if lights == "log" else None
         with torch.no_grad():  # (B, R, d), once per scene
             self.road_x = model.encode_road(self)
         # ---- token poses per type (padded to Vmax) for placing tokens
@@ -252,19 +260,20 @@ class RolloutState:
     @classmethod
     def start(cls, model, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 1, seed: int = 0, top_k: int = DEFAULT_TOP_K,
               temperature: float = 1.0, device="cpu", mode: str = "cached", motion_vocab: MotionVocabulary | None = None,
-              interpolation: str = "spline", avoid_collisions: bool = True) -> "RolloutState":
-        """Tokenize the scenes' histories and run them through the model. ``model``: a SMART model,
-        a Checkpoint or a checkpoint path; ``motion_vocab`` overrides the vocabulary used to
+              interpolation: str = "spline", avoid_collisions: bool = True, lights: str = "current") -> "RolloutState":
+        """Tokenize the scenes' histories and run them through the model. ``model``: anything
+        :func:`~smart_marl.model.checkpoint.load_prior` takes (a SMART model, a Checkpoint, a Prior, a
+        checkpoint path or ``"embedded"``); ``motion_vocab`` overrides the vocabulary used to
         tokenize the history and place tokens (by default the checkpoint's, or the model's contours);
         ``interpolation`` draws the 10 Hz frames between token ends (module docstring);
         ``avoid_collisions`` keeps sampled tokens from ending in another agent's box
-        (:mod:`~smart_marl.rollout.avoidance`; False: plain top-k sampling)."""
+        (:mod:`~smart_marl.rollout.avoidance`; False: plain top-k sampling); ``lights``: :data:`LIGHTS`."""
         m, vocab = load_prior(model, device)
         scenes = [scenes] if isinstance(scenes, Scenario) else list(scenes)
         if not scenes:
             raise ValueError("no scenes to roll out")
         return cls(m, motion_vocab or vocab, scenes, num_rollouts, seed, top_k, temperature, device, mode, interpolation=interpolation,
-                   avoid_collisions=avoid_collisions)
+                   avoid_collisions=avoid_collisions, lights=lights)
 
     # ------------------------------------------------------------------------------ accessors
     @property
@@ -299,6 +308,15 @@ class RolloutState:
             self.road_x = self.model.encode_road(self)
         if self.cache is not None:
             self.model.motion_net.cache_road(self.cache, self.road_x)
+
+    def _follow_logged_lights(self) -> None:
+        """``lights="log"``: the road pieces' codes at the frame this step starts at (re-encoded only on a change)."""
+        light = self.road_light.clone()
+        for b, (sc, index) in enumerate(zip(self.scenes, self._light_index)):
+            frame = sc.current_frame + FRAMES_PER_TOKEN * self.step_index
+            light[b, : len(index)] = torch.from_numpy(light_codes(sc.traffic_lights, index, frame)).to(light)
+        if not torch.equal(light, self.road_light):
+            self.set_road_light(light)
 
     def set_agent_pose(self, pose: torch.Tensor, mask: torch.Tensor) -> None:
         """Override the current pose [G, N, 3] of the slots where ``mask`` [G, N] is true: their next
@@ -370,9 +388,18 @@ class RolloutState:
         exclude = None
         if self.avoid_collisions:
             pick = torch.ones(len(rows), dtype=torch.bool, device=self.device) if forced_rows is None else forced_rows < 0
+            known = known_frames = None
+            if forced_tokens is not None:  # the forced agents' frames of this step, seen by the others' check
+                known = sim & (forced_tokens >= 0)
+                if known.any():
+                    local = self.token_poses[self.agent_type, forced_tokens.clamp(min=0)]
+                    known_frames = token_frames(local, self.pose, self.previous_pose, self.interpolation)
+                else:
+                    known = None
             exclude = torch.zeros(row_logits.shape, dtype=torch.bool, device=self.device)
             exclude[pick] = excluded_tokens(row_logits[pick], rows[pick], self.pose, self.previous_pose, self.agent_shape, sim,
-                                            self.agent_type, self.token_poses, self.top_k, self.interpolation)
+                                            self.agent_type, self.token_poses, self.top_k, self.interpolation,
+                                            known_frames=known_frames, known=known)
         tok_rows, logp_rows = sample_tokens(row_logits, self.generator, self.top_k, self.temperature, forced_rows, exclude)
         tokens = torch.full((g * n,), -1, dtype=torch.long, device=self.device)
         tokens[rows] = tok_rows
@@ -394,6 +421,8 @@ class RolloutState:
         self.pose = new_pose
         self._logits = None
         self.step_index += 1
+        if self._light_index is not None:  # the next step's logits see the lights of the frame it starts at
+            self._follow_logged_lights()
         forced = sim & (forced_tokens >= 0) if forced_tokens is not None else torch.zeros_like(sim)
         return StepOutput(logits=logits, tokens=tokens, log_probs=log_probs, poses=placed, simulated=sim.clone(), forced=forced)
 
@@ -436,12 +465,12 @@ class RolloutResult:
 def rollout(model_or_checkpoint, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 32, num_steps: int = 16,
             top_k: int = DEFAULT_TOP_K, temperature: float = 1.0, seed: int = 0, device="cpu", mode: str = "cached",
             motion_vocab: MotionVocabulary | None = None, interpolation: str = "spline",
-            avoid_collisions: bool = True) -> RolloutResult:
+            avoid_collisions: bool = True, lights: str = "current") -> RolloutResult:
     """Generate ``num_rollouts`` joint futures of ``num_steps`` tokens (0.5 s each) for every scene
-    in one batch (see the module docstring). Same seed, same rollouts (on the CPU)."""
+    in one batch (see the module docstring). Same seed, same rollouts (on the CPU). ``lights``: :data:`LIGHTS`."""
     state = RolloutState.start(model_or_checkpoint, scenes, num_rollouts=num_rollouts, seed=seed, top_k=top_k,
                                temperature=temperature, device=device, mode=mode, motion_vocab=motion_vocab,
-                               interpolation=interpolation, avoid_collisions=avoid_collisions)
+                               interpolation=interpolation, avoid_collisions=avoid_collisions, lights=lights)
     outs = state.run(num_steps)
     return collect_result(state, outs)
 

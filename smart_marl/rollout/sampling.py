@@ -14,11 +14,25 @@ generator on the CPU the draws are reproducible.
 log-probabilities over the whole vocabulary (``-inf`` outside the top ``k``), and
 :func:`top_k_mask` its support: the one definition of "the prior as it drives" that the
 environment's action mask, a fine-tuned policy's mask and the KL to the prior all use.
+
+"No prior" is a row of logits that are all zero (:func:`no_prior_logits`; a real row has ``-inf``
+beyond the type's tokens and is never all zero): the environment gives it for an agent the prior does
+not drive (done, not simulated, no finite logit), and :func:`has_prior_logits` is the one test of it
+(the KL to the prior and the action mask leave such rows out).
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
+
+from ..config_files import number
+
+TEMPERATURE_RANGE = (1e-3, 1e3)
+"""The temperatures the prior samples with, everywhere a user gives one (env, fine-tuning, eval, what-if):
+below 1e-3 ``logits / T`` overflows float32 into NaN probabilities; above 1e3 every token is as likely."""
+temperature_rule = number(*TEMPERATURE_RANGE, why="beyond it every token is as likely")
+"""The rule (:mod:`smart_marl.config_files`) of a temperature: a finite number in :data:`TEMPERATURE_RANGE`."""
 
 DEFAULT_TOP_K = 6
 """The k the prior drives with unless told otherwise (rollouts, the environment's background, what-if
@@ -88,3 +102,14 @@ def reference_name(top_k: int | None, temperature: float = 1.0) -> str:
     ``"prior top-5"``, ``"prior full softmax"``, with ``" T=0.8"`` when the temperature is not 1."""
     name = f"prior top-{int(top_k)}" if top_k else "prior full softmax"
     return name if float(temperature) == 1.0 else f"{name} T={float(temperature):g}"
+
+
+def no_prior_logits(size: int) -> np.ndarray:
+    """The "no prior" row: ``size`` zero logits (float32), for an agent the prior does not drive."""
+    return np.zeros(size, np.float32)
+
+
+def has_prior_logits(logits):
+    """Which rows of ``logits`` [..., V] (numpy or torch) are the prior's, not the "no prior" row of
+    :func:`no_prior_logits`: bool [...]."""
+    return (logits != 0).any(-1)

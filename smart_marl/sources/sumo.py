@@ -47,7 +47,9 @@ __all__ = ["SumoConfig", "SumoUnavailableError", "INSTALL_HINT", "generate_scene
 
 def _simulations(seed: int, config: SumoConfig, workers: int, remaining) -> Iterator[tuple[int, list[Scenario]]]:
     """(simulation index, its scenes) for simulations 0, 1, ... in order. ``remaining()`` is the number
-    of scenes still wanted: no more simulations are started than it needs (plus none spare)."""
+    of scenes still wanted: no more simulations are started than it needs (plus none spare), nor more
+    worker processes than there are simulations to run."""
+    workers = min(workers, -(-max(remaining(), 1) // config.scenes_per_sim))
     if workers <= 1:
         sim = 0
         while True:

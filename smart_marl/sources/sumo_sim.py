@@ -32,17 +32,26 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from ..config_files import (check_fields, check_value, flag, integer, interval, is_number, number, one_of, optional,
+                            probabilities, sequence)
+from ..errors import UsageError
 from ..geometry import frame_steps
-from ..scenario import DT_S, AgentType, SceneFrame, Scenario, TrafficLights, Tracks, wrap_angle
+from ..scenario import CURRENT_FRAME, DT_S, AgentType, SceneFrame, Scenario, TrafficLights, Tracks, wrap_angle
 from .sumo_net import (
-    SIGNAL_OF_CHAR, SPEEDS_MPS, NetworkMap, NetworkSpec, build_network, lane_shape, network_map, quantize, random_network_spec,
+    JUNCTION_TYPES, SIGNAL_OF_CHAR, SPEEDS_MPS, NetworkMap, NetworkSpec, build_network, lane_shape, network_map, quantize, random_network_spec,
     require_sumo, rotation_matrix, sumo_binary, turn_angle,
 )
 
 SCENE_FRAMES = 91
-CURRENT_FRAME = 10
 SOURCE = "sumo"
 
+
+class SumoConfigError(UsageError):
+    """A SumoConfig value the generator cannot use (names the field, the value and what it takes)."""
+
+
+MIN_SPEED_LIMIT_MPS, MAX_SPEED_LIMIT_MPS = 1.35, 55.6
+"""The speed limits a network may get (5-200 km/h): netgenerate crashes on limits near 0."""
 
 @dataclass(frozen=True)
 class SumoConfig:
@@ -89,6 +98,13 @@ class SumoConfig:
     # parked cars beside the kerbside lanes (add_parked_vehicles): per simulation, the share of ~7 m kerb
     # slots that hold one is drawn from this range (real WOMD scenes: two thirds of the vehicles are parked)
     parked_occupancy: tuple[float, float] = (0.2, 0.9)
+    # emergency stops (EmergencyStops, issue 33): from the warm-up on, each moving car starts a hard stop at this
+    # rate (per vehicle and minute; 0: none, the default), braking at a deceleration drawn from
+    # emergency_decel_mps2 to a standstill, standing for emergency_hold_s, then driving on; SUMO's drivers
+    # behind it answer with their own car-following model (the data of followers that brake for a leader)
+    emergency_stop_rate_per_min: float = 0.0
+    emergency_decel_mps2: tuple[float, float] = (4.0, 8.0)
+    emergency_hold_s: tuple[float, float] = (1.0, 4.0)
 
     @classmethod
     def legacy(cls, **changes) -> "SumoConfig":
@@ -98,20 +114,54 @@ class SumoConfig:
         return cls(**{**LEGACY_TRAFFIC, **changes})
 
     def __post_init__(self) -> None:
+        if not all(is_number(v) for v in (self.walker_sway_m, self.walker_jitter_rad, self.walker_sway_s, self.walker_jitter_s,
+                                          self.cyclist_sway_m, self.cyclist_sway_s)):
+            check_fields(self, SUMO_RULES, "SUMO", SumoConfigError)  # names the one that is not a number
         if not (self.walker_sway_m >= 0 and self.walker_jitter_rad >= 0 and self.walker_sway_s > 0 and self.walker_jitter_s > 0
                 and self.cyclist_sway_m >= 0 and self.cyclist_sway_s > 0):
-            raise ValueError(f"SumoConfig: walker_sway_m, walker_jitter_rad and cyclist_sway_m must be >= 0, their time scales > 0; "
+            raise SumoConfigError(f"SumoConfig: walker_sway_m, walker_jitter_rad and cyclist_sway_m must be >= 0, their time scales > 0; "
                              f"got {self.walker_sway_m}, {self.walker_jitter_rad}, {self.cyclist_sway_m}, {self.walker_sway_s}, "
                              f"{self.walker_jitter_s}, {self.cyclist_sway_s}")
+        check_value("parked_occupancy", self.parked_occupancy, sequence(number(), length=2), SumoConfigError, "SUMO config")
         lo, hi = self.parked_occupancy
         if not 0.0 <= lo <= hi <= 1.0:
-            raise ValueError(f"SumoConfig: parked_occupancy must be a range within [0, 1] (low <= high); got {self.parked_occupancy}")
+            raise SumoConfigError(f"SumoConfig: parked_occupancy must be a range within [0, 1] (low <= high); got {self.parked_occupancy}")
+        check_fields(self, SUMO_RULES, "SUMO", SumoConfigError)
+        if not (self.emergency_stop_rate_per_min >= 0 and 0 < self.emergency_decel_mps2[0] <= self.emergency_decel_mps2[1]
+                and 0 <= self.emergency_hold_s[0] <= self.emergency_hold_s[1]):
+            raise SumoConfigError(f"SumoConfig: emergency_stop_rate_per_min must be >= 0, emergency_decel_mps2 a positive range and "
+                                  f"emergency_hold_s a range >= 0; got {self.emergency_stop_rate_per_min}, {self.emergency_decel_mps2}, "
+                                  f"{self.emergency_hold_s}")
         if self.speed_weights is not None and len(self.speed_weights) != len(self.speed_levels_mps):
-            raise ValueError(f"SumoConfig: speed_weights has {len(self.speed_weights)} entries for "
+            raise SumoConfigError(f"SumoConfig: speed_weights has {len(self.speed_weights)} entries for "
                              f"{len(self.speed_levels_mps)} speed_levels_mps; give one weight per level (or None)")
 
     def sim_duration_s(self) -> float:
         return self.warmup_s + (self.scenes_per_sim - 1) * self.scene_spacing_s + SCENE_FRAMES * DT_S + 0.5
+
+
+_SECONDS = number(0.0, 3600.0, low_open=True, why="an hour")
+SUMO_RULES = {
+    "scenes_per_sim": integer(1, 64), "scene_spacing_s": _SECONDS, "warmup_s": number(0.0, 3600.0, why="an hour"),
+    "radius_m": number(0.0, 1000.0, low_open=True, why="a kilometre around the self-driving car"),
+    "map_radius_m": number(0.0, 2000.0, low_open=True), "max_agents": integer(1, 1024), "max_predict": integer(1, 128),
+    "pedestrians": flag, "bicycles": flag, "sublane": flag, "lateral_resolution_m": number(0.05, 10.0),
+    "lane_change_duration_s": interval(0.0, 60.0, low_open=True),
+    "demand_scale": number(0.0, 100.0, low_open=True, why="a hundred times the demand jams every network"),
+    "length_scale": number(0.1, 10.0), "kind_weights": probabilities(3), "junction_weights": probabilities(len(JUNCTION_TYPES)),
+    "speed_levels_mps": sequence(number(MIN_SPEED_LIMIT_MPS, MAX_SPEED_LIMIT_MPS, why="200 km/h"), min_length=1, max_length=64),
+    "speed_weights": optional(probabilities()), "tls_guess_probability": number(0.0, 1.0),
+    "lane_width_m": optional(interval(2.0, 6.0)), "routes": one_of("walk", "trips"), "straight_probability": number(0.0, 1.0),
+    "driver_sigma": interval(0.0, 1.0), "driver_accel_mps2": interval(0.0, 10.0, low_open=True),
+    "driver_decel_mps2": interval(0.0, 10.0, low_open=True), "car_follow_weights": probabilities(3),
+    "lc_speed_gain": interval(0.0, 100.0), "max_lane_piece_m": optional(number(1.0, 10_000.0)),
+    "walker_sway_m": number(0.0, 5.0), "walker_sway_s": _SECONDS, "walker_jitter_rad": number(0.0, 3.2),
+    "walker_jitter_s": _SECONDS, "cyclist_sway_m": number(0.0, 5.0), "cyclist_sway_s": _SECONDS,
+    "parked_occupancy": interval(0.0, 1.0),
+    "emergency_stop_rate_per_min": number(0.0, 60.0, why="a hard stop every second for every car"),
+    "emergency_decel_mps2": interval(0.0, 20.0, low_open=True), "emergency_hold_s": interval(0.0, 600.0),
+}
+"""What each SumoConfig field takes (:mod:`smart_marl.config_files` rules), checked when a config is made."""
 
 
 LEGACY_TRAFFIC: dict[str, Any] = dict(
@@ -301,6 +351,51 @@ class Recording:
     start_time_s: float = 0.0
 
 
+class EmergencyStops:
+    """Hard stops of random moving cars during a SUMO run (``SumoConfig.emergency_stop_rate_per_min``): from
+    ``start_step`` on, every 0.1 s step each moving car (vehicle class passenger, faster than 3 m/s, not stopping
+    already) starts one with probability rate / 600; it brakes at a deceleration drawn from
+    ``emergency_decel_mps2`` (SUMO's ``slowDown`` to 0 over v / decel, the car's own decel limits lifted for it),
+    stands for a time drawn from ``emergency_hold_s`` and is then released to its car-following model. Its own
+    random stream, so the network and demand of a seed do not change with it."""
+
+    def __init__(self, config: SumoConfig, rng: np.random.Generator, start_step: int) -> None:
+        self.config, self.rng, self.start_step = config, rng, int(start_step)
+        self.until: dict[str, int] = {}  # vehicle -> step at which it is released
+        self.p = config.emergency_stop_rate_per_min * DT_S / 60.0
+
+    def step(self, sumo, step: int) -> None:
+        for vid, end in list(self.until.items()):
+            if step >= end:
+                del self.until[vid]
+                try:
+                    sumo.vehicle.setSpeed(vid, -1.0)
+                    sumo.vehicle.setDecel(vid, float(sumo.vehicle.getParameter(vid, "smart_marl.decel") or 4.5))
+                except Exception:  # the vehicle has left the network
+                    pass
+        if step < self.start_step - 50:  # 5 s before recording starts, so that some stops are under way then
+            return
+        ids = [v for v in sumo.vehicle.getIDList() if v not in self.until]
+        if not ids:
+            return
+        draw = self.rng.random(len(ids)) < self.p
+        for vid in np.asarray(ids)[draw]:
+            vid = str(vid)
+            if sumo.vehicle.getVehicleClass(vid) != "passenger":
+                continue
+            v = sumo.vehicle.getSpeed(vid)
+            if v < 3.0:
+                continue
+            decel = float(self.rng.uniform(*self.config.emergency_decel_mps2))
+            hold = float(self.rng.uniform(*self.config.emergency_hold_s))
+            stop_s = v / decel
+            sumo.vehicle.setParameter(vid, "smart_marl.decel", str(sumo.vehicle.getDecel(vid)))
+            sumo.vehicle.setDecel(vid, decel)
+            sumo.vehicle.slowDown(vid, 0.0, stop_s)
+            sumo.vehicle.setSpeed(vid, 0.0)
+            self.until[vid] = step + int(round((stop_s + hold) / DT_S))
+
+
 def run_simulation(net_path: Path, route_path: Path, duration_s: float, record_from_s: float, seed: int,
                    config: SumoConfig, nmap: NetworkMap, rotation_rad: float, lane_change_s: float = 3.0) -> Recording:
     """Run SUMO (libsumo, 0.1 s steps) and record every vehicle and person from ``record_from_s`` on."""
@@ -331,9 +426,12 @@ def run_simulation(net_path: Path, route_path: Path, duration_s: float, record_f
         first_record = int(round(record_from_s / DT_S))
         total_steps = int(round(duration_s / DT_S))
         step = 0
+        stops = EmergencyStops(config, np.random.default_rng([seed, 0xE5]), first_record) if config.emergency_stop_rate_per_min > 0 else None
         while step < total_steps:
             libsumo.simulationStep()
             step += 1
+            if stops is not None:
+                stops.step(libsumo, step)
             for vid in libsumo.simulation.getDepartedIDList():
                 libsumo.vehicle.subscribe(vid, variables)
             for pid in libsumo.simulation.getDepartedPersonIDList():

@@ -41,6 +41,7 @@ __all__ = [
 FORMAT = "smart-marl-vocabulary"
 VERSION = VOCABULARY_VERSION
 _KEY_TYPES = {v: k for k, v in TYPE_KEYS.items()}
+_TYPE_NAMES = [t.name.lower() for t in TYPE_KEYS]
 
 
 class VocabularyFileError(SmartMarlError, ValueError):
@@ -147,11 +148,15 @@ def load_motion_vocabulary(path: str | os.PathLike, expected_hash: str | None = 
             poses, contour = arrays[f"{key}.poses"], arrays[f"{key}.contour"]
         except (KeyError, TypeError) as exc:
             raise VocabularyFileError(js, f"type {name!r}: missing {exc}") from exc
+        if t not in TYPE_KEYS:
+            raise VocabularyFileError(js, f"type {name!r} has no motion tokens (only {', '.join(_TYPE_NAMES)} do)")
         problem = _numbers_problem(info, ("size", "requested_size", "num_samples", "num_real_samples"),
                                    ("box_length_m", "box_width_m", "tolerance_m"))
         if problem:
             raise VocabularyFileError(js, f"type {name}: {problem}")
         v = int(info["size"])
+        if v < 1:
+            raise VocabularyFileError(js, f"type {name}: size {v}; a type in a vocabulary has at least one token")
         if poses.dtype.kind != "f" or contour.dtype.kind != "f":
             raise VocabularyFileError(js, f"type {name}: poses and contours must be floats, got {poses.dtype} / {contour.dtype}")
         if poses.shape != (v, POSES_PER_TOKEN, 3) or contour.shape != (v, POSES_PER_TOKEN, 4, 2):

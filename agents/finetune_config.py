@@ -1,0 +1,172 @@
+"""Fine-tuning stage, the run's configuration: :class:`FinetuneConfig` (every knob of a fine-tuning
+run, in one place), what each field takes (:data:`_FINETUNE_RULES`, the project's one set of value
+rules) and :func:`load_finetune_config` (a named config, a JSON/TOML file or a dict, plus ``key=value``
+overrides). The run itself is :mod:`agents.finetune`."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from envs._arguments import MAX_HORIZON_STEPS
+from envs._reward import RewardConfig
+from envs._setup import MOVING_MIN_ROUTE_M
+from smart_marl.config_files import (apply_overrides, check_fields, device_problem, flag, integer, number, one_of, optional,
+                                     output_dir_problem, read_config_file, text)
+from smart_marl.config_files import seed as seed_rule
+from smart_marl.errors import SmartMarlError, UsageError
+from smart_marl.rollout import DEFAULT_TOP_K, temperature_rule
+
+from .policy import ACTOR_HEADS
+
+CONFIG_DIR = Path(__file__).resolve().parent / "configs" / "finetune"  # inside the package: a wheel ships them
+
+
+class FinetuneError(SmartMarlError, ValueError):
+    """A fine-tuning run that cannot start: bad config, no usable scene, no prior."""
+
+
+class FinetuneConfigError(FinetuneError, UsageError):
+    """A config key or value that is not a valid FinetuneConfig (the command line exits with 2)."""
+
+
+@dataclass
+class FinetuneConfig:
+    """Every knob of a fine-tuning run."""
+
+    # data and prior
+    scenes: str | list = "embedded"  # the scene pool: scene-cache folder / file / folder / glob (read_scenarios), "embedded"
+    # (the package's sample scenes), or a list of them (their scenes one after the other)
+    num_scenes: int | None = 4  # train on the first N scenes of the pool (None: all of them)
+    prior: str = "embedded"  # SMART checkpoint (NAME or NAME.json) or "embedded": the prior, and the background's driver
+    # environment (envs.smart_traffic_batched_v0)
+    num_envs: int = 4  # scenes stepped together (one SMART forward for all of them)
+    controlled: str = "moving_vehicles"  # which agents the policy drives: "moving_vehicles" (vehicles whose logged route
+    # from the current frame is longer than moving_min_route_m: parked cars are left to the background) or the env's
+    # "vehicles", "all", "predict", "sdc"; only the types of the vehicles' vocabulary size (one action space per group)
+    moving_min_route_m: float = MOVING_MIN_ROUTE_M
+    max_agents: int = 4  # controlled agent slots per scene (the nearest to the SDC); scenes with fewer leave slots empty
+    background: str = "prior"  # how the others move: "prior", "log", "constant_velocity"
+    horizon_steps: int = 16  # token steps (0.5 s each) per episode
+    reward: dict = field(default_factory=dict)  # RewardConfig weights, e.g. {"collision": -1.0}
+    terminate_on: tuple = ("collision", "offroad", "goal")
+    top_k: int = DEFAULT_TOP_K  # the background's top-k sampling
+    temperature: float = 1.0  # the prior's temperature T
+    reference_top_k: int | None = 3  # the reference the policy starts from and is pulled toward: softmax(prior_logits / T)
+    # on the prior's top-k tokens, renormalised (the prior as it drives; also the policy's action mask); None: full softmax
+    # policy and critic
+    residual: bool = True  # logits = prior_logits / T + f(obs), f starting at 0
+    actor_head: str = "per_token"  # f(obs): "per_token" (one output per token id) or "motion" (token_motion_features)
+    hidden: int = 128
+    depth: int = 2
+    obs_scale: float = 0.1  # the observation (metres, m/s) times this before the MLPs
+    critic: str = "mappo"  # "mappo" (centralised) or "ippo" (decentralised)
+    # PPO and the prior KL
+    beta: float = 0.1  # KL(pi || reference) coefficient
+    gamma: float = 0.99
+    lmbda: float = 0.95
+    clip_epsilon: float = 0.2
+    entropy_coeff: float = 0.0
+    critic_coeff: float = 0.5
+    normalize_advantage: bool = True
+    lr: float = 3e-4
+    max_grad_norm: float = 1.0
+    frames_per_batch: int = 256  # scene-steps per iteration, all scenes together (a multiple of num_envs)
+    iterations: int = 50
+    ppo_epochs: int = 4
+    minibatch_size: int = 64  # scene-steps per minibatch (x max_agents agent-steps)
+    # evaluation (held-out scenes, full horizon, no termination) and bookkeeping
+    eval_episodes: int = 8  # rollouts (seeds) per held-out scene for every policy (0: no evaluation); WOSAC uses 32
+    eval_seed: int = 1000  # evaluation seeds are eval_seed, eval_seed + 1, ...
+    eval_scenes: str | list | None = None  # held-out scenes; None: the scenes of `scenes` after those used for fine-tuning
+    eval_num_scenes: int = 4  # the first N held-out scenes with a controllable agent
+    eval_rules: str = "2024"  # the sim-agents rules of the realism metrics ("2024" or "2025")
+    out_dir: str = "runs/finetune"
+    checkpoint_every: int = 10  # iterations (the last one is always saved)
+    seed: int = 0
+    device: str = "cpu"  # the env (prior, state) and the policy
+    tensorboard: bool = True
+    torch_threads: int = 0  # 0: leave torch's default
+    prior_cache_size: int = 1024  # scenes whose freshly started prior state is kept (memory: ~1-2 MB each)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["terminate_on"] = list(self.terminate_on)
+        return d
+
+
+# ------------------------------------------------------------------------------------- config
+def named_configs() -> list[str]:
+    return sorted(p.stem for p in CONFIG_DIR.glob("*.json")) if CONFIG_DIR.is_dir() else []
+
+
+def load_finetune_config(config: str | Mapping[str, Any] | None = None, overrides: Sequence[str] | Mapping[str, Any] = ()) -> FinetuneConfig:
+    """A :class:`FinetuneConfig` from a JSON/TOML file, a named config (``configs/finetune/NAME.json``:
+    ``tiny``, ``default``, ``scale``; keys starting with ``_`` are comments) or a dict, plus ``key=value``
+    overrides (values parsed as JSON when they parse; ``reward.NAME=W`` sets one reward weight)."""
+    values: dict[str, Any] = {}
+    if isinstance(config, Mapping):
+        values.update(config)
+    elif config:
+        p = Path(config)
+        if not p.is_file() and (CONFIG_DIR / f"{config}.json").is_file():
+            p = CONFIG_DIR / f"{config}.json"
+        if not p.is_file():
+            raise FinetuneError(f"unknown fine-tuning config {config!r}: neither a file nor a named config ({', '.join(named_configs())})")
+        values.update(read_config_file(p, "fine-tuning", FinetuneError))
+    values = {k: v for k, v in values.items() if not k.startswith("_")}  # "_comment" and the like
+    values = apply_overrides(values, overrides, FinetuneConfig, "reward", "reward", "fine-tuning", FinetuneConfigError)
+    if isinstance(values.get("terminate_on"), (list, tuple)):
+        values["terminate_on"] = tuple(values["terminate_on"])
+    cfg = FinetuneConfig(**values)
+    check_fields(cfg, _FINETUNE_RULES, "fine-tuning", FinetuneConfigError)
+    if cfg.critic not in ("mappo", "ippo"):
+        raise FinetuneConfigError(f"critic must be 'mappo' or 'ippo', got {cfg.critic!r}")
+    if cfg.frames_per_batch < cfg.num_envs:
+        raise FinetuneConfigError(f"frames_per_batch ({cfg.frames_per_batch}) must be at least num_envs ({cfg.num_envs})")
+    if cfg.frames_per_batch < cfg.minibatch_size:
+        raise FinetuneConfigError(f"minibatch_size ({cfg.minibatch_size}) must be in 1..frames_per_batch ({cfg.frames_per_batch})")
+    try:
+        RewardConfig.from_any(cfg.reward or None)
+    except SmartMarlError as exc:
+        raise FinetuneConfigError(str(exc)) from exc
+    return cfg
+
+
+def _scenes_rule(value) -> str | None:
+    if isinstance(value, str) or (isinstance(value, list) and value and all(isinstance(v, str) for v in value)):
+        return None
+    return f"must be a path, a list of paths or 'embedded', got {value!r}"
+
+
+MAX_EVAL_EPISODES = 1024
+"""The most evaluation rollouts (seeds) per held-out scene (WOSAC uses 32)."""
+POLICY_NETWORK_FIELDS = ("hidden", "depth", "residual", "actor_head", "obs_scale", "temperature", "reference_top_k", "max_agents")
+"""The FinetuneConfig fields a saved policy's network is built with: fixed by its checkpoint."""
+
+_FINETUNE_RULES = {
+    "scenes": _scenes_rule, "num_scenes": optional(integer(1)), "prior": text, "num_envs": integer(1, 4096, "scenes in one batch"),
+    "controlled": text, "moving_min_route_m": number(0.0), "max_agents": integer(1, 1024),
+    "background": text, "horizon_steps": integer(1, MAX_HORIZON_STEPS, "the env's longest episode"),
+    "reward": lambda v: None if isinstance(v, dict) and all(number()(w) is None for w in v.values())
+    else f"must map reward terms to finite weights, got {v!r}",
+    "terminate_on": lambda v: None if isinstance(v, tuple) and all(isinstance(e, str) for e in v) else f"must be a list of event names, got {v!r}",
+    "top_k": optional(integer(1)), "temperature": temperature_rule, "reference_top_k": optional(integer(1)), "residual": flag,
+    "actor_head": one_of(*ACTOR_HEADS), "hidden": integer(1, 4096, "16x the default"), "depth": integer(1, 16),
+    "obs_scale": number(0.0, low_open=True), "critic": text, "beta": number(0.0), "gamma": number(0.0, 1.0),
+    "lmbda": number(0.0, 1.0), "clip_epsilon": number(0.0, low_open=True), "entropy_coeff": number(0.0),
+    "critic_coeff": number(0.0), "normalize_advantage": flag, "lr": number(0.0, low_open=True), "max_grad_norm": number(0.0),
+    "frames_per_batch": integer(1, 10**6, "a million env steps per iteration"), "iterations": integer(1, 10**6),
+    "ppo_epochs": integer(1, 1000), "minibatch_size": integer(1),
+    "eval_episodes": integer(0, MAX_EVAL_EPISODES), "eval_seed": seed_rule, "eval_scenes": lambda v: None if v is None else _scenes_rule(v),
+    "eval_num_scenes": integer(1), "eval_rules": lambda v: None if v in ("2024", "2025") else f"must be '2024' or '2025', got {v!r}",
+    "out_dir": lambda v: text(v) or output_dir_problem(v), "checkpoint_every": integer(1), "seed": seed_rule, "device": device_problem,
+    "tensorboard": flag, "torch_threads": integer(0, 1024), "prior_cache_size": integer(1, 10**6),
+}
+"""What each FinetuneConfig field takes (the env checks ``controlled``, ``background`` and the reward terms by name)."""
+
+
+__all__ = ["CONFIG_DIR", "FinetuneConfig", "FinetuneConfigError", "FinetuneError", "MAX_EVAL_EPISODES", "POLICY_NETWORK_FIELDS",
+           "load_finetune_config", "named_configs"]

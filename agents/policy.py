@@ -1,0 +1,265 @@
+"""Fine-tuning stage, the networks and the policies that act on the batched environment's tensors.
+
+What comes in: observations [..., A, D] and the prior's logits [..., A, V] of the agents of a group
+(the batched env's ``("agents", "observation", ...)``). What goes out: the actor's logits
+(:class:`PolicyLogits`), the critic's values (:class:`Critic`), their checkpoints
+(:func:`save_policy` / :func:`load_policy`: safetensors + JSON, no pickle) and, for evaluation and
+benchmarks, policies that pick every agent's token of every scene at once (:class:`TensorPolicy`:
+the prior at a top-k or its full softmax, a fine-tuned actor, the log-following expert).
+
+The actor: logits ``prior_logits / T + f(obs)`` (``residual``, ``f`` a shared-parameter
+``MultiAgentMLP`` whose last layer starts at 0, so training starts exactly at the reference) or
+``f(obs)`` alone, restricted to the reference's support (the prior's top ``reference_top_k``
+tokens). ``actor_head="per_token"``: ``f`` has one output per token id; ``"motion"``: ``f`` weighs a
+few features of each token's motion (:func:`token_motion_features`), so what is learnt about one
+token carries over to tokens that move alike.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+from torch import nn
+from torchrl.modules import MultiAgentMLP
+
+from envs._observation import ObservationConfig, observation_layout
+from smart_marl.errors import SmartMarlError, check_regular_file
+from smart_marl.rollout import reference_log_probs, reference_name, sample_tokens, top_k_mask
+from smart_marl.scenario import AgentType
+
+from .scripted import log_following_tokens
+
+ACTOR_HEADS = ("per_token", "motion")
+EMBEDDED_POLICY_DIR = Path(__file__).resolve().parent / "checkpoints"
+"""Where the package's fine-tuned policy lives (``load_policy("embedded")``; its card: docs/policy_card.md)."""
+
+
+def prior_digest(model) -> str:
+    """sha256 of a SMART model's weights (its state dict in name order): what a policy was trained
+    against, so that loading it next to another prior is refused (its logits are the prior's plus a
+    learned residual, meaningless on top of other logits)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for name, t in sorted(model.state_dict().items()):
+        h.update(name.encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def resolve_policy_path(path: str | Path) -> Path:
+    """``"embedded"``: the package's fine-tuned policy; anything else is a checkpoint path."""
+    if isinstance(path, str) and path == "embedded":
+        found = sorted(EMBEDDED_POLICY_DIR.glob("*.json")) if EMBEDDED_POLICY_DIR.is_dir() else []
+        if not found:
+            raise PolicyError(f"{EMBEDDED_POLICY_DIR}: this installation ships no fine-tuned policy; pass a checkpoint path")
+        return found[0]
+    return Path(path)
+
+
+class PolicyError(SmartMarlError, ValueError):
+    """A policy checkpoint or network that cannot be used."""
+
+
+def token_motion_features(vocab, vocab_size: int) -> torch.Tensor:
+    """[3, V, 6] features of every token of each type's vocabulary (vehicle, pedestrian, cyclist):
+    where the token ends after 0.5 s in its start frame (forward m, left m, turn rad) and their
+    squares (a weight on both can favour a band: -a (x - c)^2), each standardised over the type's
+    tokens. A type whose vocabulary has another size than ``vocab_size`` (the group's action space)
+    gets zeros: its agents are not in the group."""
+    out = torch.zeros(3, vocab_size, 6)
+    for t in range(3):
+        tv = vocab[AgentType(t)]
+        if tv.size != vocab_size:
+            continue
+        end = torch.as_tensor(tv.poses[:, -1], dtype=torch.float32)  # (V, 3)
+        feat = torch.cat([end, end.square()], -1)
+        out[t] = (feat - feat.mean(0)) / feat.std(0).clamp(min=1e-6)
+    return out
+
+
+class PolicyLogits(nn.Module):
+    """Logits over the motion vocabulary for every agent of the group (module docstring).
+    observation [..., A, O], prior_logits [..., A, V] -> [..., A, V], ``-inf`` outside the prior's
+    ``top_k`` tokens (:func:`smart_marl.rollout.top_k_mask`; None: every token).
+
+    ``motion_features`` None: ``f(obs)`` has one output per token. Else ([3, V, P],
+    :func:`token_motion_features`): ``f(obs)`` gives P weights and a token's output is their dot
+    product with its type's features (the type read from the observation's ``ego_type`` one-hot;
+    a padded agent's zeros give 0)."""
+
+    def __init__(self, obs_dim: int, vocab_size: int, n_agents: int, hidden: int, depth: int, residual: bool = True,
+                 obs_scale: float = 0.1, temperature: float = 1.0, top_k: int | None = None,
+                 motion_features: torch.Tensor | None = None) -> None:
+        super().__init__()
+        self.residual, self.obs_scale, self.temperature = bool(residual), float(obs_scale), float(temperature)
+        self.top_k = None if top_k is None else int(top_k)
+        if motion_features is not None:
+            if tuple(motion_features.shape[:2]) != (3, vocab_size):
+                raise PolicyError(f"motion_features must be [3, {vocab_size}, P], got {list(motion_features.shape)}")
+            self.register_buffer("motion_features", motion_features.float())
+            layout = {name: (off, size) for name, off, size in observation_layout(ObservationConfig())}
+            off, size = layout["ego_type"]
+            self.type_slice = slice(off, off + size)
+        else:
+            self.motion_features = None
+        out_dim = vocab_size if motion_features is None else int(motion_features.shape[-1])
+        self.f = MultiAgentMLP(obs_dim, out_dim, n_agents, centralized=False, share_params=True, depth=depth,
+                               num_cells=hidden, activation_class=nn.Tanh)
+        if self.residual:  # start exactly at the prior
+            last = max(int(name.split(".")[1]) for name, _ in self.f.named_parameters())
+            with torch.no_grad():
+                for name, p in self.f.named_parameters():
+                    if int(name.split(".")[1]) == last:
+                        p.zero_()
+
+    def forward(self, observation: torch.Tensor, prior_logits: torch.Tensor) -> torch.Tensor:
+        delta = self.f(observation * self.obs_scale)
+        if self.motion_features is not None:  # P weights per agent -> one output per token of its type
+            delta = torch.einsum("...ap,...at,tvp->...av", delta, observation[..., self.type_slice], self.motion_features)
+        logits = prior_logits / self.temperature + delta if self.residual else delta
+        if self.top_k is None:
+            return logits
+        return logits.masked_fill(~top_k_mask(prior_logits, self.top_k), float("-inf"))
+
+
+class Critic(nn.Module):
+    """State value per agent [..., A, 1]: centralised (MAPPO) or per agent (IPPO)."""
+
+    def __init__(self, obs_dim: int, n_agents: int, hidden: int, depth: int, centralized: bool, obs_scale: float = 0.1) -> None:
+        super().__init__()
+        self.obs_scale = float(obs_scale)
+        self.v = MultiAgentMLP(obs_dim, 1, n_agents, centralized=centralized, share_params=True, depth=depth, num_cells=hidden,
+                               activation_class=nn.Tanh)
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        return self.v(observation * self.obs_scale)
+
+
+# ------------------------------------------------------------------------------ checkpoints
+def save_policy(path: Path, config: dict, net: PolicyLogits, critic: nn.Module, dims: dict, iteration: int, metrics: dict) -> Path:
+    """``path.safetensors`` (actor and critic weights) + ``path.json`` (the run's config, the network's
+    sizes, the iteration, metrics), each written to a temporary name and renamed."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tensors = {f"actor.{k}": v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
+    tensors.update({f"critic.{k}": v.detach().cpu().contiguous() for k, v in critic.state_dict().items()})
+    tmp = path.with_name(path.name + ".safetensors.tmp")
+    save_file(tensors, str(tmp))
+    tmp.replace(path.with_name(path.name + ".safetensors"))
+    meta = {"format": "smart-marl-policy", "version": 1, "config": config, **dims, "iteration": iteration, "metrics": metrics}
+    jtmp = path.with_name(path.name + ".json.tmp")
+    jtmp.write_text(json.dumps(meta, indent=1, default=float))
+    jtmp.replace(path.with_name(path.name + ".json"))
+    return path.with_name(path.name + ".json")
+
+
+def read_policy(path: str | Path) -> tuple[dict, dict[str, torch.Tensor]]:
+    """(meta, weights) of a policy checkpoint (``NAME``, ``NAME.json`` or ``NAME.safetensors``, or
+    ``"embedded"``: the package's)."""
+    p = resolve_policy_path(path)
+    stem = p.with_suffix("") if p.suffix in (".json", ".safetensors") else p
+    jpath, wpath = stem.with_name(stem.name + ".json"), stem.with_name(stem.name + ".safetensors")
+    if not jpath.is_file() or not wpath.is_file():
+        raise PolicyError(f"{path}: not a policy checkpoint (needs {jpath.name} and {wpath.name})")
+    for f in (jpath, wpath):  # FIFOs, devices and /proc files are refused before they are read
+        check_regular_file(f, lambda name, problem: PolicyError(f"{name}: {problem}"))
+    try:
+        meta = json.loads(jpath.read_text())
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise PolicyError(f"{jpath}: not a readable policy checkpoint ({exc})") from exc
+    if not isinstance(meta, dict) or meta.get("format") != "smart-marl-policy":
+        raise PolicyError(f"{jpath}: not a smart-marl policy checkpoint (format {meta.get('format') if isinstance(meta, dict) else None!r})")
+    for key in ("obs_dim", "vocab_size", "n_agents"):
+        if not isinstance(meta.get(key), int) or meta[key] < 1:
+            raise PolicyError(f"{jpath}: {key} must be a positive integer, got {meta.get(key)!r}")
+    try:
+        weights = load_file(str(wpath))
+    except Exception as exc:  # noqa: BLE001 - safetensors raises several kinds for a damaged file
+        raise PolicyError(f"{wpath}: not a readable safetensors file ({exc})") from exc
+    return meta, weights
+
+
+def actor_from_weights(meta: dict, weights: dict, hidden: int, depth: int, residual: bool, obs_scale: float, temperature: float,
+                       top_k: int | None, actor_head: str, path="policy") -> PolicyLogits:
+    """The actor network of a checkpoint with its weights."""
+    features = weights.get("actor.motion_features")  # saved with the weights (a buffer): no vocabulary needed here
+    if (features is not None) != (actor_head == "motion"):
+        raise PolicyError(f"{path}: actor_head {actor_head!r} does not match the saved weights")
+    net = PolicyLogits(meta["obs_dim"], meta["vocab_size"], meta["n_agents"], hidden, depth, residual, obs_scale, temperature, top_k,
+                       None if features is None else torch.zeros_like(features))
+    try:
+        net.load_state_dict({k[len("actor."):]: v for k, v in weights.items() if k.startswith("actor.")})
+    except RuntimeError as exc:
+        raise PolicyError(f"{path}: the weights do not fit the network of its config ({str(exc)[:300]})") from exc
+    return net.eval()
+
+
+# ------------------------------------------------------------------------- tensor policies
+class TensorPolicy:
+    """A policy for every controlled agent of every scene of a :class:`envs._core.TrafficCore` at
+    once: ``log_probs(core, observation [B, A, D], prior_logits [B, A, V]) -> [B, A, V]`` is its
+    distribution and ``act`` samples it (top ``top_k``, from a generator seeded by :meth:`reset`), so
+    two policies with equal distributions take equal actions on equal seeds."""
+
+    name = "policy"
+    top_k: int | None = None
+
+    def reset(self, seed: int) -> None:
+        self.generator = torch.Generator().manual_seed(int(seed))
+
+    def log_probs(self, core, observation: torch.Tensor, prior_logits: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def act(self, log_probs: torch.Tensor) -> torch.Tensor:
+        b, a, v = log_probs.shape
+        tokens, _ = sample_tokens(log_probs.reshape(b * a, v).cpu(), self.generator, top_k=self.top_k)
+        return tokens.view(b, a).to(log_probs.device)
+
+
+class PriorTensorPolicy(TensorPolicy):
+    """The prior as it drives: its ``softmax(logits / T)`` on its top ``top_k`` tokens (None: all)."""
+
+    def __init__(self, top_k: int | None = None, temperature: float = 1.0) -> None:
+        self.top_k, self.temperature = top_k, float(temperature)
+        self.name = reference_name(top_k, temperature)
+
+    def log_probs(self, core, observation, prior_logits):
+        return reference_log_probs(prior_logits, self.top_k, self.temperature)
+
+
+class FinetunedTensorPolicy(TensorPolicy):
+    """A fine-tuned actor, sampled with its reference's top-k (at its start it draws what the prior
+    top-k draws)."""
+
+    name = "fine-tuned"
+
+    def __init__(self, net: PolicyLogits) -> None:
+        self.net = net.eval()
+        self.top_k = net.top_k
+
+    @torch.no_grad()
+    def log_probs(self, core, observation, prior_logits):
+        dev = next(self.net.parameters()).device
+        a = self.net.f.n_agents
+        if observation.shape[-2] != a:
+            raise PolicyError(f"the policy was trained for {a} agents per scene, the env has {observation.shape[-2]}")
+        return torch.log_softmax(self.net(observation.to(dev), prior_logits.to(dev)), -1).to(observation.device)
+
+
+class ExpertTensorPolicy(TensorPolicy):
+    """The log-following expert (:func:`agents.scripted.log_following_tokens`): one-hot on its token."""
+
+    name = "expert (log)"
+    top_k = 1
+
+    def log_probs(self, core, observation, prior_logits):
+        tokens = log_following_tokens(core)  # [B, C]
+        out = torch.full(prior_logits.shape, float("-inf"), device=prior_logits.device)
+        return out.scatter(-1, tokens[..., None].to(out.device), 0.0)
+
+
+__all__ = ["ACTOR_HEADS", "Critic", "ExpertTensorPolicy", "FinetunedTensorPolicy", "PolicyError", "PolicyLogits", "PriorTensorPolicy",
+           "TensorPolicy", "actor_from_weights", "read_policy", "save_policy", "token_motion_features"]

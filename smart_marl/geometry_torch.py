@@ -1,0 +1,216 @@
+"""Planar geometry of agent boxes and road edges on torch tensors, batched over scenes: the tensor
+twin of :mod:`smart_marl.geometry` for the stages that run on a device (the batched environment's
+events, collision-aware sampling). Pure functions of tensors; leading dimensions broadcast; the
+dtype is the inputs' (float32 on a GPU is enough in a scene's local frame, where coordinates are
+within a few hundred metres).
+
+The definitions are :mod:`smart_marl.geometry`'s, and ``tests/test_geometry_torch.py`` checks them
+against it: the rounded-corner box overlap of the sim-agents metrics (:func:`rounded_boxes_overlap`,
+``geometry.boxes_overlap``) and the signed distance to road edges with the official nearest-segment
+and side rules (:func:`signed_distance_to_road_edges`, ``geometry.signed_distance_to_road_edges``).
+Road edges of several scenes are padded to one segment count (:class:`RoadEdgeTensors`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Sequence
+
+import torch
+
+from .geometry import CORNER_ROUNDING_FACTOR, Z_STRETCH, RoadEdgeSegments
+
+_SIGN_L = (1.0, -1.0, -1.0, 1.0)  # front-left, rear-left, rear-right, front-right (counter-clockwise)
+_SIGN_W = (1.0, 1.0, -1.0, -1.0)
+
+
+# ------------------------------------------------------------------------------------ boxes
+def box_corners(xy: torch.Tensor, heading: torch.Tensor, length: torch.Tensor, width: torch.Tensor) -> torch.Tensor:
+    """Corners [..., 4, 2] of oriented boxes (centre ``xy`` [..., 2], ``heading``, ``length``, ``width``
+    [...]), counter-clockwise from the front-left, as :func:`smart_marl.geometry.box_corners`."""
+    sl = torch.tensor(_SIGN_L, dtype=xy.dtype, device=xy.device)
+    sw = torch.tensor(_SIGN_W, dtype=xy.dtype, device=xy.device)
+    c, s = heading.cos()[..., None], heading.sin()[..., None]
+    dl, dw = (length * 0.5)[..., None] * sl, (width * 0.5)[..., None] * sw  # [..., 4]
+    return torch.stack([xy[..., None, 0] + c * dl - s * dw, xy[..., None, 1] + s * dl + c * dw], -1)
+
+
+def boxes_overlap(a_xy: torch.Tensor, a_heading: torch.Tensor, a_half: torch.Tensor, b_xy: torch.Tensor,
+                  b_heading: torch.Tensor, b_half: torch.Tensor) -> torch.Tensor:
+    """bool [...]: do oriented boxes ``a`` and ``b`` overlap (separating axis theorem; touching is
+    not overlapping). ``xy`` [..., 2], ``heading`` [...], ``half`` [..., 2] half length and half
+    width; all broadcast."""
+    d = b_xy - a_xy
+    ca, sa, cb, sb = a_heading.cos(), a_heading.sin(), b_heading.cos(), b_heading.sin()
+    hit = None
+    for ux, uy in ((ca, sa), (-sa, ca), (cb, sb), (-sb, cb)):  # the four edge normals
+        ext_a = a_half[..., 0] * (ux * ca + uy * sa).abs() + a_half[..., 1] * (uy * ca - ux * sa).abs()
+        ext_b = b_half[..., 0] * (ux * cb + uy * sb).abs() + b_half[..., 1] * (uy * cb - ux * sb).abs()
+        sep = (d[..., 0] * ux + d[..., 1] * uy).abs() < ext_a + ext_b
+        hit = sep if hit is None else hit & sep
+    return hit
+
+
+def _point_segment_distance(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Distance [...] from points ``p`` to segments ``a``-``b`` [..., 2]."""
+    ab, ap = b - a, p - a
+    t = ((ap * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-12)).clamp(0.0, 1.0)
+    return (ap - ab * t[..., None]).norm(dim=-1)
+
+
+def polygon_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Distance [...] between the boundaries of convex polygons ``a`` [..., Va, 2] and ``b``
+    [..., Vb, 2] that do not overlap (the smallest vertex-to-edge distance either way)."""
+    a_next, b_next = a.roll(-1, -2), b.roll(-1, -2)
+    ab = _point_segment_distance(a[..., :, None, :], b[..., None, :, :], b_next[..., None, :, :])  # [..., Va, Vb]
+    ba = _point_segment_distance(b[..., :, None, :], a[..., None, :, :], a_next[..., None, :, :])
+    return torch.minimum(ab.flatten(-2).amin(-1), ba.flatten(-2).amin(-1))
+
+
+def rounded_boxes_overlap(a_xy: torch.Tensor, a_heading: torch.Tensor, a_size: torch.Tensor, b_xy: torch.Tensor,
+                          b_heading: torch.Tensor, b_size: torch.Tensor, rounding: float = CORNER_ROUNDING_FACTOR) -> torch.Tensor:
+    """bool [...]: the collision test of the sim-agents metrics (:func:`smart_marl.geometry.boxes_overlap`):
+    boxes with rounded corners, i.e. each box shrunk by ``s = min(length, width) * rounding / 2`` per
+    side and the two cores closer than ``s_a + s_b``. ``size`` [..., 2] length, width; all broadcast."""
+    s_a = a_size.amin(-1) * (rounding / 2)
+    s_b = b_size.amin(-1) * (rounding / 2)
+    core_a, core_b = a_size / 2 - s_a[..., None], b_size / 2 - s_b[..., None]
+    overlap = boxes_overlap(a_xy, a_heading, core_a, b_xy, b_heading, core_b)
+    ca = box_corners(a_xy, a_heading, 2 * core_a[..., 0], 2 * core_a[..., 1])
+    cb = box_corners(b_xy, b_heading, 2 * core_b[..., 0], 2 * core_b[..., 1])
+    return overlap | (polygon_distance(ca, cb) < s_a + s_b)
+
+
+# ------------------------------------------------------------------------------ road edges
+@dataclass
+class RoadEdgeTensors:
+    """The road-edge segments of ``B`` scenes padded to ``S`` (:class:`smart_marl.geometry.RoadEdgeSegments`
+    per scene; ``prior`` / ``next_`` index the scene's own segments; padding is not ``valid``)."""
+
+    start: torch.Tensor  # [B, S, 3]
+    end: torch.Tensor  # [B, S, 3]
+    prior: torch.Tensor  # [B, S] long
+    next_: torch.Tensor  # [B, S] long
+    has_prior: torch.Tensor  # [B, S] bool
+    has_next: torch.Tensor  # [B, S] bool
+    convex_prior: torch.Tensor  # [B, S] bool
+    convex_next: torch.Tensor  # [B, S] bool
+    valid: torch.Tensor  # [B, S] bool
+
+    FILL = {"start": 0.0, "end": 0.0, "prior": 0, "next_": 0, "has_prior": False, "has_next": False, "convex_prior": False,
+            "convex_next": False, "valid": False}
+
+    @classmethod
+    def from_segments(cls, segments: Sequence[RoadEdgeSegments | None], dtype=torch.float32, device="cpu") -> "RoadEdgeTensors":
+        """One row per scene (``None``: a scene without road edges), padded to the most segments."""
+        size = max([s.num_segments for s in segments if s is not None] + [1])
+        out = cls(**{f.name: torch.full((len(segments), size, 3) if f.name in ("start", "end") else (len(segments), size),
+                                        cls.FILL[f.name], dtype=_dtype(f.name, dtype), device=device) for f in fields(cls)})
+        for b, seg in enumerate(segments):
+            if seg is None or seg.num_segments == 0:
+                continue
+            k = seg.num_segments
+            for name in ("start", "end", "prior", "next_", "has_prior", "has_next", "convex_prior", "convex_next"):
+                getattr(out, name)[b, :k] = torch.as_tensor(getattr(seg, name), dtype=_dtype(name, dtype))
+            out.valid[b, :k] = True
+        return out
+
+    @property
+    def num_segments(self) -> int:
+        return int(self.start.shape[1])
+
+
+def _dtype(name: str, dtype):
+    return dtype if name in ("start", "end") else torch.long if name in ("prior", "next_") else torch.bool
+
+
+def _cross(ax, ay, bx, by):
+    return ax * by - ay * bx
+
+
+def _stretched_distance2(points: torch.Tensor, start: torch.Tensor, end: torch.Tensor, z_stretch: float) -> torch.Tensor:
+    """Squared 3D distance (z stretched) from points [..., 3] to segments start-end [..., 3] (broadcast)."""
+    sp, e = points - start, end - start
+    denom = e[..., 0] ** 2 + e[..., 1] ** 2
+    t = torch.where(denom > 0, (sp[..., 0] * e[..., 0] + sp[..., 1] * e[..., 1]) / denom.clamp_min(1e-30), torch.zeros_like(denom))
+    d = sp - e * t.clamp(0.0, 1.0)[..., None]
+    return d[..., 0] ** 2 + d[..., 1] ** 2 + (z_stretch * d[..., 2]) ** 2
+
+
+def nearest_road_edge(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: float = Z_STRETCH, candidates: int = 16,
+                      max_pairs: int = 1 << 22) -> torch.Tensor:
+    """[B, Q] the index of the segment nearest to each point [B, Q, 3] of its scene by 3D distance with z
+    stretched (the lowest index on ties), as :func:`smart_marl.geometry.nearest_segment_indices`.
+
+    Exact with pruning: a segment is never nearer than its 2D lower bound (distance to its midpoint
+    minus half its length); the ``candidates`` segments of smallest bound are measured, and a point
+    whose nearest candidate is nearer than every other segment's bound is done; the few others are
+    measured against every segment."""
+    b, q = points.shape[:2]
+    s = edges.num_segments
+    mid = 0.5 * (edges.start[..., :2] + edges.end[..., :2])  # [B, S, 2]
+    half = 0.5 * (edges.end[..., :2] - edges.start[..., :2]).norm(dim=-1)  # [B, S]
+    k = min(candidates, s)
+    cand_lb = torch.empty(b, q, k, dtype=points.dtype, device=points.device)
+    cand = torch.empty(b, q, k, dtype=torch.long, device=points.device)
+    rows = max(1, max_pairs // max(q * s, 1))
+    for lo in range(0, b, rows):  # the bound of every (point, segment) pair, a few scenes at a time
+        hi = min(b, lo + rows)
+        lb = ((points[lo:hi, :, None, :2] - mid[lo:hi, None]).norm(dim=-1) - half[lo:hi, None])
+        cand_lb[lo:hi], cand[lo:hi] = torch.topk(lb.masked_fill(~edges.valid[lo:hi, None], float("inf")), k, dim=-1, largest=False)
+    cand, by_index = cand.sort(dim=-1)  # the lowest index first among equally near candidates
+    cand_lb = cand_lb.gather(-1, by_index)
+    pick = lambda t: t.gather(1, cand.reshape(b, -1)[..., None].expand(-1, -1, 3)).view(b, q, k, 3)  # noqa: E731
+    d2 = _stretched_distance2(points[:, :, None], pick(edges.start), pick(edges.end), z_stretch)
+    d2 = d2.masked_fill(~edges.valid.gather(1, cand.reshape(b, -1)).view(b, q, k), float("inf"))
+    best = d2.argmin(-1, keepdim=True)
+    nearest = cand.gather(-1, best)[..., 0]
+    sure = (d2.gather(-1, best)[..., 0].sqrt() < cand_lb.amax(-1)) | (k == s)  # no segment outside the candidates is as near
+    qb, qq = (~sure & edges.valid.any(1)[:, None]).nonzero(as_tuple=True)
+    if len(qb):  # the rest: every segment of their scene
+        full = _stretched_distance2(points[qb, qq][:, None], edges.start[qb], edges.end[qb], z_stretch)
+        nearest[qb, qq] = full.masked_fill(~edges.valid[qb], float("inf")).argmin(-1)
+    return nearest
+
+
+def signed_distance_to_road_edges(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: float = Z_STRETCH,
+                                  max_pairs: int = 1 << 22) -> torch.Tensor:
+    """Signed 2D distance [B, Q] of points [B, Q, 3] to their scene's road edges, positive off the road,
+    as :func:`smart_marl.geometry.signed_distance_to_road_edges`: the nearest segment by 3D distance
+    with z stretched ``z_stretch`` times (the lowest index on ties, :func:`nearest_road_edge`), the 2D
+    distance to it, its sign by the neighbour rule. ``max_pairs`` bounds the (point, segment) pairs
+    held at once. A scene without segments gives ``-inf`` (nowhere is off its road)."""
+    nearest = nearest_road_edge(points, edges, z_stretch, max_pairs=max_pairs)
+    gather = lambda t: t.gather(1, nearest)  # noqa: E731  [B, S] -> [B, Q]
+    gather3 = lambda t, idx=None: t.gather(1, (nearest if idx is None else idx)[..., None].expand(-1, -1, 3))  # noqa: E731
+
+    def terms(idx: torch.Tensor | None = None):
+        s0, s1 = gather3(edges.start, idx), gather3(edges.end, idx)
+        sp, e = points - s0, s1 - s0
+        denom = e[..., 0] ** 2 + e[..., 1] ** 2
+        rel_t = torch.where(denom > 0, (sp[..., 0] * e[..., 0] + sp[..., 1] * e[..., 1]) / denom.clamp_min(1e-30),
+                            torch.zeros_like(denom))
+        side = torch.sign(_cross(sp[..., 0], sp[..., 1], e[..., 0], e[..., 1]))
+        d = sp[..., :2] - e[..., :2] * rel_t.clamp(0.0, 1.0)[..., None]
+        return d.norm(dim=-1), rel_t, side
+
+    d2, rel_t, n = terms()
+    _, _, n_prior = terms(gather(edges.prior))
+    _, _, n_next = terms(gather(edges.next_))
+    before = torch.where(gather(edges.convex_prior), torch.maximum(n, n_prior), torch.minimum(n, n_prior))
+    after = torch.where(gather(edges.convex_next), torch.maximum(n, n_next), torch.minimum(n, n_next))
+    sign = torch.where((rel_t < 0.0) & gather(edges.has_prior), before, torch.where((rel_t > 1.0) & gather(edges.has_next), after, n))
+    any_edge = edges.valid.any(1)[:, None]
+    return torch.where(any_edge, sign * d2, torch.full_like(d2, float("-inf")))
+
+
+def box_corners_bottom(xy: torch.Tensor, heading: torch.Tensor, size: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """The 4 bottom corners [..., 4, 3] of boxes (``size`` [..., 3] length, width, height; ``z`` the
+    box centre's height), the points the offroad test reads (:func:`smart_marl.geometry.box_distance_to_road_edge`)."""
+    xy4 = box_corners(xy, heading, size[..., 0], size[..., 1])
+    zb = (z - size[..., 2] / 2)[..., None, None].expand(*xy4.shape[:-1], 1)
+    return torch.cat([xy4, zb], -1)
+
+
+__all__ = ["RoadEdgeTensors", "box_corners", "box_corners_bottom", "boxes_overlap", "nearest_road_edge", "polygon_distance",
+           "rounded_boxes_overlap", "signed_distance_to_road_edges"]
