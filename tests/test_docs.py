@@ -82,11 +82,15 @@ USER_COMMANDS = [c for p in USER_PAGES for c in shell_commands(p)]
 
 
 def smart_marl_argv(command: str) -> list[str] | None:
-    """The argv after ``smart-marl`` (a ``for`` loop's body with its variable set), or None."""
+    """The argv after ``smart-marl`` (a ``for`` loop's body with its variable set; or after
+    ``torchrun [its options] -m smart_marl.cli``), or None."""
     loop = re.fullmatch(r"for (\w+) in (\S+)[^;]*; do (.*); done", command)
     if loop:
         command = loop.group(3).replace("$" + loop.group(1), loop.group(2))
     words = shlex.split(command)
+    if words and words[0].endswith("torchrun") and "-m" in words:
+        at = words.index("-m")
+        return words[at + 2:] if words[at + 1:at + 2] == ["smart_marl.cli"] else None
     if not words or not words[0].endswith("smart-marl"):
         return None
     return words[1:]
@@ -278,6 +282,8 @@ COVERED_ELSEWHERE = {  # commands whose check is a test of this file, named here
     ".venv/bin/pip install torch --index-url https://download.pytorch.org/whl/cu126": "test_the_gpu_recipe_keeps_an_installed_torch",
     '.venv/bin/pip install -e ".[dev]"': "test_the_gpu_recipe_keeps_an_installed_torch",
     ".venv/bin/sphinx-build -W -b html docs docs/_build/html": "test_the_docs_build_with_warnings_as_errors",
+    "tar czf submission.tar.gz -C runs/val $(cd runs/val && ls submission.binproto-*)":
+        "test_the_submission_upload_command_packs_every_file_of_the_set",
 }
 
 # Each command of the README and the user pages -> the tests that run it (a test of this file, or
@@ -322,6 +328,24 @@ RUN_BY = [
     (r"smart-marl eval --scenes \.\./shared\S* --policy constant_velocity",
      [("tests/test_metrics_submission.py::test_eval_command_scores_a_written_policy_submission_identically", '"eval"')]),
     (r"benchmarks/", [("tests/test_docs.py::test_every_documented_command_names_what_exists", "_script_flags")]),
+    (r"smart-marl finetune --config scale|smart_marl\.cli finetune --config scale",
+     [("tests/test_docs.py::test_the_scale_finetune_commands_run_on_a_small_pool", "main(argv)")]),
+    # the launcher: two processes fine-tuning one policy (the test starts them with a script calling finetune())
+    (r"torchrun .*-m smart_marl\.cli finetune",
+     [("tests/test_finetune_distributed.py::test_two_processes_under_torchrun_train_one_policy", '"--nproc_per_node=2"')]),
+    (r"smart-marl eval --scenes VAL/ --policy prior --out runs/val --write-submission",
+     [("tests/test_eval_sharding.py::test_merged_submission_files_hold_exactly_the_plain_rollouts", '"--write-submission"'),
+      ("tests/test_eval_sharding.py::test_a_killed_process_resumes_to_the_uninterrupted_result", '"--out"')]),
+    (r"smart-marl eval .*--shard |smart-marl eval --merge ",
+     [("tests/test_eval_sharding.py::test_prior_rollouts_do_not_depend_on_the_split", '"--shard"'),
+      ("tests/test_eval_sharding.py::test_prior_rollouts_do_not_depend_on_the_split", '"--merge"')]),
+    (r"torchrun .*-m smart_marl\.cli eval",
+     [("tests/test_eval_sharding.py::test_torchrun_ranks_take_their_shards_and_rank0_merges",
+       '"--nproc_per_node=2", "-m", "smart_marl.cli", "eval"')]),
+    (r"smart-marl eval --scenes VAL/ --submission ",
+     [("tests/test_eval_sharding.py::test_merged_submission_files_hold_exactly_the_plain_rollouts", '"--submission"')]),
+    (r"^tar czf submission\.tar\.gz", [("tests/test_docs.py::test_the_submission_upload_command_packs_every_file_of_the_set",
+                                        "subprocess.run")]),
 ]
 
 
@@ -350,6 +374,37 @@ def test_every_coverage_entry_is_used():
     for pattern, _ in RUN_BY:
         assert any(re.search(pattern, c) for _, c in USER_COMMANDS), f"RUN_BY entry {pattern!r} matches no command"
     assert set(COVERED_ELSEWHERE) <= {c for _, c in ALL_COMMANDS}
+
+
+def test_the_submission_upload_command_packs_every_file_of_the_set(tmp_path):
+    """The evaluation-at-scale page's tar command, run as shown on a run folder holding a split submission."""
+    command = next(c for _, c in shell_commands(DOCS / "evaluation_at_scale.md") if c.startswith("tar "))
+    run = tmp_path / "runs" / "val"
+    (run / "shard-00000-of-00002").mkdir(parents=True)
+    names = [f"submission.binproto-{i:05d}-of-00003" for i in range(3)]
+    for name in names + ["result.json", "run.json"]:
+        (run / name).write_bytes(name.encode())
+    proc = subprocess.run(["bash", "-c", command], cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    listing = subprocess.run(["tar", "tzf", "submission.tar.gz"], cwd=tmp_path, capture_output=True, text=True, check=True)
+    assert listing.stdout.split() == names  # the files at the archive's top level, as the challenge takes them
+
+
+@pytest.mark.slow
+def test_the_scale_finetune_commands_run_on_a_small_pool(tmp_path, monkeypatch, capsys):
+    """The ``scale`` config's commands (README, RL at scale), shortened: the package's 4 sample scenes,
+    2 at a time, one short iteration, no evaluation; the config's network, critic and pool as shipped."""
+    from smart_marl.cli import main
+
+    commands = [c for p in (README, DOCS / "scale.md") for _, c in shell_commands(p) if "finetune --config scale" in c]
+    assert commands
+    monkeypatch.chdir(tmp_path)
+    for command in dict.fromkeys(commands):
+        argv = smart_marl_argv(command) + ["scenes=embedded", "num_scenes=4", "num_envs=2", "horizon_steps=2", "iterations=1",
+                                           "frames_per_batch=8", "minibatch_size=8", "ppo_epochs=1", "eval_episodes=0",
+                                           "tensorboard=false", "--out", "runs/ft"]
+        assert main(argv) == 0, f"smart-marl {' '.join(argv)}\n{capsys.readouterr().err[-3000:]}"
+        assert (tmp_path / "runs" / "ft" / "checkpoints" / "policy_last.json").is_file()
 
 
 # ------------------------------------------------------------------ slow: running them
