@@ -21,7 +21,7 @@ from smart_marl.rollout import DEFAULT_TOP_K, temperature_rule
 
 from .policy import ACTOR_HEADS
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "finetune"
+CONFIG_DIR = Path(__file__).resolve().parent / "configs" / "finetune"  # inside the package: a wheel ships them
 
 
 class FinetuneError(SmartMarlError, ValueError):

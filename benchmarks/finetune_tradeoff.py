@@ -12,7 +12,7 @@ and a picture (PNG): realism of the controlled agents (sim-agents meta-metric, t
 agents as the evaluated ones, one rollout per seed) against collision + offroad rate, and against
 goal rate, one point per beta, the prior and the expert marked.
 
-Rerun on another prior with one command (about an hour of CPU at the defaults, see the README;
+Rerun on another prior with one command (about an hour of CPU at the defaults, see docs/finetuning.md;
 ``--reuse EARLIER.jsonl`` keeps an earlier run's rows and makes only the runs it lacks):
 
     .venv/bin/python benchmarks/finetune_tradeoff.py --prior PATH/TO/CHECKPOINT.json \\

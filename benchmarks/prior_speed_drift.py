@@ -32,7 +32,7 @@ traffic does, which the rollout should follow, not exceed).
 ``--drop-parked`` leaves every scene's parked vehicles out (logged on every frame, moving less than 0.5 m):
 the difference to a run without it is how much the parked cars slow the prior's moving traffic.
 
-Measured figures are in the README's model card.
+Measured figures are in docs/model_card.md and docs/experiments/.
 """
 
 from __future__ import annotations

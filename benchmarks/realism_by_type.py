@@ -16,7 +16,7 @@ Output (stdout, one JSON object per line)::
 
     .venv/bin/python benchmarks/realism_by_type.py --scenes DIR [--prior PATH] [--seed 0] [--top-k 6] [--rollouts 32]
 
-Measured figures are in the README's model card (section "Swaying pedestrians").
+Measured figures are in docs/experiments/2026-11-25-swaying-pedestrians-stage5.md.
 """
 
 from __future__ import annotations

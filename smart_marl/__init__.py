@@ -1,7 +1,7 @@
 """smart-marl: SMART (next-token prediction over motion tokens) as a behaviour prior for multi-agent
 driving environments.
 
-The data flow (docs in the README): driving logs -> :class:`Scenario` -> scene cache -> tokens ->
+The data flow (README.md and docs/): driving logs -> :class:`Scenario` -> scene cache -> tokens ->
 SMART model -> rollouts -> PettingZoo environment -> fine-tuning -> metrics.
 """
 

@@ -1,6 +1,6 @@
 """What-if scenarios (agents.whatif): each kind's effect and the ``smart-marl whatif`` command on the
-package's sample scene sumo-7-000000-02; the YAML scripts in examples/whatif (written for it) on the
-real WOMD scene 637f20cafde22ff8.
+package's sample scene sumo-7-000000-02; the YAML scripts the package ships (agents/whatif/examples,
+written for the embedded sample scene sumo-7-000000-03) on that scene.
 
 The mechanics use a small randomly initialised SMART model whose motion vocabulary is built from
 the sample scenes (a trained prior is not needed for them); the behavioural claim (vehicles behind a
@@ -14,7 +14,6 @@ the back (1609 at 12 m/s)."""
 from __future__ import annotations
 
 import csv
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,7 +21,7 @@ import torch
 
 from agents import scripted
 from agents.whatif import (
-    Brake, CutIn, Follow, Insert, Jaywalker, Prepared, Remove, StalledVehicle, Stop, TrafficLightOverride, WhatIf,
+    EXAMPLES_DIR, Brake, CutIn, Follow, Insert, Jaywalker, Prepared, Remove, StalledVehicle, Stop, TrafficLightOverride, WhatIf,
     WhatIfError, load_script, override_road_lights, prepare, run_whatif, simulate,
 )
 from smart_marl.rollout import RolloutState
@@ -30,7 +29,8 @@ from smart_marl.scenario import SignalState
 from smart_marl.tokens import road_pieces
 
 VOCAB = 32  # tokens per type of conftest's sample_vocab
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "whatif"
+EXAMPLES = EXAMPLES_DIR
+EXAMPLE_SCENE = "sumo-7-000000-03"  # the embedded sample scene the shipped examples are written for
 LEAD, FOLLOWER, OTHER = 67, 6, 26  # sample scene sumo-7-000000-02 (module docstring)
 
 
@@ -233,11 +233,19 @@ def test_table_reports_the_braking_cars_speed_drop(model, vocab, scene):
 
 
 # ------------------------------------------------------------------------------- scripts
+@pytest.fixture(scope="module")
+def example_scene_and_vocab():
+    from smart_marl.embedded import sample_scenarios
+    from smart_marl.model.checkpoint import load_prior
+
+    return next(s for s in sample_scenarios() if s.scenario_id == EXAMPLE_SCENE), load_prior("embedded")[1]
+
+
 @pytest.mark.parametrize("name", sorted(p.stem for p in EXAMPLES.glob("*.yaml")))
-def test_example_scripts_parse_and_apply_to_the_real_scene(womd_vocab, womd_scene, name):
-    scene = womd_scene
+def test_example_scripts_parse_and_apply_to_the_embedded_scene(example_scene_and_vocab, name):
+    scene, vocab = example_scene_and_vocab
     script = load_script(EXAMPLES / f"{name}.yaml")
-    prepared = prepare(scene, script, womd_vocab)
+    prepared = prepare(scene, script, vocab)
     assert script.name and script.description
     assert prepared.affected or prepared.lights or prepared.scene.traffic_lights.states[11:].tolist() != scene.traffic_lights.states[11:].tolist()
 
@@ -346,7 +354,7 @@ def test_the_braking_car_is_never_hit_from_behind_with_collision_aware_sampling(
     the braking car in 5-7 of 8 rollouts (the stage-1 prior: 0 of 8, because it drove everyone at half
     speed). Collision-aware sampling (smart_marl.rollout.avoidance, the default) brings it to 0 of 8
     with the stage-5 prior (issue 33's target, pinned; since issue 33 the rule also sees the braking
-    car's forced token where it really goes); see the README's limits."""
+    car's forced token where it really goes); see docs/model_card.md, Limits."""
     rows = {(r["quantity"], r["agent"]): r for r in hard_brake.table}
     assert rows[("collided_rate", "1609 (brake)")]["whatif"] == 0.0
 

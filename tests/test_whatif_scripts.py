@@ -7,18 +7,17 @@ from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
 import pytest
 from hypothesis import strategies as st
 
 from agents import whatif as whatif_module
 from agents.whatif import edits as whatif_edits
-from agents.whatif import MAX_STEPS, WhatIf, WhatIfError, load_script, prepare, run_whatif
+from agents.whatif import EXAMPLES_DIR, MAX_STEPS, WhatIf, WhatIfError, load_script, prepare, run_whatif
 from fuzzing import mutate_bytes, mutate_structure, run_fuzz
 from smart_marl.errors import SmartMarlError
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "whatif"
+EXAMPLES = EXAMPLES_DIR  # written for the embedded sample scene sumo-7-000000-03
 BUDGET = [pytest.param("default", id="default"), pytest.param("long", id="long", marks=pytest.mark.slow)]
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
@@ -71,8 +70,14 @@ def test_whatif_command_refuses_an_existing_file_as_out_before_simulating(sample
 
 
 @pytest.mark.parametrize("budget", BUDGET)
-def test_mutated_whatif_scripts_apply_or_raise_a_named_error(womd_scenes, womd_vocab, tmp_path, budget):
+def test_mutated_whatif_scripts_apply_or_raise_a_named_error(tmp_path, budget):
     import yaml
+
+    from smart_marl.embedded import sample_scenarios
+    from smart_marl.model.checkpoint import load_prior
+
+    scene = next(s for s in sample_scenarios() if s.scenario_id == "sumo-7-000000-03")
+    vocab = load_prior("embedded")[1]
 
     bases = {p.name: yaml.safe_load(p.read_text()) for p in sorted(EXAMPLES.glob("*.yaml"))}
     names = sorted(bases)
@@ -87,7 +92,7 @@ def test_mutated_whatif_scripts_apply_or_raise_a_named_error(womd_scenes, womd_v
         else:
             path.write_bytes(mutate_bytes(data, (EXAMPLES / name).read_bytes()))
         try:
-            prepare(womd_scenes[0], load_script(path), womd_vocab)
+            prepare(scene, load_script(path), vocab)
         except SmartMarlError as exc:
             assert isinstance(exc, WhatIfError) and str(path) in str(exc), f"{type(exc).__name__}: {exc}"
 

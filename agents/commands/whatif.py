@@ -13,19 +13,23 @@ from __future__ import annotations
 from pathlib import Path
 
 from smart_marl.commands.arguments import bounded_int, collision_avoidance_flag, device, output_dir, rollouts, seed
+from smart_marl.embedded import scene_sources
 from smart_marl.errors import SmartMarlError
 from smart_marl.readers import read_scenarios
 
-from ..whatif import MAX_STEPS, format_table, load_script, render_comparison, run_whatif, write_table_csv
+from ..whatif import MAX_STEPS, example_scripts, format_table, load_script, render_comparison, run_whatif, script_path, write_table_csv
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "whatif", help="run a scripted what-if scenario (remove/insert agents, brake, cut-in, lights) against the baseline",
-        description="Apply a what-if script (YAML; see examples/whatif/) to one scene, roll out the SMART prior with and "
-                    "without it (same seeds) and write a side-by-side animation and a table of what changed.")
-    p.add_argument("scene", metavar="SCENE", help="a scene file, folder or glob (the first scene, or --scenario-id)")
-    p.add_argument("--script", required=True, metavar="FILE", help="the what-if script (.yaml)")
+        description="Apply a what-if script (YAML; the package ships one per kind, agents/whatif/examples/) to one scene, "
+                    "roll out the SMART prior with and without it (same seeds) and write a side-by-side animation and a "
+                    "table of what changed.")
+    p.add_argument("scene", metavar="SCENE", help="a scene file, folder or glob, or 'embedded' (the package's sample "
+                                                  "scenes); the first scene, or --scenario-id")
+    p.add_argument("--script", required=True, metavar="FILE", help="the what-if script (.yaml), or the name of a shipped "
+                                                                    f"example ({', '.join(example_scripts())})")
     p.add_argument("--out", required=True, type=output_dir, metavar="DIR", help="output folder (created if missing)")
     p.add_argument("--seed", type=seed, default=0, help="random seed of the rollouts (default 0)")
     p.add_argument("--rollouts", type=rollouts, default=8, help="rollouts per run (default 8)")
@@ -40,9 +44,9 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    script = load_script(args.script)  # every edit's values checked here, before the scene is read
+    script = load_script(script_path(args.script))  # every edit's values checked here, before the scene is read
     scene = None
-    for sc in read_scenarios(args.scene):
+    for sc in read_scenarios(scene_sources(args.scene)):
         if args.scenario_id is None or sc.scenario_id == args.scenario_id:
             scene = sc
             break

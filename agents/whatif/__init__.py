@@ -12,8 +12,8 @@ realism) and, with :func:`render_comparison`, a side-by-side animation.
 In Python::
 
     from agents.whatif import Brake, Jaywalker, WhatIf, run_whatif
-    result = run_whatif("runs/smart/last.json", scene, WhatIf([Brake(agent=1609, at_s=1.0),
-                        Jaywalker(relative_to=1630, start=(25, -8), end=(25, 8))]), num_rollouts=8, seed=0)
+    result = run_whatif("runs/smart/last.json", scene, WhatIf([Brake(agent=52, at_s=1.0),
+                        Jaywalker(relative_to="sdc", start=(30, -8), end=(30, 6))]), num_rollouts=8, seed=0)
     print(format_table(result.table)); render_comparison(result, "out/whatif.gif")
 
 Two kinds of edits:
@@ -46,7 +46,8 @@ Positions are in the scene's source coordinates (``frame: source``, the default)
 (``frame: local``), or the frame of an agent at the current frame (``relative_to: AGENT``: x
 forward, y left, heading relative to the agent's).
 
-The YAML format (one file per scenario; see ``examples/whatif/``)::
+The YAML format (one file per scenario; the package's examples, one per kind, are in ``agents/whatif/examples/``,
+:data:`EXAMPLES_DIR`, written for the embedded sample scene ``sumo-7-000000-03``)::
 
     name: lead car brakes hard
     description: free text
@@ -71,16 +72,16 @@ The package, one module per job, in the order they run:
 
 from .compare import WhatIfResult, agent_min_distance_m, colliding_agents, compare, run_whatif
 from .edits import (
-    KINDS, MAX_STEPS, Brake, CutIn, Follow, Insert, Jaywalker, Placement, Remove, StalledVehicle, Stop, TrafficLightOverride,
-    WhatIf, WhatIfError, check_edit, load_script,
+    EXAMPLES_DIR, KINDS, MAX_STEPS, Brake, CutIn, Follow, Insert, Jaywalker, Placement, Remove, StalledVehicle, Stop,
+    TrafficLightOverride, WhatIf, WhatIfError, check_edit, example_scripts, load_script, script_path,
 )
 from .output import format_table, render_comparison, write_table_csv
 from .prepare import Prepared, prepare
 from .simulate import SimRollouts, override_road_lights, simulate
 
 __all__ = [
-    "KINDS", "MAX_STEPS", "Brake", "CutIn", "Follow", "Insert", "Jaywalker", "Placement", "Prepared", "Remove", "SimRollouts",
+    "EXAMPLES_DIR", "KINDS", "MAX_STEPS", "Brake", "CutIn", "Follow", "Insert", "Jaywalker", "Placement", "Prepared", "Remove", "SimRollouts",
     "StalledVehicle", "Stop", "TrafficLightOverride", "WhatIf", "WhatIfError", "WhatIfResult", "agent_min_distance_m",
-    "check_edit", "colliding_agents", "compare", "format_table", "load_script", "override_road_lights", "prepare", "render_comparison",
-    "run_whatif", "simulate", "write_table_csv",
+    "check_edit", "colliding_agents", "compare", "example_scripts", "format_table", "load_script", "override_road_lights", "prepare", "render_comparison",
+    "run_whatif", "script_path", "simulate", "write_table_csv",
 ]

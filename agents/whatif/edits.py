@@ -315,6 +315,27 @@ class WhatIf:
                    description=str(data.get("description", "")), path=path)
 
 
+EXAMPLES_DIR = Path(__file__).resolve().parent / "examples"
+"""The example scripts that ship with the package, one per kind, written for the embedded sample scene
+``sumo-7-000000-03`` (:func:`smart_marl.embedded.sample_scenarios`)."""
+
+
+def example_scripts() -> list[str]:
+    """The names of the shipped example scripts (``brake_hard``, ``cut_in``, ...)."""
+    return sorted(p.stem for p in EXAMPLES_DIR.glob("*.yaml"))
+
+
+def script_path(script: str | os.PathLike) -> Path:
+    """``script`` as a file path: an existing file as it is, else the shipped example of that name
+    (``"brake_hard"`` -> ``EXAMPLES_DIR / "brake_hard.yaml"``), else the path unchanged (so that
+    :func:`load_script` names it as missing)."""
+    p = Path(script)
+    example = EXAMPLES_DIR / f"{p.name}.yaml"
+    if not p.exists() and p.name == os.fspath(script) and example.is_file():
+        return example
+    return p
+
+
 def load_script(path: str | os.PathLike) -> WhatIf:
     """Read a what-if YAML (or JSON) script."""
     p = Path(path)

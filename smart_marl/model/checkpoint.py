@@ -332,7 +332,7 @@ def resolve_checkpoint_path(path: str | os.PathLike) -> str | os.PathLike:
 
 def load_embedded(map_location: str | torch.device = "cpu", **config_overrides: Any) -> Checkpoint:
     """The package's pretrained SMART prior as a :class:`Checkpoint` (weights, both vocabularies and
-    provenance; see the model card in the README). To drive with it, :func:`load_prior` ``("embedded")``."""
+    provenance; its model card: docs/model_card.md). To drive with it, :func:`load_prior` ``("embedded")``."""
     return load_checkpoint(EMBEDDED, map_location=map_location, **config_overrides)
 
 

@@ -24,7 +24,7 @@ OTHER (moved at constant velocity outside the model) are not checked against.
 
 Why: the prior was trained on SUMO traffic, where pedestrians and vehicles rarely meet, and in
 closed loop on real scenes it walks pedestrians into cars and lets followers close in on a slower
-leader. On the 7 held-out real scenes (README, model card) this rule raises the collision
+leader. On the 7 held-out real scenes (docs/model_card.md) this rule raises the collision
 likelihood of WOSAC's metrics from 0.887 to 0.98 without retraining. It changes what is drawn, not
 the model: the logits, the log-probabilities a step reports and the KL reference of fine-tuning
 stay the model's own.

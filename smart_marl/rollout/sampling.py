@@ -36,8 +36,8 @@ temperature_rule = number(*TEMPERATURE_RANGE, why="beyond it every token is as l
 
 DEFAULT_TOP_K = 6
 """The k the prior drives with unless told otherwise (rollouts, the environment's background, what-if
-scenarios, ``smart-marl eval``). The paper samples among 5. Measured on the embedded prior (README,
-model card), on the held-out real scenes at two seeds: k = 6 is as realistic as k = 8 (meta-metric
+scenarios, ``smart-marl eval``). The paper samples among 5. Measured on the embedded prior (docs/experiments/,
+the stage log), on the held-out real scenes at two seeds: k = 6 is as realistic as k = 8 (meta-metric
 0.704 / 0.702 against 0.705 / 0.699) and keeps vehicles' speed better late in a rollout (rollout / log
 speed at 8 s 0.89-0.90 against 0.85-0.87 over three seeds); smaller k costs kinematic realism, larger k
 costs speed and, beyond 8, interactive realism."""

@@ -16,7 +16,7 @@ A given tolerance instead (``kdisks(..., tolerance_m=r)``, smaller than the cove
 fall where the samples are dense: the tokens go to the common motions at a fine resolution and
 rare ones (sharp turns, hard braking) are left to their nearest token. On SUMO-built vehicle
 vocabularies this is what makes real straight driving rebuild without a turning jitter
-(README, model card).
+(docs/model_card.md).
 
 Output: the indices of the centre samples (the vocabulary entries are real samples, not means)
 and the tolerance. Deterministic given the seed (CPU float32 arithmetic, fixed order).
