@@ -44,9 +44,10 @@ import numpy as np
 from ..errors import ScenarioReadError, check_regular_file
 from ..scenario import (
     DT_S, AgentType, LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadLineType, RoadMap, Scenario,
-    TrafficLights, Tracks, as_floats, as_int, as_integers, choose_frame, wrap_angle,
+    TrafficLights, Tracks, wrap_angle,
 )
-from .common import load_json_object, read_errors
+from ..values import as_floats, as_int, as_integers
+from .common import choose_frame, load_json_object, read_errors
 
 NAME = "av2"
 

@@ -31,7 +31,7 @@ Mapping onto the Scenario:
   is ``metadata["current_time_index"]`` when present, else :data:`~smart_marl.scenario.CURRENT_FRAME` (the WOMD /
   SMART convention of 11 history frames; nuScenes conversions carry no current frame). Every frame of
   the file is kept (20 s nuScenes and Waymo 1.2 scenes included).
-* space: positions are shifted into the local frame of :func:`smart_marl.scenario.choose_frame`
+* space: positions are shifted into the local frame of :func:`smart_marl.readers.common.choose_frame`
   (the self-driving car at the current frame), headings and velocities are unchanged.
 """
 
@@ -59,12 +59,9 @@ from ..scenario import (
     SignalState,
     TrafficLights,
     Tracks,
-    as_floats,
-    as_int,
-    as_mask,
-    choose_frame,
 )
-from .common import read_errors
+from ..values import as_floats, as_int, as_mask
+from .common import choose_frame, read_errors
 from .safe_pickle import SCENARIONET_GLOBALS, load_restricted, looks_like_pickle
 
 NAME = "scenarionet"

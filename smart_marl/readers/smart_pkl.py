@@ -34,7 +34,7 @@ What the preprocessing did, and how it is undone here:
   with a known state get a TrafficLights entry whose state is **held constant over all frames**
   (``metadata["traffic_light_state_held_constant"]``); their stop point is the lane's first point.
 * time: 91 frames at 0.1 s, current frame 10. Positions are WOMD global coordinates, shifted into the
-  local frame of :func:`smart_marl.scenario.choose_frame`.
+  local frame of :func:`smart_marl.readers.common.choose_frame`.
 """
 
 from __future__ import annotations
@@ -59,14 +59,10 @@ from ..scenario import (
     SignalState,
     TrafficLights,
     Tracks,
-    as_floats,
-    as_int,
-    as_integers,
-    as_mask,
-    choose_frame,
     wrap_angle,
 )
-from .common import read_errors
+from ..values import as_floats, as_int, as_integers, as_mask
+from .common import choose_frame, read_errors
 from .safe_pickle import load_restricted, looks_like_pickle, smart_pickle_globals
 
 NAME = "smart_pkl"
