@@ -6,7 +6,8 @@ driver parameters (:func:`random_vehicle_types`), routes for cars, trucks, buses
 walks for pedestrians (:func:`write_demand`), a libsumo run at 0.1 s steps with a warm-up, every
 agent's state recorded per step (:class:`Recording`), cars parked along the kerbs
 (:func:`add_parked_vehicles`), then several 9.1 s scenes cut around moving vehicles chosen as the
-self-driving car (:func:`cut_scene`).
+self-driving car (:func:`cut_scene`). The demand lives in :mod:`.sumo_demand`, the smoothed headings and
+walkers' sway in :mod:`.sumo_motion`, the parked cars in :mod:`.sumo_parked` (all re-exported here).
 
 Routes: by default each vehicle follows a random walk over the network (:func:`random_walk`) that
 goes straight on at a junction with ``SumoConfig.straight_probability`` and otherwise turns, from a
@@ -21,25 +22,27 @@ heading in radians counter-clockwise from +x; the velocity is the speed along th
 
 from __future__ import annotations
 
-import math
 import os
 import tempfile
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
 from ..config_files import (check_fields, check_value, flag, integer, interval, is_number, number, one_of, optional,
                             probabilities, sequence)
 from ..errors import UsageError
-from ..geometry import frame_steps
 from ..scenario import CURRENT_FRAME, DT_S, AgentType, SceneFrame, Scenario, TrafficLights, Tracks, wrap_angle
 from .sumo_net import (
-    JUNCTION_TYPES, SIGNAL_OF_CHAR, SPEEDS_MPS, NetworkMap, NetworkSpec, build_network, lane_shape, network_map, quantize, random_network_spec,
-    require_sumo, rotation_matrix, sumo_binary, turn_angle,
+    JUNCTION_TYPES, SIGNAL_OF_CHAR, SPEEDS_MPS, NetworkMap, NetworkSpec, build_network, network_map, quantize, random_network_spec,
+    require_sumo, rotation_matrix, sumo_binary,
+)
+from .sumo_demand import EdgeGraph, edge_graph, random_vehicle_types, random_walk, write_demand  # noqa: F401  (re-exported)
+from .sumo_motion import WALKER_JITTER_DOF, WALKER_JITTER_MAX_RAD, smooth_heading, smooth_walkers, sway_walkers  # noqa: F401
+from .sumo_parked import (  # noqa: F401  (re-exported)
+    PARKED_CLEARANCE_M, PARKED_END_MARGIN_M, PARKED_GAP_M, PARKED_MIN_SPACING_M, PARKED_SLOT_M, add_parked_vehicles,
 )
 
 SCENE_FRAMES = 91
@@ -173,163 +176,6 @@ LEGACY_TRAFFIC: dict[str, Any] = dict(
 """The :class:`SumoConfig` fields that differ between the first generator and the tuned defaults."""
 
 
-# ------------------------------------------------------------------------------------ demand
-def _u(rng: np.random.Generator, lo: float, hi: float) -> str:
-    return f"{rng.uniform(lo, hi):.3f}"
-
-
-def random_vehicle_types(rng: np.random.Generator, config: SumoConfig) -> list[dict[str, str]]:
-    """vType attribute dicts: several car variants, a truck, a bus, bicycles and pedestrians, each with
-    its own driver (speed factor and deviation, imperfection, reaction time, gaps, lane-change style)."""
-    types = []
-    lc_model = "SL2015" if config.sublane else "LC2013"
-
-    def driver(kind: str) -> dict[str, str]:
-        d = {"sigma": _u(rng, *config.driver_sigma), "tau": _u(rng, 0.6, 1.6), "minGap": _u(rng, 1.2, 3.0),
-             "speedFactor": _u(rng, 0.85, 1.2), "speedDev": _u(rng, 0.03, 0.2),
-             "carFollowModel": str(rng.choice(["Krauss", "IDM", "EIDM"], p=list(config.car_follow_weights))),
-             "laneChangeModel": lc_model, "lcStrategic": _u(rng, 0.3, 2.0), "lcCooperative": _u(rng, 0.2, 1.0),
-             "lcSpeedGain": _u(rng, *config.lc_speed_gain), "lcKeepRight": _u(rng, 0.2, 2.0), "lcAssertive": _u(rng, 1.0, 3.0),
-             "lcImpatience": _u(rng, 0.0, 0.8), "emergencyDecel": "9.0"}
-        if config.sublane:
-            d["maxSpeedLat"] = _u(rng, 0.6, 1.4)
-            d["latAlignment"] = str(rng.choice(["center", "center", "right", "arbitrary"]))
-        if d["carFollowModel"] == "EIDM":
-            d["sigma"] = "0"  # EIDM models imperfection itself
-        return d
-
-    for k in range(int(rng.integers(3, 7))):
-        types.append({"id": f"car{k}", "vClass": "passenger", "length": _u(rng, 3.8, 5.2), "width": _u(rng, 1.7, 2.0),
-                      "height": _u(rng, 1.4, 1.9), "accel": _u(rng, *config.driver_accel_mps2), "decel": _u(rng, *config.driver_decel_mps2), **driver("car")})
-    types.append({"id": "truck", "vClass": "truck", "length": _u(rng, 7.0, 12.0), "width": _u(rng, 2.3, 2.55),
-                  "height": _u(rng, 3.0, 4.0), "accel": _u(rng, 0.8, 1.5), "decel": _u(rng, 3.0, 4.5), **driver("truck")})
-    types.append({"id": "bus", "vClass": "bus", "length": _u(rng, 10.0, 13.0), "width": "2.5", "height": "3.2",
-                  "accel": _u(rng, 0.8, 1.4), "decel": _u(rng, 3.0, 4.0), **driver("bus")})
-    if config.bicycles:
-        for k in range(2):
-            d = driver("bike")
-            d.update(speedFactor=_u(rng, 0.7, 1.1), minGap=_u(rng, 0.5, 1.5))
-            types.append({"id": f"bike{k}", "vClass": "bicycle", "length": _u(rng, 1.6, 1.9), "width": _u(rng, 0.55, 0.75),
-                          "height": _u(rng, 1.6, 1.9), "accel": _u(rng, 0.8, 1.5), "decel": _u(rng, 2.0, 3.5),
-                          "maxSpeed": _u(rng, 4.0, 7.5), **d})
-    if config.pedestrians:
-        for k in range(2):
-            types.append({"id": f"ped{k}", "vClass": "pedestrian", "length": _u(rng, 0.4, 0.8), "width": _u(rng, 0.5, 0.8),
-                          "height": _u(rng, 1.5, 1.9), "maxSpeed": _u(rng, 1.1, 1.7), "speedDev": _u(rng, 0.05, 0.2)})
-    return types
-
-
-def write_demand(path: Path, net, types: list[dict[str, str]], rng: np.random.Generator, config: SumoConfig,
-                 duration_s: float) -> dict[str, int]:
-    """A route file: the vTypes and random trips (vehicles, bicycles) and walks (pedestrians), sorted by
-    departure. SUMO routes the trips itself at insertion; unroutable ones are dropped. Returns counts."""
-    edges = [e for e in net.getEdges() if e.getFunction() == ""]
-
-    def edges_for(vclass: str) -> list[str]:
-        return [e.getID() for e in edges if any(lane.allows(vclass) for lane in e.getLanes()) and e.getLength() > 5]
-
-    total_km = sum(e.getLength() * len(e.getLanes()) for e in edges) / 1000.0
-    car_types = [t["id"] for t in types if t["vClass"] == "passenger"]
-    rate_scale = config.demand_scale * float(rng.uniform(0.5, 1.5))
-    # departures per second per lane-km of network
-    streams = [("veh", "passenger", car_types, 0.065 * total_km * rate_scale),
-               ("veh", "truck", ["truck"], 0.003 * total_km * rate_scale),
-               ("veh", "bus", ["bus"], 0.0015 * total_km * rate_scale)]
-    if config.bicycles:
-        streams.append(("veh", "bicycle", ["bike0", "bike1"], 0.008 * total_km * rate_scale))
-    if config.pedestrians:
-        streams.append(("person", "pedestrian", ["ped0", "ped1"], 0.02 * total_km * rate_scale))
-    rows: list[tuple[float, str]] = []
-    counts: dict[str, int] = {}
-    for kind, vclass, type_ids, per_s in streams:
-        pool = edges_for(vclass)
-        if len(pool) < 2 or per_s <= 0:
-            continue
-        # a burst at the start (the network fills quickly) then a Poisson stream
-        n = int(rng.poisson(per_s * duration_s)) + int(per_s * 12)
-        departs = np.sort(np.concatenate([rng.uniform(0, 3, int(per_s * 12)), rng.uniform(0, duration_s, n - int(per_s * 12))]))
-        graph = edge_graph(net, vclass) if kind == "veh" and config.routes == "walk" else None
-        if graph is not None:  # walks start anywhere along the roads: edges drawn in proportion to their length
-            weight = np.array([graph.length_m[e] for e in pool])
-            starts = rng.choice(len(pool), len(departs), p=weight / weight.sum())
-        for k, depart in enumerate(departs):
-            a, b = rng.choice(len(pool), 2, replace=False)
-            if graph is not None:
-                a = starts[k]
-            vtype = type_ids[int(rng.integers(len(type_ids)))]
-            vid = f"{vclass}{k}"
-            if kind == "veh" and graph is not None:
-                route = " ".join(random_walk(graph, pool[a], rng, config.straight_probability, duration_s * 25.0))
-                rows.append((depart, f'<vehicle id="{vid}" type="{vtype}" depart="{depart:.1f}" departLane="best" '
-                                     f'departSpeed="max" departPos="random"><route edges="{route}"/></vehicle>'))
-            elif kind == "veh":
-                rows.append((depart, f'<trip id="{vid}" type="{vtype}" depart="{depart:.1f}" from="{pool[a]}" to="{pool[b]}" '
-                                     f'departLane="best" departSpeed="max" departPos="random"/>'))
-            else:
-                rows.append((depart, f'<person id="{vid}" type="{vtype}" depart="{depart:.1f}" departPos="random">'
-                                     f'<walk from="{pool[a]}" to="{pool[b]}" arrivalPos="random"/></person>'))
-        counts[vclass] = len(departs)
-    rows.sort(key=lambda r: r[0])
-    with open(path, "w") as f:
-        f.write("<routes>\n")
-        for t in types:
-            attrs = " ".join(f"{k}={quoteattr(v)}" for k, v in t.items())
-            f.write(f"  <vType {attrs}/>\n")
-        for _, row in rows:
-            f.write(f"  {row}\n")
-        f.write("</routes>\n")
-    return counts
-
-
-@dataclass
-class EdgeGraph:
-    """The edges a vehicle class may take after each edge, with the turn angle (radians, 0: straight on)."""
-
-    length_m: dict[str, float]
-    successors: dict[str, list[tuple[str, float]]]
-
-
-def edge_graph(net, vclass: str) -> EdgeGraph:
-    """The :class:`EdgeGraph` of a sumolib network for ``vclass``: a successor is reachable by a
-    connection whose lanes both allow the class; its turn is :func:`~.sumo_net.turn_angle`."""
-    lengths, successors = {}, {}
-    for edge in net.getEdges():
-        if edge.getFunction() != "":
-            continue
-        lengths[edge.getID()] = edge.getLength()
-        out = []
-        for to_edge, conns in edge.getOutgoing().items():
-            if to_edge.getFunction() != "":
-                continue
-            if any(c.getFromLane().allows(vclass) and c.getToLane().allows(vclass) for c in conns):
-                out.append((to_edge.getID(), turn_angle(edge, to_edge)))
-        successors[edge.getID()] = sorted(out)
-    return EdgeGraph(lengths, successors)
-
-
-def random_walk(graph: EdgeGraph, start: str, rng: np.random.Generator, straight_probability: float,
-                max_length_m: float, straight_rad: float = math.radians(35.0)) -> list[str]:
-    """A route from ``start``: at each junction the straight-on successor (the one that turns least,
-    if it turns less than ``straight_rad``) with probability ``straight_probability``, otherwise one of
-    the others; it ends at a dead end or after ``max_length_m``. No edge is taken twice."""
-    route, length, seen = [start], 0.0, {start}
-    while length < max_length_m:
-        options = [(e, turn) for e, turn in graph.successors.get(route[-1], []) if e not in seen]
-        if not options:
-            break
-        turns = np.abs([turn for _, turn in options])
-        straight = int(turns.argmin())
-        if turns[straight] < straight_rad and len(options) > 1:
-            others = [k for k in range(len(options)) if k != straight]
-            pick = straight if rng.random() < straight_probability else others[int(rng.integers(len(others)))]
-        else:
-            pick = int(rng.integers(len(options)))
-        route.append(options[pick][0])
-        seen.add(route[-1])
-        length += graph.length_m[route[-1]]
-    return route
-
-
 # ------------------------------------------------------------------------------------ recording
 _TYPE_OF_VCLASS = {"passenger": AgentType.VEHICLE, "truck": AgentType.VEHICLE, "bus": AgentType.VEHICLE,
                    "delivery": AgentType.VEHICLE, "bicycle": AgentType.CYCLIST, "pedestrian": AgentType.PEDESTRIAN}
@@ -396,12 +242,9 @@ class EmergencyStops:
             self.until[vid] = step + int(round((stop_s + hold) / DT_S))
 
 
-def run_simulation(net_path: Path, route_path: Path, duration_s: float, record_from_s: float, seed: int,
-                   config: SumoConfig, nmap: NetworkMap, rotation_rad: float, lane_change_s: float = 3.0) -> Recording:
-    """Run SUMO (libsumo, 0.1 s steps) and record every vehicle and person from ``record_from_s`` on."""
-    _, _, libsumo = require_sumo()
-    from traci import constants as tc
-
+def _sumo_args(net_path: Path, route_path: Path, duration_s: float, seed: int, config: SumoConfig,
+               lane_change_s: float) -> list[str]:
+    """The SUMO command line of one run: 0.1 s steps, no teleports, collisions only warned of, sublane or lane-change model."""
     args = [sumo_binary("sumo"), "-n", os.fspath(net_path), "-r", os.fspath(route_path), "--step-length", f"{DT_S}",
             "--begin", "0", "--end", f"{duration_s:.1f}", "--seed", str(seed), "--no-step-log", "true",
             "--no-warnings", "true", "--ignore-route-errors", "true", "--time-to-teleport", "-1",
@@ -412,6 +255,39 @@ def run_simulation(net_path: Path, route_path: Path, duration_s: float, record_f
         args += ["--lateral-resolution", f"{config.lateral_resolution_m}"]
     else:
         args += ["--lanechange.duration", f"{lane_change_s:.2f}"]
+    return args
+
+
+def _box_centres(front: np.ndarray, heading: np.ndarray, length: np.ndarray, height: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """[A, T, 3] box centres from front-bumper centres: half the length back along the heading, half the height up, quantised."""
+    center = front.copy()
+    center[..., 0] -= 0.5 * length[:, None] * np.cos(heading)
+    center[..., 1] -= 0.5 * length[:, None] * np.sin(heading)
+    center[..., 2] += 0.5 * height[:, None]  # box centre height
+    return quantize(np.where(valid[..., None], center, 0.0))
+
+
+def _signal_states(tls_ids: list[str], tls_lengths: list[int], signals: list[str], nmap: NetworkMap) -> dict[int, np.ndarray]:
+    """Signal states per controlled lane id ([T] SignalState): SUMO link index k of a light -> its k-th state character."""
+    signal_states: dict[int, np.ndarray] = {}
+    if tls_ids and signals:
+        chars = np.frombuffer("".join(signals).encode(), np.uint8).reshape(len(signals), -1)
+        column = 0
+        for t, n in zip(tls_ids, tls_lengths):
+            for link_index, lane_id in enumerate(nmap.signal_links[t][:n]):
+                if lane_id >= 0:
+                    signal_states[int(lane_id)] = SIGNAL_OF_CHAR[chars[:, column + link_index]]
+            column += n
+    return signal_states
+
+
+def run_simulation(net_path: Path, route_path: Path, duration_s: float, record_from_s: float, seed: int,
+                   config: SumoConfig, nmap: NetworkMap, rotation_rad: float, lane_change_s: float = 3.0) -> Recording:
+    """Run SUMO (libsumo, 0.1 s steps) and record every vehicle and person from ``record_from_s`` on."""
+    _, _, libsumo = require_sumo()
+    from traci import constants as tc
+
+    args = _sumo_args(net_path, route_path, duration_s, seed, config, lane_change_s)
     variables = (tc.VAR_POSITION3D, tc.VAR_ANGLE, tc.VAR_SPEED)
     libsumo.start(args)
     try:
@@ -492,220 +368,15 @@ def run_simulation(net_path: Path, route_path: Path, duration_s: float, record_f
                 front[agents, :, :2], valid[agents], heading[agents], np.random.default_rng([seed, stream]), *sway,
                 walking_mps=walking_mps)
             speed[agents] = np.linalg.norm(velocity[agents], axis=-1)
-    length = info_arr[:, 1]
-    center = front.copy()
-    center[..., 0] -= 0.5 * length[:, None] * np.cos(heading)
-    center[..., 1] -= 0.5 * length[:, None] * np.sin(heading)
-    center[..., 2] += 0.5 * info_arr[:, 3][:, None]  # box centre height
-    center = quantize(np.where(valid[..., None], center, 0.0))
+    center = _box_centres(front, heading, info_arr[:, 1], info_arr[:, 3], valid)
 
-    # signal states per controlled lane: SUMO link index k of a light -> its k-th state character
-    signal_states: dict[int, np.ndarray] = {}
-    if tls_ids and signals:
-        chars = np.frombuffer("".join(signals).encode(), np.uint8).reshape(len(signals), -1)
-        column = 0
-        for t, n in zip(tls_ids, tls_lengths):
-            for link_index, lane_id in enumerate(nmap.signal_links[t][:n]):
-                if lane_id >= 0:
-                    signal_states[int(lane_id)] = SIGNAL_OF_CHAR[chars[:, column + link_index]]
-            column += n
+    signal_states = _signal_states(tls_ids, tls_lengths, signals, nmap)
     return Recording(sumo_ids=list(index_of), types=info_arr[:, 0].astype(np.int8), size=info_arr[:, 1:4],
                      center=center, heading=heading, velocity=velocity, speed=speed, valid=valid, signal_states=signal_states,
                      start_time_s=first_record * DT_S)
 
 
-def _window_mean(values: np.ndarray, valid: np.ndarray, window: int) -> np.ndarray:
-    """Mean of ``values`` [A, T, C] over a centred window of frames, valid frames only."""
-    k = window // 2
-    w = valid.astype(np.float64)
-    cs = np.cumsum(np.pad(values * w[..., None], ((0, 0), (k + 1, k), (0, 0))), axis=1)
-    cw = np.cumsum(np.pad(w, ((0, 0), (k + 1, k))), axis=1)
-    total = cw[:, window:] - cw[:, :-window]
-    return (cs[:, window:] - cs[:, :-window]) / np.maximum(total, 1.0)[..., None]
-
-
-def smooth_heading(heading: np.ndarray, valid: np.ndarray, window: int = 5) -> np.ndarray:
-    """Headings [A, T] averaged (as unit vectors) over ``window`` frames: SUMO's angle jumps by a few
-    degrees where a lane's polyline kinks or meets the next lane; a real car turns smoothly."""
-    unit = np.stack([np.cos(heading), np.sin(heading)], axis=-1)
-    mean = _window_mean(unit, valid, window)
-    return np.where(valid, np.arctan2(mean[..., 1], mean[..., 0]), heading)
-
-
-def smooth_walkers(xy: np.ndarray, valid: np.ndarray, heading: np.ndarray, window: int = 9,
-                   max_yaw_rate: float = 2 * math.pi, min_speed_mps: float = 0.2):
-    """Pedestrian tracks made physical: SUMO's walkers start and stop instantly, turn on the spot and
-    shift sideways between sidewalk stripes. Positions ``xy`` [P, T, 2] are averaged over ``window``
-    frames (valid ones only), velocities are their central differences, headings follow the velocity
-    (held while standing) and turn at most ``max_yaw_rate`` (rad/s). Returns (xy, velocity, heading)."""
-    smooth = np.where(valid[..., None], _window_mean(xy, valid, window), 0.0)
-    velocity = frame_steps(smooth, valid)[0] / DT_S
-    speed = np.linalg.norm(velocity, axis=-1)
-    target = np.where(speed > min_speed_mps, np.arctan2(velocity[..., 1], velocity[..., 0]), np.nan)
-    out = heading.copy()
-    step = max_yaw_rate * DT_S
-    for t in range(xy.shape[1]):  # over frames, vectorised over walkers
-        goal = np.where(np.isnan(target[:, t]), out[:, t - 1] if t else heading[:, 0], target[:, t])
-        if t == 0:
-            out[:, 0] = goal
-            continue
-        turn = wrap_angle(goal - out[:, t - 1])
-        limited = out[:, t - 1] + np.clip(turn, -step, step)
-        out[:, t] = np.where(valid[:, t] & valid[:, t - 1], limited, goal)
-    out = wrap_angle(out)
-    return smooth, velocity, out
-
-
-WALKER_JITTER_DOF = 1.3
-"""Degrees of freedom of the Student-t innovations of the walkers' heading jitter: heavy tails, as the
-headings of logged pedestrians have (mostly a few hundredths of a radian per frame, now and then a
-turn of the body or a tracker's flip of a few tenths)."""
-WALKER_JITTER_MAX_RAD = 0.5
-
-
-def _smoothed_noise(rng: np.random.Generator, shape: tuple[int, int], time_scale_s: float, draw) -> np.ndarray:
-    """Noise [P, T] from ``draw(size)`` innovations smoothed by a Gaussian of ``time_scale_s`` whose
-    weights have unit L2 norm (unit-variance innovations stay unit variance)."""
-    p, t = shape
-    half = max(1, int(math.ceil(3 * time_scale_s / DT_S)))
-    kernel = np.exp(-0.5 * (np.arange(-half, half + 1) * DT_S / time_scale_s) ** 2)
-    kernel /= np.sqrt((kernel**2).sum())
-    noise = draw((p, t + 2 * half))
-    return np.stack([np.convolve(row, kernel, mode="valid") for row in noise]) if p else np.zeros((p, t))
-
-
-def sway_walkers(xy: np.ndarray, valid: np.ndarray, heading: np.ndarray, rng: np.random.Generator,
-                 amplitude_m: float, time_scale_s: float, jitter_rad: float = 0.0, jitter_s: float = 0.15,
-                 walking_mps: float = 1.0):
-    """Walking pedestrians made to move as logged ones do. SUMO walks them along perfectly straight
-    lines, so their heading never changes between corners; a logged pedestrian's heading changes by
-    about 0.1 rad/s at the median and by more than 0.4 rad/s in one frame of eight (the GPUDrive and
-    Nocturne scenes of ../shared/data). Two things are added to the smoothed tracks ``xy`` [P, T, 2]
-    (:func:`smooth_walkers`), both faded in with the walker's speed (full from ``walking_mps``;
-    standing walkers neither move nor turn):
-
-    * a sideways sway (to the left of ``heading``): white noise smoothed by a Gaussian of
-      ``time_scale_s``, standard deviation ``amplitude_m``; velocities and headings are derived again
-      from the swayed positions, so the heading follows the path;
-    * a heading jitter around the direction of travel: Student-t innovations
-      (:data:`WALKER_JITTER_DOF`) smoothed over ``jitter_s`` and scaled by ``jitter_rad``, clipped to
-      :data:`WALKER_JITTER_MAX_RAD`. The body turns, the path does not.
-
-    Returns (xy, velocity, heading)."""
-    shape = valid.shape
-    step = frame_steps(xy, valid)[0] / DT_S
-    walking = _window_mean(np.clip(np.linalg.norm(step, axis=-1) / walking_mps, 0.0, 1.0)[..., None], valid, 9)[..., 0]
-    offset = amplitude_m * _smoothed_noise(rng, shape, time_scale_s, rng.standard_normal)
-    left = np.stack([-np.sin(heading), np.cos(heading)], axis=-1)
-    swayed = np.where(valid[..., None], xy + (offset * walking)[..., None] * left, 0.0)
-    xy, velocity, heading = smooth_walkers(swayed, valid, heading, window=1)
-    if jitter_rad > 0:
-        jitter = jitter_rad * _smoothed_noise(rng, shape, jitter_s, lambda size: rng.standard_t(WALKER_JITTER_DOF, size))
-        heading = np.where(valid, wrap_angle(heading + np.clip(jitter, -WALKER_JITTER_MAX_RAD, WALKER_JITTER_MAX_RAD) * walking),
-                           heading)
-    return xy, velocity, heading
-
-
 # ------------------------------------------------------------------------------------ scenes
-PARKED_SLOT_M = 7.0  # kerb length per parked-car slot
-PARKED_END_MARGIN_M = 10.0  # no parked car within this distance of either end of an edge (junctions, crossings)
-PARKED_GAP_M = 0.25  # between the kerbside lane's edge and a parked car's side
-PARKED_MIN_SPACING_M = 5.5  # between two parked cars' centres (kerbs meet at corners and across narrow roads)
-PARKED_CLEARANCE_M = 0.3  # a car is dropped where an agent's centre comes within its half width plus this of it
-
-
-def add_parked_vehicles(rec: Recording, net, rotation_rad: float, occupancy: float, rng: np.random.Generator) -> Recording:
-    """``rec`` with parked cars added: static vehicles, valid on every recorded frame, beside the
-    kerbside lane (the rightmost lane of the map: one that cars or bicycles may use) of every normal
-    edge, one per :data:`PARKED_SLOT_M` slot with probability ``occupancy`` (none within
-    :data:`PARKED_END_MARGIN_M` of an edge's ends), their side :data:`PARKED_GAP_M` past the lane's
-    edge, parallel to it with a little jitter. SUMO's traffic never sees them (they are outside its
-    lanes), so a car is dropped wherever a recorded agent (a walker on the sidewalk, a vehicle cutting
-    the kerb) comes near it on any frame: its centre within its half width plus
-    :data:`PARKED_CLEARANCE_M` of the car's box. Real WOMD scenes are mostly parked cars
-    (``benchmarks/scene_statistics.py``: ``vehicle_parked_share`` 0.68, generated scenes without them
-    0.28); the README's "Parked cars" section has what they change."""
-    if occupancy <= 0.0:
-        return rec
-    rot = rotation_matrix(rotation_rad)
-    rows = []  # (x, y, z, heading, length, width, height)
-    for edge in net.getEdges():
-        if edge.getFunction() not in ("", "normal"):
-            continue
-        kerb = next((lane for lane in edge.getLanes() if lane.allows("passenger") or lane.allows("bicycle")), None)
-        if kerb is None:
-            continue
-        pts = lane_shape(kerb)
-        pts[:, :2] = pts[:, :2] @ rot.T
-        seg = np.diff(pts, axis=0)
-        seg_len = np.linalg.norm(seg[:, :2], axis=1)
-        cum = np.concatenate([[0.0], np.cumsum(seg_len)])
-        usable = cum[-1] - 2 * PARKED_END_MARGIN_M
-        if usable < PARKED_SLOT_M:
-            continue
-        slots = PARKED_END_MARGIN_M + (np.arange(int(usable // PARKED_SLOT_M)) + 0.5) * PARKED_SLOT_M
-        slots = slots[rng.random(len(slots)) < occupancy]
-        for u in slots + rng.uniform(-0.8, 0.8, len(slots)):
-            i = int(np.clip(np.searchsorted(cum, u) - 1, 0, len(seg) - 1))
-            if seg_len[i] < 1e-6:
-                continue
-            t = seg[i, :2] / seg_len[i]
-            length, width, height = rng.uniform(4.0, 5.2), rng.uniform(1.75, 2.0), rng.uniform(1.4, 1.8)
-            offset = kerb.getWidth() / 2 + PARKED_GAP_M + width / 2 + rng.uniform(-0.1, 0.2)
-            at = pts[i] + (u - cum[i]) / seg_len[i] * seg[i]
-            rows.append((at[0] + t[1] * offset, at[1] - t[0] * offset, at[2] + height / 2,  # to the right of travel
-                         math.atan2(t[1], t[0]) + rng.normal(0.0, 0.03), length, width, height))
-    if not rows:
-        return rec
-    car = np.array(rows)  # (P, 7)
-    keep = _clear_of_agents(car, rec) & _clear_of_each_other(car)
-    car = car[keep]
-    if not len(car):
-        return rec
-    p, t = len(car), rec.valid.shape[1]
-    center = quantize(np.broadcast_to(car[:, None, :3], (p, t, 3)))
-    return Recording(
-        sumo_ids=rec.sumo_ids + [f"parked{k}" for k in range(p)],
-        types=np.concatenate([rec.types, np.full(p, AgentType.VEHICLE, np.int8)]),
-        size=np.concatenate([rec.size, car[:, 4:7]]),
-        center=np.concatenate([rec.center, center]),
-        heading=np.concatenate([rec.heading, np.broadcast_to(wrap_angle(car[:, 3:4]), (p, t))]),
-        velocity=np.concatenate([rec.velocity, np.zeros((p, t, 2))]),
-        speed=np.concatenate([rec.speed, np.zeros((p, t))]),
-        valid=np.concatenate([rec.valid, np.ones((p, t), bool)]),
-        signal_states=rec.signal_states, start_time_s=rec.start_time_s)
-
-
-def _clear_of_agents(car: np.ndarray, rec: Recording) -> np.ndarray:
-    """[P] whether no recorded agent's centre comes within its half width plus the clearance of each
-    parked car's box (car rows as in :func:`add_parked_vehicles`) on any valid frame."""
-    ok = np.ones(len(car), bool)
-    xy = np.where(rec.valid[..., None], rec.center[..., :2], np.nan)  # (A, T, 2)
-    lo, hi = np.nanmin(xy, axis=1), np.nanmax(xy, axis=1)  # (A, 2) each agent's extent
-    reach = 0.5 * rec.size[:, 1] + PARKED_CLEARANCE_M  # (A,)
-    for k, (x, y, _, heading, length, width, _) in enumerate(car):
-        r = 0.5 * math.hypot(length, width) + reach
-        near = np.flatnonzero(np.all((lo - r[:, None] <= (x, y)) & ((x, y) <= hi + r[:, None]), axis=1))
-        if not len(near):
-            continue
-        d = xy[near] - (x, y)  # (n, T, 2)
-        c, s = math.cos(heading), math.sin(heading)
-        along, across = d[..., 0] * c + d[..., 1] * s, -d[..., 0] * s + d[..., 1] * c
-        inside = (np.abs(along) < 0.5 * length + reach[near, None]) & (np.abs(across) < 0.5 * width + reach[near, None])
-        ok[k] = not inside.any()
-    return ok
-
-
-def _clear_of_each_other(car: np.ndarray) -> np.ndarray:
-    """[P] keeps a parked car unless an earlier kept one's centre is within :data:`PARKED_MIN_SPACING_M`
-    of its own."""
-    keep = np.zeros(len(car), bool)
-    for k in range(len(car)):
-        kept = car[keep]
-        keep[k] = not len(kept) or bool(np.min(np.linalg.norm(kept[:, :2] - car[k, :2], axis=1)) >= PARKED_MIN_SPACING_M)
-    return keep
-
-
 def scene_candidates(rec: Recording, start: int, min_speed_mps: float = 2.0) -> np.ndarray:
     """Indices of vehicles that can be the self-driving car of the scene starting at frame ``start``:
     valid on all 91 frames and moving at the current frame."""
