@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..scenario import AgentType, wrap_angle
-from .sumo_net import lane_shape, quantize, rotation_matrix
+from .sumo_lanes import lane_shape, quantize, rotation_matrix
 
 if TYPE_CHECKING:
     from .sumo_sim import Recording
