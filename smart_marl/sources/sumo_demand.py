@@ -9,15 +9,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from .sumo_config import SumoConfig
 from .sumo_net import turn_angle
-
-if TYPE_CHECKING:
-    from .sumo_sim import SumoConfig
 
 
 def _u(rng: np.random.Generator, lo: float, hi: float) -> str:

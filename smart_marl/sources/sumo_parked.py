@@ -5,17 +5,13 @@ Re-exported by :mod:`.sumo_sim`.
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..scenario import AgentType, wrap_angle
 from .sumo_lanes import lane_shape, quantize, rotation_matrix
-
-if TYPE_CHECKING:
-    from .sumo_sim import Recording
+from .sumo_run import Recording
 
 
 PARKED_SLOT_M = 7.0  # kerb length per parked-car slot
@@ -75,8 +71,7 @@ def add_parked_vehicles(rec: Recording, net, rotation_rad: float, occupancy: flo
         return rec
     p, t = len(car), rec.valid.shape[1]
     center = quantize(np.broadcast_to(car[:, None, :3], (p, t, 3)))
-    return dataclasses.replace(
-        rec,
+    return Recording(
         sumo_ids=rec.sumo_ids + [f"parked{k}" for k in range(p)],
         types=np.concatenate([rec.types, np.full(p, AgentType.VEHICLE, np.int8)]),
         size=np.concatenate([rec.size, car[:, 4:7]]),
