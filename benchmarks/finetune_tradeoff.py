@@ -85,7 +85,8 @@ def draw(path: Path, baselines: dict, tuned: dict, reference: str, title: str) -
     plt.close(fig)
 
 
-def main() -> int:
+def _arguments() -> argparse.ArgumentParser:
+    """The command line: the prior, the fine-tuning and held-out scenes, the betas and reward terms of the runs, the output."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--prior", default="embedded", help="SMART checkpoint (NAME.json) or 'embedded'")
     ap.add_argument("--scenes", nargs="*", default=TRAIN_SCENES, help="fine-tuning scene paths / globs")
@@ -119,6 +120,72 @@ def main() -> int:
     ap.add_argument("--reuse", default=None, metavar="JSONL", help="the output of an earlier run with the same prior, "
                     "held-out scenes, seeds and reference: its baseline and fine-tuned rows are kept (marked reused), "
                     "only the runs it lacks are made")
+    return ap
+
+
+def _base_config(args: argparse.Namespace) -> dict:
+    """The fine-tuning config every run starts from (the tiny named config, overridden by the command line)."""
+    base = {"scenes": list(args.scenes), "prior": args.prior, "num_scenes": args.num_scenes, "max_agents": args.max_agents,
+            "background": "prior", "iterations": args.iterations, "frames_per_batch": args.frames_per_batch, "lr": args.lr,
+            "eval_episodes": 0, "eval_scenes": list(args.eval_scenes), "eval_num_scenes": args.eval_num_scenes,
+            "seed": args.seed, "torch_threads": args.threads, "tensorboard": False, "checkpoint_every": args.iterations}
+    if args.reference_top_k is not None:
+        base["reference_top_k"] = args.reference_top_k or None
+    if args.background_top_k is not None:
+        base["top_k"] = args.background_top_k
+    if args.eval_seed is not None:
+        base["eval_seed"] = args.eval_seed
+    if args.actor_head is not None:
+        base["actor_head"] = args.actor_head
+    return base
+
+
+def _reused_rows(args: argparse.Namespace, held_ids: list, seeds: list, reference: str, cfg):
+    """(baseline rows, fine-tuned rows) of ``--reuse``'s earlier output (fine-tuned ones only from a run with this config);
+    None when it was made with another prior, held-out scenes, seeds or reference."""
+    reused_base, reused_tuned = {}, {}
+    if args.reuse:
+        same_training = False  # fine-tuned rows are reused only from a run with this fine-tuning config
+        for line in Path(args.reuse).read_text().splitlines():
+            d = json.loads(line)
+            if d["kind"] == "setup":
+                if (d["prior"], d["held_out_scenes"], d["seeds"], d["reference"]) != (args.prior, held_ids, seeds, reference):
+                    print(f"--reuse {args.reuse}: another prior, held-out scenes, seeds or reference", file=sys.stderr)
+                    return None
+                same_training = d["config"] == json.loads(json.dumps(cfg.to_dict(), default=float))
+            if d["kind"] == "baseline" or (d["kind"] == "finetuned" and same_training):
+                row = {k: v for k, v in d.items() if k not in ("kind", "policy", "reused")}
+                (reused_base if d["kind"] == "baseline" else reused_tuned)[d["policy"]] = row
+    return reused_base, reused_tuned
+
+
+def _summary(baselines: dict, tuned: dict, reference: str, t0: float) -> dict:
+    """The summary row: the best fine-tuned run (fewest bad outcomes net of goals) against the reference prior."""
+    ref = baselines[reference]
+    best = None
+    for name, row in tuned.items():
+        if "log-lik" in name:
+            continue
+        if best is None or bad_rate(row) - row["goal_rate"] < bad_rate(tuned[best]) - tuned[best]["goal_rate"]:
+            best = name
+    summary = {"kind": "summary", "seconds": time.perf_counter() - t0, "reference": reference, "best": best}
+    if best is not None:
+        b = tuned[best]
+        summary["must_show"] = {
+            "bad_rate_ratio_to_prior_top_k": bad_rate(b) / bad_rate(ref) if bad_rate(ref) > 0 else math.nan,
+            "bad_rate_at_most_0.7x": bad_rate(b) <= 0.7 * bad_rate(ref),
+            "goal_rate_above_prior_top_k": b["goal_rate"] > ref["goal_rate"],
+            "realism_minus_prior_top_k": b["meta_metric"] - ref["meta_metric"],
+            "realism_within_0.03": abs(b["meta_metric"] - ref["meta_metric"]) <= 0.03,
+        }
+        zero = next((r for n, r in tuned.items() if n == "fine-tuned beta=0"), None)
+        if zero is not None:
+            summary["must_show"]["realism_falls_at_beta_0"] = zero["meta_metric"] < ref["meta_metric"]
+    return summary
+
+
+def main() -> int:
+    ap = _arguments()
     args = ap.parse_args()
     try:
         reward = {k: float(v) for k, v in (split_override(item, ValueError) for item in args.reward)}
@@ -134,18 +201,7 @@ def main() -> int:
 
     torch.set_num_threads(args.threads)
     run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="finetune_tradeoff_"))
-    base = {"scenes": list(args.scenes), "prior": args.prior, "num_scenes": args.num_scenes, "max_agents": args.max_agents,
-            "background": "prior", "iterations": args.iterations, "frames_per_batch": args.frames_per_batch, "lr": args.lr,
-            "eval_episodes": 0, "eval_scenes": list(args.eval_scenes), "eval_num_scenes": args.eval_num_scenes,
-            "seed": args.seed, "torch_threads": args.threads, "tensorboard": False, "checkpoint_every": args.iterations}
-    if args.reference_top_k is not None:
-        base["reference_top_k"] = args.reference_top_k or None
-    if args.background_top_k is not None:
-        base["top_k"] = args.background_top_k
-    if args.eval_seed is not None:
-        base["eval_seed"] = args.eval_seed
-    if args.actor_head is not None:
-        base["actor_head"] = args.actor_head
+    base = _base_config(args)
     try:
         cfg = load_finetune_config("tiny", base)
     except FinetuneConfigError as exc:
@@ -167,19 +223,10 @@ def main() -> int:
     emit({"kind": "setup", "prior": args.prior, "training_scenes": training, "held_out_scenes": held_ids, "seeds": seeds,
           "reference": reference, "config": cfg.to_dict(), "torch": torch.__version__})
 
-    reused_base, reused_tuned = {}, {}
-    if args.reuse:
-        same_training = False  # fine-tuned rows are reused only from a run with this fine-tuning config
-        for line in Path(args.reuse).read_text().splitlines():
-            d = json.loads(line)
-            if d["kind"] == "setup":
-                if (d["prior"], d["held_out_scenes"], d["seeds"], d["reference"]) != (args.prior, held_ids, seeds, reference):
-                    print(f"--reuse {args.reuse}: another prior, held-out scenes, seeds or reference", file=sys.stderr)
-                    return 2
-                same_training = d["config"] == json.loads(json.dumps(cfg.to_dict(), default=float))
-            if d["kind"] == "baseline" or (d["kind"] == "finetuned" and same_training):
-                row = {k: v for k, v in d.items() if k not in ("kind", "policy", "reused")}
-                (reused_base if d["kind"] == "baseline" else reused_tuned)[d["policy"]] = row
+    reused = _reused_rows(args, held_ids, seeds, reference, cfg)
+    if reused is None:
+        return 2
+    reused_base, reused_tuned = reused
 
     # the baselines: independent of beta, run once on the same scenes and seeds
     if reused_base:
@@ -220,26 +267,7 @@ def main() -> int:
               "eval_seconds": time.perf_counter() - t - train_s, "train_last": {k: last[k] for k in
               ("goal_rate", "collision_rate", "offroad_rate", "kl_to_prior", "return_per_agent_episode")}, **row})
 
-    ref = baselines[reference]
-    best = None
-    for name, row in tuned.items():
-        if "log-lik" in name:
-            continue
-        if best is None or bad_rate(row) - row["goal_rate"] < bad_rate(tuned[best]) - tuned[best]["goal_rate"]:
-            best = name
-    summary = {"kind": "summary", "seconds": time.perf_counter() - t0, "reference": reference, "best": best}
-    if best is not None:
-        b = tuned[best]
-        summary["must_show"] = {
-            "bad_rate_ratio_to_prior_top_k": bad_rate(b) / bad_rate(ref) if bad_rate(ref) > 0 else math.nan,
-            "bad_rate_at_most_0.7x": bad_rate(b) <= 0.7 * bad_rate(ref),
-            "goal_rate_above_prior_top_k": b["goal_rate"] > ref["goal_rate"],
-            "realism_minus_prior_top_k": b["meta_metric"] - ref["meta_metric"],
-            "realism_within_0.03": abs(b["meta_metric"] - ref["meta_metric"]) <= 0.03,
-        }
-        zero = next((r for n, r in tuned.items() if n == "fine-tuned beta=0"), None)
-        if zero is not None:
-            summary["must_show"]["realism_falls_at_beta_0"] = zero["meta_metric"] < ref["meta_metric"]
+    summary = _summary(baselines, tuned, reference, t0)
     emit(summary)
     title = (f"prior {args.prior}; {len(training)} fine-tuning scenes, {len(scenes)} held-out scenes x {len(seeds)} seeds "
              f"x {cfg.max_agents} controlled vehicles; {cfg.iterations} iterations x {cfg.frames_per_batch} env steps; "

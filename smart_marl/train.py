@@ -36,136 +36,39 @@ import random
 import sys
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 import torch
 import torch.distributed as dist
-from torch.utils.data import DataLoader, Dataset, Sampler
 from tqdm import tqdm
 
-from .cache import SceneCache, is_cache_dir
-from .catk import catk_tokens
-from .config_files import (apply_overrides, check_fields, device_problem, flag, integer, is_number, number, optional,
-                           output_dir_problem, read_config_file, text)
-from .config_files import seed as seed_rule
+from .config_files import is_number
 from .cpu_memory import keep_freed_memory
-from .errors import SmartMarlError, UsageError
-from .model.batch import RoadArrays, SmartBatch, collate_scenes, scene_road, scene_tensors
+from .model.batch import SmartBatch, collate_scenes
 from .model.checkpoint import (CheckpointError, VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
                                save_checkpoint)
 from .model.losses import NextTokenLoss, summarise
-from .model.smart import NAMED_CONFIGS, SMART, ModelConfigError, SmartConfig, get_config
-from .readers import read_scenarios
+from .model.smart import SMART, SmartConfig, get_config
 from .runlog import RunLog
-from .scenario import AgentType, Scenario
-from .tokens import MotionVocabulary, build_motion_vocabulary, collect_snippets, tokenize_motion
-from .tokens.road import RoadVocabulary, build_road_vocabulary, road_pieces
+from .scenario import Scenario
 from .token_cache import TokenCache, is_token_cache
+from .tokens import MotionVocabulary
+from .tokens.road import RoadVocabulary
 from .tokens.vocab_io import load_motion_vocabulary, load_road_vocabulary, save_motion_vocabulary, save_road_vocabulary
+from .train_config import (  # noqa: F401  (re-exported: the config's names are imported from smart_marl.train)
+    _TRAIN_RULES, MAX_BATCH_SIZE, MAX_STEPS, MAX_WORKERS, ROAD_KEEP_RADIUS_RULE, NonFiniteLossError, TrainConfig, TrainConfigError,
+    TrainError, check_train_config, load_train_config, road_keep_radius,
+)
+from .train_data import (  # noqa: F401  (re-exported: the data's names are imported from smart_marl.train)
+    EpochBatchSampler, MixedScenes, TokenizedScenes, build_vocabularies, closed_loop_batch, make_loader, open_scenes,
+    training_scenes, _check_token_cache_config,
+)
 
 
-
-class TrainError(SmartMarlError, ValueError):
-    """A training run that cannot start: bad config, no data, mismatched vocabulary."""
-
-
-class TrainConfigError(TrainError, UsageError):
-    """A config key or value that is not a valid TrainConfig (the command line exits with 2)."""
-
-
-class NonFiniteLossError(TrainError):
-    """A training step whose loss or gradient is NaN or infinite: the run stops before the optimizer
-    takes the step, so the weights and the last checkpoint on disk stay the last good ones."""
-
-
-@dataclass
-class TrainConfig:
-    """Every knob of a training run (CleanRL style: all in one place)."""
-
-    model: str | dict = "smart-1m"  # a named config or a dict of SmartConfig fields (may name a base)
-    model_overrides: dict = field(default_factory=dict)  # SmartConfig fields, e.g. {"hidden_dim": 32}
-    data: str = ""  # scene cache folder, or files / folder / glob that read_scenarios reads
-    val_data: str | None = None  # None: validate on the first training scenes, without noise
-    extra_data: str | None = None  # more scenes mixed into `data` (e.g. a few real scenes next to simulated ones)
-    extra_data_share: float = 0.1  # about this share of the samples come from extra_data (its scenes repeated)
-    out_dir: str = "runs/smart"
-    motion_vocab: str | None = None  # vocabulary file (NAME.npz/.json); None: build from the training scenes
-    road_vocab: str | None = None
-    vocab_scenes: int = 1000  # scenes the vocabularies are built from, when built
-    vocab_seed: int = 0
-    batch_size: int = 4  # scenes per step per rank
-    num_workers: int = 2
-    max_steps: int = 1000
-    lr: float = 2e-4
-    weight_decay: float = 0.1
-    betas: tuple = (0.9, 0.999)
-    warmup_steps: int = 0
-    grad_clip: float = 1.0
-    dropout: float = 0.1
-    label_smoothing: float = 0.1
-    speed_trend_weights: tuple | None = None  # (speeds up, keeps, slows): loss weights of vehicles by their 8 s speed trend (model.losses.speed_trend_weights); None: off
-    token_noise_topk: int = 5  # top-k noisy rolling matching; 0 or 1: off
-    train_only: tuple | None = None  # parameter-name prefixes that train, the rest frozen (e.g. ["motion_heads.1"]: the pedestrian head); None: all
-    catk_top_k: int = 0  # > 0: closed-loop targets (CAT-K, smart_marl.catk) from the model's top-K tokens; 0: teacher forcing
-    road_mask_prob: float = 0.15  # share of road pieces hidden for the road next-token task
-    road_keep_radius_m: float | None = -1.0  # crop roads to this distance from agents; -1: lossless radius from the model config
-    cache_scenes: int = 4096  # per data worker: scenes whose road arrays (and noise-free motion tokens) are kept (~0.2 MB each)
-    log_every: int = 10
-    val_every: int = 500
-    val_scenes: int = 16
-    ckpt_every: int = 500
-    seed: int = 0
-    device: str = "auto"  # auto: cuda when available
-    amp: bool = True  # bf16 autocast on CUDA (never on CPU)
-    init: str | None = None  # checkpoint whose weights start the run (fine-tuning)
-    tensorboard: bool = True
-    progress: bool = True
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-
-# ------------------------------------------------------------------------------------- config
-def load_train_config(config: str | Mapping[str, Any] | None = None, overrides: Sequence[str] | Mapping[str, Any] = ()) -> TrainConfig:
-    """A :class:`TrainConfig` from a JSON/TOML file, a model config name (``smart-7m``) or a dict,
-    plus ``key=value`` overrides (values parsed as JSON when they parse; ``model.FIELD=...`` sets a
-    model field)."""
-    values: dict[str, Any] = {}
-    if isinstance(config, Mapping):
-        values.update(config)
-    elif config:
-        p = Path(config)
-        if p.is_file():
-            values.update(read_config_file(p, "training", TrainError))
-        elif config in NAMED_CONFIGS:
-            values["model"] = config
-        else:
-            raise TrainError(f"unknown config {config!r}: neither a file nor a model config name ({', '.join(NAMED_CONFIGS)})")
-    values = apply_overrides(values, overrides, TrainConfig, "model_overrides", "model", "training", TrainConfigError)
-    cfg = TrainConfig(**values)
-    check_train_config(cfg)
-    return cfg
-
-
-def _trend_weights(value) -> str | None:
-    if value is None:
-        return None
-    if not (isinstance(value, (list, tuple)) and len(value) == 3) or any(number(0.0)(w) for w in value):
-        return f"must be three numbers >= 0 (speeds up, keeps its speed, slows) or null, got {value!r}"
-    return None
-
-
-def _prefixes(value) -> str | None:
-    if value is None:
-        return None
-    if not (isinstance(value, (list, tuple)) and value and all(isinstance(v, str) and v for v in value)):
-        return f"must be a non-empty list of parameter-name prefixes (e.g. [\"motion_heads.1\"]) or null, got {value!r}"
-    return None
-
-
+# ------------------------------------------------------------------------------------ model
 def freeze_except(model: torch.nn.Module, prefixes) -> int:
     """Freeze every parameter of ``model`` whose name starts with none of ``prefixes``; returns how many
     parameters (elements) still train. A prefix that names no parameter is an error."""
@@ -178,237 +81,6 @@ def freeze_except(model: torch.nn.Module, prefixes) -> int:
         param.requires_grad_(any(name.startswith(p) for p in prefixes))
         trained += param.numel() if param.requires_grad else 0
     return trained
-
-
-def _betas(value) -> str | None:
-    if not (isinstance(value, (list, tuple)) and len(value) == 2) or any(number(0.0, 1.0, high_open=True)(b) for b in value):
-        return f"must be two numbers in [0, 1), got {value!r}"
-    return None
-
-
-ROAD_KEEP_RADIUS_RULE = lambda v: (number(-1.0, 10_000.0)(v)  # noqa: E731
-                                   or (None if v == -1 or v >= 0 else f"must be -1 (lossless) or >= 0, got {v}"))
-"""What ``road_keep_radius_m`` (and ``pretokenize --road-keep-radius``) takes: -1 (the lossless radius of the
-model config) or a finite distance >= 0 in metres."""
-MAX_BATCH_SIZE = 1024
-"""The most scenes one training step takes per rank."""
-MAX_STEPS = 10**9
-"""The most optimizer steps a run takes."""
-MAX_WORKERS = 4 * (os.cpu_count() or 1)
-"""The most DataLoader workers: 4 per CPU of this machine (more only wait for a CPU)."""
-
-_TRAIN_RULES = {
-    "model_overrides": lambda v: None if isinstance(v, dict) else f"must be a mapping, got {v!r}",
-    "data": text, "val_data": optional(text), "extra_data": optional(text),
-    "extra_data_share": number(0.0, 1.0, low_open=True, high_open=True), "out_dir": lambda v: text(v) or output_dir_problem(v),
-    "motion_vocab": optional(text), "road_vocab": optional(text), "vocab_scenes": integer(1), "vocab_seed": seed_rule,
-    "batch_size": integer(1, MAX_BATCH_SIZE, "scenes per step a machine holds"),
-    "num_workers": integer(0, MAX_WORKERS, "4 processes per CPU of this machine"),
-    "max_steps": integer(1, MAX_STEPS, "a billion steps"), "lr": number(0.0, 1.0, low_open=True, why="larger diverges at once"),
-    "weight_decay": number(0.0, 10.0), "betas": _betas, "warmup_steps": integer(0, MAX_STEPS), "grad_clip": number(0.0),
-    "dropout": number(0.0, 1.0, high_open=True), "label_smoothing": number(0.0, 1.0, high_open=True),
-    "speed_trend_weights": _trend_weights, "train_only": _prefixes,
-    "token_noise_topk": integer(0), "catk_top_k": integer(0), "cache_scenes": integer(0), "road_mask_prob": number(0.0, 1.0),
-    "road_keep_radius_m": optional(ROAD_KEEP_RADIUS_RULE),
-    "log_every": integer(1), "val_every": integer(0), "val_scenes": integer(0), "ckpt_every": integer(0), "seed": seed_rule,
-    "device": lambda v: None if v == "auto" else device_problem(v), "amp": flag, "init": optional(text),
-    "tensorboard": flag, "progress": flag,
-}
-"""What each TrainConfig field takes (``model`` is checked against the named configs)."""
-
-
-def check_train_config(cfg: TrainConfig) -> None:
-    """:class:`TrainConfigError` naming the first field whose value a run cannot use (``lr=abc``,
-    ``batch_size=0``, ``max_steps=-1``, a ``device`` this machine has not, an ``out_dir`` that is a file...)."""
-    if isinstance(cfg.model, str):
-        if cfg.model not in NAMED_CONFIGS:
-            raise TrainConfigError(f"unknown model config {cfg.model!r}; known: {', '.join(NAMED_CONFIGS)}")
-    elif not isinstance(cfg.model, dict):
-        raise TrainConfigError(f"training config: model must be a config name or a mapping of SMART fields, got {cfg.model!r}")
-    check_fields(cfg, _TRAIN_RULES, "training", TrainConfigError)
-    try:  # the model fields (model=, model.FIELD=) make a SMART config of sane size
-        get_config(cfg.model, **{"dropout": cfg.dropout, **cfg.model_overrides})
-    except ModelConfigError as exc:
-        raise TrainConfigError(f"training config: model: {exc}") from exc
-
-
-# --------------------------------------------------------------------------------------- data
-def open_scenes(path: str) -> Sequence[Scenario]:
-    """A map-style sequence of scenes: a :class:`~smart_marl.cache.SceneCache` for a cache folder,
-    else every scene that ``read_scenarios`` yields for the path (read once, kept in memory)."""
-    if not path:
-        raise TrainError("no training data given (set data=PATH: a scene cache folder, scene files, a folder or a glob)")
-    scenes: Sequence[Scenario] = SceneCache(path) if os.path.isdir(path) and is_cache_dir(path) else list(read_scenarios(path))
-    if len(scenes) == 0:
-        raise TrainError(f"{path}: the dataset is empty (no scene to train on)")
-    return scenes
-
-
-class MixedScenes(Sequence):
-    """``main`` followed by ``extra`` repeated ``repeat`` times: a few scenes (real ones next to
-    thousands of simulated ones) get a chosen share of the samples without copying them. Index
-    ``i < len(main)`` is ``main[i]``, so validating on the first training scenes still sees ``main``."""
-
-    def __init__(self, main: Sequence[Scenario], extra: Sequence[Scenario], share: float) -> None:
-        if not 0.0 < share < 1.0:
-            raise TrainConfigError(f"extra_data_share must be in (0, 1), got {share}")
-        self.main, self.extra = main, extra
-        self.repeat = max(1, round(share / (1.0 - share) * len(main) / len(extra)))
-
-    @property
-    def share(self) -> float:
-        """The share of samples that actually come from ``extra``."""
-        return len(self.extra) * self.repeat / len(self)
-
-    def __len__(self) -> int:
-        return len(self.main) + len(self.extra) * self.repeat
-
-    def __getitem__(self, index: int) -> Scenario:
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"scene index {index} out of range for {len(self)} samples")
-        index %= len(self)
-        return self.main[index] if index < len(self.main) else self.extra[(index - len(self.main)) % len(self.extra)]
-
-
-def road_keep_radius(value: float | None, model_cfg: SmartConfig) -> float | None:
-    """``TrainConfig.road_keep_radius_m`` resolved: a negative value is the lossless radius of the
-    model config (map-agent radius + RoadNet layers x road radius); None keeps every piece."""
-    if value is not None and value < 0:
-        return model_cfg.map_radius_m + model_cfg.num_road_layers * model_cfg.road_radius_m
-    return value
-
-
-def _check_token_cache_config(cfg: "TrainConfig") -> None:
-    """A token cache holds noise-free, teacher-forced tokens made with given vocabularies: refuse a
-    run that would need anything else from it."""
-    wrong = [f"token_noise_topk={cfg.token_noise_topk}"] if cfg.token_noise_topk and cfg.token_noise_topk > 1 else []
-    wrong += [f"catk_top_k={cfg.catk_top_k}"] if cfg.catk_top_k > 0 else []
-    wrong += ["extra_data=" + cfg.extra_data] if cfg.extra_data else []
-    if wrong:
-        raise TrainConfigError(f"data={cfg.data} is a token cache (noise-free teacher-forced tokens, one folder): "
-                               f"it cannot serve {', '.join(wrong)}; train on the scenes instead")
-    if not (cfg.motion_vocab or cfg.init):
-        raise TrainConfigError(f"data={cfg.data} is a token cache: name its vocabularies (motion_vocab=, road_vocab=) "
-                               "or an init checkpoint that has them; they cannot be built from tokens")
-
-
-def training_scenes(cfg: "TrainConfig") -> Sequence[Scenario]:
-    """The run's scenes: ``data``, with ``extra_data`` mixed in at ``extra_data_share`` when given."""
-    scenes = open_scenes(cfg.data)
-    return MixedScenes(scenes, open_scenes(cfg.extra_data), cfg.extra_data_share) if cfg.extra_data else scenes
-
-
-class TokenizedScenes(Dataset):
-    """Scenes -> per-scene token arrays (:func:`scene_tensors`), in DataLoader workers.
-
-    An item key is ``(scene index, sample position)``; the position seeds the token noise and the
-    road mask, so a sample is the same whichever worker makes it. Road arrays (static per scene)
-    and, without noise, motion tokens are cached per worker (bounded). With ``closed_loop`` the
-    motion tokens depend on the model being trained: an item is then the scene, its road arrays and
-    its position, and :func:`closed_loop_batch` makes the batch in the training process."""
-
-    def __init__(self, scenes: Sequence[Scenario], motion_vocab: MotionVocabulary, road_vocab: RoadVocabulary, seed: int,
-                 noise_topk: int, road_mask_prob: float, road_keep_radius_m: float | None, cache_size: int = 512,
-                 closed_loop: bool = False, road_types: str = "all") -> None:
-        self.scenes, self.motion_vocab, self.road_vocab, self.road_types = scenes, motion_vocab, road_vocab, road_types
-        self.seed, self.noise_topk, self.road_mask_prob = seed, noise_topk, road_mask_prob
-        self.road_keep_radius_m, self.cache_size, self.closed_loop = road_keep_radius_m, cache_size, closed_loop
-        self._roads: dict[int, RoadArrays] = {}
-        self._motion: dict[int, Any] = {}
-
-    def __len__(self) -> int:
-        return len(self.scenes)
-
-    def __getitem__(self, key) -> dict[str, np.ndarray]:
-        index, position = key if isinstance(key, tuple) else (key, 0)
-        scenario = self.scenes[index]
-        road = self._roads.get(index)
-        if road is None:
-            road = scene_road(scenario, self.road_vocab, self.road_types)
-            if len(self._roads) < self.cache_size:
-                self._roads[index] = road
-        if self.closed_loop:
-            return {"scenario": scenario, "road": road, "position": int(position)}
-        rng = np.random.default_rng([self.seed, int(position)])
-        tokens = None
-        if self.noise_topk <= 1:
-            tokens = self._motion.get(index)
-            if tokens is None:
-                tokens = tokenize_motion(scenario, self.motion_vocab)
-                if len(self._motion) < self.cache_size:
-                    self._motion[index] = tokens
-        return scene_tensors(scenario, self.motion_vocab, road, noise_topk=self.noise_topk, road_mask_prob=self.road_mask_prob,
-                             rng=rng, motion_tokens=tokens, road_keep_radius_m=self.road_keep_radius_m)
-
-
-class EpochBatchSampler(Sampler):
-    """Global batch g (g = 0, 1, ...) takes sample positions [g * B * W, (g + 1) * B * W) of an
-    endless stream of per-epoch permutations (seeded by (seed, epoch)); rank r reads its slice of
-    B. Yields lists of (scene index, sample position), starting at ``start_batch``."""
-
-    def __init__(self, num_scenes: int, batch_size: int, seed: int, start_batch: int, num_batches: int, rank: int = 0,
-                 world_size: int = 1, shuffle: bool = True) -> None:
-        self.n, self.b, self.seed, self.start, self.count = num_scenes, batch_size, seed, start_batch, num_batches
-        self.rank, self.world, self.shuffle = rank, world_size, shuffle
-        self._perms: dict[int, np.ndarray] = {}
-
-    def _scene_at(self, position: int) -> int:
-        epoch, within = divmod(position, self.n)
-        if not self.shuffle:
-            return within
-        perm = self._perms.get(epoch)
-        if perm is None:
-            perm = self._perms[epoch] = np.random.default_rng([self.seed, epoch, 7]).permutation(self.n)
-            if len(self._perms) > 4:
-                self._perms.pop(min(self._perms))
-        return int(perm[within])
-
-    def __len__(self) -> int:
-        return self.count
-
-    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
-        for g in range(self.start, self.start + self.count):
-            first = (g * self.world + self.rank) * self.b
-            yield [(self._scene_at(p), p) for p in range(first, first + self.b)]
-
-
-def closed_loop_batch(model: SMART, items: list[dict], motion_vocab: MotionVocabulary, top_k: int, road_mask_prob: float,
-                      road_keep_radius_m: float | None, seed: int, device: torch.device) -> SmartBatch:
-    """The training batch of closed-loop items (:class:`TokenizedScenes` with ``closed_loop``): CAT-K
-    token sequences under the current ``model`` (:func:`smart_marl.catk.catk_tokens`), then the usual
-    per-scene tensors (the road mask seeded by the sample position) and padding."""
-    scenes = [it["scenario"] for it in items]
-    tokens = catk_tokens(model, scenes, [it["road"] for it in items], motion_vocab, top_k, device)
-    return collate_scenes([scene_tensors(it["scenario"], motion_vocab, it["road"], road_mask_prob=road_mask_prob,
-                                         rng=np.random.default_rng([seed, it["position"]]), motion_tokens=mt,
-                                         road_keep_radius_m=road_keep_radius_m) for it, mt in zip(items, tokens)])
-
-
-def _item_list(items: list) -> list:
-    return items
-
-
-def make_loader(dataset: TokenizedScenes | TokenCache, sampler: EpochBatchSampler, num_workers: int, pin_memory: bool, seed: int) -> DataLoader:
-    closed_loop = getattr(dataset, "closed_loop", False)
-    return DataLoader(dataset, batch_sampler=sampler, collate_fn=_item_list if closed_loop else collate_scenes,
-                      num_workers=num_workers, pin_memory=pin_memory and not closed_loop,
-                      generator=torch.Generator().manual_seed(seed),  # leaves the global RNG alone (exact resume)
-                      persistent_workers=False, prefetch_factor=2 if num_workers else None)
-
-
-def build_vocabularies(scenes: Sequence[Scenario], model_cfg: SmartConfig, num_scenes: int, seed: int,
-                       progress: bool = False) -> tuple[MotionVocabulary, RoadVocabulary]:
-    """Motion (k-disks per type) and road (k-disks) vocabularies of the config's sizes from the
-    first ``num_scenes`` scenes, with the tokenizer's builders."""
-    subset = [scenes[i] for i in range(min(num_scenes, len(scenes)))]
-    snippets, prov = collect_snippets(subset)
-    sizes = dict(zip((0, 1, 2), model_cfg.motion_vocab_sizes))
-    mv = build_motion_vocabulary({AgentType(k): v for k, v in snippets.items()}, {AgentType(k): v for k, v in sizes.items()},
-                                 seed=seed, provenance=prov, progress=progress)
-    local = np.concatenate([road_pieces(s.road_map).local for s in subset])
-    rv = build_road_vocabulary(local, model_cfg.road_vocab_size, seed=seed, progress=progress,
-                               provenance={"scenes": [s.scenario_id for s in subset]})
-    return mv, rv
 
 
 # ------------------------------------------------------------------------------ distributed
@@ -677,42 +349,53 @@ def _vocabularies(cfg: TrainConfig, model_cfg: SmartConfig, scenes, out_dir: Pat
     return load_motion_vocabulary(run_mv), load_road_vocabulary(run_rv)
 
 
-def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
-          on_step: Callable[[int], None] | None = None) -> TrainResult:
-    """Run (or resume) a training run in ``cfg.out_dir``; see the module docstring. ``on_step(step)``
-    is called at the end of every step (after its log rows and checkpoint)."""
-    check_train_config(cfg)
+def _start(cfg: TrainConfig) -> tuple[torch.device, DistInfo]:
+    """The run's device and process group (the CUDA device selected, or the CPU allocator tuned)."""
     device = resolve_device(cfg.device)
     info = init_distributed(device)
     if device.type == "cuda":
         torch.cuda.set_device(device)
     else:
         keep_freed_memory()  # a CPU step reuses its freed gigabytes instead of faulting them in again
-    out_dir = Path(cfg.out_dir)
-    last = out_dir / "checkpoints" / "last"
-    resuming = checkpoint_paths(last)["meta"].is_file()
-    if info.is_main:
-        out_dir.mkdir(parents=True, exist_ok=True)
+    return device, info
+
+
+def _run_data(cfg: TrainConfig, scenes: Sequence[Scenario] | None) -> tuple[TokenCache | None, Sequence[Scenario] | TokenCache]:
+    """The token cache ``data`` names (None when it is scenes) and what the run trains on: the scenes
+    given, else the token cache, else the training scenes; an empty dataset is an error."""
     tokens = TokenCache(cfg.data, cfg.seed, cfg.road_mask_prob) if scenes is None and is_token_cache(cfg.data) else None
     if tokens is not None:
         _check_token_cache_config(cfg)
     scenes = scenes if scenes is not None else tokens if tokens is not None else training_scenes(cfg)
     if len(scenes) == 0:
         raise TrainError(f"{cfg.data or 'the scenes given'}: the dataset is empty (no scene to train on)")
+    return tokens, scenes
 
+
+def _model_config(cfg: TrainConfig) -> SmartConfig:
+    """The SMART config the run's ``model`` and ``model_overrides`` name (with the run's dropout)."""
     base = cfg.model if isinstance(cfg.model, (str, dict)) else str(cfg.model)
     try:
-        model_cfg = get_config(base, **{"dropout": cfg.dropout, **cfg.model_overrides})
+        return get_config(base, **{"dropout": cfg.dropout, **cfg.model_overrides})
     except ValueError as exc:
         raise TrainError(str(exc)) from exc
-    mv, rv = _vocabularies(cfg, model_cfg, scenes, out_dir, info, resuming)
+
+
+def _fit_vocabularies(model_cfg: SmartConfig, mv: MotionVocabulary, rv: RoadVocabulary, cfg: TrainConfig, info: DistInfo) -> SmartConfig:
+    """``model_cfg`` with the vocabularies' sizes (a note when they differ from the config's)."""
     sizes = tuple(mv[t].size for t in range(3))
     if sizes != model_cfg.motion_vocab_sizes or rv.size != model_cfg.road_vocab_size:
         if cfg.progress and info.is_main:
             print(f"note: vocabulary sizes {sizes} / road {rv.size} differ from the config's {model_cfg.motion_vocab_sizes} / "
                   f"{model_cfg.road_vocab_size}; the model takes the vocabulary's sizes", file=sys.stderr)
         model_cfg = dataclasses.replace(model_cfg, motion_vocab_sizes=sizes, road_vocab_size=rv.size)
+    return model_cfg
 
+
+def _build_model(cfg: TrainConfig, model_cfg: SmartConfig, mv: MotionVocabulary, rv: RoadVocabulary, resuming: bool,
+                 device: torch.device) -> SMART:
+    """The run's model on ``device``: seeded fresh weights, or the ``init`` checkpoint's when fine-tuning
+    (its vocabularies must be the run's), frozen but for ``train_only``."""
     torch.manual_seed(cfg.seed)
     model = SMART(model_cfg, [torch.from_numpy(mv[t].contour) for t in range(3)])
     if cfg.init and not resuming:
@@ -726,43 +409,123 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
                   if k != "dropout" and model_cfg.to_dict().get(k) != v}
         if differ:  # same weight shapes, other behaviour (e.g. road_types): say so, the run's config wins
             warnings.warn(f"{cfg.init}: the run's model config differs from the checkpoint's in {sorted(differ)} "
-                          f"(checkpoint, run: {differ}); pass model.KEY=VALUE to keep the checkpoint's", stacklevel=2)
+                          f"(checkpoint, run: {differ}); pass model.KEY=VALUE to keep the checkpoint's", stacklevel=3)
     model.to(device)
     if cfg.train_only:
         freeze_except(model, cfg.train_only)
+    return model
+
+
+def _resume(cfg: TrainConfig, last: Path, model: SMART, optimizer: torch.optim.Optimizer, scheduler, mv: MotionVocabulary,
+            rv: RoadVocabulary, device: torch.device) -> int:
+    """Load the last checkpoint's weights and training state (optimizer, scheduler, RNGs) into the run; its step."""
+    ck = load_checkpoint(last, motion_vocab=mv, road_vocab=rv, map_location=device, dropout=cfg.dropout,
+                         **{k: v for k, v in cfg.model_overrides.items() if k not in ("motion_vocab_sizes", "road_vocab_size")})
+    model.load_state_dict(ck.model.state_dict())
+    st = load_train_state(last)
+    check_train_state(st, optimizer, cfg.max_steps, checkpoint_paths(last)["train_state"])
+    optimizer.load_state_dict(st["optimizer"])
+    scheduler.load_state_dict(st["scheduler"])
+    _set_rng_state(st["rng"])
+    return int(st["step"])
+
+
+def _datasets(cfg: TrainConfig, tokens: TokenCache | None, scenes, mv: MotionVocabulary, rv: RoadVocabulary,
+              model_cfg: SmartConfig, keep: float | None):
+    """(training set, validation scenes, validation set): token caches checked against the run's
+    vocabularies, or :class:`TokenizedScenes` (noisy and maybe closed-loop for training, clean for validation)."""
+    noise = cfg.token_noise_topk if cfg.token_noise_topk and cfg.token_noise_topk > 1 else 0
+    if cfg.catk_top_k < 0:
+        raise TrainError(f"catk_top_k must be >= 0 (0: teacher forcing), got {cfg.catk_top_k}")
+    if tokens is not None:  # pre-tokenized: the same items, without the rolling matching
+        tokens.check(mv, rv, model_cfg.road_types, keep)
+        val_scenes = val_set = TokenCache(cfg.val_data, cfg.seed + 1, cfg.road_mask_prob) if cfg.val_data else tokens.with_seed(cfg.seed + 1)
+        val_set.check(mv, rv, model_cfg.road_types, keep)
+        return tokens, val_scenes, val_set
+    train_set = TokenizedScenes(scenes, mv, rv, cfg.seed, noise, cfg.road_mask_prob, keep, cache_size=cfg.cache_scenes,
+                                closed_loop=cfg.catk_top_k > 0, road_types=model_cfg.road_types)
+    val_scenes = open_scenes(cfg.val_data) if cfg.val_data else scenes
+    val_set = TokenizedScenes(val_scenes, mv, rv, cfg.seed + 1, 0, cfg.road_mask_prob, keep, road_types=model_cfg.road_types)
+    return train_set, val_scenes, val_set
+
+
+def _data_info(cfg: TrainConfig, scenes, mv: MotionVocabulary, rv: RoadVocabulary) -> dict[str, Any]:
+    """What the checkpoints record of the run's data: paths, scene counts, the extra scenes' share, vocabulary hashes."""
+    return {"data": cfg.data, "val_data": cfg.val_data, "num_scenes": len(scenes),
+            **({"extra_data": cfg.extra_data, "extra_scenes": len(scenes.extra), "extra_share": round(scenes.share, 4)}
+               if isinstance(scenes, MixedScenes) else {}),
+            "motion_vocab": mv.content_hash(), "road_vocab": rv.content_hash()}
+
+
+def _checked_step(wrapped, optimizer, scheduler, batch: SmartBatch, cfg: TrainConfig, info: DistInfo, device: torch.device,
+                  out_dir: Path, last: Path, step: int) -> dict[str, float]:
+    """:func:`train_step`; a non-finite loss names the run, the step and the last good checkpoint."""
+    try:
+        return train_step(wrapped, optimizer, scheduler, batch, cfg.grad_clip, info, device, cfg.amp)
+    except NonFiniteLossError as exc:
+        kept = checkpoint_paths(last)["meta"]
+        raise NonFiniteLossError(f"{out_dir}: step {step + 1}: {exc}; the run stopped before the optimizer took that "
+                                 f"step: " + (f"the last good checkpoint is {kept} (step {_saved_step(kept)})"
+                                              if kept.is_file() else "no checkpoint was written before it")) from None
+
+
+def _train_row(acc: Mapping[str, float], n_acc: int, scenes_acc: int, t0: float, step: int, lr: float, info: DistInfo,
+               device: torch.device) -> dict[str, float]:
+    """One ``train.csv`` row: the steps since the last row (begun at ``t0``), summed over the ranks, as per-step
+    means and rates."""
+    keys = sorted(acc)
+    t = torch.tensor([acc[k] for k in keys] + [scenes_acc], dtype=torch.float64, device=device)
+    if info.enabled:
+        dist.all_reduce(t)
+    tot = dict(zip(keys + ["scenes"], t.tolist()))
+    seconds = time.perf_counter() - t0
+    motion_tokens = tot["vehicle_tokens"] + tot["pedestrian_tokens"] + tot["cyclist_tokens"]
+    row = {"step": step, "lr": lr, "tokens_per_s": motion_tokens / seconds, "scenes_per_s": tot["scenes"] / seconds, **summarise(tot)}
+    for k in ("loss", "motion_loss", "road_loss", "grad_norm"):
+        # per-step means: rank r's loss is (its sum) * world / (global count), so the ranks add up to world * mean
+        row[k] = tot[k] / (n_acc * info.world_size)
+    return row
+
+
+def _validate(model: SMART, val_set, val_keys: list, cfg: TrainConfig, info: DistInfo, device: torch.device, step: int) -> dict[str, float]:
+    """The validation row at ``step``: teacher-forced metrics of the validation items, summed over the ranks."""
+    batches = (collate_scenes([val_set[k] for k in val_keys[i : i + cfg.batch_size]]) for i in range(0, len(val_keys), cfg.batch_size))
+    sums = evaluate_sums(model, batches, device, label_smoothing=cfg.label_smoothing, amp=cfg.amp)
+    if info.enabled:
+        keys = sorted(sums)
+        t = torch.tensor([sums[k] for k in keys], dtype=torch.float64, device=device)
+        dist.all_reduce(t)
+        sums = dict(zip(keys, t.tolist()))
+    return {"step": step, **finish_metrics(sums)}
+
+
+def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
+          on_step: Callable[[int], None] | None = None) -> TrainResult:
+    """Run (or resume) a training run in ``cfg.out_dir``; see the module docstring. ``on_step(step)``
+    is called at the end of every step (after its log rows and checkpoint)."""
+    check_train_config(cfg)
+    device, info = _start(cfg)
+    out_dir = Path(cfg.out_dir)
+    last = out_dir / "checkpoints" / "last"
+    resuming = checkpoint_paths(last)["meta"].is_file()
+    if info.is_main:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    tokens, scenes = _run_data(cfg, scenes)
+    model_cfg = _model_config(cfg)
+    mv, rv = _vocabularies(cfg, model_cfg, scenes, out_dir, info, resuming)
+    model_cfg = _fit_vocabularies(model_cfg, mv, rv, cfg, info)
+    model = _build_model(cfg, model_cfg, mv, rv, resuming, device)
     loss_module = NextTokenLoss(model, cfg.label_smoothing, cfg.speed_trend_weights)
     optimizer = make_optimizer(model, cfg)
     scheduler = make_scheduler(optimizer, cfg)
-    step = 0
-    if resuming:
-        ck = load_checkpoint(last, motion_vocab=mv, road_vocab=rv, map_location=device, dropout=cfg.dropout,
-                             **{k: v for k, v in cfg.model_overrides.items() if k not in ("motion_vocab_sizes", "road_vocab_size")})
-        model.load_state_dict(ck.model.state_dict())
-        st = load_train_state(last)
-        check_train_state(st, optimizer, cfg.max_steps, checkpoint_paths(last)["train_state"])
-        optimizer.load_state_dict(st["optimizer"])
-        scheduler.load_state_dict(st["scheduler"])
-        _set_rng_state(st["rng"])
-        step = int(st["step"])
+    step = _resume(cfg, last, model, optimizer, scheduler, mv, rv, device) if resuming else 0
     resumed_from = step
     wrapped = loss_module
     if info.enabled:
         wrapped = torch.nn.parallel.DistributedDataParallel(loss_module, device_ids=[device.index] if device.type == "cuda" else None)
 
     keep = road_keep_radius(cfg.road_keep_radius_m, model_cfg)
-    noise = cfg.token_noise_topk if cfg.token_noise_topk and cfg.token_noise_topk > 1 else 0
-    if cfg.catk_top_k < 0:
-        raise TrainError(f"catk_top_k must be >= 0 (0: teacher forcing), got {cfg.catk_top_k}")
-    if tokens is not None:  # pre-tokenized: the same items, without the rolling matching
-        tokens.check(mv, rv, model_cfg.road_types, keep)
-        train_set = tokens
-        val_scenes = val_set = TokenCache(cfg.val_data, cfg.seed + 1, cfg.road_mask_prob) if cfg.val_data else tokens.with_seed(cfg.seed + 1)
-        val_set.check(mv, rv, model_cfg.road_types, keep)
-    else:
-        train_set = TokenizedScenes(scenes, mv, rv, cfg.seed, noise, cfg.road_mask_prob, keep, cache_size=cfg.cache_scenes,
-                                    closed_loop=cfg.catk_top_k > 0, road_types=model_cfg.road_types)
-        val_scenes = open_scenes(cfg.val_data) if cfg.val_data else scenes
-        val_set = TokenizedScenes(val_scenes, mv, rv, cfg.seed + 1, 0, cfg.road_mask_prob, keep, road_types=model_cfg.road_types)
+    train_set, val_scenes, val_set = _datasets(cfg, tokens, scenes, mv, rv, model_cfg, keep)
     n_val = min(cfg.val_scenes, len(val_scenes))
     val_keys = [(i, i) for i in range(info.rank, n_val, info.world_size)]
     pin = device.type == "cuda"
@@ -770,10 +533,7 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
     log = RunLog(out_dir, {"train": TRAIN_COLUMNS, "val": VAL_COLUMNS}, "step", step, cfg.tensorboard) if info.is_main else None
     if log is not None and log.note and cfg.progress:
         print(f"note: {log.note}", file=sys.stderr)
-    data_info = {"data": cfg.data, "val_data": cfg.val_data, "num_scenes": len(scenes),
-                 **({"extra_data": cfg.extra_data, "extra_scenes": len(scenes.extra), "extra_share": round(scenes.share, 4)}
-                    if isinstance(scenes, MixedScenes) else {}),
-                 "motion_vocab": mv.content_hash(), "road_vocab": rv.content_hash()}
+    data_info = _data_info(cfg, scenes, mv, rv)
 
     def save(tag: str, metrics: dict) -> Path | None:
         if not info.is_main:
@@ -782,21 +542,9 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
         return save_checkpoint(out_dir / "checkpoints" / tag, model, mv, rv, step=step, metrics=metrics, data=data_info,
                                train_config=cfg.to_dict(), train_state=state)
 
-    def validate() -> dict[str, float]:
-        batches = (collate_scenes([val_set[k] for k in val_keys[i : i + cfg.batch_size]]) for i in range(0, len(val_keys), cfg.batch_size))
-        sums = evaluate_sums(model, batches, device, label_smoothing=cfg.label_smoothing, amp=cfg.amp)
-        if info.enabled:
-            keys = sorted(sums)
-            t = torch.tensor([sums[k] for k in keys], dtype=torch.float64, device=device)
-            dist.all_reduce(t)
-            sums = dict(zip(keys, t.tolist()))
-        return {"step": step, **finish_metrics(sums)}
-
     sampler = EpochBatchSampler(len(scenes), cfg.batch_size, cfg.seed, step, max(cfg.max_steps - step, 0), info.rank, info.world_size)
     loader = make_loader(train_set, sampler, cfg.num_workers, pin, cfg.seed + step)
-    bar = None
-    if cfg.progress and info.is_main:
-        bar = tqdm(total=cfg.max_steps, initial=step, desc="train", dynamic_ncols=True)
+    bar = tqdm(total=cfg.max_steps, initial=step, desc="train", dynamic_ncols=True) if cfg.progress and info.is_main else None
     last_train: dict[str, float] = {}
     last_val: dict[str, float] = {}
     acc: dict[str, float] = {}
@@ -807,39 +555,21 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
         if getattr(train_set, "closed_loop", False):
             batch = closed_loop_batch(model, batch, mv, cfg.catk_top_k, cfg.road_mask_prob, keep, cfg.seed, device)
         lr = scheduler.get_last_lr()[0]
-        try:
-            res = train_step(wrapped, optimizer, scheduler, batch, cfg.grad_clip, info, device, cfg.amp)
-        except NonFiniteLossError as exc:
-            kept = checkpoint_paths(last)["meta"]
-            raise NonFiniteLossError(f"{out_dir}: step {step + 1}: {exc}; the run stopped before the optimizer took that "
-                                     f"step: " + (f"the last good checkpoint is {kept} (step {_saved_step(kept)})"
-                                                  if kept.is_file() else "no checkpoint was written before it")) from None
+        res = _checked_step(wrapped, optimizer, scheduler, batch, cfg, info, device, out_dir, last, step)
         step += 1
         for k, v in res.items():
             acc[k] = acc.get(k, 0.0) + v
         n_acc += 1
         scenes_acc += batch.num_scenes
         if step % cfg.log_every == 0 or step == cfg.max_steps:
-            keys = sorted(acc)
-            t = torch.tensor([acc[k] for k in keys] + [scenes_acc], dtype=torch.float64, device=device)
-            if info.enabled:
-                dist.all_reduce(t)
-            tot = dict(zip(keys + ["scenes"], t.tolist()))
-            dt = time.perf_counter() - t0
-            world = info.world_size
-            motion_tokens = tot["vehicle_tokens"] + tot["pedestrian_tokens"] + tot["cyclist_tokens"]
-            row = {"step": step, "lr": lr, "tokens_per_s": motion_tokens / dt, "scenes_per_s": tot["scenes"] / dt, **summarise(tot)}
-            for k in ("loss", "motion_loss", "road_loss", "grad_norm"):
-                # per-step means: rank r's loss is (its sum) * world / (global count), so the ranks add up to world * mean
-                row[k] = tot[k] / (n_acc * world)
-            last_train = row
+            row = last_train = _train_row(acc, n_acc, scenes_acc, t0, step, lr, info, device)
             if log is not None:
                 log.write("train", row)
             if bar is not None:
                 bar.set_postfix(loss=f"{row['loss']:.3f}", top1=f"{row['motion_top1_acc']:.3f}", tok_s=f"{row['tokens_per_s']:.0f}")
             acc, n_acc, scenes_acc, t0 = {}, 0, 0, time.perf_counter()
         if cfg.val_every and step % cfg.val_every == 0:
-            last_val = validate()
+            last_val = _validate(model, val_set, val_keys, cfg, info, device, step)
             if log is not None:
                 log.write("val", last_val)
         if cfg.ckpt_every and step % cfg.ckpt_every == 0 and step != cfg.max_steps:
@@ -852,7 +582,7 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
         bar.close()
     if step > resumed_from or not resuming:
         if cfg.val_every and step % cfg.val_every != 0:
-            last_val = validate()
+            last_val = _validate(model, val_set, val_keys, cfg, info, device, step)
             if log is not None:
                 log.write("val", {"step": step, **last_val})
         ckpt_path = save("last", {"train": last_train, "val": last_val})

@@ -160,6 +160,105 @@ def _place_tokens(vocab_type, pose: np.ndarray, tokens: Sequence[int]) -> np.nda
     return np.asarray(out)
 
 
+def _new_agent(scene: Scenario, e, kind: str, horizon: int, motion_vocab, path, i):
+    """(type, then, future poses [F, 3], history speed, size, tokens or None) of an agent an insert, jaywalker or
+    stalled_vehicle edit adds to the scene."""
+    if kind == "jaywalker":
+        atype, then = AgentType.PEDESTRIAN, "release"
+        wp = _to_local(scene, e, [e.start, e.end], path, i)[:, :2]
+        future = scripted.polyline_path(wp, float(e.speed_mps), horizon, wait_s=float(e.wait_s))
+        hist_speed, size, tokens = 0.0, DEFAULT_SIZE_M["pedestrian"], None
+    elif kind == "stalled_vehicle":
+        if e.pose is None:
+            raise WhatIfError(path, "stalled_vehicle needs 'agent' (an existing vehicle) or 'pose' [x, y, heading]", i)
+        atype, then = AgentType.VEHICLE, "hold"
+        future = _to_local(scene, e, [list(e.pose)], path, i)[:1]
+        hist_speed, size, tokens = 0.0, e.size_m or DEFAULT_SIZE_M["vehicle"], None
+    else:
+        atype = _agent_type(e.type, path, i)
+        then = _then(e.then, path, i)
+        size = e.size_m or DEFAULT_SIZE_M[atype.name.lower()]
+        given = [x is not None for x in (e.trajectory, e.path, e.tokens)]
+        if sum(given) != 1:
+            raise WhatIfError(path, "insert needs exactly one of 'trajectory', 'path' or 'tokens'", i)
+        tokens = None
+        if e.trajectory is not None:
+            future = _to_local(scene, e, e.trajectory, path, i)
+            if np.asarray(e.trajectory).shape[-1] == 2:  # headings from the motion
+                d = np.diff(future[:, :2], axis=0)
+                h = np.arctan2(d[:, 1], d[:, 0]) if len(d) else np.zeros(0)
+                future[:, 2] = np.concatenate([h[:1], h]) if len(h) else 0.0
+            hist_speed = float(np.linalg.norm(future[1, :2] - future[0, :2]) / DT_S) if len(future) > 1 else 0.0
+        elif e.path is not None:
+            wp = _to_local(scene, e, e.path, path, i)[:, :2]
+            future = scripted.polyline_path(wp, float(e.speed_mps), horizon, wait_s=float(e.wait_s))
+            hist_speed = 0.0 if e.wait_s > 0 else float(e.speed_mps)
+        else:
+            if motion_vocab is None:
+                raise WhatIfError(path, "insert with 'tokens' needs the prior's motion vocabulary", i)
+            if e.pose is None:
+                raise WhatIfError(path, "insert with 'tokens' needs 'pose' [x, y, heading]", i)
+            tokens = [int(t) for t in e.tokens]
+            vt = motion_vocab[atype]
+            if any(t < 0 or t >= vt.size for t in tokens):
+                raise WhatIfError(path, f"tokens outside the {atype.name.lower()} vocabulary [0, {vt.size})", i)
+            start = _to_local(scene, e, [list(e.pose)], path, i)[0]
+            future = _place_tokens(vt, start, tokens)
+            hist_speed = float(e.speed_mps)
+    return atype, then, future, hist_speed, size, tokens
+
+
+def _inserted_script(tid: int, future: np.ndarray, tokens, then: str, horizon: int) -> Script:
+    """The script of an added agent: its tokens, or its future poses (held at the end, or run on past it when released)."""
+    if tokens is not None:
+        return Script(tid, 0, tokens=tokens, then=then)
+    fut = future[1:] if len(future) > 1 else future
+    end_step = None
+    if then == "release":  # released when its motion ends; the target runs on past the end (no sudden stop)
+        moving = moving_frames(future)
+        end_step = int(math.ceil(moving / FRAMES_PER_TOKEN))
+        fut = _extrapolate(future[: moving + 1], horizon + 2 * FRAMES_PER_TOKEN)[1:]
+    return Script(tid, 0, then=then, end_step=end_step, make_path=lambda pose, v, fut=fut, n=horizon - 1:
+                  np.repeat(_pad_hold(fut, n + 2 * FRAMES_PER_TOKEN)[None], len(pose), 0))
+
+
+def _override_lights(scene: Scenario, e, step: int, path, i) -> tuple[Scenario, np.ndarray, int]:
+    """(the scene with the lights of a traffic_light edit's lanes set from ``step`` on, those lanes' indices, the state)."""
+    tl = scene.traffic_lights
+    if not len(tl.lane_ids):
+        raise WhatIfError(path, f"scene {scene.scenario_id} has no traffic lights to override", i)
+    try:
+        code = int(SignalState[str(e.state).upper()])
+    except KeyError:
+        raise WhatIfError(path, f"state must be one of {', '.join(s.name.lower() for s in SignalState)}, got {e.state!r}", i) from None
+    if isinstance(e.lanes, str) and e.lanes == "all":
+        lanes = np.arange(len(tl.lane_ids))
+    else:
+        want = np.asarray(e.lanes if isinstance(e.lanes, (list, tuple)) else [e.lanes], np.int64)
+        missing = want[~np.isin(want, tl.lane_ids)]
+        if len(missing):
+            raise WhatIfError(path, f"lanes {missing.tolist()} have no traffic light in this scene (lanes with one: "
+                                    f"{tl.lane_ids[:20].tolist()}{'...' if len(tl.lane_ids) > 20 else ''})", i)
+        lanes = np.flatnonzero(np.isin(tl.lane_ids, want))
+    first = scene.current_frame + FRAMES_PER_TOKEN * step
+    states, present = tl.states.copy(), tl.present.copy()
+    states[first:, lanes] = code
+    present[first:, lanes] = True
+    scene = dataclasses.replace(scene, traffic_lights=TrafficLights(tl.lane_ids, states, present, tl.stop_points))
+    return scene, lanes, code
+
+
+def _check_one_script_each(scripts: list[Script], edit_of_script: list[int], whatif: WhatIf, path) -> None:
+    """One agent follows one script: a second would silently win or be dropped, so it is an error naming both edits."""
+    first: dict[int, int] = {}
+    for sc, i in zip(scripts, edit_of_script):
+        if sc.track_id in first and first[sc.track_id] != i:
+            j = first[sc.track_id]
+            raise WhatIfError(path, f"{KIND_OF[type(whatif.edits[i])]}: agent {sc.track_id} is already driven by edit {j} "
+                                    f"({KIND_OF[type(whatif.edits[j])]}); an agent takes one scripted edit", i)
+        first.setdefault(sc.track_id, i)
+
+
 def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
     """Apply a what-if's scene edits and list its per-step actions (see the module docstring).
     ``motion_vocab`` is needed only for inserted agents driven by ``tokens``."""
@@ -234,101 +333,25 @@ def prepare(scene: Scenario, whatif: WhatIf, motion_vocab=None) -> Prepared:
             if np.isin(tid, scene.tracks.ids):
                 raise WhatIfError(path, f"id {tid} is already a track of the scene", i)
             next_id = max(next_id, tid) + 1
-            if kind == "jaywalker":
-                atype, then = AgentType.PEDESTRIAN, "release"
-                wp = _to_local(scene, e, [e.start, e.end], path, i)[:, :2]
-                future = scripted.polyline_path(wp, float(e.speed_mps), horizon, wait_s=float(e.wait_s))
-                hist_speed, size, tokens = 0.0, DEFAULT_SIZE_M["pedestrian"], None
-            elif kind == "stalled_vehicle":
-                if e.pose is None:
-                    raise WhatIfError(path, "stalled_vehicle needs 'agent' (an existing vehicle) or 'pose' [x, y, heading]", i)
-                atype, then = AgentType.VEHICLE, "hold"
-                future = _to_local(scene, e, [list(e.pose)], path, i)[:1]
-                hist_speed, size, tokens = 0.0, e.size_m or DEFAULT_SIZE_M["vehicle"], None
-            else:
-                atype = _agent_type(e.type, path, i)
-                then = _then(e.then, path, i)
-                size = e.size_m or DEFAULT_SIZE_M[atype.name.lower()]
-                given = [x is not None for x in (e.trajectory, e.path, e.tokens)]
-                if sum(given) != 1:
-                    raise WhatIfError(path, "insert needs exactly one of 'trajectory', 'path' or 'tokens'", i)
-                tokens = None
-                if e.trajectory is not None:
-                    future = _to_local(scene, e, e.trajectory, path, i)
-                    if np.asarray(e.trajectory).shape[-1] == 2:  # headings from the motion
-                        d = np.diff(future[:, :2], axis=0)
-                        h = np.arctan2(d[:, 1], d[:, 0]) if len(d) else np.zeros(0)
-                        future[:, 2] = np.concatenate([h[:1], h]) if len(h) else 0.0
-                    hist_speed = float(np.linalg.norm(future[1, :2] - future[0, :2]) / DT_S) if len(future) > 1 else 0.0
-                elif e.path is not None:
-                    wp = _to_local(scene, e, e.path, path, i)[:, :2]
-                    future = scripted.polyline_path(wp, float(e.speed_mps), horizon, wait_s=float(e.wait_s))
-                    hist_speed = 0.0 if e.wait_s > 0 else float(e.speed_mps)
-                else:
-                    if motion_vocab is None:
-                        raise WhatIfError(path, "insert with 'tokens' needs the prior's motion vocabulary", i)
-                    if e.pose is None:
-                        raise WhatIfError(path, "insert with 'tokens' needs 'pose' [x, y, heading]", i)
-                    tokens = [int(t) for t in e.tokens]
-                    vt = motion_vocab[atype]
-                    if any(t < 0 or t >= vt.size for t in tokens):
-                        raise WhatIfError(path, f"tokens outside the {atype.name.lower()} vocabulary [0, {vt.size})", i)
-                    start = _to_local(scene, e, [list(e.pose)], path, i)[0]
-                    future = _place_tokens(vt, start, tokens)
-                    hist_speed = float(e.speed_mps)
+            atype, then, future, hist_speed, size, tokens = _new_agent(scene, e, kind, horizon, motion_vocab, path, i)
             if len(np.asarray(size).reshape(-1)) != 3:
                 raise WhatIfError(path, f"size_m must be [length, width, height], got {size}", i)
             scene = _add_track(scene, tid, atype, future, size, hist_speed)
-            if tokens is not None:
-                scripts.append(Script(tid, 0, tokens=tokens, then=then))
-            else:
-                fut = future[1:] if len(future) > 1 else future
-                end_step = None
-                if then == "release":  # released when its motion ends; the target runs on past the end (no sudden stop)
-                    moving = moving_frames(future)
-                    end_step = int(math.ceil(moving / FRAMES_PER_TOKEN))
-                    fut = _extrapolate(future[: moving + 1], horizon + 2 * FRAMES_PER_TOKEN)[1:]
-                scripts.append(Script(tid, 0, then=then, end_step=end_step, make_path=lambda pose, v, fut=fut, n=horizon - 1:
-                                       np.repeat(_pad_hold(fut, n + 2 * FRAMES_PER_TOKEN)[None], len(pose), 0)))
+            scripts.append(_inserted_script(tid, future, tokens, then, horizon))
             affected[tid], onset[tid] = {"insert": "inserted", "jaywalker": "jaywalker", "stalled_vehicle": "stalled"}[kind], 0
             if kind == "stalled_vehicle":
                 followers[tid] = _followers(scene, scene.num_tracks - 1)
         elif kind == "traffic_light":
             step = _step_of(e.at_s, path, i)
             tl = scene.traffic_lights
-            if not len(tl.lane_ids):
-                raise WhatIfError(path, f"scene {scene.scenario_id} has no traffic lights to override", i)
-            try:
-                code = int(SignalState[str(e.state).upper()])
-            except KeyError:
-                raise WhatIfError(path, f"state must be one of {', '.join(s.name.lower() for s in SignalState)}, got {e.state!r}", i) from None
-            if isinstance(e.lanes, str) and e.lanes == "all":
-                lanes = np.arange(len(tl.lane_ids))
-            else:
-                want = np.asarray(e.lanes if isinstance(e.lanes, (list, tuple)) else [e.lanes], np.int64)
-                missing = want[~np.isin(want, tl.lane_ids)]
-                if len(missing):
-                    raise WhatIfError(path, f"lanes {missing.tolist()} have no traffic light in this scene (lanes with one: "
-                                            f"{tl.lane_ids[:20].tolist()}{'...' if len(tl.lane_ids) > 20 else ''})", i)
-                lanes = np.flatnonzero(np.isin(tl.lane_ids, want))
-            first = scene.current_frame + FRAMES_PER_TOKEN * step
-            states, present = tl.states.copy(), tl.present.copy()
-            states[first:, lanes] = code
-            present[first:, lanes] = True
-            scene = dataclasses.replace(scene, traffic_lights=TrafficLights(tl.lane_ids, states, present, tl.stop_points))
+            scene, lanes, code = _override_lights(scene, e, step, path, i)
             if step > 0:
                 lights.append((step, lanes, code))
             approaching.append((step, _approaching(scene, tl.stop_points[lanes, :2].astype(np.float64))))
         else:  # pragma: no cover
             raise WhatIfError(path, f"kind {kind} not handled", i)
     edit_of_script += [len(whatif.edits) - 1] * (len(scripts) - len(edit_of_script))
-    first: dict[int, int] = {}
-    for sc, i in zip(scripts, edit_of_script):  # one agent follows one script: a second would silently win or be dropped
-        if sc.track_id in first and first[sc.track_id] != i:
-            j = first[sc.track_id]
-            raise WhatIfError(path, f"{KIND_OF[type(whatif.edits[i])]}: agent {sc.track_id} is already driven by edit {j} "
-                                    f"({KIND_OF[type(whatif.edits[j])]}); an agent takes one scripted edit", i)
-        first.setdefault(sc.track_id, i)
+    _check_one_script_each(scripts, edit_of_script, whatif, path)
     return Prepared(scene=scene, scripts=scripts, removals=removals, lights=lights, affected=affected, followers=followers,
                     onset_step=onset, approaching=approaching)
 

@@ -44,9 +44,10 @@ import numpy as np
 from ..errors import ScenarioReadError, check_regular_file
 from ..scenario import (
     DT_S, AgentType, LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadLineType, RoadMap, Scenario,
-    TrafficLights, Tracks, as_floats, as_int, as_integers, choose_frame, wrap_angle,
+    TrafficLights, Tracks, wrap_angle,
 )
-from .common import load_json_object, read_errors
+from ..values import as_floats, as_int, as_integers
+from .common import choose_frame, load_json_object, read_errors
 
 NAME = "av2"
 
@@ -213,20 +214,9 @@ def _single(columns: dict[str, np.ndarray], name: str, path: str):
 
 
 # ---------------------------------------------------------------------------------------- tracks
-def _read_tracks(columns: dict[str, np.ndarray], path: str) -> tuple[dict[str, Any], dict[str, Any]]:
-    for name in ("track_id", "object_type"):
-        if columns[name].dtype.kind not in "OUS" or not all(isinstance(v, str) for v in columns[name][:1]):
-            raise ScenarioReadError(path, f"column {name} holds {columns[name].dtype} values, expected strings",
-                                    record=f"column {name}")
-    raw_ids = columns["track_id"].astype(str)
-    unique, first_row, inverse = np.unique(raw_ids, return_index=True, return_inverse=True)
-    order = np.argsort(first_row, kind="stable")  # tracks in the order of their first row
-    rank = np.empty(len(unique), np.int64)
-    rank[order] = np.arange(len(unique))
-    track_of_row = rank[inverse.reshape(-1)]
-    id_strings = unique[order]
+def _track_ids(id_strings: np.ndarray, path: str) -> np.ndarray:
+    """[N] int64 track ids: decimal id strings as their numbers, the others numbered after the largest, in sorted order."""
     n = len(id_strings)
-
     numeric = np.array([s.isdecimal() for s in id_strings], bool)
     ids = np.zeros(n, np.int64)
     ids[numeric] = [int(s) for s in id_strings[numeric]]
@@ -236,7 +226,11 @@ def _read_tracks(columns: dict[str, np.ndarray], path: str) -> tuple[dict[str, A
         ids[i] = base + k
     if len(np.unique(ids)) != n:
         raise ScenarioReadError(path, "two track ids map to the same integer", record="column track_id")
+    return ids
 
+
+def _timesteps(columns: dict[str, np.ndarray], path: str) -> tuple[np.ndarray, int]:
+    """Every row's timestep and the scenario's frame count (``num_timestamps`` when given), each checked against the limits."""
     with read_errors(path, "column timestep"):
         timestep = as_integers(columns["timestep"], np.int64, "timestep")
     if len(timestep) and timestep.min() < 0:
@@ -260,6 +254,27 @@ def _read_tracks(columns: dict[str, np.ndarray], path: str) -> tuple[dict[str, A
         num_frames = declared
     if num_frames == 0:
         raise ScenarioReadError(path, "no rows")
+    return timestep, num_frames
+
+
+def _read_tracks(columns: dict[str, np.ndarray], path: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The Tracks fields and the roles (self-driving car, tracks to predict, focal track) of a scenario's track columns."""
+    for name in ("track_id", "object_type"):
+        if columns[name].dtype.kind not in "OUS" or not all(isinstance(v, str) for v in columns[name][:1]):
+            raise ScenarioReadError(path, f"column {name} holds {columns[name].dtype} values, expected strings",
+                                    record=f"column {name}")
+    raw_ids = columns["track_id"].astype(str)
+    unique, first_row, inverse = np.unique(raw_ids, return_index=True, return_inverse=True)
+    order = np.argsort(first_row, kind="stable")  # tracks in the order of their first row
+    rank = np.empty(len(unique), np.int64)
+    rank[order] = np.arange(len(unique))
+    track_of_row = rank[inverse.reshape(-1)]
+    id_strings = unique[order]
+    n = len(id_strings)
+
+    ids = _track_ids(id_strings, path)
+
+    timestep, num_frames = _timesteps(columns, path)
     if n * num_frames > max(MAX_FRAMES_PER_ROW * len(timestep), 1 << 16):
         raise ScenarioReadError(path, f"{len(timestep)} rows cannot fill {n} tracks x {num_frames} frames (declared sizes "
                                       f"larger than the data)", record="column num_timestamps")

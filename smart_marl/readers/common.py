@@ -4,7 +4,8 @@
 * :func:`read_errors`: a Scenario (or part of one) built from a file's content that fails the
   Scenario's own validation is a read error of that file and record;
 * :func:`load_json_object`: a JSON file whose top level is an object, or a read error saying why not;
-* :func:`json_point`: one ``{"x": .., "y": .., "z": ..}`` point of a JSON scene, checked.
+* :func:`json_point`: one ``{"x": .., "y": .., "z": ..}`` point of a JSON scene, checked;
+* :func:`choose_frame`: the local frame a reader shifts a scene's source coordinates into.
 """
 
 from __future__ import annotations
@@ -14,7 +15,10 @@ import os
 from contextlib import contextmanager
 from typing import Any, Iterator
 
+import numpy as np
+
 from ..errors import ScenarioReadError, ScenarioValidationError
+from ..scenario import SceneFrame
 
 
 @contextmanager
@@ -64,3 +68,24 @@ def json_point(point: Any, path: str, record: str, with_z: bool = True) -> tuple
         raise ScenarioReadError(path, f"coordinate {bad[0]} is {point[bad[0]]!r}, not a number", record=record)
     z = float(point["z"]) if with_z and "z" in point else None
     return float(point["x"]), float(point["y"]), z
+
+
+def choose_frame(scenario_positions: np.ndarray, valid: np.ndarray, sdc_index: int, current_frame: int,
+                 fallback: np.ndarray | None = None) -> SceneFrame:
+    """The local frame readers use: the self-driving car's position at the current frame (exactly,
+    so re-reading a written scene picks the same origin), else the mean of the valid positions at
+    the current frame, else ``fallback`` (e.g. the map's centre), else the source origin.
+
+    ``scenario_positions`` are source coordinates [N, T, 3] (float64).
+    """
+    if 0 <= sdc_index < len(valid) and valid[sdc_index, current_frame]:
+        x, y, z = scenario_positions[sdc_index, current_frame]
+        return SceneFrame(float(x), float(y), float(z), 0.0)
+    cur = valid[:, current_frame] if valid.size else np.zeros(0, bool)
+    if cur.any():
+        x, y, z = scenario_positions[cur, current_frame].mean(axis=0)
+        return SceneFrame(float(x), float(y), float(z), 0.0)
+    if fallback is not None and len(fallback):
+        x, y, z = np.asarray(fallback, np.float64).reshape(-1, 3).mean(axis=0)
+        return SceneFrame(float(x), float(y), float(z), 0.0)
+    return SceneFrame()

@@ -53,10 +53,10 @@ import numpy as np
 
 from ..errors import ScenarioReadError
 from ..scenario import (
-    CURRENT_FRAME, DT_S, AgentType, MapFeatureType, RoadMap, Scenario, SignalState, TrafficLights, Tracks, as_int, as_integers,
-    choose_frame, wrap_angle,
+    CURRENT_FRAME, DT_S, AgentType, MapFeatureType, RoadMap, Scenario, SignalState, TrafficLights, Tracks, wrap_angle,
 )
-from .common import is_json_number, json_point, load_json_object, read_errors
+from ..values import as_int, as_integers
+from .common import choose_frame, is_json_number, json_point, load_json_object, read_errors
 
 NAME = "gpudrive_json"
 

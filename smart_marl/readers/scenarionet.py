@@ -31,7 +31,7 @@ Mapping onto the Scenario:
   is ``metadata["current_time_index"]`` when present, else :data:`~smart_marl.scenario.CURRENT_FRAME` (the WOMD /
   SMART convention of 11 history frames; nuScenes conversions carry no current frame). Every frame of
   the file is kept (20 s nuScenes and Waymo 1.2 scenes included).
-* space: positions are shifted into the local frame of :func:`smart_marl.scenario.choose_frame`
+* space: positions are shifted into the local frame of :func:`smart_marl.readers.common.choose_frame`
   (the self-driving car at the current frame), headings and velocities are unchanged.
 """
 
@@ -59,12 +59,9 @@ from ..scenario import (
     SignalState,
     TrafficLights,
     Tracks,
-    as_floats,
-    as_int,
-    as_mask,
-    choose_frame,
 )
-from .common import read_errors
+from ..values import as_floats, as_int, as_mask
+from .common import choose_frame, read_errors
 from .safe_pickle import SCENARIONET_GLOBALS, load_restricted, looks_like_pickle
 
 NAME = "scenarionet"
@@ -207,24 +204,9 @@ def _signal_code(state: Any) -> int:
 
 
 # ------------------------------------------------------------------------------------- the scene
-def scenario_from_dict(data: Any, path: str) -> Scenario:
-    """Build the Scenario of an already unpickled ScenarioNet scene dict (``path`` names it in errors)."""
-    if not isinstance(data, Mapping):
-        raise ScenarioReadError(path, f"the pickle holds a {type(data).__name__}, not a ScenarioNet scene dict")
-    meta = _need(data, "metadata", path, "scene")
-    tracks_in = _need(data, "tracks", path, "scene")
-    features_in = _need(data, "map_features", path, "scene")
-    lights_in = data.get("dynamic_map_states") or {}
-    if not isinstance(meta, Mapping) or not isinstance(tracks_in, Mapping) or not isinstance(features_in, Mapping) \
-            or not isinstance(lights_in, Mapping):
-        raise ScenarioReadError(path, "metadata, tracks, map_features and dynamic_map_states must be dicts", "scene")
-
-    track_keys = list(tracks_in.keys())
-    if not track_keys:
-        raise ScenarioReadError(path, "the scene has no tracks", "tracks")
-    track_ids = _IdMap(track_keys)
-
-    # ---- frames
+def _frames(meta: Mapping, tracks_in: Mapping, track_keys: list, path: str) -> tuple[int, np.ndarray, int]:
+    """(frame count, [T] timestamps, current frame) of a scene: the frames of its first track's positions,
+    ``metadata/ts`` when it fits, ``current_time_index`` or the WOMD default."""
     first_state = _need(tracks_in[track_keys[0]], "state", path, f"tracks/{track_keys[0]}")
     first_position = _as_float(_need(first_state, "position", path, f"tracks/{track_keys[0]}/state"), path,
                                f"tracks/{track_keys[0]}/state/position")
@@ -241,8 +223,13 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
         current = as_int(current, "current_time_index")
     if not 0 <= current < num_frames:
         raise ScenarioReadError(path, f"current_time_index {current} outside [0, {num_frames})", "metadata")
+    return num_frames, timestamps, current
 
-    # ---- tracks: one small array per track and field, stacked once
+
+def _tracks(tracks_in: Mapping, track_keys: list, num_frames: int, path: str):
+    """(position, heading, velocity, size, valid, types) of every track, dense [N, T, ...] in source coordinates;
+    a read error where a valid frame holds a NaN or infinite value."""
+    # one small array per track and field, stacked once
     n = len(track_keys)
     position = np.empty((n, num_frames, 3))
     heading = np.empty((n, num_frames))
@@ -283,7 +270,11 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
             raise ScenarioReadError(
                 path, f"track {track_keys[i]!s}: {name} is NaN or infinite on {int(bad[i].sum())} valid frame(s), "
                 f"first on frame {int(f)}", f"tracks/{track_keys[i]}")
+    return position, heading, velocity, size, valid, types
 
+
+def _roles(meta: Mapping, track_keys: list, track_ids: "_IdMap", path: str):
+    """(track ids, self-driving car index, tracks to predict, their difficulties, objects of interest) from the metadata."""
     ids = np.array([track_ids.get(k) for k in track_keys], np.int64)
     index_of_key = {str(k): i for i, k in enumerate(track_keys)}
     sdc_key = meta.get("sdc_id")
@@ -306,10 +297,13 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
     if not isinstance(interest_in, (list, tuple, np.ndarray)):
         raise ScenarioReadError(path, f"objects_of_interest is a {type(interest_in).__name__}, expected a list", "metadata")
     interest = np.array([track_ids.get(k) for k in interest_in], np.int64)
+    return ids, sdc_index, predict, difficulty, interest
 
-    # ---- map
+
+def _road_map(features_in: Mapping, feature_ids: "_IdMap", path: str):
+    """The map features kept (ids, types, subtypes, speed limits, interpolating flags, point lists), their links and
+    the feature types skipped, counted."""
     feature_keys = list(features_in.keys())
-    feature_ids = _IdMap(feature_keys)
     f_ids, f_types, f_sub, f_speed, f_interp, f_points = [], [], [], [], [], []
     links: list[tuple[int, int, int]] = []
     skipped: Counter = Counter()
@@ -364,10 +358,11 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
         f_speed.append(speed_mph)
         f_interp.append(interpolating)
         f_points.append(points)
-    map_points = np.concatenate(f_points) if f_points else np.zeros((0, 3))
-    lengths = np.array([len(p) for p in f_points], np.int64)
+    return (f_ids, f_types, f_sub, f_speed, f_interp, f_points), links, skipped
 
-    # ---- traffic lights
+
+def _lights(lights_in: Mapping, feature_ids: "_IdMap", num_frames: int, path: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Lane id -> ([T] signal codes, -1 where unreported; stop point [3]) of every traffic light entry."""
     light_rows: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # lane id -> (codes [T], stop point [3])
     for key, light in lights_in.items():
         record = f"dynamic_map_states/{key}"
@@ -386,14 +381,11 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
             old_codes = light_rows[lane_id][0]
             per_frame = np.where(per_frame >= 0, per_frame, old_codes)
         light_rows[lane_id] = (per_frame, stop_point)
+    return light_rows
 
-    # ---- local frame and assembly
-    frame = choose_frame(position, valid, sdc_index, current, fallback=map_points if len(map_points) else None)
-    origin = np.array([frame.x, frame.y, frame.z])
-    lane_ids = np.array(list(light_rows.keys()), np.int64)
-    codes = np.stack([row[0] for row in light_rows.values()], axis=1) if light_rows else np.zeros((num_frames, 0), np.int64)
-    stops = np.stack([row[1] for row in light_rows.values()]) if light_rows else np.zeros((0, 3))
 
+def _metadata(data: Mapping, meta: Mapping, path: str, track_ids: "_IdMap", feature_ids: "_IdMap", skipped: Counter) -> dict[str, Any]:
+    """The Scenario's metadata: version, dataset, path, the source's descriptive keys, the id maps and skipped features."""
     metadata: dict[str, Any] = {
         "version": str(data.get("version", "")),
         "dataset": str(meta.get("dataset", "")),
@@ -408,7 +400,43 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
         metadata["map_feature_id_map"] = dict(feature_ids.assigned)
     if skipped:
         metadata["skipped_map_features"] = dict(skipped)
+    return metadata
 
+
+def scenario_from_dict(data: Any, path: str) -> Scenario:
+    """Build the Scenario of an already unpickled ScenarioNet scene dict (``path`` names it in errors)."""
+    if not isinstance(data, Mapping):
+        raise ScenarioReadError(path, f"the pickle holds a {type(data).__name__}, not a ScenarioNet scene dict")
+    meta = _need(data, "metadata", path, "scene")
+    tracks_in = _need(data, "tracks", path, "scene")
+    features_in = _need(data, "map_features", path, "scene")
+    lights_in = data.get("dynamic_map_states") or {}
+    if not isinstance(meta, Mapping) or not isinstance(tracks_in, Mapping) or not isinstance(features_in, Mapping) \
+            or not isinstance(lights_in, Mapping):
+        raise ScenarioReadError(path, "metadata, tracks, map_features and dynamic_map_states must be dicts", "scene")
+
+    track_keys = list(tracks_in.keys())
+    if not track_keys:
+        raise ScenarioReadError(path, "the scene has no tracks", "tracks")
+    track_ids = _IdMap(track_keys)
+
+    num_frames, timestamps, current = _frames(meta, tracks_in, track_keys, path)
+    position, heading, velocity, size, valid, types = _tracks(tracks_in, track_keys, num_frames, path)
+    ids, sdc_index, predict, difficulty, interest = _roles(meta, track_keys, track_ids, path)
+    feature_ids = _IdMap(list(features_in.keys()))
+    (f_ids, f_types, f_sub, f_speed, f_interp, f_points), links, skipped = _road_map(features_in, feature_ids, path)
+    map_points = np.concatenate(f_points) if f_points else np.zeros((0, 3))
+    lengths = np.array([len(p) for p in f_points], np.int64)
+    light_rows = _lights(lights_in, feature_ids, num_frames, path)
+
+    # ---- local frame and assembly
+    frame = choose_frame(position, valid, sdc_index, current, fallback=map_points if len(map_points) else None)
+    origin = np.array([frame.x, frame.y, frame.z])
+    lane_ids = np.array(list(light_rows.keys()), np.int64)
+    codes = np.stack([row[0] for row in light_rows.values()], axis=1) if light_rows else np.zeros((num_frames, 0), np.int64)
+    stops = np.stack([row[1] for row in light_rows.values()]) if light_rows else np.zeros((0, 3))
+
+    metadata = _metadata(data, meta, path, track_ids, feature_ids, skipped)
     dataset = str(meta.get("dataset") or "").lower()
     scenario_id = meta.get("scenario_id") or data.get("id") or meta.get("id") or os.path.basename(path)
     with read_errors(path, "scene"):

@@ -34,7 +34,7 @@ What the preprocessing did, and how it is undone here:
   with a known state get a TrafficLights entry whose state is **held constant over all frames**
   (``metadata["traffic_light_state_held_constant"]``); their stop point is the lane's first point.
 * time: 91 frames at 0.1 s, current frame 10. Positions are WOMD global coordinates, shifted into the
-  local frame of :func:`smart_marl.scenario.choose_frame`.
+  local frame of :func:`smart_marl.readers.common.choose_frame`.
 """
 
 from __future__ import annotations
@@ -59,14 +59,10 @@ from ..scenario import (
     SignalState,
     TrafficLights,
     Tracks,
-    as_floats,
-    as_int,
-    as_integers,
-    as_mask,
-    choose_frame,
     wrap_angle,
 )
-from .common import read_errors
+from ..values import as_floats, as_int, as_integers, as_mask
+from .common import choose_frame, read_errors
 from .safe_pickle import load_restricted, looks_like_pickle, smart_pickle_globals
 
 NAME = "smart_pkl"
@@ -154,13 +150,9 @@ def _count(mapping: Any, path: str, record: str) -> int:
     return n
 
 
-def scenario_from_dict(data: Any, path: str) -> Scenario:
-    """Build the Scenario of an already unpickled SMART scene dict (``path`` names it in errors)."""
-    if not isinstance(data, Mapping):
-        raise ScenarioReadError(path, f"the pickle holds a {type(data).__name__}, not a SMART scene dict")
-    scenario_id = str(_field(data, "scenario_id", path, "scene"))
-
-    # ---- agents
+def _agents(data: Mapping, path: str):
+    """(ids, types, category, position, heading, velocity, shape, valid, self-driving car index) of the scene's
+    agents, source coordinates; a read error where a valid frame holds a NaN or infinite value."""
     agent = _field(data, "agent", path, "scene")
     n = _count(agent, path, "agent")
     position = _array(agent, "position", path, "agent", (n, None, 3), np.float64)  # [N, T, 3]
@@ -188,9 +180,13 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
             i, f = np.argwhere(bad)[0]
             raise ScenarioReadError(path, f"agent {int(ids[i])}: {name} is NaN or infinite on "
                                     f"{int(bad[i].sum())} valid frame(s), first on frame {int(f)}", "agent")
-    current = CURRENT_FRAME if t > CURRENT_FRAME else 0
+    return ids, types, category, position, heading, velocity, shape, valid, sdc_index
 
-    # ---- map points grouped per polygon (stable: the stored order within a polygon)
+
+def _map_features(data: Mapping, path: str):
+    """The map's polygons as features: (kept polygon ids, point offsets, points with each polyline's end point
+    restored, feature types, subtypes, lane mask, polygon count, light types of all polygons); points are grouped
+    per polygon in their stored order."""
     polygon = _field(data, "map_polygon", path, "scene")
     num_polygons = _count(polygon, path, "map_polygon")
     polygon_type = _array(polygon, "type", path, "map_polygon", (num_polygons,), np.int64)
@@ -243,8 +239,11 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
     if np.any((ptype < 0) | (ptype >= len(_LANE_SUBTYPE))):
         raise ScenarioReadError(path, f"polygon type outside 0..{len(_LANE_SUBTYPE) - 1}", "map_polygon")
     subtypes[lane] = _LANE_SUBTYPE[ptype[lane]]
+    return kept_ids, offsets, points, feature_types, subtypes, lane, num_polygons, light_type
 
-    # ---- topology
+
+def _topology(data: Mapping, num_polygons: int, path: str) -> tuple[np.ndarray, np.ndarray]:
+    """(links [E, 2] as (lane, its neighbour), their LinkType codes) of the polygon-to-polygon edges the map keeps."""
     key = ("map_polygon", "to", "map_polygon")
     topo = data.get(key, {})
     if topo:
@@ -257,6 +256,20 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
     link_type = _LINK_TYPE[edge_type]
     has_link = link_type >= 0
     links = np.stack([edge_index[1], edge_index[0]], axis=1)[has_link]  # (lane, its neighbour)
+    return links, link_type[has_link]
+
+
+def scenario_from_dict(data: Any, path: str) -> Scenario:
+    """Build the Scenario of an already unpickled SMART scene dict (``path`` names it in errors)."""
+    if not isinstance(data, Mapping):
+        raise ScenarioReadError(path, f"the pickle holds a {type(data).__name__}, not a SMART scene dict")
+    scenario_id = str(_field(data, "scenario_id", path, "scene"))
+
+    ids, types, category, position, heading, velocity, shape, valid, sdc_index = _agents(data, path)
+    t = position.shape[1]
+    current = CURRENT_FRAME if t > CURRENT_FRAME else 0
+    kept_ids, offsets, points, feature_types, subtypes, lane, num_polygons, light_type = _map_features(data, path)
+    links, link_types = _topology(data, num_polygons, path)
 
     # ---- traffic lights: one state per lane, held over every frame
     if np.any((light_type < 0) | (light_type >= len(_LIGHT_STATE))):
@@ -293,7 +306,7 @@ def scenario_from_dict(data: Any, path: str) -> Scenario:
                 ids=kept_ids.astype(np.int64), types=feature_types, subtypes=subtypes,
                 speed_limit_mph=np.zeros(len(kept_ids), np.float32), interpolating=np.zeros(len(kept_ids), bool),
                 points=(points - origin).astype(np.float32), point_offsets=offsets,
-                links=links.astype(np.int64).reshape(-1, 2), link_types=link_type[has_link].astype(np.int8),
+                links=links.astype(np.int64).reshape(-1, 2), link_types=link_types.astype(np.int8),
             ),
             traffic_lights=TrafficLights(
                 lane_ids=light_polygons.astype(np.int64),

@@ -21,7 +21,7 @@ own schema (:mod:`smart_marl.proto.womd`). What a record becomes:
   [T, L], each lane's stop point from its first report.
 
 Coordinates are shifted to the self-driving car's position at the current frame
-(:func:`~smart_marl.scenario.choose_frame`): positions are ``float32(source - origin)``, the origin
+(:func:`~smart_marl.readers.common.choose_frame`): positions are ``float32(source - origin)``, the origin
 is kept in ``Scenario.frame`` (float64).
 
 Not kept (so not written back either): lane boundary segments (``left_boundaries`` /
@@ -53,10 +53,10 @@ from google.protobuf.message import DecodeError
 from ..errors import ScenarioReadError
 from ..proto import womd as pb
 from ..scenario import (
-    AgentType, LinkType, MapFeatureType, RoadMap, Scenario, TrafficLights, Tracks, choose_frame,
+    AgentType, LinkType, MapFeatureType, RoadMap, Scenario, TrafficLights, Tracks,
 )
 from . import tfrecord
-from .common import read_errors
+from .common import choose_frame, read_errors
 
 NAME = "womd"
 MULTI_SCENE = True  # records are scenes: errors name the record

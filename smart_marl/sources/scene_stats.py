@@ -354,37 +354,17 @@ def polyline_length_m(points: np.ndarray) -> float:
 
 
 # --------------------------------------------------------------------------------- one scene
-def scene_samples(scenario: Scenario) -> dict[str, np.ndarray]:
-    """The samples of every statistic of :data:`STATISTICS` that this scene has (see the module
-    docstring): float arrays for distributions, boolean arrays for shares, [n, 2] (count, exposure)
-    for rates."""
-    tr = scenario.tracks
+def _population_samples(put, scenario: Scenario, xy: np.ndarray, valid: np.ndarray, speed: np.ndarray, veh: np.ndarray,
+                        ped: np.ndarray, cyc: np.ndarray, dt: float) -> None:
+    """The scene's duration and its agents at the current frame: in the scene, and within 50 m of the self-driving car."""
     cur = scenario.current_frame
-    dt = float(np.median(np.diff(scenario.timestamps_s))) if scenario.num_frames > 1 else DT_S
-    xy = tr.position[..., :2].astype(np.float64)
-    valid = np.asarray(tr.valid, bool)
-    types = np.asarray(tr.types)
-    speed = speed_from_positions_mps(xy, valid, dt)
-    out: dict[str, np.ndarray] = {}
-
-    def put(name: str, values) -> None:
-        assert name in STATISTICS, name
-        values = np.asarray(values)
-        if name in out:
-            values = np.concatenate([out[name], values])
-        out[name] = values
-
-    veh = types == AgentType.VEHICLE
-    ped = types == AgentType.PEDESTRIAN
-    cyc = types == AgentType.CYCLIST
     put("scene_duration_s", [scenario.num_frames * dt])
     at_cur = valid[:, cur]
     put("vehicles_per_scene", [int((veh & at_cur).sum())])
     put("pedestrians_per_scene", [int((ped & at_cur).sum())])
     put("cyclists_per_scene", [int((cyc & at_cur).sum())])
     sdc = scenario.sdc_index
-    has_sdc = 0 <= sdc < tr.num_tracks and valid[sdc, cur]
-    if has_sdc:
+    if 0 <= sdc < scenario.tracks.num_tracks and valid[sdc, cur]:
         d = np.linalg.norm(xy[:, cur] - xy[sdc, cur], axis=-1)
         near = at_cur & (d <= NEAR_SDC_M)
         near[sdc] = False
@@ -394,10 +374,10 @@ def scene_samples(scenario: Scenario) -> dict[str, np.ndarray]:
         movers = (valid & (speed > MOVING_MPS)).any(axis=1)
         put("moving_vehicles_within_50m_of_sdc", [int((near & veh & movers).sum())])
 
-    # vehicle kinematics
-    v_speed, v_valid = speed[veh], valid[veh]
+
+def _vehicle_motion_samples(put, v_speed: np.ndarray, v_valid: np.ndarray, moving: np.ndarray, dt: float) -> None:
+    """Vehicles' speeds, accelerations, jerks, hard brakes, stopped time and parked or stopping vehicles."""
     put("vehicle_speed_mps", v_speed[v_valid])
-    moving = v_valid & (v_speed > MOVING_MPS)
     put("vehicle_speed_moving_mps", v_speed[moving])
     accel, accel_ok = central_difference(v_speed, v_valid, 2, dt)
     jerk, jerk_ok = central_difference(accel, accel_ok, 2, dt)
@@ -412,7 +392,11 @@ def scene_samples(scenario: Scenario) -> dict[str, np.ndarray]:
     put("vehicle_parked_share", ~ever_moving[long_enough])
     put("vehicle_moving_then_stops_share", ever_stopped[ever_moving])
 
-    # the slow-down of vehicles moving at the current frame
+
+def _slow_down_samples(put, scenario: Scenario, speed: np.ndarray, valid: np.ndarray, v_speed: np.ndarray,
+                       v_valid: np.ndarray, has_sdc: bool, dt: float) -> None:
+    """How vehicles moving fast at the current frame (and the self-driving car) slow down, stop or speed up 4 and 8 s on."""
+    cur, sdc = scenario.current_frame, scenario.sdc_index
     f4, f8 = cur + int(round(4.0 / dt)), cur + int(round(8.0 / dt))
     fast = v_valid[:, cur] & (v_speed[:, cur] > FAST_MPS)
     if f4 < scenario.num_frames:
@@ -429,62 +413,53 @@ def scene_samples(scenario: Scenario) -> dict[str, np.ndarray]:
         seen = fast & (v_valid[:, window].sum(axis=1) >= int(round(4.0 / dt)))
         stops = (v_valid[:, window] & (v_speed[:, window] < STOPPED_MPS)).any(axis=1)
         put("fast_vehicle_stops_within_8s_share", stops[seen])
-    if has_sdc and types[sdc] == AgentType.VEHICLE:
+    if has_sdc and scenario.tracks.types[sdc] == AgentType.VEHICLE:
         put("sdc_speed_mps", [speed[sdc, cur]])
         if f8 < scenario.num_frames and speed[sdc, cur] > FAST_MPS and valid[sdc, f8]:
             put("sdc_speed_ratio_8s", [speed[sdc, f8] / speed[sdc, cur]])
 
-    # leaders, every 5 frames
-    vi = np.flatnonzero(veh)
-    if len(vi) > 1:
-        length = tr.box_size()[vi, 0].astype(np.float64)
-        heading = tr.heading[vi].astype(np.float64)
-        for t in range(0, scenario.num_frames, 5):
-            gap = leader_gaps(xy[vi, t], heading[:, t], length, valid[vi, t])
-            follower = moving[:, t]
-            put("has_leader_share", np.isfinite(gap[follower]))
-            with_leader = follower & np.isfinite(gap)
-            put("leader_gap_m", gap[with_leader])
-            put("time_headway_s", gap[with_leader] / v_speed[with_leader, t])
 
-    # yaw rate and turning (moving frames)
-    if len(vi):
-        yaw, yaw_ok = yaw_rate_radps(tr.heading[vi], v_valid, dt)
-        m = yaw_ok & moving
-        put("vehicle_abs_yaw_rate_radps", np.abs(yaw[m]))
-        put("vehicle_turning_share", np.abs(yaw[m]) > TURNING_RAD_PER_S)
+def _leader_samples(put, scenario: Scenario, xy: np.ndarray, valid: np.ndarray, vi: np.ndarray, v_speed: np.ndarray,
+                    moving: np.ndarray) -> None:
+    """Moving vehicles' leaders every 5 frames: whether there is one, the gap to it and the time headway."""
+    if len(vi) <= 1:
+        return
+    length = scenario.tracks.box_size()[vi, 0].astype(np.float64)
+    heading = scenario.tracks.heading[vi].astype(np.float64)
+    for t in range(0, scenario.num_frames, 5):
+        gap = leader_gaps(xy[vi, t], heading[:, t], length, valid[vi, t])
+        follower = moving[:, t]
+        put("has_leader_share", np.isfinite(gap[follower]))
+        with_leader = follower & np.isfinite(gap)
+        put("leader_gap_m", gap[with_leader])
+        put("time_headway_s", gap[with_leader] / v_speed[with_leader, t])
 
-    # lane changes
-    lanes = _vehicle_lanes(scenario)
-    if lanes and len(vi):
-        rows = []
-        heading = tr.heading[vi].astype(np.float64)
-        segments = _segment_table(lanes)
-        for k in range(len(vi)):
-            frames = np.flatnonzero(moving[k])
-            if len(frames) < 10:
-                continue
-            matched = np.full(scenario.num_frames, -1)
-            matched[frames] = match_lanes(xy[vi[k], frames], heading[k, frames], lanes, segments=segments)
-            rows.append((count_lane_changes(matched, xy[vi[k]], lanes), len(frames) * dt / 60.0))
-        if rows:
-            put("lane_changes_per_vehicle_minute", np.asarray(rows, np.float64).reshape(-1, 2))
 
-    # pedestrians and cyclists
-    put("pedestrian_speed_mps", speed[ped][valid[ped]])
-    put("pedestrian_moving_share", speed[ped][valid[ped]] > STOPPED_MPS)
-    if ped.any():
-        yaw, yaw_ok = yaw_rate_radps(tr.heading[ped], valid[ped], dt)
-        walking = yaw_ok & (speed[ped] > STOPPED_MPS)
-        put("pedestrian_abs_yaw_rate_radps", np.abs(yaw[walking]))
-    put("cyclist_speed_mps", speed[cyc][valid[cyc]])
-    put("cyclist_moving_share", speed[cyc][valid[cyc]] > STOPPED_MPS)
+def _lane_change_samples(put, scenario: Scenario, xy: np.ndarray, vi: np.ndarray, moving: np.ndarray,
+                         lanes: list[np.ndarray], dt: float) -> None:
+    """Lane changes per minute of every vehicle moving on at least 10 frames, each frame matched to a lane."""
+    if not (lanes and len(vi)):
+        return
+    rows = []
+    heading = scenario.tracks.heading[vi].astype(np.float64)
+    segments = _segment_table(lanes)
+    for k in range(len(vi)):
+        frames = np.flatnonzero(moving[k])
+        if len(frames) < 10:
+            continue
+        matched = np.full(scenario.num_frames, -1)
+        matched[frames] = match_lanes(xy[vi[k], frames], heading[k, frames], lanes, segments=segments)
+        rows.append((count_lane_changes(matched, xy[vi[k]], lanes), len(frames) * dt / 60.0))
+    if rows:
+        put("lane_changes_per_vehicle_minute", np.asarray(rows, np.float64).reshape(-1, 2))
 
-    # the map
+
+def _map_samples(put, scenario: Scenario, xy: np.ndarray, has_sdc: bool, lanes: list[np.ndarray]) -> None:
+    """The map: lanes, stop signs and signalled lanes near the self-driving car; lane widths, curvatures, lengths, limits."""
     rm = scenario.road_map
     lane_idx = rm.indices_of(MapFeatureType.LANE)
     if has_sdc:
-        center = xy[sdc, cur]
+        center = xy[scenario.sdc_index, scenario.current_frame]
         pts_feature = rm.point_feature_index()
         near_pt = np.linalg.norm(rm.points[:, :2].astype(np.float64) - center, axis=1) <= NEAR_SDC_M
         near_features = np.zeros(rm.num_features, bool)
@@ -505,6 +480,55 @@ def scene_samples(scenario: Scenario) -> dict[str, np.ndarray]:
     put("lane_length_m", [polyline_length_m(rm.feature_points(i)) for i in lane_idx])
     limits = rm.speed_limit_mph[lane_idx]
     put("lane_speed_limit_mph", limits[limits > 0])
+
+
+def scene_samples(scenario: Scenario) -> dict[str, np.ndarray]:
+    """The samples of every statistic of :data:`STATISTICS` that this scene has (see the module
+    docstring): float arrays for distributions, boolean arrays for shares, [n, 2] (count, exposure)
+    for rates."""
+    tr = scenario.tracks
+    cur = scenario.current_frame
+    dt = float(np.median(np.diff(scenario.timestamps_s))) if scenario.num_frames > 1 else DT_S
+    xy = tr.position[..., :2].astype(np.float64)
+    valid = np.asarray(tr.valid, bool)
+    types = np.asarray(tr.types)
+    speed = speed_from_positions_mps(xy, valid, dt)
+    out: dict[str, np.ndarray] = {}
+
+    def put(name: str, values) -> None:
+        assert name in STATISTICS, name
+        values = np.asarray(values)
+        if name in out:
+            values = np.concatenate([out[name], values])
+        out[name] = values
+
+    veh, ped, cyc = (types == kind for kind in (AgentType.VEHICLE, AgentType.PEDESTRIAN, AgentType.CYCLIST))
+    sdc = scenario.sdc_index
+    has_sdc = 0 <= sdc < tr.num_tracks and valid[sdc, cur]
+    _population_samples(put, scenario, xy, valid, speed, veh, ped, cyc, dt)
+    v_speed, v_valid = speed[veh], valid[veh]
+    moving = v_valid & (v_speed > MOVING_MPS)
+    _vehicle_motion_samples(put, v_speed, v_valid, moving, dt)
+    _slow_down_samples(put, scenario, speed, valid, v_speed, v_valid, has_sdc, dt)
+    vi = np.flatnonzero(veh)
+    _leader_samples(put, scenario, xy, valid, vi, v_speed, moving)
+    if len(vi):  # yaw rate and turning (moving frames)
+        yaw, yaw_ok = yaw_rate_radps(tr.heading[vi], v_valid, dt)
+        m = yaw_ok & moving
+        put("vehicle_abs_yaw_rate_radps", np.abs(yaw[m]))
+        put("vehicle_turning_share", np.abs(yaw[m]) > TURNING_RAD_PER_S)
+    lanes = _vehicle_lanes(scenario)
+    _lane_change_samples(put, scenario, xy, vi, moving, lanes, dt)
+    # pedestrians and cyclists
+    put("pedestrian_speed_mps", speed[ped][valid[ped]])
+    put("pedestrian_moving_share", speed[ped][valid[ped]] > STOPPED_MPS)
+    if ped.any():
+        yaw, yaw_ok = yaw_rate_radps(tr.heading[ped], valid[ped], dt)
+        walking = yaw_ok & (speed[ped] > STOPPED_MPS)
+        put("pedestrian_abs_yaw_rate_radps", np.abs(yaw[walking]))
+    put("cyclist_speed_mps", speed[cyc][valid[cyc]])
+    put("cyclist_moving_share", speed[cyc][valid[cyc]] > STOPPED_MPS)
+    _map_samples(put, scenario, xy, has_sdc, lanes)
     return out
 
 

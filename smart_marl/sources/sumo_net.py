@@ -52,14 +52,12 @@ from typing import Any
 
 import numpy as np
 
-from ..scenario import LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadLineType, RoadMap, SignalState, wrap_angle
+from ..scenario import LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadMap, SignalState, wrap_angle
+from .sumo_lanes import (  # noqa: F401  (re-exported: the map's lane geometry is imported from here)
+    LANE_POINT_SPACING_M, QUANTUM, densify, lane_shape, quantize, road_lines, rotation_matrix, split_lanes,
+)
 
 MPH_PER_MPS = 2.2369362920544
-QUANTUM = 2.0 ** -16
-"""Source coordinates are multiples of this (m) so that local float32 <-> source float64 is exact."""
-
-LANE_POINT_SPACING_M = 1.0
-"""Lane centre lines and road edges get a point at least every metre (WOMD's are ~0.5 m apart)."""
 
 # Feature id spaces (a scene's features keep these ids; lanes are numbered from 1).
 CROSSWALK_ID0 = 1_000_000
@@ -230,27 +228,6 @@ def _sumo_home() -> str:
 
 
 # ------------------------------------------------------------------------------------ network maps
-def quantize(values: np.ndarray) -> np.ndarray:
-    """Round source coordinates to multiples of :data:`QUANTUM` (float64)."""
-    return np.round(np.asarray(values, np.float64) / QUANTUM) * QUANTUM
-
-
-def densify(points: np.ndarray, max_spacing_m: float) -> np.ndarray:
-    """A polyline [n, D] with points added on its segments so that none is longer than ``max_spacing_m``
-    (its own vertices are kept)."""
-    seg = np.linalg.norm(np.diff(points[:, :2], axis=0), axis=1)
-    pieces = np.maximum(np.ceil(seg / max_spacing_m).astype(np.int64), 1)
-    start = np.repeat(np.arange(len(seg)), pieces)
-    frac = (np.arange(pieces.sum()) - np.repeat(np.cumsum(pieces) - pieces, pieces)) / np.repeat(pieces, pieces)
-    out = points[start] + frac[:, None] * (points[start + 1] - points[start])
-    return np.concatenate([out, points[-1:]])
-
-
-def rotation_matrix(rotation_rad: float) -> np.ndarray:
-    c, s = math.cos(rotation_rad), math.sin(rotation_rad)
-    return np.array([[c, -s], [s, c]])
-
-
 @dataclass
 class NetworkMap:
     """The whole network's map in source coordinates (float64), ready to be cropped per scene."""
@@ -337,30 +314,8 @@ class NetworkMap:
         return RoadMap.from_features(features, all_links), kept_ids
 
 
-def lane_shape(lane) -> np.ndarray:
-    """A sumolib lane's shape points [n, 3] (x, y, z; z = 0 where the network has none), SUMO's frame."""
-    pts = np.asarray(lane.getShape3D() if hasattr(lane, "getShape3D") else lane.getShape(), np.float64)
-    if pts.shape[1] == 2:
-        pts = np.concatenate([pts, np.zeros((len(pts), 1))], axis=1)
-    return pts
-
-
-def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0, max_lane_piece_m: float | None = None) -> NetworkMap:
-    """Read a ``.net.xml`` into a :class:`NetworkMap` (see the module docstring for what becomes what);
-    with ``max_lane_piece_m``, lanes longer than that are cut into pieces (:func:`split_lanes`)."""
-    import shapely
-    from shapely.geometry import polygon as shapely_polygon
-
-    _, sumolib, _ = require_sumo()
-    net = sumolib.net.readNet(os.fspath(net_path), withInternal=True)
-    rot = rotation_matrix(rotation_rad)
-
-    def shape3d(lane) -> np.ndarray:
-        out = densify(lane_shape(lane), LANE_POINT_SPACING_M)
-        out[:, :2] = quantize(out[:, :2] @ rot.T)
-        out[:, 2] = quantize(out[:, 2])
-        return out
-
+def _vehicle_lanes(net) -> tuple[list, list[int], list]:
+    """(the lanes a car or a bicycle may use, their LaneType, the pedestrian crossing lanes) of a sumolib network."""
     lanes, subtypes = [], []
     crossings = []
     for edge in net.getEdges(withInternal=True):
@@ -379,11 +334,12 @@ def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0, max_lane
                 continue
             lanes.append(lane)
             subtypes.append(LaneType.SURFACE_STREET if cars else LaneType.BIKE_LANE)
-    index_of = {lane.getID(): k for k, lane in enumerate(lanes)}
-    lane_ids = np.arange(1, len(lanes) + 1, dtype=np.int64)
-    shapes = [shape3d(lane) for lane in lanes]
-    lengths = np.array([len(s) for s in shapes], np.int64)
+    return lanes, subtypes, crossings
 
+
+def _lane_topology(lanes: list, subtypes: list[int], index_of: dict[str, int], lane_ids: np.ndarray):
+    """(links [E, 3] (from id, to id, LinkType), indices of the lanes with a stop rule, (light, link index, lane index)
+    of every signal link) from SUMO's connections and the lanes side by side on an edge."""
     successors: list[list[int]] = [[] for _ in lanes]
     stop_sign_lanes, signal_rows = [], []
     for k, lane in enumerate(lanes):
@@ -417,8 +373,11 @@ def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0, max_lane
                 if j is not None and subtypes[j] == subtypes[k]:
                     links.append((lane_ids[k], lane_ids[j], kind))
     lane_links = np.array(links, np.int64).reshape(-1, 3)
+    return lane_links, stop_sign_lanes, signal_rows
 
-    # traffic lights: tls id -> lane id per link index
+
+def _signal_tables(signal_rows: list, lane_ids: np.ndarray, shapes: list[np.ndarray]):
+    """(light id -> lane id per link index, -1 where none; lane id -> stop point, the lane's first point)."""
     signal_links: dict[str, np.ndarray] = {}
     signal_stop_points: dict[int, np.ndarray] = {}
     for tls_id, link_index, k in signal_rows:
@@ -428,8 +387,14 @@ def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0, max_lane
         table[link_index] = lane_ids[k]
         signal_links[tls_id] = table
         signal_stop_points[int(lane_ids[k])] = shapes[k][0]
+    return signal_links, signal_stop_points
 
-    # crosswalks: crossing lanes widened to their width
+
+def _crosswalks(crossings: list, rot: np.ndarray) -> tuple[list[np.ndarray], list[int]]:
+    """The crosswalk polygons [n, 3] (crossing lanes widened to their width, counter-clockwise, quantised) and their sizes."""
+    import shapely
+    from shapely.geometry import polygon as shapely_polygon
+
     cw_pts, cw_len = [], []
     for lane in crossings:
         line = np.asarray(lane.getShape(), np.float64)[:, :2] @ rot.T
@@ -441,9 +406,15 @@ def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0, max_lane
         pts[:, :2] = quantize(ring)
         cw_pts.append(pts)
         cw_len.append(len(pts))
+    return cw_pts, cw_len
 
-    # road edges: boundary of the union of lane polygons (square caps: a dead-end road reaches half a
-    # lane width past its lanes' ends)
+
+def _road_edges(lanes: list, shapes: list[np.ndarray]) -> list[np.ndarray]:
+    """The drivable area's boundary rings: the union of the lane polygons (square caps: a dead-end road reaches half a
+    lane width past its lanes' ends), small cracks closed, holes under 25 m^2 dropped, drivable on the left."""
+    import shapely
+    from shapely.geometry import polygon as shapely_polygon
+
     polys = [shapely.LineString(s[:, :2]).buffer(lanes[k].getWidth() / 2, cap_style="square", quad_segs=2)
              for k, s in enumerate(shapes) if np.ptp(s[:, :2], axis=0).max() > 1e-3]
     drivable = shapely.unary_union(polys).buffer(0.75, quad_segs=2).buffer(-0.75, quad_segs=2)
@@ -455,7 +426,32 @@ def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0, max_lane
         poly = shapely_polygon.orient(poly, 1.0)  # exterior counter-clockwise, holes clockwise: drivable on the left
         rings.append(np.asarray(poly.exterior.coords))
         rings += [np.asarray(h.coords) for h in poly.interiors if shapely.Polygon(h).area >= 25.0]
+    return rings
 
+
+def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0, max_lane_piece_m: float | None = None) -> NetworkMap:
+    """Read a ``.net.xml`` into a :class:`NetworkMap` (see the module docstring for what becomes what);
+    with ``max_lane_piece_m``, lanes longer than that are cut into pieces (:func:`split_lanes`)."""
+    _, sumolib, _ = require_sumo()
+    net = sumolib.net.readNet(os.fspath(net_path), withInternal=True)
+    rot = rotation_matrix(rotation_rad)
+
+    def shape3d(lane) -> np.ndarray:
+        out = densify(lane_shape(lane), LANE_POINT_SPACING_M)
+        out[:, :2] = quantize(out[:, :2] @ rot.T)
+        out[:, 2] = quantize(out[:, 2])
+        return out
+
+    lanes, subtypes, crossings = _vehicle_lanes(net)
+    index_of = {lane.getID(): k for k, lane in enumerate(lanes)}
+    lane_ids = np.arange(1, len(lanes) + 1, dtype=np.int64)
+    shapes = [shape3d(lane) for lane in lanes]
+    lengths = np.array([len(s) for s in shapes], np.int64)
+
+    lane_links, stop_sign_lanes, signal_rows = _lane_topology(lanes, subtypes, index_of, lane_ids)
+    signal_links, signal_stop_points = _signal_tables(signal_rows, lane_ids, shapes)
+    cw_pts, cw_len = _crosswalks(crossings, rot)
+    rings = _road_edges(lanes, shapes)
     line_pts, line_types = road_lines(net, lanes, subtypes, rot)
     stop_pts = np.array([shapes[k][-1] for k in stop_sign_lanes], np.float64).reshape(-1, 3)
     stop_ids = lane_ids[np.array(stop_sign_lanes, np.int64)] if stop_sign_lanes else np.zeros(0, np.int64)
@@ -496,95 +492,6 @@ def network_map(net_path: str | os.PathLike, rotation_rad: float = 0.0, max_lane
                "junction_types": junction_types,
                "edges": sum(1 for e in net.getEdges() if e.getFunction() == "")},
     )
-
-
-def road_lines(net, lanes: list, subtypes: list[int], rotation: np.ndarray) -> tuple[list[np.ndarray], list[int]]:
-    """The painted lines of the network's roads (see the module docstring): polylines [n, 3] (source
-    frame, quantised, a point at least every metre) and their RoadLineType."""
-    import shapely
-
-    kept = {lane.getID(): k for k, lane in enumerate(lanes)}
-    points: list[np.ndarray] = []
-    kinds: list[int] = []
-
-    def add(lane, side: float, kind: RoadLineType) -> None:
-        shape = np.asarray(lane.getShape(), np.float64)[:, :2]
-        if len(shape) < 2 or np.ptp(shape, axis=0).max() < 1e-3:
-            return
-        line = shapely.offset_curve(shapely.LineString(shape), side * lane.getWidth() / 2, join_style="mitre", mitre_limit=2.0)
-        for part in getattr(line, "geoms", [line]):
-            if part.is_empty or part.length < 0.5:
-                continue
-            xy = quantize(densify(np.asarray(part.coords)[:, :2], LANE_POINT_SPACING_M) @ rotation.T)
-            points.append(np.concatenate([xy, np.zeros((len(xy), 1))], axis=1))
-            kinds.append(int(kind))
-
-    for edge in net.getEdges():  # normal edges only: no painted line crosses a junction
-        road = [lane for lane in edge.getLanes() if lane.getID() in kept]
-        if not road:
-            continue
-        bike = [subtypes[kept[lane.getID()]] == LaneType.BIKE_LANE for lane in road]
-        for i in range(len(road) - 1):
-            add(road[i], 1.0, RoadLineType.SOLID_SINGLE_WHITE if bike[i] or bike[i + 1] else RoadLineType.BROKEN_SINGLE_WHITE)
-        opposite = [e for e in edge.getToNode().getOutgoing() if e.getToNode() == edge.getFromNode()]
-        if not opposite:
-            add(road[-1], 1.0, RoadLineType.SOLID_SINGLE_YELLOW)
-        elif edge.getID() < opposite[0].getID():  # one centre line per two-way road
-            add(road[-1], 1.0, RoadLineType.SOLID_DOUBLE_YELLOW)
-    return points, kinds
-
-
-def split_lanes(shapes: list[np.ndarray], lane_ids: np.ndarray, edge_of: list[str | None], lane_links: np.ndarray,
-                max_piece_m: float):
-    """Cut the lanes of normal edges into pieces of at most ``max_piece_m`` (all lanes of an edge into
-    the same number of pieces, at the same fractions of their length, so that neighbours stay side by
-    side), as WOMD cuts its lanes: a lane's pieces follow each other by SUCCESSOR/PREDECESSOR links
-    (each piece ends on the point where the next starts), piece i of a lane neighbours piece i of its
-    neighbour, a lane's successors follow its last piece. The first piece keeps the lane's id; the
-    others get new ids after the largest. Internal (junction) lanes (``edge_of`` None) are not cut.
-
-    Returns (shapes, ids [P], parent lane index of each piece [P], links [E', 3], last piece id of each
-    original lane id)."""
-    lengths = [float(np.linalg.norm(np.diff(s[:, :2], axis=0), axis=1).sum()) for s in shapes]
-    count: dict[str, int] = {}
-    for k, edge in enumerate(edge_of):
-        if edge is not None:
-            count[edge] = max(count.get(edge, 1), int(math.ceil(lengths[k] / max_piece_m - 1e-9)))
-    next_id = int(lane_ids.max(initial=0)) + 1
-    out_shapes, out_ids, parent = [], [], []
-    pieces: dict[int, list[int]] = {}
-    for k, shape in enumerate(shapes):
-        n = count.get(edge_of[k], 1) if edge_of[k] is not None else 1
-        if n > 1:
-            arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(shape[:, :2], axis=0), axis=1))])
-            cuts = np.searchsorted(arc, arc[-1] * np.arange(1, n) / n)
-            cuts = np.unique(np.clip(cuts, 1, len(shape) - 2))
-            bounds = [0, *cuts.tolist(), len(shape) - 1]
-        else:
-            bounds = [0, len(shape) - 1]
-        ids = []
-        for i in range(len(bounds) - 1):
-            ids.append(int(lane_ids[k]) if i == 0 else next_id)
-            next_id += i > 0
-            out_shapes.append(shape[bounds[i]:bounds[i + 1] + 1])
-            parent.append(k)
-        out_ids += ids
-        pieces[int(lane_ids[k])] = ids
-    links = []
-    for a, b, kind in lane_links.tolist():
-        pa, pb = pieces[a], pieces[b]
-        if kind == LinkType.SUCCESSOR:
-            links.append((pa[-1], pb[0], kind))
-        elif kind == LinkType.PREDECESSOR:
-            links.append((pa[0], pb[-1], kind))
-        else:  # neighbours: piece by piece
-            links += [(x, y, kind) for x, y in zip(pa, pb)]
-    for ids in pieces.values():
-        links += [(x, y, LinkType.SUCCESSOR) for x, y in zip(ids[:-1], ids[1:])]
-        links += [(y, x, LinkType.PREDECESSOR) for x, y in zip(ids[:-1], ids[1:])]
-    last_piece = {lane: ids[-1] for lane, ids in pieces.items()}
-    return (out_shapes, np.asarray(out_ids, np.int64), np.asarray(parent, np.int64),
-            np.asarray(links, np.int64).reshape(-1, 3), last_piece)
 
 
 # SUMO signal characters -> SignalState (https://sumo.dlr.de/docs/Simulation/Traffic_Lights.html#signal_state_definitions)
