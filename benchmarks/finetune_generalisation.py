@@ -106,6 +106,8 @@ def main() -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--run-dir", default="runs/generalisation")
     p.add_argument("--png", default="docs/images/finetune_generalisation.png")
+    p.add_argument("--rows", default="expert (log),prior full softmax",
+                   help="baseline rows besides the reference (prior top-k), comma-separated")
     p.add_argument("--only", choices=("train", "eval-generated", "eval-real"), default=None,
                    help="do one piece of the work (the runs it needs must exist for eval-*)")
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides for every run")
@@ -146,25 +148,27 @@ def main() -> int:
     results = {}
     eval_sets = [("generated", args.heldout, args.eval_scenes, args.eval_seeds)]
     eval_sets += [("real", args.real_heldout, 10**6, args.real_seeds)] if args.real_heldout else []
-    for name, spec, count, num_seeds in eval_sets:  # 2. every policy on the held-out sets
+    for name, spec, count, num_seeds in eval_sets:  # 2. every policy on the held-out sets, one cached row at a time
         if args.only is not None and args.only != f"eval-{name}":
             continue
         scenes = held_out(ft, base, vocab, spec, count)
         seeds = list(range(base.eval_seed, base.eval_seed + num_seeds))
-        baselines = cached(run_dir / f"eval_{name}_baselines.json",
-                           lambda: evaluate(ft, base, scenes, ft.evaluation_policies(base, None), seeds, model, vocab))
-        emit({"kind": "eval", "set": name, "policy": "baselines", "scenes": len(scenes), "seeds": num_seeds, "rows": baselines["rows"]})
-        tuned = {}
-        for n in sizes:
-            if n not in runs:
-                continue
+        baselines = ft.evaluation_policies(base, None)
+        reference = next(iter(k for k in baselines if k.startswith("prior top-")), "prior full softmax")
+        # the reference and the fine-tuned policies first (what the targets compare), the other rows after
+        todo = [(reference, baselines[reference], "baselines")]
+        for n in sorted(runs, reverse=True):
             cfg_n, net, _ = ft.load_policy(runs[n])
-            policies = {"fine-tuned": ft.evaluation_policies(cfg_n, net)["fine-tuned"]}
-            tuned[str(n)] = cached(run_dir / f"eval_{name}_finetuned_{n}.json",
-                                   lambda: evaluate(ft, base, scenes, policies, seeds, model, vocab))
-            emit({"kind": "eval", "set": name, "policy": "fine-tuned", "generated_scenes": n, "scenes": len(scenes), "seeds": num_seeds,
-                  "rows": tuned[str(n)]["rows"]})
-        results[name] = {"baselines": baselines, "finetuned": tuned}
+            todo.append((f"fine-tuned {n}", ft.evaluation_policies(cfg_n, net)["fine-tuned"], "fine-tuned"))
+        todo += [(k, p, "baselines") for k, p in baselines.items() if k != reference and k in args.rows.split(",")]
+        rows = {}
+        for row_name, policy, kind in todo:
+            slug = row_name.replace(" ", "_").replace("(", "").replace(")", "")
+            rows[row_name] = cached(run_dir / f"eval_{name}_{slug}.json",
+                                    lambda: evaluate(ft, base, scenes, {row_name: policy}, seeds, model, vocab))["rows"][row_name]
+            emit({"kind": "eval", "set": name, "policy": row_name, "scenes": len(scenes), "seeds": num_seeds, "row": rows[row_name]})
+        results[name] = {"baselines": {"rows": {k: v for k, v in rows.items() if not k.startswith("fine-tuned ")}},
+                         "finetuned": {str(n): {"rows": {"fine-tuned": rows[f"fine-tuned {n}"]}} for n in runs}}
     if args.only is not None or any(n not in runs for n in sizes):
         return 0
     reference = f"prior top-{base.reference_top_k}" if base.reference_top_k else "prior full softmax"
