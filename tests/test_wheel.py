@@ -145,3 +145,14 @@ print(len(obs), steps)
 """
     n_obs, steps = map(int, _run([str(bindir / "python"), "-c", code], work, env).split())
     assert n_obs == 1 and 1 <= steps <= 2
+
+
+def test_the_shipped_fine_tuned_policy_loads_from_the_wheel(installed):
+    bindir, env, work = installed
+    code = """
+from agents.finetune import load_policy
+cfg, net, meta = load_policy("embedded")
+print(cfg.prior, meta["trained_on"]["num_scenes"], sum(p.numel() for p in net.parameters()) > 0)
+"""
+    prior, scenes, has_weights = _run([str(bindir / "python"), "-c", code], work, env).split()
+    assert prior == "embedded" and int(scenes) >= 1000 and has_weights == "True"

@@ -1,0 +1,53 @@
+"""The fine-tuned policy that ships with the package (issue 32 item 3; its card: docs/policy_card.md):
+one call loads it, it goes with the embedded prior (the digest it was saved with), and it drives the
+batched environment on the package's sample scenes, near its reference but not equal to it."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+pytest.importorskip("torchrl", reason="the rl extra (torchrl) is not installed")
+
+from agents.finetune import load_policy  # noqa: E402
+from agents.policy import prior_digest  # noqa: E402
+from agents.prior_policy import kl_to_prior  # noqa: E402
+from envs.smart_traffic_batched_v0 import SmartTrafficBatchedEnv  # noqa: E402
+from smart_marl.model.checkpoint import load_prior  # noqa: E402
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    return load_policy("embedded")
+
+
+def test_the_shipped_policy_loads_in_one_call_and_goes_with_the_embedded_prior(shipped):
+    cfg, net, meta = shipped
+    assert cfg.prior == "embedded" and cfg.scenes == "embedded"
+    assert meta["prior_sha256"] == prior_digest(load_prior("embedded")[0])
+    assert meta["trained_on"]["num_scenes"] >= 1000 and meta["trained_on"]["scenes_seen"] >= 900
+    assert sum(p.numel() for p in net.parameters()) > 0
+
+
+def test_the_shipped_policy_drives_the_sample_scenes_near_its_reference(shipped):
+    cfg, net, _ = shipped
+    model, vocab = load_prior("embedded")
+    env = SmartTrafficBatchedEnv(scenarios="embedded", prior=model, motion_vocab=vocab, num_scenes=4, controlled="moving_vehicles",
+                                 max_agents=cfg.max_agents, horizon_steps=4, reference_top_k=cfg.reference_top_k, scene_order="sequential")
+    td = env.reset()
+    kls = []
+    with torch.no_grad():
+        for _ in range(4):
+            obs, prior = td["agents", "observation", "observation"], td["agents", "observation", "prior_logits"]
+            logits = net(obs, prior)
+            mask = td["agents", "mask"]
+            assert torch.isfinite(logits[mask]).any(-1).all()
+            logp = torch.log_softmax(logits, -1)
+            kls.append(kl_to_prior(logp, prior, cfg.temperature, cfg.reference_top_k)[mask])
+            td["agents", "action"] = logits.argmax(-1)
+            td = env.step(td)["next"]
+    kl = torch.cat(kls)
+    # fine-tuned: it moved away from the prior's top 3 (the run ended at a KL of 0.28 per step), but not far
+    assert len(kl) > 0 and 1e-3 < float(kl.mean()) < 3.0, float(kl.mean())
