@@ -91,6 +91,27 @@ def plot(results: dict, sizes: list[int], reference: str, png: Path) -> None:
     fig.savefig(png, dpi=110)
 
 
+def markdown(run_dir: Path, name: str, reference: str) -> str:
+    """The held-out rows of one set found under ``run_dir`` as a Markdown table, each against the reference."""
+    rows = {}
+    for path in sorted(run_dir.glob(f"eval_{name}_*.json")):
+        result = json.loads(path.read_text())
+        rows.update(result["rows"])
+        scenes, seeds = len(result["scenes"]), len(result["seeds"])
+    if reference not in rows:
+        return f"(no {reference} row under {run_dir})"
+    base = rows[reference]
+    bad = lambda r: r["collision_rate"] + r["offroad_rate"]  # noqa: E731
+    out = [f"{name} held-out: {scenes} scenes x {seeds} seed(s), {base['agent_episodes']} agent-episodes per policy",
+           "", "| policy | collision | offroad | coll. + off. vs ref. | goal | goal vs ref. | progress (m) | KL/step to ref. | "
+           "realism (meta) | vs ref. |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for k, r in sorted(rows.items(), key=lambda kv: (not kv[0].startswith("prior"), kv[0])):
+        out.append(f"| {k} | {r['collision_rate']:.3f} | {r['offroad_rate']:.3f} | {bad(r) / max(bad(base), 1e-9):.2f}x | "
+                   f"{r['goal_rate']:.3f} | {r['goal_rate'] / max(base['goal_rate'], 1e-9):.2f}x | {r['progress_m']:.1f} | "
+                   f"{r['kl_to_reference']:.3f} | {r['meta_metric']:.4f} | {r['meta_metric'] - base['meta_metric']:+.4f} |")
+    return "\n".join(out)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--train", required=True, help="the generated training pool (a scene cache)")
@@ -108,7 +129,7 @@ def main() -> int:
     p.add_argument("--png", default="docs/images/finetune_generalisation.png")
     p.add_argument("--rows", default="expert (log),prior full softmax",
                    help="baseline rows besides the reference (prior top-k), comma-separated")
-    p.add_argument("--only", choices=("train", "eval-generated", "eval-real"), default=None,
+    p.add_argument("--only", choices=("train", "eval-generated", "eval-real", "table"), default=None,
                    help="do one piece of the work (the runs it needs must exist for eval-*)")
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides for every run")
     args = p.parse_args()
@@ -119,6 +140,11 @@ def main() -> int:
 
     torch.set_num_threads(args.threads)
     run_dir = Path(args.run_dir)
+    if args.only == "table":  # the Markdown tables of what is done, for the docs
+        base = ft.load_finetune_config(args.config, list(args.overrides))
+        reference = f"prior top-{base.reference_top_k}" if base.reference_top_k else "prior full softmax"
+        print(markdown(run_dir, "generated", reference) + "\n\n" + markdown(run_dir, "real", reference))
+        return 0
     run_dir.mkdir(parents=True, exist_ok=True)
     sizes = [int(x) for x in args.sizes.split(",")]
     base = ft.load_finetune_config(args.config, list(args.overrides))
