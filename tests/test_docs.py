@@ -409,9 +409,9 @@ def test_the_scale_finetune_commands_run_on_a_small_pool(tmp_path, monkeypatch, 
 
 # ------------------------------------------------------------------ slow: running them
 # The walk-through on small inputs: the real WOMD records of ../shared/data when present, else the
-# package's sample scenes; vocabularies of 64/32/32 tokens; two training steps; two rollouts.
+# package's sample scenes; vocabularies of 64/32/4 tokens (the one WOMD record holds 10 cyclist snippets); two training steps; two rollouts.
 WALKTHROUGH_SUBSTITUTIONS = {
-    "--sizes 1024/512/512": "--sizes 64/32/32", "motion_1024-512-512.npz": "motion_64-32-32.npz",
+    "--sizes 1024/512/512": "--sizes 64/32/4", "motion_1024-512-512.npz": "motion_64-32-4.npz",
     "--road-size 1024": "--road-size 64", "road_1024.npz": "road_64.npz",
     "max_steps=2000": "max_steps=2 batch_size=2 num_workers=0 val_every=1000 ckpt_every=1000",
     "max_steps=20000": "max_steps=2 batch_size=2 num_workers=0 val_every=1000 ckpt_every=1000",
