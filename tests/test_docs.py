@@ -127,6 +127,8 @@ def test_the_readme_set_up_and_test_commands_are_the_ones_ci_runs():
     assert ".venv/bin/python -m pytest -q" in ci
     slow = [line for line in ci if line.startswith(".venv/bin/python -m pytest -q -m slow")]
     assert slow and all((ROOT / f).is_file() for f in slow[0].split()[6:])
+    tests_in_ci = [line for line in ci if line.startswith(".venv/bin/python -m pytest")]
+    assert tests_in_ci and all(line in readme for line in tests_in_ci), "every test command CI runs is in the README"
 
 
 def test_the_gpu_recipe_keeps_an_installed_torch():

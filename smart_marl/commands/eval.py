@@ -38,13 +38,13 @@ from ..metrics import SceneNotScorableError, aggregate, logged_scene, score_roll
 from ..metrics.baselines import policy_rollouts
 from ..metrics.config import get_rules
 from ..metrics.inputs import RolloutError, Rollouts
-from ..metrics.sharding import (RESULT_FILE, RunDir, RunDirError, Shard, file_sha256, input_digest, link_or_copy, merge_run,
+from ..metrics.sharding import (RESULT_FILE, RunDir, RunDirError, Shard, input_digest, link_or_copy, merge_run,
                                 metrics_record, parse_shard, run_shard, scene_slots, shard_from_torchrun)
 from ..metrics.submission import (ScenarioRolloutArrays, build_submission, check_against_scene, open_submission,
                                   submission_files, submission_shard_name, write_rollouts)
 from ..model.checkpoint import EMBEDDED, checkpoint_paths, load_prior, resolve_checkpoint_path
 from ..readers import expand_paths, read_scenarios
-from ..readers.scene_cache import atomic_write
+from ..readers.scene_cache import atomic_write, file_sha256
 from ..rollout import DEFAULT_TOP_K, rollout
 from ..version import __version__
 from .arguments import collision_avoidance_flag, device, non_negative_int, output_dir, positive_int, reader_formats, rollouts, seed, temperature
