@@ -110,18 +110,19 @@ def group_types(vocab) -> list[int]:
     return [int(t) for t, v in vocab.types.items() if v.size == size]
 
 
-def _pool(spec, key: str) -> ScenePool:
+def _pool(spec, key: str, max_loaded: int = 64) -> ScenePool:
     if not spec:
         raise FinetuneError(f"{key}: no scenes given ({key}=PATH)")
     try:
-        return ScenePool(spec, max_loaded=64)
+        return ScenePool(spec, max_loaded=max_loaded)
     except SmartMarlError as exc:
         raise FinetuneError(f"{key}: {exc}") from exc
 
 
 def training_pool(cfg: FinetuneConfig) -> ScenePool:
-    """The fine-tuning scenes: the first ``num_scenes`` of ``scenes`` (all with None)."""
-    pool = _pool(cfg.scenes, "scenes")
+    """The fine-tuning scenes: the first ``num_scenes`` of ``scenes`` (all with None); the constants of
+    as many scenes are kept in memory as the prior's started states (``prior_cache_size``)."""
+    pool = _pool(cfg.scenes, "scenes", max_loaded=cfg.prior_cache_size)
     if cfg.num_scenes is None:
         return pool
     if cfg.num_scenes > len(pool):
@@ -187,6 +188,7 @@ def load_policy(path: str | Path = "embedded") -> tuple[FinetuneConfig, PolicyLo
     config.setdefault("reference_top_k", None)  # policies saved before the top-k reference were trained on the full softmax
     if path == "embedded":
         config["prior"] = "embedded"  # the package's policy goes with the package's prior
+    config["device"] = "cpu"  # where it trained is no promise of where it runs: the weights load on the CPU
     cfg = load_finetune_config(config)
     want = meta.get("prior_sha256")
     if want is not None:
@@ -391,6 +393,8 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
                 on_iteration(row)
             if it % max(cfg.checkpoint_every, 1) == 0 or it == cfg.iterations:
                 save_policy(ckpt_dir / f"policy_{it:04d}", cfg.to_dict(), learner.net, learner.critic.module, learner.dims, it, stats)
+        if cfg.time_limit_s and row["seconds"] >= cfg.time_limit_s:  # every rank sees the same (averaged) seconds
+            break
     collector.shutdown()
     scene_ids = pool.scenario_ids()
     if rank != 0:

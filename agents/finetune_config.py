@@ -75,6 +75,7 @@ class FinetuneConfig:
     max_grad_norm: float = 1.0
     frames_per_batch: int = 256  # scene-steps per iteration, all scenes together (a multiple of num_envs)
     iterations: int = 50
+    time_limit_s: float = 0.0  # stop after the iteration that passes this many seconds of training (0: no limit)
     ppo_epochs: int = 4
     minibatch_size: int = 64  # scene-steps per minibatch (x max_agents agent-steps)
     # evaluation (held-out scenes, full horizon, no termination) and bookkeeping
@@ -159,6 +160,7 @@ _FINETUNE_RULES = {
     "lmbda": number(0.0, 1.0), "clip_epsilon": number(0.0, low_open=True), "entropy_coeff": number(0.0),
     "critic_coeff": number(0.0), "normalize_advantage": flag, "lr": number(0.0, low_open=True), "max_grad_norm": number(0.0),
     "frames_per_batch": integer(1, 10**6, "a million env steps per iteration"), "iterations": integer(1, 10**6),
+    "time_limit_s": number(0.0),
     "ppo_epochs": integer(1, 1000), "minibatch_size": integer(1),
     "eval_episodes": integer(0, MAX_EVAL_EPISODES), "eval_seed": seed_rule, "eval_scenes": lambda v: None if v is None else _scenes_rule(v),
     "eval_num_scenes": integer(1), "eval_rules": lambda v: None if v in ("2024", "2025") else f"must be '2024' or '2025', got {v!r}",

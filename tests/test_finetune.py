@@ -22,7 +22,7 @@ pytest.importorskip("torchrl", reason="the rl extra (torchrl) is not installed")
 from agents import PriorPolicy, kl_to_prior, run_episode  # noqa: E402
 from agents.evaluate import evaluate_policies, first_collision_kinds  # noqa: E402
 from agents.finetune import (  # noqa: E402
-    FinetuneError, build_modules, controlled_selection, core_scenes, evaluation_core, evaluation_policies, finetune, held_out_scenes,
+    FinetuneConfigError, FinetuneError, build_modules, controlled_selection, core_scenes, evaluation_core, evaluation_policies, finetune, held_out_scenes,
     load_finetune_config, load_policy, load_prior, training_env, training_pool,
 )
 from agents.kl_ppo import PriorKLPPOLoss  # noqa: E402
@@ -305,7 +305,7 @@ def test_tiny_finetuning_reaches_logged_goals_more_often_than_the_prior(tiny_run
 def test_evaluation_refuses_an_override_of_the_saved_policys_network(tiny_run, capsys):
     """Issue 34: ``hidden=128`` at evaluation was ignored (the network is the checkpoint's); it is refused, before
     anything runs, as is ``--episodes 0`` (which became one seed)."""
-    from agents.finetune import FinetuneConfigError, evaluate_checkpoint
+    from agents.finetune import evaluate_checkpoint
     from smart_marl.cli import main
 
     cfg, result = tiny_run
@@ -477,6 +477,18 @@ def test_a_run_on_a_pool_larger_than_its_batch_plays_every_scene(tmp_path):
     result = finetune(cfg)
     assert [r["scenes_seen"] for r in result.history][-1] == 4
     assert result.history[-1]["frames"] == 24 and result.history[0]["agent_episodes"] > 0
+
+
+def test_a_time_limit_ends_the_run_after_the_iteration_that_passes_it_and_saves_the_last_policy(tmp_path):
+    cfg = load_finetune_config("tiny", {"num_scenes": 2, "num_envs": 2, "horizon_steps": 2, "iterations": 50, "frames_per_batch": 4,
+                                        "minibatch_size": 4, "ppo_epochs": 1, "eval_episodes": 0, "out_dir": str(tmp_path),
+                                        "tensorboard": False, "controlled": "vehicles", "time_limit_s": 1e-6})
+    result = finetune(cfg)
+    assert len(result.history) == 1 and result.history[0]["seconds"] >= 1e-6
+    assert result.checkpoint is not None and result.checkpoint.name.startswith("policy_last")
+    assert json.loads(result.checkpoint.read_text())["iteration"] == 1
+    with pytest.raises(FinetuneConfigError, match="time_limit_s"):
+        load_finetune_config("tiny", ["time_limit_s=-1"])
 
 
 def test_tiny_finetune_then_evaluate_on_held_out_scenes(shared_data, prior_path, tmp_path):
