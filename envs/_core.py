@@ -48,6 +48,11 @@ from ._scene import SceneStatic
 from ._scene_batch import SceneBatch, gather_tracks
 
 
+START_CHUNK = 16
+"""Scenes whose prior states are started in one batch (the road encoder's memory grows with the square of a
+scene's road tokens: ~80 MB a generated scene)."""
+
+
 @dataclass
 class CoreScene:
     """A scene for the core: its constants, its controlled agents and a key for the prior cache."""
@@ -207,11 +212,14 @@ class TrafficCore:
             if st is None:
                 first.setdefault(scenes[i].key if scenes[i].key is not None else ("row", i), i)
         if first:
-            todo = list(first.values())
-            started = RolloutState.start(self.model, [scenes[i].static.scenario for i in todo], num_rollouts=1, seed=0,
-                                         top_k=self.top_k, temperature=self.temperature, device=self.device,
-                                         motion_vocab=self.motion_vocab, avoid_collisions=self.avoid_collisions)
-            fresh = dict(zip(first, split_state(started) if len(todo) > 1 else [started]))
+            todo, states = list(first.values()), []
+            for lo in range(0, len(todo), START_CHUNK):  # the road encoder's neighbour search is quadratic in road tokens
+                chunk = todo[lo:lo + START_CHUNK]
+                started = RolloutState.start(self.model, [scenes[i].static.scenario for i in chunk], num_rollouts=1, seed=0,
+                                             top_k=self.top_k, temperature=self.temperature, device=self.device,
+                                             motion_vocab=self.motion_vocab, avoid_collisions=self.avoid_collisions)
+                states += split_state(started) if len(chunk) > 1 else [started]
+            fresh = dict(zip(first, states))
             for i, st in enumerate(out):
                 if st is None:
                     out[i] = fresh[scenes[i].key if scenes[i].key is not None else ("row", i)]
