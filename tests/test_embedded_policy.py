@@ -51,3 +51,21 @@ def test_the_shipped_policy_drives_the_sample_scenes_near_its_reference(shipped)
     kl = torch.cat(kls)
     # fine-tuned: it moved away from the prior's top 3 (the run ended at a KL of 0.28 per step), but not far
     assert len(kl) > 0 and 1e-3 < float(kl.mean()) < 3.0, float(kl.mean())
+
+
+def test_a_policy_trained_on_a_gpu_loads_on_the_cpu(tmp_path):
+    """A checkpoint's config says the device it trained on; loading it does not ask for that device."""
+    import json
+    import shutil
+
+    from agents.policy import resolve_policy_path
+
+    src = resolve_policy_path("embedded")
+    stem = src.with_suffix("") if src.suffix in (".json", ".safetensors") else src
+    for suffix in (".json", ".safetensors"):
+        shutil.copy(stem.with_name(stem.name + suffix), tmp_path / f"gpu{suffix}")
+    meta = json.loads((tmp_path / "gpu.json").read_text())
+    meta["config"]["device"] = "cuda:3"
+    (tmp_path / "gpu.json").write_text(json.dumps(meta))
+    cfg, net, _ = load_policy(tmp_path / "gpu.json")
+    assert cfg.device == "cpu" and all(p.device.type == "cpu" for p in net.parameters())
