@@ -138,7 +138,7 @@ def _stretched_distance2(points: torch.Tensor, start: torch.Tensor, end: torch.T
 
 
 def nearest_road_edge(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: float = Z_STRETCH, candidates: int = 16,
-                      max_pairs: int = 1 << 22) -> torch.Tensor:
+                      max_pairs: int = 1 << 20) -> torch.Tensor:
     """[B, Q] the index of the segment nearest to each point [B, Q, 3] of its scene by 3D distance with z
     stretched (the lowest index on ties), as :func:`smart_marl.geometry.nearest_segment_indices`.
 
@@ -151,13 +151,13 @@ def nearest_road_edge(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: f
     mid = 0.5 * (edges.start[..., :2] + edges.end[..., :2])  # [B, S, 2]
     half = 0.5 * (edges.end[..., :2] - edges.start[..., :2]).norm(dim=-1)  # [B, S]
     k = min(candidates, s)
-    cand_lb = torch.empty(b, q, k, dtype=points.dtype, device=points.device)
-    cand = torch.empty(b, q, k, dtype=torch.long, device=points.device)
-    rows = max(1, max_pairs // max(q * s, 1))
-    for lo in range(0, b, rows):  # the bound of every (point, segment) pair, a few scenes at a time
-        hi = min(b, lo + rows)
-        lb = ((points[lo:hi, :, None, :2] - mid[lo:hi, None]).norm(dim=-1) - half[lo:hi, None])
-        cand_lb[lo:hi], cand[lo:hi] = torch.topk(lb.masked_fill(~edges.valid[lo:hi, None], float("inf")), k, dim=-1, largest=False)
+    cand_lb = torch.full((b, q, k), float("inf"), dtype=points.dtype, device=points.device)
+    cand = torch.zeros(b, q, k, dtype=torch.long, device=points.device)  # a scene with fewer segments: segment 0 again
+    for rows, sb in _scene_blocks(edges.valid, q, max_pairs):  # the bound of every (point, segment) pair, a few scenes at a time
+        kb = min(k, sb)
+        lb = ((points[rows, :, None, :2] - mid[rows, None, :sb]).norm(dim=-1) - half[rows, None, :sb])
+        cand_lb[rows, :, :kb], cand[rows, :, :kb] = torch.topk(lb.masked_fill(~edges.valid[rows, None, :sb], float("inf")), kb, dim=-1,
+                                                               largest=False)
     cand, by_index = cand.sort(dim=-1)  # the lowest index first among equally near candidates
     cand_lb = cand_lb.gather(-1, by_index)
     pick = lambda t: t.gather(1, cand.reshape(b, -1)[..., None].expand(-1, -1, 3)).view(b, q, k, 3)  # noqa: E731
@@ -173,8 +173,32 @@ def nearest_road_edge(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: f
     return nearest
 
 
+def _scene_blocks(valid: torch.Tensor, q: int, max_pairs: int):
+    """(scenes, segments) blocks of :func:`nearest_road_edge`'s bounds: ``scenes`` (a slice or index of
+    rows of ``valid`` [B, S]) whose (point, segment) pairs, ``q`` points a scene, number at most about
+    ``max_pairs``, and the segments to read (one past the last valid one of any of them). On the CPU the
+    scenes go in order of their segment count, so that a batch's largest scene does not set every
+    scene's work; elsewhere in row order, every segment."""
+    b, s = valid.shape
+    if valid.device.type != "cpu":
+        rows = max(1, max_pairs // max(q * s, 1))
+        yield from ((slice(lo, lo + rows), s) for lo in range(0, b, rows))
+        return
+    ends = (valid * torch.arange(1, s + 1)).amax(1)  # [B] one past each scene's last segment
+    order = ends.argsort()
+    ends = ends[order].tolist()
+    lo = 0
+    while lo < b:
+        hi = lo + 1
+        while hi < b and (hi + 1 - lo) * q * ends[hi] <= max_pairs:
+            hi += 1
+        if ends[hi - 1]:
+            yield order[lo:hi], ends[hi - 1]
+        lo = hi
+
+
 def signed_distance_to_road_edges(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: float = Z_STRETCH,
-                                  max_pairs: int = 1 << 22) -> torch.Tensor:
+                                  max_pairs: int = 1 << 20) -> torch.Tensor:
     """Signed 2D distance [B, Q] of points [B, Q, 3] to their scene's road edges, positive off the road,
     as :func:`smart_marl.geometry.signed_distance_to_road_edges`: the nearest segment by 3D distance
     with z stretched ``z_stretch`` times (the lowest index on ties, :func:`nearest_road_edge`), the 2D

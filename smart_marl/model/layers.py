@@ -31,12 +31,20 @@ def relative_pose_features(query_pose: torch.Tensor, key_pose: torch.Tensor) -> 
     return torch.stack([dist, bearing, dheading], -1)
 
 
+EMBED_BLOCK_ROWS = 8192
+"""Rows that CPU inference (no autograd) embeds at once: more rows go in nearly equal blocks of at most this
+many (4 MB of cos/sin features each), which stay in the cache, where embedding every pair of a large batch at
+once spent more time waiting on memory (and on the allocator's fresh pages) than computing. A row's result
+does not depend on the block it is in: matrix products of a few hundred rows or more give each row alike."""
+
+
 class FourierEmbedding(nn.Module):
     """Continuous features [..., D] -> [..., hidden]: per input dimension, learned frequencies
     (cos, sin and the raw value) through its own 2-layer MLP; summed over dimensions (plus any
     categorical embeddings), then LayerNorm, ReLU, Linear. (SMART's/QCNet's FourierEmbedding.)
 
-    Two ways to skip work that cannot change a result, both exact:
+    CPU inference embeds many rows in blocks (:data:`EMBED_BLOCK_ROWS`). Two ways to skip work that cannot
+    change a result, both exact:
 
     * ``valid`` [...] (bool, the leading shape of ``x``): rows to embed; every other row's output is
       zero. The neighbour lists of the attentions are padded, and a padded pair's embedding is
@@ -67,23 +75,39 @@ class FourierEmbedding(nn.Module):
                 repeated_dims: tuple[int, ...] = ()) -> torch.Tensor:
         lead = x.shape[:-1]
         x = x.reshape(-1, self.input_dim)  # (M, D)
+        cat = None if categorical is None else categorical.reshape(-1, self.hidden_dim)
         rows = None
         if valid is not None:
             rows = valid.reshape(-1).nonzero().squeeze(1)  # (M',) the rows to embed
             x = x[rows]
-            if categorical is not None:
-                categorical = categorical.reshape(-1, self.hidden_dim)[rows]
+            cat = None if cat is None else cat[rows]
+        inference = not torch.is_grad_enabled() and x.device.type == "cpu" and not torch.is_autocast_enabled("cpu")
+        parts = -(-x.shape[0] // EMBED_BLOCK_ROWS) if inference else 1
+        if parts <= 1:
+            h = self._embed(x, cat, repeated_dims)
+            if rows is not None:
+                h = h.new_zeros(valid.numel(), self.hidden_dim).index_copy(0, rows, h)
+            return h.reshape(*lead, self.hidden_dim)
+        h = x.new_zeros(x.shape[0] if rows is None else valid.numel(), self.hidden_dim)
+        ends = [x.shape[0] * i // parts for i in range(parts + 1)]  # nearly equal blocks
+        for lo, hi in zip(ends[:-1], ends[1:]):
+            part = self._embed(x[lo:hi], None if cat is None else cat[lo:hi], repeated_dims)
+            if rows is None:
+                h[lo:hi] = part
+            else:
+                h.index_copy_(0, rows[lo:hi], part)
+        return h.reshape(*lead, self.hidden_dim)
+
+    def _embed(self, x: torch.Tensor, categorical: torch.Tensor | None, repeated_dims: tuple[int, ...]) -> torch.Tensor:
+        """The embeddings [M, hidden] of rows x [M, D] (categorical [M, hidden] or None)."""
         if x.requires_grad or torch.is_autocast_enabled(x.device.type):
             h = self._trunk_autograd(x, repeated_dims)
         else:  # the usual case: geometry carries no gradient; hand-written backward, fewer passes over memory
             h = _FourierTrunk.apply(x, self.freqs, self.w1, self.b1, self.ln1.weight, self.ln1.bias, self.w2, self.b2,
                                     self.ln1.eps, tuple(repeated_dims), torch.is_grad_enabled())
         if categorical is not None:
-            h = h + categorical.reshape(-1, self.hidden_dim)
-        h = self.out(h)
-        if rows is not None:
-            h = h.new_zeros(valid.numel(), self.hidden_dim).index_copy(0, rows, h)
-        return h.reshape(*lead, self.hidden_dim)
+            h = h + categorical
+        return self.out(h)
 
     def _trunk_autograd(self, x: torch.Tensor, repeated_dims: tuple[int, ...]) -> torch.Tensor:
         """The per-dimension MLPs summed, through autograd (inputs that need a gradient; autocast)."""
@@ -181,14 +205,49 @@ def mlp(in_dim: int, hidden_dim: int, out_dim: int, layers: int = 2) -> nn.Seque
 
 
 # ------------------------------------------------------------------------------ neighbourhoods
+KNN_BLOCK_PAIRS = 1 << 20
+"""(query, key) pairs whose distances one block of the CPU neighbour search holds (4 MB of float32): the
+search runs over blocks of groups, each cut to its last valid query and key, so that its intermediates stay
+in the cache and off the allocator's fresh pages, and a batch's padding (the largest scene's agents and road
+pieces) is not searched by every group. Each group is searched alone either way: the result is the same."""
+
+
 def knn_within(query_xy: torch.Tensor, key_xy: torch.Tensor, radius_m: float, k: int,
                query_valid: torch.Tensor, key_valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The ``k`` nearest valid keys within ``radius_m`` of each query, batched.
 
     query_xy [G, Q, 2], key_xy [G, M, 2], query_valid [G, Q], key_valid [G, M]
     -> (index [G, Q, K] into the M keys of the same group, mask [G, Q, K]); K = min(k, M).
-    Padded slots point at key 0 and are masked.
+    Padded slots point at key 0 and are masked. On the CPU, in blocks of groups (:data:`KNN_BLOCK_PAIRS`).
     """
+    g, q, m = query_xy.shape[0], query_xy.shape[1], key_xy.shape[1]
+    kk = min(int(k), m)
+    if kk == 0 or g * q == 0 or query_xy.device.type != "cpu":
+        return _knn_block(query_xy, key_xy, radius_m, kk, query_valid, key_valid)
+    index = torch.zeros((g, q, kk), dtype=torch.long)
+    mask = torch.zeros((g, q, kk), dtype=torch.bool)
+    q_end, m_end = _extent(query_valid), _extent(key_valid)  # (G,) each group's last valid query / key + 1
+    per_block = max(1, KNN_BLOCK_PAIRS // max(int(q_end.max()) * int(m_end.max()), 1))
+    for g0 in range(0, g, per_block):
+        blk = slice(g0, g0 + per_block)
+        qb, mb = int(q_end[blk].max()), int(m_end[blk].max())
+        rows = max(1, KNN_BLOCK_PAIRS // max(len(q_end[blk]) * mb, 1))  # queries per block (one large group: a part of them)
+        for q0 in range(0, qb if mb else 0, rows):
+            part = slice(q0, min(q0 + rows, qb))
+            idx, ok = _knn_block(query_xy[blk, part], key_xy[blk, :mb], radius_m, kk, query_valid[blk, part], key_valid[blk, :mb])
+            index[blk, part, : idx.shape[-1]], mask[blk, part, : idx.shape[-1]] = idx, ok
+    return index, mask
+
+
+def _extent(valid: torch.Tensor) -> torch.Tensor:
+    """[G, M] bool -> [G] long: one past the last true entry of each row (0 for a row with none)."""
+    place = torch.arange(1, valid.shape[1] + 1, device=valid.device)
+    return (valid * place).amax(1) if valid.shape[1] else valid.new_zeros(valid.shape[0], dtype=torch.long)
+
+
+def _knn_block(query_xy: torch.Tensor, key_xy: torch.Tensor, radius_m: float, k: int,
+               query_valid: torch.Tensor, key_valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`knn_within` of one block of groups, all at once; K = min(k, M)."""
     g, q, m = query_xy.shape[0], query_xy.shape[1], key_xy.shape[1]
     kk = min(int(k), m)
     if kk == 0:
@@ -200,26 +259,30 @@ def knn_within(query_xy: torch.Tensor, key_xy: torch.Tensor, radius_m: float, k:
     q, key = query_xy.float(), key_xy.float()
     dx = q[..., 0, None] - key[:, None, :, 0]
     dy = q[..., 1, None] - key[:, None, :, 1]
-    dist2 = dx * dx + dy * dy  # (G, Q, M)
-    ok = query_valid[:, :, None] & key_valid[:, None, :] & (dist2 <= float(radius_m) ** 2)
-    dist2 = dist2.masked_fill(~ok, float("inf"))
-    d_sel, idx = smallest_k(dist2, kk)  # (G, Q, K)
+    dist2 = dx.mul_(dx).add_(dy.mul_(dy))  # (G, Q, M)
+    ok = (dist2 <= float(radius_m) ** 2).logical_and_(query_valid[:, :, None]).logical_and_(key_valid[:, None, :])
+    dist2 = dist2.masked_fill_(~ok, float("inf"))
+    d_sel, idx = smallest_k(dist2, kk, free_inf_ties=True)  # (G, Q, K)
     mask = torch.isfinite(d_sel)
     return idx.masked_fill(~mask, 0), mask
 
 
-def smallest_k(values: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+def smallest_k(values: torch.Tensor, k: int, free_inf_ties: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """(values, indices) [..., k] of the ``k`` smallest entries of each row of ``values`` [..., M],
     smallest first and, among equal values, lowest index first (entries tied at the k-th value are
     taken lowest index first): the result is that of a stable sort, so it does not depend on how many
     entries follow them (``torch.topk`` alone may break such
     ties differently for a row padded to another length, e.g. a scene batched with larger ones).
-    Only rows whose (k+1)-th smallest value equals their k-th are re-chosen."""
+    Only rows whose (k+1)-th smallest value equals their k-th are re-chosen. ``free_inf_ties``: entries
+    of +inf are padding whose place the caller ignores (a row with fewer than ``k`` finite entries then
+    keeps topk's pick of infinite ones: its finite entries are the same)."""
     m = values.shape[-1]
     if k >= m:
         return torch.sort(values, dim=-1, stable=True)
     vals, idx = torch.topk(values, k + 1, dim=-1, largest=False)
     ambiguous = vals[..., k] == vals[..., k - 1]  # a tie across the boundary: topk's pick is arbitrary
+    if free_inf_ties:
+        ambiguous &= torch.isfinite(vals[..., k])
     vals, idx = vals[..., :k], idx[..., :k]
     by_index = idx.sort(dim=-1).indices  # ties inside the k in index order too: the result is a function of the row
     vals, idx = vals.gather(-1, by_index), idx.gather(-1, by_index)
