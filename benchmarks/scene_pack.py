@@ -72,14 +72,15 @@ def unpack(packed: str, out: str) -> dict:
     from smart_marl.scenario import Scenario
 
     with np.load(io.BytesIO(lzma.decompress(Path(packed).read_bytes())), allow_pickle=False) as z:
-        names = z.files
-        n = 1 + max(int(k.split("/", 1)[0]) for k in names)
+        per_scene: dict[int, list[str]] = {}  # scene -> its array names, in one pass over the file's names
+        for key in z.files:
+            i, name = key.split("/", 1)
+            per_scene.setdefault(int(i), []).append(name)
         scenes = []
-        for i in range(n):
-            prefix = f"{i}/"
-            arrays = {k[len(prefix):]: _decode(k[len(prefix):], z[k]) for k in names if k.startswith(prefix) and k != f"{i}/meta"}
-            meta = json.loads(z[f"{i}/meta"].tobytes())
-            scenes.append(Scenario.from_arrays(arrays, meta, validate=True))
+        for i in sorted(per_scene):
+            arrays = {name: _decode(name, z[f"{i}/{name}"]) for name in per_scene[i] if name != "meta"}
+            scenes.append(Scenario.from_arrays(arrays, json.loads(z[f"{i}/meta"].tobytes()), validate=True))
+    n = len(scenes)
     Path(out).mkdir(parents=True, exist_ok=True)
     shards = []
     for s in range(0, n, SCENES_PER_SHARD):
