@@ -108,3 +108,22 @@ def test_pruned_nearest_edge_search_equals_the_exhaustive_one_with_any_number_of
     full = (d[..., 0] ** 2 + d[..., 1] ** 2 + (3.0 * d[..., 2]) ** 2).masked_fill(~edges.valid[:, None], float("inf")).argmin(-1)
     for k in (1, 4, 16, 10**6):  # 1 candidate: most points fall back to every segment; 10**6: every segment is a candidate
         assert torch.equal(nearest_road_edge(pts, edges, candidates=k), full)
+
+
+def test_the_nearest_edge_search_in_small_blocks_of_scenes_equals_one_block():
+    """On the CPU the bounds run over blocks of scenes ordered by their segment count, each cut to its
+    largest scene (``max_pairs``); any block size gives the same nearest segments, scenes without edges included."""
+    from smart_marl.geometry_torch import nearest_road_edge
+
+    scenes = sample_scenarios()
+    segs = [_edge_segments(sc) for sc in scenes]
+    segs.insert(1, None)  # a scene without road edges
+    edges = RoadEdgeTensors.from_segments(segs, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(5)
+    b = len(segs)
+    pts = torch.cat([torch.rand(b, 40, 2, generator=gen, dtype=torch.float64) * 300 - 150,
+                     torch.rand(b, 40, 1, generator=gen, dtype=torch.float64) * 4 - 2], -1)
+    want = nearest_road_edge(pts, edges, max_pairs=1 << 30)
+    assert len(set(edges.valid.sum(1).tolist())) >= 3  # scenes of different sizes
+    for pairs in (1, 5000, 40 * int(edges.valid.sum(1).max()) * 2):
+        assert torch.equal(nearest_road_edge(pts, edges, max_pairs=pairs), want), pairs

@@ -344,3 +344,23 @@ def test_dropout_masks_drop_p_of_the_entries_and_keep_the_mean():
     out.sum().backward()
     assert torch.equal(y.grad, (out.detach() != 0).float() / 0.7 * (y.detach() != 0))  # the gradient is the mask
     assert drop.eval()(y) is y
+
+
+def test_fourier_embedding_of_many_rows_in_blocks_equals_one_pass(monkeypatch):
+    """CPU inference embeds more than EMBED_BLOCK_ROWS rows in blocks; each row's result is the one pass's
+    (valid rows, categorical embeddings and repeated values included), padded rows zero."""
+    torch.manual_seed(0)
+    emb = layers.FourierEmbedding(3, 16, 8)
+    g = torch.Generator().manual_seed(2)
+    x = torch.stack([torch.randint(0, 5, (300, 6), generator=g).float(), torch.randn(300, 6, generator=g) * 3,
+                     torch.randn(300, 6, generator=g)], -1)  # (300, 6, 3)
+    valid = torch.rand(300, 6, generator=g) < 0.7
+    cat = torch.randn(300, 6, 16, generator=g)
+    with torch.no_grad():
+        want = emb(x, categorical=cat, valid=valid, repeated_dims=(0,))
+        want_all = emb(x, categorical=cat)
+        for rows in (7, 64, 1000):
+            monkeypatch.setattr(layers, "EMBED_BLOCK_ROWS", rows)
+            got = emb(x, categorical=cat, valid=valid, repeated_dims=(0,))
+            assert torch.allclose(got, want, atol=1e-6) and (got[~valid] == 0).all(), rows
+            assert torch.allclose(emb(x, categorical=cat), want_all, atol=1e-6), rows

@@ -36,3 +36,33 @@ def test_a_scene_has_the_same_neighbours_alone_and_batched_with_a_larger_one():
     batched = knn_within(keys[:, :100], keys, 10.0, 16, valid[:, :100], valid)
     assert torch.equal(alone[0][0], batched[0][0]) and torch.equal(alone[1][0], batched[1][0])
     assert alone[1].sum(-1).min() >= 8  # the grid gives every point many equidistant neighbours
+
+
+def test_the_cpu_search_in_small_blocks_finds_what_one_search_of_the_whole_batch_finds(monkeypatch):
+    """knn_within on the CPU runs in blocks of groups (and of queries), each cut to its groups' last valid
+    query and key (KNN_BLOCK_PAIRS): any block size gives what one search of the padded batch gives."""
+    from smart_marl.model import layers
+
+    gen = torch.Generator().manual_seed(2)
+    g, q, m = 7, 50, 90
+    qxy = torch.randint(0, 12, (g, q, 2), generator=gen).float() * 2.5 + 1000.0  # a grid: many equal distances
+    kxy = torch.randint(0, 12, (g, m, 2), generator=gen).float() * 2.5 + 1000.0
+    qv = torch.arange(q)[None] < torch.randint(0, q + 1, (g, 1), generator=gen)  # groups of different extents,
+    kv = (torch.arange(m)[None] < torch.randint(0, m + 1, (g, 1), generator=gen)) & (torch.rand(g, m, generator=gen) < 0.8)
+    qv[0], kv[1] = False, False  # one group without queries, one without keys
+    want = layers._knn_block(qxy, kxy, 9.0, 12, qv, kv)
+    for pairs in (1, 200, 3000, 1 << 20):  # one query of one group at a time ... the whole batch at once
+        monkeypatch.setattr(layers, "KNN_BLOCK_PAIRS", pairs)
+        idx, mask = knn_within(qxy, kxy, 9.0, 12, qv, kv)
+        assert torch.equal(mask, want[1]) and torch.equal(idx, want[0]), pairs
+    assert want[1].sum() > 100 and not want[1][0].any()
+
+
+def test_free_inf_ties_keeps_every_finite_pick_of_the_stable_sort():
+    gen = torch.Generator().manual_seed(3)
+    x = torch.randint(0, 4, (200, 30), generator=gen).float()
+    x[torch.rand(200, 30, generator=gen) < 0.7] = float("inf")  # most rows have fewer than k finite entries
+    want_v, want_i = torch.sort(x, dim=-1, stable=True)
+    v, i = smallest_k(x, 8, free_inf_ties=True)
+    finite = torch.isfinite(want_v[:, :8])
+    assert torch.equal(v, want_v[:, :8]) and torch.equal(i[finite], want_i[:, :8][finite])
