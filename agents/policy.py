@@ -64,19 +64,28 @@ class PolicyError(SmartMarlError, ValueError):
     """A policy checkpoint or network that cannot be used."""
 
 
-def token_motion_features(vocab, vocab_size: int) -> torch.Tensor:
-    """[3, V, 6] features of every token of each type's vocabulary (vehicle, pedestrian, cyclist):
-    where the token ends after 0.5 s in its start frame (forward m, left m, turn rad) and their
-    squares (a weight on both can favour a band: -a (x - c)^2), each standardised over the type's
-    tokens. A type whose vocabulary has another size than ``vocab_size`` (the group's action space)
-    gets zeros: its agents are not in the group."""
-    out = torch.zeros(3, vocab_size, 6)
+def token_end_poses(vocab, vocab_size: int) -> tuple[torch.Tensor, list[int]]:
+    """([3, V, 3] where every token of each type's vocabulary (vehicle, pedestrian, cyclist) ends after
+    0.5 s in its start frame: forward m, left m, turn rad; the types in the group). A type whose
+    vocabulary has another size than ``vocab_size`` (the group's action space) gets zeros and is left
+    out of the list: its agents are not in the group."""
+    out, types = torch.zeros(3, vocab_size, 3), []
     for t in range(3):
         tv = vocab[AgentType(t)]
-        if tv.size != vocab_size:
-            continue
-        end = torch.as_tensor(tv.poses[:, -1], dtype=torch.float32)  # (V, 3)
-        feat = torch.cat([end, end.square()], -1)
+        if tv.size == vocab_size:
+            out[t] = torch.as_tensor(tv.poses[:, -1], dtype=torch.float32)
+            types.append(t)
+    return out, types
+
+
+def token_motion_features(vocab, vocab_size: int) -> torch.Tensor:
+    """[3, V, 6] features of every token of each type's vocabulary: where it ends
+    (:func:`token_end_poses`) and the squares (a weight on both can favour a band: -a (x - c)^2), each
+    standardised over the type's tokens; zeros for a type not in the group."""
+    ends, types = token_end_poses(vocab, vocab_size)
+    out = torch.zeros(3, vocab_size, 6)
+    for t in types:
+        feat = torch.cat([ends[t], ends[t].square()], -1)
         out[t] = (feat - feat.mean(0)) / feat.std(0).clamp(min=1e-6)
     return out
 
@@ -262,4 +271,4 @@ class ExpertTensorPolicy(TensorPolicy):
 
 
 __all__ = ["ACTOR_HEADS", "Critic", "ExpertTensorPolicy", "FinetunedTensorPolicy", "PolicyError", "PolicyLogits", "PriorTensorPolicy",
-           "TensorPolicy", "actor_from_weights", "read_policy", "save_policy", "token_motion_features"]
+           "TensorPolicy", "actor_from_weights", "read_policy", "save_policy", "token_end_poses", "token_motion_features"]

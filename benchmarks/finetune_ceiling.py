@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from finetune_generalisation import cached, emit, evaluate, held_out  # noqa: E402
 
-from agents.policy import TensorPolicy  # noqa: E402
+from agents.policy import TensorPolicy, token_end_poses  # noqa: E402
 from agents.scripted import log_following_tokens  # noqa: E402
 from smart_marl.scenario import AgentType  # noqa: E402
 
@@ -41,11 +41,7 @@ class ExpertWithinTopK(TensorPolicy):
 
     def __init__(self, k: int, vocab, vocab_size: int) -> None:
         self.k, self.name = int(k), f"expert within prior top-{k}"
-        ends = torch.zeros(3, vocab_size, 3)  # where each type's tokens end after 0.5 s: forward, left, turn
-        for t in range(3):
-            if vocab[AgentType(t)].size == vocab_size:
-                ends[t] = torch.as_tensor(vocab[AgentType(t)].poses[:, -1], dtype=torch.float32)
-        self.ends = ends
+        self.ends = token_end_poses(vocab, vocab_size)[0]  # where each type's tokens end after 0.5 s: forward, left, turn
 
     def log_probs(self, core, observation, prior_logits):
         expert = log_following_tokens(core).to(prior_logits.device)  # [B, C]
