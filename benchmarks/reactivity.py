@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -61,6 +60,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import prior_speed_drift as drift  # noqa: E402  (benchmarks/ is not a package)
 
+from smart_marl.braking import LANE_HALF_M, leader_follower_pairs, poses_relative_to, speeds_now  # noqa: E402
 from smart_marl.geometry import rounded_box_signed_distance  # noqa: E402
 from smart_marl.metrics.features import traffic_light_violation  # noqa: E402
 from smart_marl.metrics.inputs import SceneNotScorableError, Signals, logged_scene, simulated_agent_indices  # noqa: E402
@@ -71,11 +71,6 @@ from smart_marl.scenario import DT_S, AgentType  # noqa: E402
 PARTS = ("a", "b", "c", "d", "e")
 SAMPLINGS = {"default": True, "plain": False}
 DECELS_MPS2 = (4.0, 6.0, 8.0)
-FOLLOW_GAP_M = 30.0  # a follower's centre at most this far behind its leader
-LANE_HALF_M = 1.75  # "in its lane": lateral offset within this
-SAME_DIRECTION_RAD = math.radians(30.0)
-LEADER_MIN_MPS = 3.0
-FOLLOWER_MIN_MPS = 1.0
 BRAKE_ONSET_S = 0.5
 BRAKE_STEPS = 10  # 5 s of rollout: the onset plus a 4 m/s2 stop from 15 m/s
 CUT_IN_GAP_M = 10.0
@@ -87,53 +82,16 @@ CUT_IN_ID = 990_001
 
 
 # ------------------------------------------------------------------------------- helpers
-def _speed_now(scene) -> np.ndarray:
-    tr, cf = scene.tracks, scene.current_frame
-    ok = tr.valid[:, cf] & tr.valid[:, cf - 1]
-    return np.where(ok, np.linalg.norm(tr.position[:, cf, :2] - tr.position[:, cf - 1, :2], axis=-1) / DT_S, 0.0)
-
-
-def _relative(scene, i: int) -> np.ndarray:
-    """[N, 3] every track's current pose in track ``i``'s frame (x forward, y left, heading)."""
-    tr, cf = scene.tracks, scene.current_frame
-    d = tr.position[:, cf, :2].astype(np.float64) - tr.position[i, cf, :2]
-    h = float(tr.heading[i, cf])
-    c, s = math.cos(h), math.sin(h)
-    dh = np.angle(np.exp(1j * (tr.heading[:, cf].astype(np.float64) - h)))
-    return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], dh], -1)
-
-
-def leader_follower_pairs(scene, max_gap_m: float = FOLLOW_GAP_M, max_pairs: int | None = None) -> list[tuple[int, int, float]]:
-    """(leader, follower, centre gap m) track indices: vehicles valid at the current frame, the leader moving
-    faster than :data:`LEADER_MIN_MPS`, the follower (faster than :data:`FOLLOWER_MIN_MPS`) the nearest vehicle
-    behind it (centre within ``max_gap_m``) in its lane (lateral offset within :data:`LANE_HALF_M`, heading
-    within 30 degrees). Nearest pairs first; at most ``max_pairs``."""
-    tr, cf = scene.tracks, scene.current_frame
-    v = _speed_now(scene)
-    veh = tr.valid[:, cf] & (tr.types == int(AgentType.VEHICLE))
-    out = []
-    for i in np.flatnonzero(veh & (v > LEADER_MIN_MPS)):
-        rel = _relative(scene, int(i))
-        behind = veh & (v > FOLLOWER_MIN_MPS) & (rel[:, 0] < 0) & (-rel[:, 0] <= max_gap_m) & (np.abs(rel[:, 1]) < LANE_HALF_M) \
-            & (np.abs(rel[:, 2]) < SAME_DIRECTION_RAD)
-        behind[i] = False
-        if behind.any():
-            j = int(np.flatnonzero(behind)[np.argmax(rel[behind, 0])])
-            out.append((int(i), j, float(-rel[j, 0])))
-    out.sort(key=lambda p: p[2])
-    return out[:max_pairs] if max_pairs else out
-
-
 def free_road_followers(scene, ahead_m: float = 30.0, max_pairs: int | None = None) -> list[int]:
     """Vehicles valid at the current frame moving faster than :data:`CUT_IN_MIN_MPS` with no other agent within
     ``ahead_m`` ahead in their lane (nor the next lane's first :data:`CUT_IN_GAP_M` + 10 m on either side:
     where the cut-in comes from); fastest first."""
     tr, cf = scene.tracks, scene.current_frame
-    v = _speed_now(scene)
+    v = speeds_now(scene)
     on = tr.valid[:, cf]
     out = []
     for i in np.flatnonzero(on & (tr.types == int(AgentType.VEHICLE)) & (v > CUT_IN_MIN_MPS)):
-        rel = _relative(scene, int(i))
+        rel = poses_relative_to(scene, int(i))
         near = on & (rel[:, 0] > -5.0) & (rel[:, 0] < ahead_m) & (np.abs(rel[:, 1]) < CUT_IN_LATERAL_M + LANE_HALF_M)
         near[i] = False
         if not near.any():
@@ -308,7 +266,7 @@ def part_cut_in(model, vocab, scenes, rollouts: int, top_k: int, seed: int, avoi
     for scene in scenes:
         size = scene.tracks.box_size()[:, :2].astype(np.float64)
         cf = scene.current_frame
-        v = _speed_now(scene)
+        v = speeds_now(scene)
         for fol in free_road_followers(scene, max_pairs=max_pairs):
             traj = cut_in_trajectory(float(v[fol]), 5 * BRAKE_STEPS)
             edit = Insert(type="vehicle", relative_to=int(scene.tracks.ids[fol]), trajectory=traj.tolist(), id=CUT_IN_ID,

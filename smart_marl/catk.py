@@ -14,6 +14,14 @@ the CAT-K rollout, which :func:`~smart_marl.model.batch.scene_tensors` turns int
 batch like any other. The rollout runs the model's KV-cached step (:meth:`SMART.start_cache
 <smart_marl.model.SMART.start_cache>`, ``step``, ``next_token_logits``) in eval mode without gradients,
 all scenes of a batch at once, interleaved with the tokenizer's step loop (its ``candidates`` hook).
+
+With ``avoid`` the rollout keeps gaps (``catk_avoid``): the candidates are the top-K of the model's
+distribution with every token taken out that the rollouts' collision rule takes out
+(:func:`~smart_marl.rollout.avoidance.excluded_tokens`: the token's frames overlap one of the agent's
+nearest neighbours, those at constant velocity), and where the target (the token back toward the
+log) would overlap a neighbour and the taken token would not, the target is the taken token. A
+follower whose logged leader brakes harder than in the log (:mod:`smart_marl.braking`) then learns
+to brake where its own log drives on.
 """
 
 from __future__ import annotations
@@ -27,8 +35,9 @@ import torch
 from .model.batch import RoadArrays
 from .model.motionnet import NUM_MOTION_TYPES
 from .model.smart import RoadInputs
+from .rollout.avoidance import excluded_tokens
 from .scenario import Scenario
-from .tokens import FRAMES_PER_TOKEN, MotionTokens, MotionVocabulary, token_boundaries, tokenize_tracks
+from .tokens import FRAMES_PER_TOKEN, MOTION_TYPES, MotionTokens, MotionVocabulary, token_boundaries, tokenize_tracks
 
 
 def first_future_step(scenario: Scenario) -> int:
@@ -46,13 +55,13 @@ def _agent_shapes(scenario: Scenario, rows: np.ndarray) -> np.ndarray:
 
 @torch.no_grad()
 def catk_tokens(model, scenes: Sequence[Scenario], roads: Sequence[RoadArrays], vocab: MotionVocabulary, top_k: int,
-                device: torch.device | str = "cpu") -> list[MotionTokens]:
+                device: torch.device | str = "cpu", avoid: bool = False) -> list[MotionTokens]:
     """CAT-K token sequences of ``scenes`` (see the module docstring) under ``model``.
 
     ``roads[i]`` are scene i's road pieces. Scenes that share a token grid (same current frame
     modulo 5 and frame count, as every 9.1 s scene) run as one batch through the model. Returns
     one :class:`MotionTokens` per scene, in order, with a row per track like
-    :func:`~smart_marl.tokens.tokenize_motion`.
+    :func:`~smart_marl.tokens.tokenize_motion`. ``avoid``: keep gaps (module docstring).
     """
     if top_k < 1:
         raise ValueError(f"CAT-K needs top_k >= 1, got {top_k}")
@@ -65,21 +74,92 @@ def catk_tokens(model, scenes: Sequence[Scenario], roads: Sequence[RoadArrays], 
     model.eval()
     try:
         for idx in groups.values():
-            for i, tokens in zip(idx, _catk_group(model, [scenes[i] for i in idx], [roads[i] for i in idx], vocab, top_k, device)):
+            for i, tokens in zip(idx, _catk_group(model, [scenes[i] for i in idx], [roads[i] for i in idx], vocab, top_k, device,
+                                                       avoid)):
                 out[i] = tokens
     finally:
         model.train(was_training)
     return out  # type: ignore[return-value]
 
 
+class _GapKeeper:
+    """The collision rule inside a CAT-K rollout (``avoid``, module docstring): the slots' poses at the
+    token step being chosen (:meth:`at_step`), the candidates it leaves (:meth:`mask`) and the targets it
+    replaces (:meth:`relabel`). Slots are the flat ``g * n + j`` of :func:`_catk_group`; rows the
+    concatenated tracks' (``slot_of_row``, -1 for tracks without a slot)."""
+
+    def __init__(self, vocab: MotionVocabulary, scenes: list[Scenario], agent_type: torch.Tensor, agent_shape: torch.Tensor,
+                 slot_of_row: torch.Tensor, bounds: np.ndarray, top_k: int, device: torch.device) -> None:
+        vmax = max(vocab[t].size for t in MOTION_TYPES)
+        tp = torch.zeros(NUM_MOTION_TYPES, vmax, FRAMES_PER_TOKEN + 1, 3)
+        for i, t in enumerate(MOTION_TYPES):
+            tp[i, : vocab[t].size] = torch.from_numpy(vocab[t].poses)
+        self.token_poses, self.agent_type, self.agent_shape = tp.to(device), agent_type.to(device), agent_shape.to(device)
+        self.slot_of_row, self.has_slot = slot_of_row, (slot_of_row >= 0).numpy()
+        self.log_pose = np.concatenate([np.concatenate([sc.tracks.position[..., :2], sc.tracks.heading[..., None]], -1)
+                                        for sc in scenes])  # [N_rows, T, 3]
+        self.log_valid = np.concatenate([sc.tracks.valid for sc in scenes])
+        self.bounds, self.top_k, self.device = bounds, top_k, device
+        self.state: tuple | None = None
+
+    def at_step(self, k: int, partial: MotionTokens) -> None:
+        """Every slot's pose where token ``k`` starts (reached by the rollout, else logged), its pose a token
+        before (NaN: none), whether it is on the road then, and its frames of the step as the others see
+        them: its logged motion of the step moved to where it is (the rollouts stay near the log, and a
+        leader that brakes in the log is seen braking, not at constant velocity)."""
+        g, n = self.agent_type.shape
+        hs, b0 = self.has_slot, int(self.bounds[k])
+        now = np.where(partial.reached_valid[hs, k][:, None], partial.reached[hs, k], self.log_pose[hs, b0])
+        before = np.where(partial.valid[hs, k - 1][:, None], partial.start_pose[hs, k - 1], np.nan)
+        flat = self.slot_of_row[self.slot_of_row >= 0]
+        pose, prev = torch.zeros(g * n, 3), torch.full((g * n, 3), float("nan"))
+        present = torch.zeros(g * n, dtype=torch.bool)
+        pose[flat], prev[flat] = torch.from_numpy(now).float(), torch.from_numpy(before).float()
+        present[flat] = torch.from_numpy(self.log_valid[hs, b0])
+        # where the others go during the step: their logged motion of the step, from where they are
+        frames = np.arange(b0 + 1, b0 + FRAMES_PER_TOKEN + 1)
+        log = self.log_pose[hs][:, frames]  # [S, 5, 3]
+        moved = log + (now - self.log_pose[hs, b0])[:, None]
+        known = torch.zeros(g * n, dtype=torch.bool)
+        known_frames = torch.zeros(g * n, FRAMES_PER_TOKEN, 3)
+        known[flat] = torch.from_numpy(self.log_valid[hs][:, np.r_[b0, frames]].all(1))
+        known_frames[flat] = torch.from_numpy(moved).float()
+        d = self.device
+        self.state = (pose.view(g, n, 3).to(d), prev.view(g, n, 3).to(d), present.view(g, n).to(d),
+                      known_frames.view(g, n, FRAMES_PER_TOKEN, 3).to(d), known.view(g, n).to(d))
+
+    def _excluded(self, logits: torch.Tensor, rows: torch.Tensor, top_k: int) -> torch.Tensor:
+        pose, prev, present, known_frames, known = self.state
+        return excluded_tokens(logits, rows, pose, prev, self.agent_shape, present, self.agent_type, self.token_poses, top_k,
+                               interpolation="contour", known_frames=known_frames, known=known)
+
+    def mask(self, logits: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """``logits`` [Q, Vmax] of slots ``rows`` [Q] with the tokens the rule excludes at ``-inf``."""
+        return logits.masked_fill(self._excluded(logits, rows, self.top_k), float("-inf"))
+
+    def relabel(self, k: int, nearest: np.ndarray, ids: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        """Targets ``nearest`` [N_rows] of step ``k``, with the taken token ``ids`` where the target would
+        overlap a neighbour and the taken token would not."""
+        if self.state is None:
+            return nearest
+        r = np.flatnonzero(ok & self.has_slot & (nearest != ids))
+        if not len(r):
+            return nearest
+        q = torch.arange(len(r))
+        label, taken = torch.from_numpy(nearest[r]), torch.from_numpy(ids[r])
+        logits = torch.full((len(r), self.token_poses.shape[1]), float("-inf"))
+        logits[q, label], logits[q, taken] = 0.0, -1.0  # the target checked first, the taken token next
+        hit = self._excluded(logits.to(self.device), self.slot_of_row[r].to(self.device), 1).cpu()[q, label].numpy()
+        nearest[r[hit]] = ids[r[hit]]
+        return nearest
+
+
 def _catk_group(model, scenes: list[Scenario], roads: list[RoadArrays], vocab: MotionVocabulary, top_k: int,
-                device: torch.device) -> list[MotionTokens]:
+                device: torch.device, avoid: bool = False) -> list[MotionTokens]:
     """Scenes on one token grid: their tracks concatenated into one rolling matching, the model
     stepped once per token step for all scenes (group g = scene g, slots = its motion agents)."""
-    cfg = model.config
-    sc0 = scenes[0]
-    bounds = token_boundaries(sc0.current_frame, sc0.num_frames)
-    kc = first_future_step(sc0)
+    cfg, sc0 = model.config, scenes[0]
+    bounds, kc = token_boundaries(sc0.current_frame, sc0.num_frames), first_future_step(sc0)
     motion_types = np.array([int(t) for t in vocab.types])
     # slots: per scene, the motion-type tracks with at least one valid token, in track order
     slot_rows, offsets = [], []
@@ -124,7 +204,11 @@ def _catk_group(model, scenes: list[Scenario], roads: list[RoadArrays], vocab: M
     vmax = max(sizes)
     flat_type = agent_type.reshape(-1).to(device)
 
+    keeper = _GapKeeper(vocab, scenes, agent_type, agent_shape, slot_of_row, bounds, top_k, device) if avoid else None
+
     def candidates(k: int, partial: MotionTokens):
+        if keeper is not None:
+            keeper.state = None  # set again below on the steps that choose among candidates
         if k == 0:
             return None
         # feed token k - 1 of every slot: its features give the distribution of token k
@@ -143,13 +227,16 @@ def _catk_group(model, scenes: list[Scenario], roads: list[RoadArrays], vocab: M
             return None  # history: the logged tokens
         types = flat_type[rows]
         logits = model.next_token_logits(feats, types)  # (Q, Vmax), each row under its type's head
+        if keeper is not None:
+            keeper.at_step(k, partial)
+            logits = keeper.mask(logits, rows)
         allowed_slots = torch.zeros(g * n, vmax, dtype=torch.bool)
         for t in range(NUM_MOTION_TYPES):
             sel_t = types == t
             if not sel_t.any():
                 continue
-            top = logits[sel_t, : sizes[t]].topk(min(top_k, sizes[t]), dim=-1).indices.cpu()
-            allowed_slots[rows[sel_t].cpu()[:, None], top] = True
+            top = logits[sel_t, : sizes[t]].topk(min(top_k, sizes[t]), dim=-1)
+            allowed_slots[rows[sel_t].cpu()[:, None], top.indices.cpu()] = torch.isfinite(top.values).cpu()
         allowed = np.zeros((len(slot_of_row), vmax), bool)
         allowed[has_slot.numpy()] = allowed_slots[slot_of_row[has_slot]].numpy()
         return allowed
@@ -158,7 +245,8 @@ def _catk_group(model, scenes: list[Scenario], roads: list[RoadArrays], vocab: M
     heading = np.concatenate([sc.tracks.heading for sc in scenes])
     valid = np.concatenate([sc.tracks.valid for sc in scenes])
     types = np.concatenate([sc.tracks.types for sc in scenes])
-    mt = tokenize_tracks(pos, heading, valid, types, vocab, bounds, candidates=candidates)
+    mt = tokenize_tracks(pos, heading, valid, types, vocab, bounds, candidates=candidates,
+                         relabel=keeper.relabel if keeper is not None else None)
     per_scene = []
     for b, sc in enumerate(scenes):
         r = slice(offsets[b], offsets[b] + sc.num_tracks)

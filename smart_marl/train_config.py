@@ -61,6 +61,8 @@ class TrainConfig:
     token_noise_topk: int = 5  # top-k noisy rolling matching; 0 or 1: off
     train_only: tuple | None = None  # parameter-name prefixes that train, the rest frozen (e.g. ["motion_heads.1"]: the pedestrian head); None: all
     catk_top_k: int = 0  # > 0: closed-loop targets (CAT-K, smart_marl.catk) from the model's top-K tokens; 0: teacher forcing
+    catk_avoid: bool = False  # CAT-K keeps gaps: candidates and targets that would run into a neighbour are taken out (needs catk_top_k)
+    brake_leaders: float = 0.0  # CAT-K with catk_avoid: share of leaders with a follower that brake hard (smart_marl.braking) in a training scene
     road_mask_prob: float = 0.15  # share of road pieces hidden for the road next-token task
     road_keep_radius_m: float | None = -1.0  # crop roads to this distance from agents; -1: lossless radius from the model config
     cache_scenes: int = 4096  # per data worker: scenes whose road arrays (and noise-free motion tokens) are kept (~0.2 MB each)
@@ -145,7 +147,8 @@ _TRAIN_RULES = {
     "weight_decay": number(0.0, 10.0), "betas": _betas, "warmup_steps": integer(0, MAX_STEPS), "grad_clip": number(0.0),
     "dropout": number(0.0, 1.0, high_open=True), "label_smoothing": number(0.0, 1.0, high_open=True),
     "speed_trend_weights": _trend_weights, "train_only": _prefixes,
-    "token_noise_topk": integer(0), "catk_top_k": integer(0), "cache_scenes": integer(0), "road_mask_prob": number(0.0, 1.0),
+    "token_noise_topk": integer(0), "catk_top_k": integer(0), "catk_avoid": flag, "brake_leaders": number(0.0, 1.0),
+    "cache_scenes": integer(0), "road_mask_prob": number(0.0, 1.0),
     "road_keep_radius_m": optional(ROAD_KEEP_RADIUS_RULE),
     "log_every": integer(1), "val_every": integer(0), "val_scenes": integer(0), "ckpt_every": integer(0), "seed": seed_rule,
     "device": lambda v: None if v == "auto" else device_problem(v), "amp": flag, "init": optional(text),
@@ -163,6 +166,11 @@ def check_train_config(cfg: TrainConfig) -> None:
     elif not isinstance(cfg.model, dict):
         raise TrainConfigError(f"training config: model must be a config name or a mapping of SMART fields, got {cfg.model!r}")
     check_fields(cfg, _TRAIN_RULES, "training", TrainConfigError)
+    if cfg.catk_avoid and cfg.catk_top_k <= 0:
+        raise TrainConfigError("training config: catk_avoid=true keeps the gaps of CAT-K rollouts: it needs catk_top_k > 0")
+    if cfg.brake_leaders > 0 and not cfg.catk_avoid:
+        raise TrainConfigError(f"training config: brake_leaders={cfg.brake_leaders} makes leaders brake where their followers' "
+                               "logs drive on: it needs catk_avoid=true (targets that keep gaps) and catk_top_k > 0")
     try:  # the model fields (model=, model.FIELD=) make a SMART config of sane size
         get_config(cfg.model, **{"dropout": cfg.dropout, **cfg.model_overrides})
     except ModelConfigError as exc:

@@ -14,6 +14,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from .cache import SceneCache, is_cache_dir
+from .braking import with_braking_leaders
 from .catk import catk_tokens
 from .model.batch import RoadArrays, SmartBatch, collate_scenes, scene_road, scene_tensors
 from .model.smart import SMART, SmartConfig
@@ -158,15 +159,19 @@ class EpochBatchSampler(Sampler):
 
 
 def closed_loop_batch(model: SMART, items: list[dict], motion_vocab: MotionVocabulary, top_k: int, road_mask_prob: float,
-                      road_keep_radius_m: float | None, seed: int, device: torch.device) -> SmartBatch:
+                      road_keep_radius_m: float | None, seed: int, device: torch.device, avoid: bool = False,
+                      brake_leaders: float = 0.0) -> SmartBatch:
     """The training batch of closed-loop items (:class:`TokenizedScenes` with ``closed_loop``): CAT-K
-    token sequences under the current ``model`` (:func:`smart_marl.catk.catk_tokens`), then the usual
-    per-scene tensors (the road mask seeded by the sample position) and padding."""
-    scenes = [it["scenario"] for it in items]
-    tokens = catk_tokens(model, scenes, [it["road"] for it in items], motion_vocab, top_k, device)
-    return collate_scenes([scene_tensors(it["scenario"], motion_vocab, it["road"], road_mask_prob=road_mask_prob,
+    token sequences under the current ``model`` (:func:`smart_marl.catk.catk_tokens`, keeping gaps with
+    ``avoid``), then the usual per-scene tensors (the road mask seeded by the sample position) and
+    padding. ``brake_leaders`` > 0: that share of each scene's leaders brake hard first
+    (:func:`smart_marl.braking.with_braking_leaders`, seeded by the sample position)."""
+    scenes = [with_braking_leaders(it["scenario"], np.random.default_rng([seed, it["position"], 11]), brake_leaders)
+              for it in items]
+    tokens = catk_tokens(model, scenes, [it["road"] for it in items], motion_vocab, top_k, device, avoid=avoid)
+    return collate_scenes([scene_tensors(sc, motion_vocab, it["road"], road_mask_prob=road_mask_prob,
                                          rng=np.random.default_rng([seed, it["position"]]), motion_tokens=mt,
-                                         road_keep_radius_m=road_keep_radius_m) for it, mt in zip(items, tokens)])
+                                         road_keep_radius_m=road_keep_radius_m) for sc, it, mt in zip(scenes, items, tokens)])
 
 
 def _item_list(items: list) -> list:

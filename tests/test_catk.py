@@ -108,6 +108,9 @@ def test_catk_training_mode_trains_on_its_rollouts_and_resumes_exactly(sample_sc
                                             "max_steps": 1}), scenes=scenes)
     first = lambda run: (tmp_path / run / "train.csv").read_text().splitlines()[1].split(",")[1]  # noqa: E731  step 1's loss
     assert first("full") != first("forced")  # same weights at step 1: only the token sequences differ
+    train(load_train_config(base, {"out_dir": str(tmp_path / "kept"), "catk_avoid": True, "brake_leaders": 1.0,
+                                   "max_steps": 1}), scenes=scenes)
+    assert first("kept") != first("full")  # the scene's leader brakes, its follower's targets keep the gap
     with pytest.raises(KeyboardInterrupt):
         train(load_train_config(base, {"out_dir": str(tmp_path / "stopped")}), scenes=_StopsAtRead(scenes, 3))
     resumed = train(load_train_config(base, {"out_dir": str(tmp_path / "stopped")}), scenes=scenes)
@@ -116,3 +119,49 @@ def test_catk_training_mode_trains_on_its_rollouts_and_resumes_exactly(sample_sc
     b = load_checkpoint(tmp_path / "stopped" / "checkpoints" / "final").model.state_dict()
     for k in a:
         assert torch.equal(a[k], b[k]), k
+
+
+def _token_end_gap(mt, sc, a: int, b: int) -> np.ndarray:
+    """[S + 1] rounded-box distance of tracks a and b at the rollout's token ends (NaN where either is absent)."""
+    from smart_marl.geometry import rounded_box_signed_distance
+
+    sz = sc.tracks.size[:, sc.current_frame]
+    p, q = mt.reached[a], mt.reached[b]
+    gap = rounded_box_signed_distance(p[:, 0], p[:, 1], sz[a, 0], sz[a, 1], p[:, 2], q[:, 0], q[:, 1], sz[b, 0], sz[b, 1], q[:, 2])
+    return np.where(mt.reached_valid[a] & mt.reached_valid[b], gap, np.nan)
+
+
+def test_catk_that_keeps_gaps_brakes_behind_a_braking_leader(sample_scenes, sample_vocab, tiny_smart, road_vocab, one_torch_thread):
+    """The follower's log drives on while its leader brakes at 8 m/s2: CAT-K over the whole vocabulary
+    follows that log into the leader; keeping gaps, the follower stops behind it, and its targets are
+    the tokens it took wherever the log's would have run into the leader."""
+    from smart_marl.braking import brake_along_log, leader_follower_pairs
+
+    sc0 = sample_scenes[2]
+    leader, follower, _ = leader_follower_pairs(sc0)[0]
+    sc = brake_along_log(sc0, leader, sc0.current_frame + 1, 8.0)
+    model, road = tiny_smart(sample_vocab), scene_road(sc, road_vocab)
+    every = max(v.size for v in sample_vocab.types.values())
+    plain = catk_tokens(model, [sc], [road], sample_vocab, top_k=every)[0]
+    kept = catk_tokens(model, [sc], [road], sample_vocab, top_k=every, avoid=True)[0]
+    assert np.nanmin(_token_end_gap(plain, sc, follower, leader)) < -1.0  # the log runs into the stopped leader
+    assert np.nanmin(_token_end_gap(kept, sc, follower, leader)) > -0.1
+    kc = first_future_step(sc)
+    relabelled = np.flatnonzero(kept.nearest_ids[follower, kc:] != plain.nearest_ids[follower, kc:]) + kc
+    steps = kept.valid[follower, kc:]
+    assert len(relabelled) >= 2
+    relabelled = [k for k in relabelled if steps[k - kc]]
+    np.testing.assert_array_equal(kept.nearest_ids[follower, relabelled], kept.ids[follower, relabelled])
+    np.testing.assert_array_equal(kept.ids[:, :kc], plain.ids[:, :kc])  # the history is the log's either way
+
+
+def test_keeping_gaps_and_braking_leaders_need_catk(sample_vocab):
+    from smart_marl.train_config import TrainConfigError, load_train_config
+
+    with pytest.raises(TrainConfigError, match="catk_avoid=true .* needs catk_top_k > 0"):
+        load_train_config({"catk_avoid": True})
+    with pytest.raises(TrainConfigError, match="brake_leaders=0.5 .* needs catk_avoid=true"):
+        load_train_config({"catk_top_k": 8, "brake_leaders": 0.5})
+    with pytest.raises(TrainConfigError, match="brake_leaders"):
+        load_train_config({"catk_top_k": 8, "catk_avoid": True, "brake_leaders": 1.5})
+    assert load_train_config({"catk_top_k": 8, "catk_avoid": True, "brake_leaders": 0.5}).brake_leaders == 0.5

@@ -366,7 +366,7 @@ def _contour_torch(poses: torch.Tensor, length_m: float, width_m: float) -> torc
 def tokenize_tracks(position: np.ndarray, heading: np.ndarray, valid: np.ndarray, types: np.ndarray,
                     vocab: MotionVocabulary, boundaries: np.ndarray, match: str = "contour", noise_topk: int = 0,
                     noise_prob: float = 1.0, rng: np.random.Generator | int | None = None,
-                    agent_chunk: int = 64, candidates=None) -> MotionTokens:
+                    agent_chunk: int = 64, candidates=None, relabel=None) -> MotionTokens:
     """Rolling matching of tracks ``position`` [N, T, 2+], ``heading`` [N, T], ``valid`` [N, T],
     ``types`` [N] on the token grid ``boundaries`` [S + 1] (see the module docstring).
 
@@ -378,7 +378,8 @@ def tokenize_tracks(position: np.ndarray, heading: np.ndarray, valid: np.ndarray
     ``candidates(k, partial) -> allowed [N, Vmax] bool or None`` called before step ``k`` with the
     :class:`MotionTokens` filled up to step ``k - 1`` (later steps are zeros). Where a row of
     ``allowed`` has a true entry, token ``k`` is the closest to the track among the allowed tokens
-    (no noise); ``nearest_ids`` stays the closest of the whole vocabulary.
+    (no noise); ``nearest_ids`` stays the closest of the whole vocabulary, unless ``relabel``
+    ``(k, nearest [N], ids [N], ok [N]) -> nearest [N]``, called after step ``k`` is chosen, says otherwise.
     """
     if match not in ("contour", "end"):
         raise ValueError(f"match must be 'contour' or 'end', got {match!r}")
@@ -436,6 +437,8 @@ def tokenize_tracks(position: np.ndarray, heading: np.ndarray, valid: np.ndarray
                     choice = np.where(noisy, pick, best)
                 ids[r, k] = choice
                 nearest[r, k] = best
+        if relabel is not None:
+            nearest[:, k] = relabel(k, nearest[:, k].copy(), ids[:, k].copy(), ok)
         end_local = np.zeros((n, 3))
         for t, v in vocab.types.items():
             sel = ok & (types == t)

@@ -1,0 +1,77 @@
+"""Scenes edited so that a leader brakes (smart_marl.braking): the stop follows the logged path at the
+asked deceleration and stays; only the braking leaders change; draws are seeded."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from smart_marl.braking import brake_along_log, leader_follower_pairs, with_braking_leaders
+from smart_marl.scenario import DT_S
+
+
+@pytest.fixture(scope="module")
+def pair_scene(sample_scenes):
+    sc = sample_scenes[2]  # four leader / follower pairs
+    return sc, leader_follower_pairs(sc)
+
+
+def _distance_to_path(points: np.ndarray, path: np.ndarray) -> np.ndarray:
+    a, b = path[:-1, None], path[1:, None]  # [S, 1, 2] segments
+    ab = b - a
+    t = np.clip(((points[None] - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12), 0, 1)
+    return np.linalg.norm(a + t[..., None] * ab - points[None], axis=-1).min(0)
+
+
+def test_a_braking_leader_slows_at_the_asked_rate_on_its_logged_path_and_stays(pair_scene):
+    sc, pairs = pair_scene
+    leader = pairs[0][0]
+    onset, decel = sc.current_frame + 3, 6.0
+    out = brake_along_log(sc, leader, onset, decel)
+    tr, log = out.tracks, sc.tracks
+    p = tr.position[leader, onset - 1 :, :2].astype(np.float64)
+    speed = np.linalg.norm(np.diff(p, axis=0), axis=-1) / DT_S  # speeds over frames onset .. end
+    v0 = np.linalg.norm(log.position[leader, onset - 1, :2] - log.position[leader, onset - 2, :2]) / DT_S
+    moving = speed > 0.05
+    assert moving.sum() >= 5 and not moving[moving.argmin():].any()  # slows down, stops, stays stopped
+    stop_s = v0 / decel
+    assert abs(moving.sum() * DT_S - stop_s) < 2 * DT_S
+    mid = np.flatnonzero(moving)[1:-1]
+    np.testing.assert_allclose(np.diff(speed)[mid[:-1]], -decel * DT_S, atol=0.05 * decel * DT_S + 1e-3)
+    on_path = _distance_to_path(p, log.position[leader, onset - 1 :, :2].astype(np.float64))
+    assert on_path.max() < 0.05
+    np.testing.assert_array_equal(tr.position[leader, :onset], log.position[leader, :onset])  # before the onset: the log
+    others = np.arange(sc.num_tracks) != leader
+    np.testing.assert_array_equal(tr.position[others], log.position[others])
+    np.testing.assert_array_equal(tr.valid, log.valid)
+    assert not np.shares_memory(tr.position, log.position)  # the input scene is not modified
+
+
+def test_brake_along_log_refuses_an_onset_outside_the_scene_or_a_track_with_a_gap(pair_scene):
+    sc, pairs = pair_scene
+    with pytest.raises(ValueError, match="onset frame"):
+        brake_along_log(sc, pairs[0][0], sc.num_frames, 6.0)
+    with pytest.raises(ValueError, match="decel_mps2"):
+        brake_along_log(sc, pairs[0][0], sc.current_frame + 1, 0.0)
+    valid = sc.tracks.valid.copy()
+    valid[pairs[0][0], sc.current_frame + 20] = False  # a frame missing after the onset
+    gappy = dataclasses.replace(sc, tracks=dataclasses.replace(sc.tracks, valid=valid))
+    with pytest.raises(ValueError, match=r"track \d+ \(id \d+\) is not valid without a gap"):
+        brake_along_log(gappy, pairs[0][0], sc.current_frame + 1, 6.0)
+    assert brake_along_log(gappy, pairs[0][0], sc.current_frame + 22, 6.0).num_frames == sc.num_frames  # after it: fine
+
+
+def test_braking_leaders_are_drawn_per_leader_and_seeded(pair_scene):
+    sc, pairs = pair_scene
+    leaders = sorted({p[0] for p in pairs})
+    assert with_braking_leaders(sc, np.random.default_rng(0), 0.0) is sc
+    every = with_braking_leaders(sc, np.random.default_rng(0), 1.0)
+    after = slice(sc.current_frame + 1, None)
+    changed = [i for i in range(sc.num_tracks) if not np.array_equal(every.tracks.position[i, after], sc.tracks.position[i, after])]
+    assert changed == leaders
+    again = with_braking_leaders(sc, np.random.default_rng(0), 1.0)
+    np.testing.assert_array_equal(again.tracks.position, every.tracks.position)
+    other = with_braking_leaders(sc, np.random.default_rng(1), 1.0)
+    assert not np.array_equal(other.tracks.position, every.tracks.position)  # other decelerations and onsets
