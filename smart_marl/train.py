@@ -32,7 +32,6 @@ import dataclasses
 import json
 import math
 import os
-import random
 import sys
 import time
 import warnings
@@ -40,15 +39,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
-import numpy as np
 import torch
 import torch.distributed as dist
 from tqdm import tqdm
 
-from .config_files import is_number
 from .cpu_memory import keep_freed_memory
 from .model.batch import SmartBatch, collate_scenes
-from .model.checkpoint import (CheckpointError, VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
+from .model.checkpoint import (VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
                                save_checkpoint)
 from .model.losses import NextTokenLoss, summarise
 from .model.smart import SMART, SmartConfig, get_config
@@ -62,6 +59,7 @@ from .train_config import (  # noqa: F401  (re-exported: the config's names are 
     _TRAIN_RULES, MAX_BATCH_SIZE, MAX_STEPS, MAX_WORKERS, ROAD_KEEP_RADIUS_RULE, NonFiniteLossError, TrainConfig, TrainConfigError,
     TrainError, check_train_config, load_train_config, road_keep_radius,
 )
+from .train_state import check_train_state, rng_state, set_rng_state
 from .train_data import (  # noqa: F401  (re-exported: the data's names are imported from smart_marl.train)
     EpochBatchSampler, MixedScenes, TokenizedScenes, build_vocabularies, closed_loop_batch, make_loader, open_scenes,
     training_scenes, _check_token_cache_config,
@@ -238,88 +236,6 @@ def _saved_step(meta: Path) -> int | str:
         return "?"
 
 
-def _finite_numbers(values) -> bool:
-    return isinstance(values, (list, tuple)) and all(is_number(v) for v in values)
-
-
-def check_train_state(state: Mapping[str, Any], optimizer: torch.optim.Optimizer, max_steps: int, path: Path) -> None:
-    """Before a resumed run trains: the training state (:func:`load_train_state`) fits the optimizer it is
-    loaded into (as many parameter groups and parameters, moment tensors of the parameters' shapes,
-    finite learning rates and moments), its scheduler is a LambdaLR's, and its step lies within the run
-    (0..max_steps); else :class:`CheckpointError` naming the file and what is off."""
-    step = state["step"]
-    if not 0 <= step <= max_steps:
-        raise CheckpointError(path, f"the training state is at step {step}, outside this run's 0..max_steps={max_steps} "
-                                    f"(raise max_steps to train on, or start a new out_dir)")
-    groups, saved = optimizer.param_groups, state["optimizer"]
-    saved_groups = saved["param_groups"]
-    if len(saved_groups) != len(groups) or not all(isinstance(g, dict) for g in saved_groups):
-        raise CheckpointError(path, f"the optimizer state has {len(saved_groups)} parameter group(s), this run's optimizer "
-                                    f"{len(groups)} (another model, or train_only differs)")
-    params = [p for g in groups for p in g["params"]]
-    for k, (g, sg) in enumerate(zip(groups, saved_groups)):
-        ids = sg.get("params")
-        if not isinstance(ids, list) or len(ids) != len(g["params"]):
-            raise CheckpointError(path, f"the optimizer state's parameter group {k} does not hold this model's "
-                                        f"{len(g['params'])} parameters")
-        for key in ("lr", "weight_decay", "eps"):
-            if key in sg and not (is_number(sg[key]) and sg[key] >= 0):
-                raise CheckpointError(path, f"the optimizer state's parameter group {k} has {key} {sg[key]!r}, "
-                                            f"not a finite number >= 0")
-        if "betas" in sg and not (_finite_numbers(sg["betas"]) and len(sg["betas"]) == 2):
-            raise CheckpointError(path, f"the optimizer state's parameter group {k} has betas {sg['betas']!r}")
-    order = [i for sg in saved_groups for i in sg["params"]]
-    shapes = {i: p.shape for i, p in zip(order, params)}
-    for i, entry in saved["state"].items():
-        if i not in shapes or not isinstance(entry, dict):
-            raise CheckpointError(path, f"the optimizer state holds moments of parameter {i!r}, which no group lists")
-        for name, value in entry.items():
-            if not isinstance(value, torch.Tensor):
-                raise CheckpointError(path, f"the optimizer state's {name} of parameter {i} is a {type(value).__name__}, "
-                                            f"not a tensor")
-            if name != "step" and tuple(value.shape) != tuple(shapes[i]):
-                raise CheckpointError(path, f"the optimizer state's {name} of parameter {i} has shape {list(value.shape)}, "
-                                            f"the parameter {list(shapes[i])}")
-            if value.is_floating_point() and not bool(torch.isfinite(value).all()):
-                raise CheckpointError(path, f"the optimizer state's {name} of parameter {i} holds NaN or infinite values")
-    sched = state["scheduler"]
-    last = sched.get("last_epoch")
-    if not (isinstance(last, int) and not isinstance(last, bool) and 0 <= last <= max(step, 0) + 1):
-        raise CheckpointError(path, f"the scheduler state's last_epoch {last!r} does not match the state's step {step}")
-    for key in ("base_lrs", "_last_lr"):
-        if key in sched and not (_finite_numbers(sched[key]) and len(sched[key]) == len(groups)):
-            raise CheckpointError(path, f"the scheduler state's {key} {sched.get(key)!r} is not one finite learning rate "
-                                        f"per parameter group")
-    if "base_lrs" not in sched:
-        raise CheckpointError(path, "the scheduler state has no base_lrs (not a LambdaLR state)")
-
-
-def _rng_state() -> dict[str, Any]:
-    """Every RNG's state as tensors and numbers only, so that the training state loads with
-    ``torch.load(weights_only=True)`` (:func:`~smart_marl.model.checkpoint.load_train_state`)."""
-    _, keys, pos, has_gauss, cached_gaussian = np.random.get_state()
-    version, internal, gauss_next = random.getstate()
-    state = {"torch": torch.get_rng_state(),
-             "numpy": {"keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(pos), "has_gauss": int(has_gauss),
-                       "cached_gaussian": float(cached_gaussian)},
-             "python": {"version": int(version), "internal": torch.tensor(internal, dtype=torch.int64), "gauss_next": gauss_next}}
-    if torch.cuda.is_available():
-        state["cuda"] = torch.cuda.get_rng_state_all()
-    return state
-
-
-def _set_rng_state(state: dict[str, Any]) -> None:
-    torch.set_rng_state(state["torch"])
-    numpy_state = state["numpy"]
-    np.random.set_state(("MT19937", numpy_state["keys"].numpy().astype(np.uint32), numpy_state["pos"],
-                         numpy_state["has_gauss"], numpy_state["cached_gaussian"]))
-    python_state = state["python"]
-    random.setstate((python_state["version"], tuple(int(v) for v in python_state["internal"].tolist()),
-                     python_state["gauss_next"]))
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
-
-
 def _vocabularies(cfg: TrainConfig, model_cfg: SmartConfig, scenes, out_dir: Path, info: DistInfo, resuming: bool):
     """The run's vocabularies: the given files; else the ``init`` checkpoint's; else the run folder's
     (resuming); else built from the training scenes (rank 0) and saved in the run folder."""
@@ -426,8 +342,19 @@ def _resume(cfg: TrainConfig, last: Path, model: SMART, optimizer: torch.optim.O
     check_train_state(st, optimizer, cfg.max_steps, checkpoint_paths(last)["train_state"])
     optimizer.load_state_dict(st["optimizer"])
     scheduler.load_state_dict(st["scheduler"])
-    _set_rng_state(st["rng"])
+    set_rng_state(st["rng"])
     return int(st["step"])
+
+
+def _out_of_time(started: float, limit_s: float | None, info, device: torch.device) -> bool:
+    """Whether the run has passed ``limit_s`` seconds (``TrainConfig.time_limit_s``); every rank stops at
+    the same step (the first rank's clock decides)."""
+    if limit_s is None:
+        return False
+    over = torch.tensor([time.perf_counter() - started > limit_s], dtype=torch.int32, device=device)
+    if info.enabled:
+        dist.broadcast(over, 0)
+    return bool(over.item())
 
 
 def _datasets(cfg: TrainConfig, tokens: TokenCache | None, scenes, mv: MotionVocabulary, rv: RoadVocabulary,
@@ -538,7 +465,7 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
     def save(tag: str, metrics: dict) -> Path | None:
         if not info.is_main:
             return None
-        state = {"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "rng": _rng_state(), "step": step}
+        state = {"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "rng": rng_state(), "step": step}
         return save_checkpoint(out_dir / "checkpoints" / tag, model, mv, rv, step=step, metrics=metrics, data=data_info,
                                train_config=cfg.to_dict(), train_state=state)
 
@@ -549,6 +476,7 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
     last_val: dict[str, float] = {}
     acc: dict[str, float] = {}
     t0, n_acc, scenes_acc = time.perf_counter(), 0, 0
+    started = t0
     model.train()
     ckpt_path = None
     for batch in loader:
@@ -579,6 +507,8 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
             bar.update(1)
         if on_step is not None:
             on_step(step)
+        if _out_of_time(started, cfg.time_limit_s, info, device):
+            break
     if bar is not None:
         bar.close()
     if step > resumed_from or not resuming:

@@ -50,6 +50,7 @@ class TrainConfig:
     batch_size: int = 4  # scenes per step per rank
     num_workers: int = 2
     max_steps: int = 1000
+    time_limit_s: float | None = None  # end after the step that passes this many seconds (the lr schedule still spans max_steps)
     lr: float = 2e-4
     weight_decay: float = 0.1
     betas: tuple = (0.9, 0.999)
@@ -143,7 +144,8 @@ _TRAIN_RULES = {
     "motion_vocab": optional(text), "road_vocab": optional(text), "vocab_scenes": integer(1), "vocab_seed": seed_rule,
     "batch_size": integer(1, MAX_BATCH_SIZE, "scenes per step a machine holds"),
     "num_workers": integer(0, MAX_WORKERS, "4 processes per CPU of this machine"),
-    "max_steps": integer(1, MAX_STEPS, "a billion steps"), "lr": number(0.0, 1.0, low_open=True, why="larger diverges at once"),
+    "max_steps": integer(1, MAX_STEPS, "a billion steps"),
+    "time_limit_s": optional(number(0.0, low_open=True)), "lr": number(0.0, 1.0, low_open=True, why="larger diverges at once"),
     "weight_decay": number(0.0, 10.0), "betas": _betas, "warmup_steps": integer(0, MAX_STEPS), "grad_clip": number(0.0),
     "dropout": number(0.0, 1.0, high_open=True), "label_smoothing": number(0.0, 1.0, high_open=True),
     "speed_trend_weights": _trend_weights, "train_only": _prefixes,

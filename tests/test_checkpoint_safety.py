@@ -22,7 +22,8 @@ from smart_marl.errors import SmartMarlError
 from smart_marl.model.checkpoint import (CheckpointError, checkpoint_paths, load_checkpoint, load_train_state,
                                          save_checkpoint)
 from smart_marl.tokens.vocab_io import VocabularyFileError, load_motion_vocabulary
-from smart_marl.train import TrainConfig, _rng_state, _set_rng_state, make_optimizer, make_scheduler
+from smart_marl.train import TrainConfig, make_optimizer, make_scheduler
+from smart_marl.train_state import rng_state, set_rng_state
 
 
 class _RunsCode:
@@ -55,7 +56,7 @@ def _train_state(model) -> dict:
         p.grad = torch.full_like(p, 1e-3)
     optimizer.step()
     scheduler = make_scheduler(optimizer, cfg)
-    return {"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "rng": _rng_state(), "step": 3}
+    return {"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "rng": rng_state(), "step": 3}
 
 
 # ------------------------------------------------------------------------------ item 1
@@ -99,7 +100,7 @@ def test_training_state_round_trips_with_weights_only_and_restores_every_rng(tin
     loaded = load_train_state(path)
     assert loaded["step"] == 3 and loaded["optimizer"]["param_groups"][0]["lr"] == state["optimizer"]["param_groups"][0]["lr"]
     random.seed(0), np.random.seed(0), torch.manual_seed(0)
-    _set_rng_state(loaded["rng"])
+    set_rng_state(loaded["rng"])
     assert (random.random(), float(np.random.rand()), float(torch.rand(1))) == expected
 
 
@@ -115,7 +116,7 @@ def test_a_version_1_training_state_with_numpy_rng_arrays_still_resumes(tiny_pri
     torch.save(legacy, checkpoint_paths(last)["train_state"])
     loaded = load_train_state(last)
     np.random.seed(0), random.seed(0)
-    _set_rng_state(loaded["rng"])
+    set_rng_state(loaded["rng"])
     assert (float(np.random.rand()), random.random()) == expected
     marker = tmp_path / "pwned"  # the same old format plus one more global: refused
     torch.save({**legacy, "extra": _RunsCode(marker)}, checkpoint_paths(last)["train_state"])

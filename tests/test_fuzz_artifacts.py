@@ -51,7 +51,8 @@ def _mutate_file(data, path) -> None:
 @pytest.fixture(scope="module")
 def trained_checkpoint(tiny_prior, tmp_path_factory):
     """The tiny prior saved again with a training state, as `smart-marl train` saves its checkpoints."""
-    from smart_marl.train import TrainConfig, _rng_state, make_optimizer, make_scheduler
+    from smart_marl.train import TrainConfig, make_optimizer, make_scheduler
+    from smart_marl.train_state import rng_state
 
     ck = load_checkpoint(tiny_prior)
     cfg = TrainConfig(max_steps=10)
@@ -61,7 +62,7 @@ def trained_checkpoint(tiny_prior, tmp_path_factory):
         p.grad = torch.full_like(p, 1e-3)
     optimizer.step()
     scheduler.step()
-    state = {"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "rng": _rng_state(), "step": 1}
+    state = {"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "rng": rng_state(), "step": 1}
     return save_checkpoint(tmp_path_factory.mktemp("trained") / "last", ck.model, ck.motion_vocab, ck.road_vocab, step=1,
                            train_state=state)
 

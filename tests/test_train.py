@@ -320,6 +320,8 @@ def test_train_only_trains_the_named_parameters_and_freezes_the_rest(sample_data
     base = {"data": str(sample_data), **vocab, "model_overrides": small, "batch_size": 4, "num_workers": 0,
             "max_steps": 2, "lr": 1e-2, "log_every": 1, "val_every": 0, "ckpt_every": 0, "tensorboard": False, "progress": False}
     first = train(load_train_config({**base, "out_dir": str(tmp_path / "a")}))
+    timed = train(load_train_config({**base, "out_dir": str(tmp_path / "timed"), "max_steps": 50, "time_limit_s": 1e-6}))
+    assert timed.step == 1 and load_checkpoint(tmp_path / "timed" / "checkpoints" / "final").step == 1  # the time limit ends it
     second = train(load_train_config({**base, "init": str(first.checkpoint), "train_only": ["motion_heads.1"],
                                       "out_dir": str(tmp_path / "b")}))
     before = load_checkpoint(first.checkpoint).model.state_dict()
