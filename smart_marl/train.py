@@ -108,11 +108,14 @@ def init_distributed(device: torch.device) -> DistInfo:
 
 
 def resolve_device(name: str, info: DistInfo | None = None) -> torch.device:
+    """The run's device: ``auto`` is CUDA when available; a CUDA device without an index is this process's
+    (LOCAL_RANK, 0 outside torchrun), as ``torch.cuda.set_device`` needs an index."""
     if name == "auto":
-        if torch.cuda.is_available():
-            return torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
-        return torch.device("cpu")
-    return torch.device(name)
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    device = torch.device(name)
+    if device.type == "cuda" and device.index is None:
+        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    return device
 
 
 # ---------------------------------------------------------------------------------- one step

@@ -340,3 +340,15 @@ def test_train_only_names_a_prefix_that_matches_nothing():
         freeze_except(model, ["motion_head.1"])
     with pytest.raises(TrainConfigError, match="train_only"):
         load_train_config({"train_only": "motion_heads.1"})
+
+
+def test_a_cuda_device_without_an_index_is_this_processs(monkeypatch):
+    """torch.cuda.set_device refuses a bare "cuda" (the --device cuda of a lent GPU machine failed so)."""
+    from smart_marl.train import resolve_device
+
+    monkeypatch.delenv("LOCAL_RANK", raising=False)
+    assert resolve_device("cuda") == torch.device("cuda", 0)
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    assert resolve_device("cuda") == torch.device("cuda", 1)
+    assert resolve_device("cuda:3") == torch.device("cuda", 3)
+    assert resolve_device("cpu") == torch.device("cpu")
