@@ -104,25 +104,31 @@ def brake_along_log(scene: Scenario, track: int, onset_frame: int, decel_mps2: f
     return dataclasses.replace(scene, tracks=tracks)
 
 
-def with_braking_leaders(scene: Scenario, rng: np.random.Generator, share: float, decel_mps2: tuple[float, float] = (4.0, 9.0),
-                         onset_s: tuple[float, float] = (0.0, 3.0)) -> Scenario:
-    """``scene`` with each of its leader / follower pairs' leaders (:func:`leader_follower_pairs`; a leader
-    once) braking with probability ``share``, at a deceleration drawn uniformly from ``decel_mps2`` from an
-    onset drawn from ``onset_s`` after the current frame (on the 10 Hz grid); leaders whose log has a gap are
-    left as logged. Draws come from ``rng`` (the same for the same scene and seed)."""
+def braking_leaders(scene: Scenario, rng: np.random.Generator, share: float, decel_mps2: tuple[float, float] = (4.0, 9.0),
+                    onset_s: tuple[float, float] = (0.0, 3.0)) -> list[tuple[int, int, float]]:
+    """Which leaders of ``scene`` brake: (track, onset frame, deceleration) for each of its leader / follower
+    pairs' leaders (:func:`leader_follower_pairs`; a leader once) with probability ``share``, at a deceleration
+    drawn uniformly from ``decel_mps2`` from an onset drawn from ``onset_s`` after the current frame (on the
+    10 Hz grid); leaders whose log has a gap from the onset on are left out. Draws come from ``rng``."""
+    out: list[tuple[int, int, float]] = []
     if share <= 0:
-        return scene
+        return out
     done = set()
     for leader, _follower, _gap in leader_follower_pairs(scene):
         if leader in done:
             continue
         done.add(leader)
         brakes, decel, onset = rng.random() < share, rng.uniform(*decel_mps2), rng.uniform(*onset_s)
-        if not brakes:
-            continue
         frame = scene.current_frame + 1 + int(round(onset / DT_S))
         valid = scene.tracks.valid[leader]
         last = int(np.flatnonzero(valid)[-1])
-        if frame <= last and valid[frame - 1 : last + 1].all():
-            scene = brake_along_log(scene, leader, frame, decel)
+        if brakes and frame <= last and valid[frame - 1 : last + 1].all():
+            out.append((leader, frame, float(decel)))
+    return out
+
+
+def with_braking_leaders(scene: Scenario, edits: list[tuple[int, int, float]]) -> Scenario:
+    """``scene`` with each (track, onset frame, deceleration) of ``edits`` (:func:`braking_leaders`) braking."""
+    for track, frame, decel in edits:
+        scene = brake_along_log(scene, track, frame, decel)
     return scene

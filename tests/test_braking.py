@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from smart_marl.braking import brake_along_log, leader_follower_pairs, with_braking_leaders
+from smart_marl.braking import brake_along_log, braking_leaders, leader_follower_pairs, with_braking_leaders
 from smart_marl.scenario import DT_S
 
 
@@ -66,12 +66,44 @@ def test_brake_along_log_refuses_an_onset_outside_the_scene_or_a_track_with_a_ga
 def test_braking_leaders_are_drawn_per_leader_and_seeded(pair_scene):
     sc, pairs = pair_scene
     leaders = sorted({p[0] for p in pairs})
-    assert with_braking_leaders(sc, np.random.default_rng(0), 0.0) is sc
-    every = with_braking_leaders(sc, np.random.default_rng(0), 1.0)
+    assert braking_leaders(sc, np.random.default_rng(0), 0.0) == []
+    edits = braking_leaders(sc, np.random.default_rng(0), 1.0)
+    assert sorted(e[0] for e in edits) == leaders
+    assert all(sc.current_frame < frame <= sc.current_frame + 31 and 4.0 <= decel <= 9.0 for _, frame, decel in edits)
+    every = with_braking_leaders(sc, edits)
     after = slice(sc.current_frame + 1, None)
     changed = [i for i in range(sc.num_tracks) if not np.array_equal(every.tracks.position[i, after], sc.tracks.position[i, after])]
     assert changed == leaders
-    again = with_braking_leaders(sc, np.random.default_rng(0), 1.0)
-    np.testing.assert_array_equal(again.tracks.position, every.tracks.position)
-    other = with_braking_leaders(sc, np.random.default_rng(1), 1.0)
-    assert not np.array_equal(other.tracks.position, every.tracks.position)  # other decelerations and onsets
+    assert braking_leaders(sc, np.random.default_rng(0), 1.0) == edits
+    assert braking_leaders(sc, np.random.default_rng(1), 1.0) != edits  # other decelerations and onsets
+    half = [len(braking_leaders(sc, np.random.default_rng(s), 0.5)) for s in range(40)]
+    assert 0 < np.mean(half) < len(leaders)
+
+
+def test_a_scripted_leader_is_no_target_from_its_onset_on(pair_scene, sample_vocab):
+    from smart_marl.model.batch import scene_tensors
+    from smart_marl.tokens import tokenize_motion
+    from smart_marl.train_data import without_scripted_targets
+
+    sc, pairs = pair_scene
+    leader, follower = pairs[0][0], pairs[0][1]
+    mt = tokenize_motion(sc, sample_vocab)
+    road = _empty_road()
+    arrays = scene_tensors(sc, sample_vocab, road, road_mask_prob=0.0, rng=0, motion_tokens=mt)
+    onset = sc.current_frame + 7  # inside the token ending at current + 10
+    out = without_scripted_targets(arrays, mt, [(leader, onset)])
+    rows = list(np.flatnonzero(mt.valid.any(1)))
+    lr, fr = rows.index(leader), rows.index(follower)
+    k = int(np.searchsorted(mt.boundaries[1:], onset))  # that token's index
+    assert mt.boundaries[k] < onset <= mt.boundaries[k + 1]
+    assert arrays["target_valid"][lr, k - 1] and not out["target_valid"][lr, k - 1:].any()  # it predicted token k before
+    np.testing.assert_array_equal(out["target_valid"][lr, : k - 1], arrays["target_valid"][lr, : k - 1])
+    np.testing.assert_array_equal(out["target_valid"][fr], arrays["target_valid"][fr])  # the follower still learns
+    assert without_scripted_targets(arrays, mt, []) is arrays
+
+
+def _empty_road():
+    from smart_marl.model.batch import RoadArrays
+
+    return RoadArrays(local=np.zeros((0, 0, 2), np.float32), pose=np.zeros((0, 3), np.float32), type_id=np.zeros(0, np.int64),
+                      light=np.zeros(0, np.int64), token=np.zeros(0, np.int64), pairs=np.zeros((0, 2), np.int64))
