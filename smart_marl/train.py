@@ -485,7 +485,7 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
     for batch in loader:
         if getattr(train_set, "closed_loop", False):
             batch = closed_loop_batch(model, batch, mv, cfg.catk_top_k, cfg.road_mask_prob, keep, cfg.seed, device,
-                                      avoid=cfg.catk_avoid, brake_leaders=cfg.brake_leaders)
+                                      avoid=cfg.catk_avoid, brake_leaders=cfg.brake_leaders, max_drift_m=cfg.catk_max_drift_m)
         lr = scheduler.get_last_lr()[0]
         res = _checked_step(wrapped, optimizer, scheduler, batch, cfg, info, device, out_dir, last, step)
         step += 1

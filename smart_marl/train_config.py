@@ -62,6 +62,7 @@ class TrainConfig:
     token_noise_topk: int = 5  # top-k noisy rolling matching; 0 or 1: off
     train_only: tuple | None = None  # parameter-name prefixes that train, the rest frozen (e.g. ["motion_heads.1"]: the pedestrian head); None: all
     catk_top_k: int = 0  # > 0: closed-loop targets (CAT-K, smart_marl.catk) from the model's top-K tokens; 0: teacher forcing
+    catk_max_drift_m: float | None = None  # CAT-K: tokens starting farther than this from the log are no targets (smart_marl.catk.drifted); None: all are
     catk_avoid: bool = False  # CAT-K keeps gaps: candidates and targets that would run into a neighbour are taken out (needs catk_top_k)
     brake_leaders: float = 0.0  # CAT-K with catk_avoid: share of leaders with a follower that brake hard (smart_marl.braking) in a training scene
     road_mask_prob: float = 0.15  # share of road pieces hidden for the road next-token task
@@ -150,6 +151,7 @@ _TRAIN_RULES = {
     "dropout": number(0.0, 1.0, high_open=True), "label_smoothing": number(0.0, 1.0, high_open=True),
     "speed_trend_weights": _trend_weights, "train_only": _prefixes,
     "token_noise_topk": integer(0), "catk_top_k": integer(0), "catk_avoid": flag, "brake_leaders": number(0.0, 1.0),
+    "catk_max_drift_m": optional(number(0.0, low_open=True)),
     "cache_scenes": integer(0), "road_mask_prob": number(0.0, 1.0),
     "road_keep_radius_m": optional(ROAD_KEEP_RADIUS_RULE),
     "log_every": integer(1), "val_every": integer(0), "val_scenes": integer(0), "ckpt_every": integer(0), "seed": seed_rule,
@@ -168,6 +170,8 @@ def check_train_config(cfg: TrainConfig) -> None:
     elif not isinstance(cfg.model, dict):
         raise TrainConfigError(f"training config: model must be a config name or a mapping of SMART fields, got {cfg.model!r}")
     check_fields(cfg, _TRAIN_RULES, "training", TrainConfigError)
+    if cfg.catk_max_drift_m is not None and cfg.catk_top_k <= 0:
+        raise TrainConfigError(f"training config: catk_max_drift_m={cfg.catk_max_drift_m} drops CAT-K targets: it needs catk_top_k > 0")
     if cfg.catk_avoid and cfg.catk_top_k <= 0:
         raise TrainConfigError("training config: catk_avoid=true keeps the gaps of CAT-K rollouts: it needs catk_top_k > 0")
     if cfg.brake_leaders > 0 and not cfg.catk_avoid:

@@ -15,7 +15,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from .cache import SceneCache, is_cache_dir
 from .braking import braking_leaders, with_braking_leaders
-from .catk import catk_tokens
+from .catk import catk_tokens, drifted
 from .model.batch import RoadArrays, SmartBatch, collate_scenes, scene_road, scene_tensors
 from .model.smart import SMART, SmartConfig
 from .readers import read_scenarios
@@ -160,14 +160,15 @@ class EpochBatchSampler(Sampler):
 
 def closed_loop_batch(model: SMART, items: list[dict], motion_vocab: MotionVocabulary, top_k: int, road_mask_prob: float,
                       road_keep_radius_m: float | None, seed: int, device: torch.device, avoid: bool = False,
-                      brake_leaders: float = 0.0) -> SmartBatch:
+                      brake_leaders: float = 0.0, max_drift_m: float | None = None) -> SmartBatch:
     """The training batch of closed-loop items (:class:`TokenizedScenes` with ``closed_loop``): CAT-K
     token sequences under the current ``model`` (:func:`smart_marl.catk.catk_tokens`, keeping gaps with
     ``avoid``), then the usual per-scene tensors (the road mask seeded by the sample position) and
     padding. ``brake_leaders`` > 0: that share of each scene's leaders brake hard first
     (:func:`smart_marl.braking.braking_leaders`, seeded by the sample position); a braking leader is
     scripted, so its tokens from the onset on are inputs, not targets (else every car would learn to
-    stop for no reason)."""
+    stop for no reason). ``max_drift_m``: a token that starts farther than this from the log is no
+    target (:func:`smart_marl.catk.drifted`)."""
     edits = [braking_leaders(it["scenario"], np.random.default_rng([seed, it["position"], 11]), brake_leaders) for it in items]
     scenes = [with_braking_leaders(it["scenario"], e) for it, e in zip(items, edits)]
     tokens = catk_tokens(model, scenes, [it["road"] for it in items], motion_vocab, top_k, device, avoid=avoid)
@@ -176,23 +177,22 @@ def closed_loop_batch(model: SMART, items: list[dict], motion_vocab: MotionVocab
         arrays = scene_tensors(sc, motion_vocab, it["road"], road_mask_prob=road_mask_prob,
                                rng=np.random.default_rng([seed, it["position"]]), motion_tokens=mt,
                                road_keep_radius_m=road_keep_radius_m)
-        out.append(without_scripted_targets(arrays, mt, [(track, frame) for track, frame, _ in e]))
+        drop = drifted(sc, mt, max_drift_m) if max_drift_m is not None else np.zeros(mt.ids.shape, bool)
+        for track, frame, _ in e:  # the scripted leader: every token ending after its onset
+            drop[track, int(np.searchsorted(mt.boundaries[1:], frame)):] = True
+        out.append(without_targets(arrays, mt, drop))
     return collate_scenes(out)
 
 
-def without_scripted_targets(arrays: dict[str, np.ndarray], tokens, scripted: list[tuple[int, int]]) -> dict[str, np.ndarray]:
-    """``arrays`` (:func:`~smart_marl.model.batch.scene_tensors` of a scene tokenized as ``tokens``) with no
-    target on the tokens of each scripted (track, first scripted frame): a token that ends after that frame
-    is not predicted (its position ``k - 1`` is masked)."""
-    if not scripted:
+def without_targets(arrays: dict[str, np.ndarray], tokens, drop: np.ndarray) -> dict[str, np.ndarray]:
+    """``arrays`` (:func:`~smart_marl.model.batch.scene_tensors` of a scene tokenized as ``tokens``) with
+    the tokens ``drop`` [tracks, S] says not predicted: token ``k`` of a track is the target at position
+    ``k - 1``, which is masked."""
+    if not drop[:, 1:].any():
         return arrays
     rows = np.flatnonzero(tokens.valid.any(1))  # the tracks scene_tensors keeps, in order
     target_valid = arrays["target_valid"].copy()
-    for track, frame in scripted:
-        at = np.searchsorted(rows, track)
-        if at < len(rows) and rows[at] == track:
-            first = int(np.searchsorted(tokens.boundaries[1:], frame))  # the first token ending at or after the frame
-            target_valid[at, max(first - 1, 0):] = False
+    target_valid[:, :-1] &= ~drop[rows, 1:]
     return {**arrays, "target_valid": target_valid}
 
 

@@ -80,26 +80,42 @@ def test_braking_leaders_are_drawn_per_leader_and_seeded(pair_scene):
     assert 0 < np.mean(half) < len(leaders)
 
 
-def test_a_scripted_leader_is_no_target_from_its_onset_on(pair_scene, sample_vocab):
+def test_dropped_tokens_are_no_targets_and_the_rest_are_kept(pair_scene, sample_vocab):
+    """without_targets (a scripted leader from its onset, a drifted CAT-K token): token k of a track is the
+    target at position k - 1, masked; nothing else moves."""
     from smart_marl.model.batch import scene_tensors
     from smart_marl.tokens import tokenize_motion
-    from smart_marl.train_data import without_scripted_targets
+    from smart_marl.train_data import without_targets
 
     sc, pairs = pair_scene
     leader, follower = pairs[0][0], pairs[0][1]
     mt = tokenize_motion(sc, sample_vocab)
-    road = _empty_road()
-    arrays = scene_tensors(sc, sample_vocab, road, road_mask_prob=0.0, rng=0, motion_tokens=mt)
-    onset = sc.current_frame + 7  # inside the token ending at current + 10
-    out = without_scripted_targets(arrays, mt, [(leader, onset)])
+    arrays = scene_tensors(sc, sample_vocab, _empty_road(), road_mask_prob=0.0, rng=0, motion_tokens=mt)
+    k = 4
+    drop = np.zeros(mt.ids.shape, bool)
+    drop[leader, k:] = True
+    out = without_targets(arrays, mt, drop)
     rows = list(np.flatnonzero(mt.valid.any(1)))
     lr, fr = rows.index(leader), rows.index(follower)
-    k = int(np.searchsorted(mt.boundaries[1:], onset))  # that token's index
-    assert mt.boundaries[k] < onset <= mt.boundaries[k + 1]
-    assert arrays["target_valid"][lr, k - 1] and not out["target_valid"][lr, k - 1:].any()  # it predicted token k before
+    assert arrays["target_valid"][lr, k - 1] and not out["target_valid"][lr, k - 1:].any()
     np.testing.assert_array_equal(out["target_valid"][lr, : k - 1], arrays["target_valid"][lr, : k - 1])
-    np.testing.assert_array_equal(out["target_valid"][fr], arrays["target_valid"][fr])  # the follower still learns
-    assert without_scripted_targets(arrays, mt, []) is arrays
+    others = np.arange(len(rows)) != lr
+    np.testing.assert_array_equal(out["target_valid"][others], arrays["target_valid"][others])  # the follower still learns
+    assert without_targets(arrays, mt, np.zeros_like(drop)) is arrays
+
+
+def test_drifted_flags_the_tokens_that_start_far_from_the_log(pair_scene, sample_vocab):
+    from smart_marl.catk import drifted
+    from smart_marl.tokens import tokenize_motion
+
+    sc, pairs = pair_scene
+    mt = tokenize_motion(sc, sample_vocab)
+    assert not drifted(sc, mt, 2.0).any()  # the log's own rolling matching stays within centimetres
+    leader, k = pairs[0][0], 6
+    mt.start_pose[leader, k, 1] += 3.0  # a CAT-K rollout that went 3 m sideways by token k
+    got = drifted(sc, mt, 2.0)
+    assert got[leader, k] and got.sum() == 1
+    assert not drifted(sc, mt, 3.5).any()
 
 
 def _empty_road():

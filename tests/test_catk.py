@@ -111,6 +111,8 @@ def test_catk_training_mode_trains_on_its_rollouts_and_resumes_exactly(sample_sc
     train(load_train_config(base, {"out_dir": str(tmp_path / "kept"), "catk_avoid": True, "brake_leaders": 1.0,
                                    "max_steps": 1}), scenes=scenes)
     assert first("kept") != first("full")  # the scene's leader brakes, its follower's targets keep the gap
+    train(load_train_config(base, {"out_dir": str(tmp_path / "near"), "catk_max_drift_m": 0.01, "max_steps": 1}), scenes=scenes)
+    assert first("near") != first("full")  # the tokens that drifted off the log are no targets
     with pytest.raises(KeyboardInterrupt):
         train(load_train_config(base, {"out_dir": str(tmp_path / "stopped")}), scenes=_StopsAtRead(scenes, 3))
     resumed = train(load_train_config(base, {"out_dir": str(tmp_path / "stopped")}), scenes=scenes)
@@ -162,6 +164,8 @@ def test_keeping_gaps_and_braking_leaders_need_catk(sample_vocab):
         load_train_config({"catk_avoid": True})
     with pytest.raises(TrainConfigError, match="brake_leaders=0.5 .* needs catk_avoid=true"):
         load_train_config({"catk_top_k": 8, "brake_leaders": 0.5})
+    with pytest.raises(TrainConfigError, match="catk_max_drift_m=2.0 .* needs catk_top_k > 0"):
+        load_train_config({"catk_max_drift_m": 2.0})
     with pytest.raises(TrainConfigError, match="brake_leaders"):
         load_train_config({"catk_top_k": 8, "catk_avoid": True, "brake_leaders": 1.5})
     assert load_train_config({"catk_top_k": 8, "catk_avoid": True, "brake_leaders": 0.5}).brake_leaders == 0.5
