@@ -83,7 +83,10 @@ def apply_overrides(values: dict[str, Any], overrides, fields_of: type, nested: 
     ``error`` listing the known ones."""
     values = dict(values)
     items = overrides.items() if isinstance(overrides, Mapping) else (split_override(o, error) for o in overrides)
-    group = dict(values.pop(nested, {}) or {})
+    group = values.pop(nested, {})
+    if not isinstance(group, Mapping):  # a config file's `model_overrides = "ten"` or null
+        raise error(f"{what} config: {nested} must be a mapping ({{...}}), got {group!r}")
+    group = dict(group)
     for key, val in items:
         if key.startswith(prefix + "."):
             group[key[len(prefix) + 1:]] = val
