@@ -86,8 +86,8 @@ def drifted(scenario: Scenario, tokens: MotionTokens, max_drift_m: float) -> np.
     """bool [N, S]: the tokens of ``tokens`` (a CAT-K sequence of ``scenario``) that start farther than
     ``max_drift_m`` from the logged position of their first frame. From there no token leads back to the
     log in 0.5 s, and the nearest one (the target) is a swerve: on 16 generated scenes, 1% of the moving
-    vehicles' CAT-K tokens start 10 m or more off the log (teacher forcing: 1.7 m at most), and their
-    targets end 13 m from the logged pose (``benchmarks/catk_targets.py``)."""
+    vehicles' CAT-K tokens start 10 m or more off the log (the log's own rolling matching: 1.7 m), and
+    their targets end 13 m from the logged pose (``benchmarks/catk_targets.py``)."""
     tr = scenario.tracks
     start = tokens.boundaries[:-1]
     off = np.linalg.norm(tokens.start_pose[..., :2] - tr.position[:, start, :2], axis=-1)  # [N, S]
