@@ -18,8 +18,9 @@ all scenes of a batch at once, interleaved with the tokenizer's step loop (its `
 With ``avoid`` the rollout keeps gaps (``catk_avoid``): the candidates are the top-K of the model's
 distribution with every token taken out that the rollouts' collision rule takes out
 (:func:`~smart_marl.rollout.avoidance.excluded_tokens`: the token's frames overlap one of the agent's
-nearest neighbours, those at constant velocity), and where the target (the token back toward the
-log) would overlap a neighbour and the taken token would not, the target is the taken token. A
+nearest neighbours, each seen on its logged motion of the step from where it is), and where the target
+(the token back toward the log) would overlap a neighbour and the taken token would not, the target is
+the taken token. A
 follower whose logged leader brakes harder than in the log (:mod:`smart_marl.braking`) then learns
 to brake where its own log drives on.
 """
