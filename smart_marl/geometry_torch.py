@@ -40,8 +40,15 @@ def boxes_overlap(a_xy: torch.Tensor, a_heading: torch.Tensor, a_half: torch.Ten
     """bool [...]: do oriented boxes ``a`` and ``b`` overlap (separating axis theorem; touching is
     not overlapping). ``xy`` [..., 2], ``heading`` [...], ``half`` [..., 2] half length and half
     width; all broadcast."""
-    d = b_xy - a_xy
-    ca, sa, cb, sb = a_heading.cos(), a_heading.sin(), b_heading.cos(), b_heading.sin()
+    return boxes_overlap_rotated(b_xy - a_xy, a_heading.cos(), a_heading.sin(), a_half, b_heading.cos(), b_heading.sin(), b_half)
+
+
+def boxes_overlap_rotated(d: torch.Tensor, a_cos: torch.Tensor, a_sin: torch.Tensor, a_half: torch.Tensor, b_cos: torch.Tensor,
+                          b_sin: torch.Tensor, b_half: torch.Tensor) -> torch.Tensor:
+    """:func:`boxes_overlap` of boxes given by the offset ``d`` [..., 2] from ``a``'s centre to ``b``'s,
+    the cosine and sine of their headings [...] and their half sizes [..., 2] (for callers that test
+    one box against many: its cosine and sine computed once)."""
+    ca, sa, cb, sb = a_cos, a_sin, b_cos, b_sin
     hit = None
     for ux, uy in ((ca, sa), (-sa, ca), (cb, sb), (-sb, cb)):  # the four edge normals
         ext_a = a_half[..., 0] * (ux * ca + uy * sa).abs() + a_half[..., 1] * (uy * ca - ux * sa).abs()
@@ -236,5 +243,5 @@ def box_corners_bottom(xy: torch.Tensor, heading: torch.Tensor, size: torch.Tens
     return torch.cat([xy4, zb], -1)
 
 
-__all__ = ["RoadEdgeTensors", "box_corners", "box_corners_bottom", "boxes_overlap", "nearest_road_edge", "polygon_distance",
+__all__ = ["RoadEdgeTensors", "box_corners", "box_corners_bottom", "boxes_overlap", "boxes_overlap_rotated", "nearest_road_edge", "polygon_distance",
            "rounded_boxes_overlap", "signed_distance_to_road_edges"]

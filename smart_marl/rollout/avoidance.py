@@ -36,7 +36,7 @@ from typing import Callable
 
 import torch
 
-from ..geometry_torch import boxes_overlap
+from ..geometry_torch import boxes_overlap, boxes_overlap_rotated
 from ..tokens import FRAMES_PER_TOKEN
 from .frames import token_frames
 
@@ -63,6 +63,37 @@ def boxes_overlap_near(a_xy: torch.Tensor, a_heading: torch.Tensor, a_half: torc
     at = close.nonzero(as_tuple=True)
     out = torch.zeros(shape, dtype=torch.bool, device=a_xy.device)
     out[at] = boxes_overlap(a_xy[at], a_heading[at], a_half[at], b_xy[at], b_heading[at], b_half[at])
+    return out
+
+
+def frames_collide(frames: torch.Tensor, own_xy: torch.Tensor, own_half: torch.Tensor, other_xy: torch.Tensor,
+                   other_cos: torch.Tensor, other_sin: torch.Tensor, other_half: torch.Tensor, other_gap: torch.Tensor,
+                   other_ok: torch.Tensor) -> torch.Tensor:
+    """bool [R, c]: does a box of half size ``own_half`` [R, 2] on frames ``frames`` [R, c, F, 3] (c
+    candidate paths per row, e.g. tokens, that start at ``own_xy`` [R, 2]) overlap, on the same frame,
+    one of ``K`` others: centres ``other_xy`` [R, F, K, 2], the cosine and sine of their headings
+    ``other_cos`` / ``other_sin`` [R, F or 1, K], half sizes ``other_half`` [R, K, 2], where
+    ``other_ok`` [R, K]. The same as :func:`boxes_overlap_near` on every (path, frame, other), run
+    only on the (path, other) pairs that can come close: ``other_gap`` [R, K] is a lower bound of the
+    other's distance to ``own_xy`` on every frame (its distance now less how far it travels), and a
+    path that stays within ``e`` of ``own_xy`` cannot reach an other whose gap is ``e`` plus the two
+    half diagonals or more."""
+    r, c, f = frames.shape[:3]
+    own_r, other_r = own_half.norm(dim=-1), other_half.norm(dim=-1)  # [R], [R, K] half diagonals
+    extent = (frames[..., :2] - own_xy[:, None, None]).norm(dim=-1).amax(-1)  # [R, c] farthest the path gets
+    reach = extent[..., None] + (own_r[:, None] + other_r)[:, None]  # [R, c, K]
+    can = other_ok[:, None] & (other_gap[:, None] < reach + 1e-3 + 1e-5 * reach.abs())  # margin for rounding: only more pairs
+    pi, pc, pk = can.nonzero(as_tuple=True)  # [P] the (row, path, other) pairs to test on every frame
+    d = other_xy[pi, :, pk] - frames[pi, pc, :, :2]  # [P, F, 2]
+    # the exact test where the centres are closer than the two half diagonals (:func:`boxes_overlap_near`)
+    close = d.norm(dim=-1) < own_r[pi, None] + other_r[pi, pk, None]  # [P, F]
+    p, fr = close.nonzero(as_tuple=True)
+    row, k, fo = pi[p], pk[p], fr.clamp(max=other_cos.shape[1] - 1)
+    heading = frames[pi[p], pc[p], fr, 2]
+    hit = boxes_overlap_rotated(d[p, fr], heading.cos(), heading.sin(), own_half[row], other_cos[row, fo, k], other_sin[row, fo, k],
+                                other_half[row, k])
+    out = torch.zeros(r, c, dtype=torch.bool, device=frames.device)
+    out[row[hit], pc[p][hit]] = True
     return out
 
 
@@ -136,15 +167,17 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     else:
         other_h = other_h[:, None, :]
 
+    # how near each neighbour can come during the step, for the pair bound of ``collides``
+    other_cos, other_sin = other_h.cos(), other_h.sin()  # [M, 5 or 1, K]
+    other_gap = (now_xy - own_pose[:, None, :2]).norm(dim=-1) - travel[gi[:, None], near]  # [M, K]
+
     def collides(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
         """[R, c]: does token ``tok`` [R, c] of rows ``r`` [R] overlap a neighbour on any of its frames."""
         local = token_poses[own_type[r][:, None], tok]  # [R, c, 6, 3]
         frames = token_frames(local, own_pose[r][:, None].expand(-1, tok.shape[1], -1),
                               own_before[r][:, None].expand(-1, tok.shape[1], -1), interpolation)  # [R, c, 5, 3]
-        hit = boxes_overlap_near(frames[:, :, :, None, :2], frames[:, :, :, None, 2], own_half[r][:, None, None, None],
-                                 other_xy[r][:, None], other_h[r][:, None], other_half[r][:, None, None],
-                                 where=near_ok[r][:, None, None])  # [R, c, 5, K]
-        return hit.flatten(2).any(-1)
+        return frames_collide(frames, own_pose[r, :2], own_half[r], other_xy[r], other_cos[r], other_sin[r], other_half[r],
+                              other_gap[r], near_ok[r])
 
     finite = torch.isfinite(logits).sum(-1)  # [M] tokens of the row's type
     want = finite if top_k is None or top_k <= 0 else finite.clamp(max=int(top_k))
