@@ -1,7 +1,9 @@
 """The pruned kernels of the environment's step give exactly what the plain computation gives: the
 collision-aware sampler's pair bound (:func:`smart_marl.rollout.avoidance.frames_collide` against
-:func:`~smart_marl.rollout.avoidance.boxes_overlap_near` on every pair). Each case is built so that a
-bound cut too tight would drop pairs that do overlap."""
+:func:`~smart_marl.rollout.avoidance.boxes_overlap_near` on every pair) and the offroad test's nearest
+road edge in segment blocks (:func:`smart_marl.geometry_torch.nearest_road_edge` against every
+segment). Each case is built so that a bound cut too tight would drop what is near, and a test each
+shows that a wrong bound is noticed."""
 
 from __future__ import annotations
 
@@ -63,3 +65,87 @@ def test_the_pair_bound_fails_when_the_gap_is_overstated():
     wrong_gap = (other_xy[:, 0] - own_xy[:, None]).norm(dim=-1)  # distance on the first frame, travel ignored
     got = frames_collide(frames, own_xy, own_half, other_xy, other_h.cos(), other_h.sin(), other_half, wrong_gap, ok)
     assert not torch.equal(got, want)
+
+
+# ------------------------------------------------------------------ the nearest road edge in blocks
+def _edges(seed: int, sizes=(700, 333, 0, 64), shuffle: bool = False, dtype=torch.float64):
+    """Road edges of scenes with ``sizes`` segments: polylines of short segments (as the real ones),
+    in order or shuffled (blocks of consecutive segments then spread over the scene), with duplicated
+    segments (equally near: the lowest index wins)."""
+    from smart_marl.geometry_torch import RoadEdgeTensors
+
+    g = torch.Generator().manual_seed(seed)
+    s = max(sizes)
+    start, end = torch.zeros(len(sizes), s, 3, dtype=dtype), torch.zeros(len(sizes), s, 3, dtype=dtype)
+    valid = torch.zeros(len(sizes), s, dtype=torch.bool)
+    for b, n in enumerate(sizes):
+        if not n:
+            continue
+        turn = torch.cumsum((torch.rand(n, generator=g, dtype=dtype) - 0.5) * 0.3, 0)
+        jump = torch.rand(n, generator=g) < 0.03  # a new polyline elsewhere
+        step = torch.stack([turn.cos(), turn.sin()], -1) * 0.5
+        step[jump] = (torch.rand(int(jump.sum()), 2, generator=g, dtype=dtype) - 0.5) * 120
+        xy = torch.cumsum(step, 0) - 30
+        z = torch.rand(n, 1, generator=g, dtype=dtype) * 2
+        a, e = torch.cat([xy, z], -1), torch.cat([xy + torch.stack([turn.cos(), turn.sin()], -1) * 0.5, z], -1)
+        dup = torch.arange(n) % 7 == 3  # copies of an earlier segment
+        a[dup], e[dup] = a[torch.arange(n)[dup] - 2], e[torch.arange(n)[dup] - 2]
+        order = torch.randperm(n, generator=g) if shuffle else torch.arange(n)
+        start[b, :n], end[b, :n], valid[b, :n] = a[order], e[order], True
+    zeros, no = torch.zeros(len(sizes), s, dtype=torch.long), torch.zeros(len(sizes), s, dtype=torch.bool)
+    return RoadEdgeTensors(start=start, end=end, prior=zeros, next_=zeros, has_prior=no, has_next=no, convex_prior=no,
+                           convex_next=no, valid=valid)
+
+
+def _exhaustive_nearest(points, edges, z=3.0):
+    sp = points[:, :, None] - edges.start[:, None]
+    e = (edges.end - edges.start)[:, None]
+    t = ((sp[..., :2] * e[..., :2]).sum(-1) / (e[..., :2] ** 2).sum(-1).clamp_min(1e-30)).clamp(0, 1)
+    d = sp - e * t[..., None]
+    return (d[..., 0] ** 2 + d[..., 1] ** 2 + (z * d[..., 2]) ** 2).masked_fill(~edges.valid[:, None], float("inf")).argmin(-1)
+
+
+def _points(seed: int, b: int, q: int = 300, spread: float = 200.0, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    return torch.cat([(torch.rand(b, q, 2, generator=g, dtype=dtype) - 0.5) * spread, torch.rand(b, q, 1, generator=g, dtype=dtype) * 3],
+                     -1)
+
+
+@pytest.mark.parametrize("shuffle", [False, True])
+@pytest.mark.parametrize("candidates", [1, 3, 12, 10**6])
+def test_the_nearest_edge_search_in_segment_blocks_equals_the_exhaustive_one(shuffle, candidates):
+    """Near and far points (a far one needs many blocks), blocks of ordered and of shuffled segments,
+    a segment count that is not a multiple of the block, a scene without edges, equally near copies."""
+    from smart_marl.geometry_torch import nearest_road_edge
+
+    edges = _edges(0, shuffle=shuffle)
+    pts = _points(1, 4)
+    want = _exhaustive_nearest(pts, edges)
+    has = edges.valid.any(1)
+    for pairs in (1 << 20, 3000):
+        got = nearest_road_edge(pts, edges, z_stretch=3.0, candidates=candidates, max_pairs=pairs)
+        assert torch.equal(got[has], want[has])
+
+
+def test_the_segment_blocks_follow_edits_of_the_edges():
+    """The blocks are kept between calls; a refill that writes new segments in place is seen."""
+    from smart_marl.geometry_torch import nearest_road_edge
+
+    edges, other = _edges(0), _edges(7)
+    pts = _points(2, 4)
+    nearest_road_edge(pts, edges, z_stretch=3.0)
+    edges.start[0], edges.end[0] = other.start[0], other.end[0]  # in place, as SceneBatch.write does
+    assert torch.equal(nearest_road_edge(pts, edges, z_stretch=3.0)[0], _exhaustive_nearest(pts, edges)[0])
+
+
+def test_the_nearest_edge_search_fails_with_a_block_bound_that_is_too_tight(monkeypatch):
+    """The checks above would notice a wrong bound: blocks whose radius is halved miss nearer segments."""
+    import smart_marl.geometry_torch as gt
+
+    edges = _edges(0)
+    pts = _points(1, 4)
+    want = _exhaustive_nearest(pts, edges)
+    plain = gt._segment_blocks
+    monkeypatch.setattr(gt, "_segment_blocks", lambda *a: (plain(*a)[0], plain(*a)[1] / 2))
+    got = gt.nearest_road_edge(pts, edges, z_stretch=3.0, candidates=1)
+    assert not torch.equal(got[edges.valid.any(1)], want[edges.valid.any(1)])
