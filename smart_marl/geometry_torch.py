@@ -131,31 +131,53 @@ class RoadEdgeTensors:
         (a road edge's polyline goes on in the next segments) inside a circle; ``radius`` is ``-inf``
         on a block without a valid segment. Computed once and kept until a tensor of the edges is
         replaced or written to (a refill)."""
-        key = (size, self.start, self.start._version, self.end, self.end._version, self.valid, self.valid._version)
-        cached = self.__dict__.get("_blocks")
-        if cached is None or not all(a is b if torch.is_tensor(a) else a == b for a, b in zip(cached[0], key)):
-            self.__dict__["_blocks"] = (key, _segment_blocks(self.start, self.end, self.valid, size))
-        return self.__dict__["_blocks"][1]
+        return kept(self, "_blocks", (self.start, self.end, self.valid), lambda: _segment_blocks(self.start, self.end, self.valid, size), size)
+
+
+def kept(owner, name: str, inputs: tuple[torch.Tensor, ...], compute, *extra):
+    """``compute()``, kept in ``owner`` (under ``name``) until one of the tensors ``inputs`` is replaced
+    or written to in place (its version counter moves) or ``extra`` changes: derived constants of
+    scenes that a refill may rewrite."""
+    key = (*extra, *[(t, t._version) for t in inputs])
+    cached = owner.__dict__.get(name)
+    if cached is None or len(cached[0]) != len(key) or any(
+            (a[0] is not b[0] or a[1] != b[1]) if isinstance(a, tuple) else a != b for a, b in zip(cached[0], key)):
+        owner.__dict__[name] = cached = (key, compute())
+    return cached[1]
+
+
+def block_bounds(xy: torch.Tensor, valid: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(centre [B, nb, 2], radius [B, nb]) of each run of ``size`` consecutive items (a polyline's
+    segments or points go on in the next ones) of ``B`` rows, ``nb = ceil(P / size)``: every point
+    ``xy`` [B, P, E, 2] of the run's ``valid`` [B, P] items within ``radius`` of the centre of their
+    bounding box (``-inf``: a run without a valid item). A segment (E = 2: its ends) lies in the
+    circle with its ends; so no item of a block is nearer to a point than its distance to the centre
+    less the radius."""
+    b, p, e = xy.shape[:3]
+    nb = -(-p // size)
+    ok = valid[..., None].expand(b, p, e)
+    if nb * size > p:
+        xy = torch.cat([xy, xy.new_zeros(b, nb * size - p, e, 2)], 1)
+        ok = torch.cat([ok, ok.new_zeros(b, nb * size - p, e)], 1)
+    xy, ok = xy.reshape(b, nb, size * e, 2), ok.reshape(b, nb, size * e)
+    lo = xy.masked_fill(~ok[..., None], float("inf")).amin(2)
+    hi = xy.masked_fill(~ok[..., None], float("-inf")).amax(2)
+    centre = torch.where(ok.any(2)[..., None], (lo + hi) / 2, torch.zeros_like(lo))  # [B, nb, 2]
+    radius = (xy - centre[:, :, None]).norm(dim=-1).masked_fill(~ok, float("-inf")).amax(2)
+    return centre, radius
+
+
+def block_lower_bound(query: torch.Tensor, centre: torch.Tensor, radius: torch.Tensor) -> torch.Tensor:
+    """[B, Q, nb] a lower bound of the 2D distance from points ``query`` [B, Q, 2] to any item of
+    each block of their row (:func:`block_bounds`), less a margin for rounding; ``inf`` for an empty block."""
+    dist = (query[:, :, None] - centre[:, None]).norm(dim=-1)
+    bound = dist - radius[:, None] - 1e-5 * (dist + radius[:, None].abs()) - 1e-3
+    return bound.masked_fill(radius[:, None] == float("-inf"), float("inf"))
 
 
 def _segment_blocks(start: torch.Tensor, end: torch.Tensor, valid: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """:meth:`RoadEdgeTensors.blocks`: the centre of each block's bounding box and the farthest of its
-    valid segments' ends from it (a segment lies within the circle through its farther end)."""
-    b, s = valid.shape
-    nb = -(-s // size)
-    pad = nb * size - s
-    ends = torch.stack([start[..., :2], end[..., :2]], 2)  # [B, S, 2, 2]
-    ok = valid[..., None].expand(b, s, 2)
-    if pad:
-        ends = torch.cat([ends, ends.new_zeros(b, pad, 2, 2)], 1)
-        ok = torch.cat([ok, ok.new_zeros(b, pad, 2)], 1)
-    ends, ok = ends.reshape(b, nb, 2 * size, 2), ok.reshape(b, nb, 2 * size)
-    lo = ends.masked_fill(~ok[..., None], float("inf")).amin(2)
-    hi = ends.masked_fill(~ok[..., None], float("-inf")).amax(2)
-    any_ok = ok.any(2)
-    centre = torch.where(any_ok[..., None], (lo + hi) / 2, torch.zeros_like(lo))  # [B, nb, 2]
-    radius = (ends - centre[:, :, None]).norm(dim=-1).masked_fill(~ok, float("-inf")).amax(2)
-    return centre, radius
+    """:meth:`RoadEdgeTensors.blocks`."""
+    return block_bounds(torch.stack([start[..., :2], end[..., :2]], 2), valid, size)
 
 
 def _dtype(name: str, dtype):
@@ -194,10 +216,7 @@ def nearest_road_edge(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: f
     centre, radius = edges.blocks(SEGMENT_BLOCK)  # [B, nb, 2], [B, nb]
     nb = centre.shape[1]
     kb = min(max(int(candidates), 1), nb)
-    dist = (points[:, :, None, :2] - centre[:, None]).norm(dim=-1)  # [B, Q, nb]
-    # a lower bound of the distance to any segment of the block, less a margin for rounding (only more checks)
-    bound = dist - radius[:, None] - 1e-5 * (dist + radius[:, None].abs()) - 1e-3
-    bound = bound.masked_fill(radius[:, None] == float("-inf"), float("inf"))
+    bound = block_lower_bound(points[..., :2], centre, radius)  # [B, Q, nb]
     lb, blk = torch.topk(bound, min(kb + 1, nb), dim=-1, largest=False)
     rest = lb[..., kb] if kb < nb else torch.full((b, q), float("inf"), dtype=points.dtype, device=points.device)
     scene = torch.arange(b, device=points.device)[:, None].expand(b, q).reshape(-1)

@@ -2,7 +2,8 @@
 collision-aware sampler's pair bound (:func:`smart_marl.rollout.avoidance.frames_collide` against
 :func:`~smart_marl.rollout.avoidance.boxes_overlap_near` on every pair) and the offroad test's nearest
 road edge in segment blocks (:func:`smart_marl.geometry_torch.nearest_road_edge` against every
-segment). Each case is built so that a bound cut too tight would drop what is near, and a test each
+segment), the observation's nearest road points in blocks (:func:`envs._observation.nearest_road_points`
+against every point). Each case is built so that a bound cut too tight would drop what is near, and a test each
 shows that a wrong bound is noticed."""
 
 from __future__ import annotations
@@ -149,3 +150,63 @@ def test_the_nearest_edge_search_fails_with_a_block_bound_that_is_too_tight(monk
     monkeypatch.setattr(gt, "_segment_blocks", lambda *a: (plain(*a)[0], plain(*a)[1] / 2))
     got = gt.nearest_road_edge(pts, edges, z_stretch=3.0, candidates=1)
     assert not torch.equal(got[edges.valid.any(1)], want[edges.valid.any(1)])
+
+
+# ----------------------------------------------------------- the nearest road points of an observation
+class _Roads:
+    """The two fields of a SceneBatch that :func:`envs._observation.nearest_road_points` reads."""
+
+    def __init__(self, road_xy, road_valid):
+        self.road_xy, self.road_valid = road_xy, road_valid
+
+
+def _roads(seed: int, sizes=(3000, 1200, 40, 0), shuffle: bool = False):
+    """Road points ~2 m apart along polylines (many side by side, as lanes are), equally near copies."""
+    g = torch.Generator().manual_seed(seed)
+    p = max(sizes)
+    xy, valid = torch.zeros(len(sizes), p, 2), torch.zeros(len(sizes), p, dtype=torch.bool)
+    for b, n in enumerate(sizes):
+        if not n:
+            continue
+        turn = torch.cumsum((torch.rand(n, generator=g) - 0.5) * 0.2, 0)
+        step = torch.stack([turn.cos(), turn.sin()], -1) * 2.0
+        jump = torch.rand(n, generator=g) < 0.05
+        step[jump] = (torch.rand(int(jump.sum()), 2, generator=g) - 0.5) * 80
+        pts = torch.cumsum(step, 0) - 40
+        dup = torch.arange(n) % 5 == 4
+        pts[dup] = pts[torch.arange(n)[dup] - 3]
+        order = torch.randperm(n, generator=g) if shuffle else torch.arange(n)
+        xy[b, :n], valid[b, :n] = pts[order], True
+    return _Roads(xy, valid)
+
+
+@pytest.mark.parametrize("shuffle", [False, True])
+@pytest.mark.parametrize("candidates", [1, 48])
+def test_the_nearest_road_points_in_blocks_equal_the_plain_search(shuffle, candidates, monkeypatch):
+    """Points on and far off the map, ordered and shuffled road points, a map smaller than the
+    candidates, a scene without road points (all invalid), ties between copies."""
+    import envs._observation as ob
+
+    monkeypatch.setattr(ob, "ROAD_CANDIDATES", candidates)
+    roads = _roads(0, shuffle=shuffle)
+    g = torch.Generator().manual_seed(1)
+    xy = (torch.rand(4, 30, 2, generator=g) - 0.5) * torch.tensor([150.0, 150.0])
+    xy[:, :5] = roads.road_xy[:, :5] + 0.5  # right beside road points
+    for k in (32, 3):
+        d2 = (roads.road_xy[:, None] - xy[:, :, None]).square().sum(-1).masked_fill(~roads.road_valid[:, None], float("inf"))
+        want = ob._nearest(d2, k)
+        got = ob.nearest_road_points(roads, xy, k)
+        assert torch.equal(got[1], want[1]) and torch.equal(got[0], want[0]), k
+
+
+def test_the_nearest_road_points_fail_with_a_block_bound_that_is_too_tight(monkeypatch):
+    import envs._observation as ob
+
+    roads = _roads(0)
+    xy = (torch.rand(4, 30, 2, generator=torch.Generator().manual_seed(1)) - 0.5) * 150
+    d2 = (roads.road_xy[:, None] - xy[:, :, None]).square().sum(-1).masked_fill(~roads.road_valid[:, None], float("inf"))
+    want = ob._nearest(d2, 32)
+    plain = ob.block_bounds
+    monkeypatch.setattr(ob, "block_bounds", lambda *a: (plain(*a)[0], plain(*a)[1] / 3))
+    monkeypatch.setattr(ob, "ROAD_CANDIDATES", 1)
+    assert not torch.equal(ob.nearest_road_points(roads, xy, 32)[0], want[0])
