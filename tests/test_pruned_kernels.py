@@ -210,3 +210,29 @@ def test_the_nearest_road_points_fail_with_a_block_bound_that_is_too_tight(monke
     monkeypatch.setattr(ob, "block_bounds", lambda *a: (plain(*a)[0], plain(*a)[1] / 3))
     monkeypatch.setattr(ob, "ROAD_CANDIDATES", 1)
     assert not torch.equal(ob.nearest_road_points(roads, xy, 32)[0], want[0])
+
+
+# --------------------------------------------------------------- the sampler's ranking, read off the top k + 1
+@pytest.mark.parametrize("levels", [4, 50, 100000])
+def test_the_first_chunk_read_off_the_top_set_excludes_what_topk_s_ranking_excludes(levels):
+    """Logits with many ties (few levels) and without; tokens rejected by a fixed rule; some rows
+    go deep (most of their tokens rejected). The reference ranks every row with topk up front."""
+    from smart_marl.rollout.avoidance import _exclude_in_order, _top_set
+
+    g = torch.Generator().manual_seed(levels)
+    m, v, k = 300, 200, 6
+    logits = torch.randint(0, levels, (m, v), generator=g).float()
+    logits[:20, 150:] = float("-inf")  # a smaller vocabulary
+    logits[20:25, 3:] = float("-inf")  # fewer tokens than k
+    finite = torch.isfinite(logits).sum(-1)
+    want = finite.clamp(max=k)
+    blocked = torch.rand(m, v, generator=g) < torch.linspace(0.05, 0.995, m)[:, None]  # deeper rows further down
+    test = lambda r, tok: blocked[r[:, None], tok]  # noqa: E731
+    todo = torch.rand(m, generator=g) < 0.9
+    head, tied = _top_set(logits, k)
+    assert tied[20:25].all() and (tied[25:].sum() > 10 or levels > 1000)  # ties across the k-th token are exercised
+    want_out = _exclude_in_order(logits, finite, want, todo, test, (head, torch.ones_like(tied)))  # topk for every row
+    assert torch.equal(_exclude_in_order(logits, finite, want, todo, test, (head, tied)), want_out)
+    assert torch.equal(_exclude_in_order(logits, finite, want, todo, test), want_out)
+    if levels == 4:  # the test notices a first chunk read off a tied top set
+        assert not torch.equal(_exclude_in_order(logits, finite, want, todo, test, (head, torch.zeros_like(tied))), want_out)

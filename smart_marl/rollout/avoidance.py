@@ -134,7 +134,10 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     # 1. the rows that need checking: those whose first tokens (the top k) can reach another agent; the
     # others draw their top k whatever is excluded further down, so nothing of theirs is
     gi, si = rows // n, rows % n
-    first = torch.topk(logits, v if top_k is None or top_k <= 0 else min(int(top_k), v), dim=-1).indices  # [M, k]
+    head, tied = _top_set(logits, v if top_k is None or top_k <= 0 else min(int(top_k), v))  # [M, k] each row's first tokens
+    first = head.clone()
+    if bool(tied.any()):  # topk's own pick where a tie crosses the k-th token
+        first[tied] = torch.topk(logits[tied], head.shape[1], dim=-1).indices
     reach = token_reach(token_poses)[agent_type[gi, si][:, None], first].amax(-1)  # [M] farthest a first token goes
     own_xy, own_r = pose[gi, si, :2], half[gi, si].norm(dim=-1)
     gap = (pose[gi][:, :, :2] - own_xy[:, None]).norm(dim=-1) - travel[gi]  # [M, N] nearest they come
@@ -143,7 +146,7 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     sub = maybe.any(-1).nonzero().squeeze(1)
     if not len(sub):
         return out
-    logits, rows, gi, si = logits[sub], rows[sub], gi[sub], si[sub]
+    logits, rows, gi, si, head, tied = logits[sub], rows[sub], gi[sub], si[sub], head[sub], tied[sub]
     m = len(sub)
     # 2. each such row's NEIGHBOURS nearest present others, not overlapping it now
     own_pose, own_before, own_half, own_type = pose[gi, si], previous_pose[gi, si], half[gi, si], agent_type[gi, si]
@@ -181,7 +184,7 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
 
     finite = torch.isfinite(logits).sum(-1)  # [M] tokens of the row's type
     want = finite if top_k is None or top_k <= 0 else finite.clamp(max=int(top_k))
-    excluded = _exclude_in_order(logits, finite, want, near_ok.any(-1), collides)
+    excluded = _exclude_in_order(logits, finite, want, near_ok.any(-1), collides, (head, tied))
     excluded[excluded.sum(-1) >= finite] = False  # every token of the type is excluded: leave the row alone
     out[sub] = excluded
     return out
@@ -196,18 +199,42 @@ def token_reach(token_poses: torch.Tensor) -> torch.Tensor:
     return torch.maximum(xy.amax(-1), 1.5 * xy[..., -1])
 
 
+def _top_set(logits: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """([M, k] long, [M] bool): each row's ``k`` most likely tokens of ``logits`` [M, V], read off the
+    top ``k + 1``, and the rows where the k-th is not strictly more likely than the next (a tie, or
+    k = V). On the other rows these are, as a set, what any ranking's first ``k`` are (``torch.topk``
+    with any k >= ``k``, a sort): no tie can swap a token in or out."""
+    m, v = logits.shape
+    if k >= v:
+        return torch.topk(logits, v, dim=-1).indices, torch.ones(m, dtype=torch.bool, device=logits.device)
+    vals, idx = torch.topk(logits, k + 1, dim=-1)
+    return idx[:, :k], ~(vals[:, k - 1] > vals[:, k])
+
+
 def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Tensor, todo: torch.Tensor,
-                      test: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
+                      test: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+                      head: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """bool [M, V]: tokens ``test(rows [R], tokens [R, c]) -> bool [R, c]`` rejects, checked most
-    likely first (by ``logits`` [M, V]) in chunks (``want`` tokens, then twice as many each round)
-    until ``want`` [M] have passed or the row's ``finite`` [M] tokens are exhausted; rows not in
-    ``todo`` [M] are not checked."""
+    likely first (by ``logits`` [M, V], ``torch.topk``'s ranking of the first ``SORTED_DEPTH``) in
+    chunks (``want`` tokens, then twice as many each round) until ``want`` [M] have passed or the row's
+    ``finite`` [M] tokens are exhausted; rows not in ``todo`` [M] are not checked. ``head``: the
+    :func:`_top_set` of ``logits`` if known; where it is not tied and has the first chunk's size, the
+    first chunk is read off it, and only the rows that go on are ranked further (most rows stop there)."""
     m, v = logits.shape
     excluded = torch.zeros(m, v, dtype=torch.bool, device=logits.device)
     passed = torch.zeros(m, dtype=torch.long, device=logits.device)
     todo = todo.clone()
-    order = torch.topk(logits, min(SORTED_DEPTH, v), dim=-1).indices  # [M, D] most likely first
     start, chunk = 0, max(int(want.max()) if m else 1, 1)
+    depth = min(SORTED_DEPTH, v)
+    if head is None or head[0].shape[1] != chunk or chunk >= depth:
+        head = _top_set(logits, chunk) if chunk < depth else None
+    if head is None:
+        order, ranked = torch.topk(logits, depth, dim=-1).indices, torch.ones(m, dtype=torch.bool, device=logits.device)
+    else:  # [M, D] most likely first: the first chunk of every row, the rest of the tied ones
+        order, ranked = torch.zeros(m, depth, dtype=torch.long, device=logits.device), head[1].clone()
+        order[:, :chunk] = head[0]
+        if bool(ranked.any()):
+            order[ranked] = torch.topk(logits[ranked], depth, dim=-1).indices
     while todo.any() and start < v:
         r = todo.nonzero().squeeze(1)
         if start + chunk > order.shape[1] and order.shape[1] < v:
@@ -216,6 +243,11 @@ def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Te
             order = torch.zeros(m, v, dtype=torch.long, device=logits.device)  # rows done by now are not read again
             order[r] = torch.sort(logits[r], dim=-1, descending=True, stable=True).indices
             excluded[r], passed[r], start = False, 0, 0
+            ranked[:] = True
+        elif start > 0 and not bool(ranked[r].all()):  # past the first chunk: topk's ranking (its first chunk is the same set)
+            late = r[~ranked[r]]
+            order[late] = torch.topk(logits[late], depth, dim=-1).indices
+            ranked[late] = True
         tok = order[r, start:start + chunk]  # [R, c]
         in_vocab = torch.arange(start, start + tok.shape[1], device=tok.device)[None] < finite[r, None]
         hit = test(r, tok) & in_vocab
