@@ -236,3 +236,23 @@ def test_the_first_chunk_read_off_the_top_set_excludes_what_topk_s_ranking_exclu
     assert torch.equal(_exclude_in_order(logits, finite, want, todo, test), want_out)
     if levels == 4:  # the test notices a first chunk read off a tied top set
         assert not torch.equal(_exclude_in_order(logits, finite, want, todo, test, (head, torch.zeros_like(tied))), want_out)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_samplers_box_test_with_shared_products_equals_the_separating_axis_test(dtype):
+    """Every outcome the same, touching boxes included (the sums are reordered only where exact)."""
+    from smart_marl.geometry_torch import boxes_overlap_rotated
+    from smart_marl.rollout.avoidance import _overlap_sat
+
+    g = torch.Generator().manual_seed(3)
+    n = 200000
+    u = lambda *s: torch.rand(*s, generator=g, dtype=dtype)  # noqa: E731
+    ha, hb = (u(n) - 0.5) * 7, (u(n) - 0.5) * 7
+    ha[:1000], hb[:1000] = 0.0, torch.tensor(math.pi / 2, dtype=dtype)  # axis-aligned: exact touching
+    a_half, b_half = 0.3 + 2 * u(n, 2), 0.3 + 2 * u(n, 2)
+    d = (u(n, 2) - 0.5) * 8
+    d[:1000, 0] = a_half[:1000, 0] + b_half[:1000, 1]  # edge on edge
+    args = (d, ha.cos(), ha.sin(), a_half, hb.cos(), hb.sin(), b_half)
+    want = boxes_overlap_rotated(*args)
+    assert 0.2 < want.double().mean() < 0.8
+    assert torch.equal(_overlap_sat(*args), want)

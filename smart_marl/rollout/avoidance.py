@@ -36,7 +36,7 @@ from typing import Callable
 
 import torch
 
-from ..geometry_torch import boxes_overlap, boxes_overlap_rotated
+from ..geometry_torch import boxes_overlap
 from ..tokens import FRAMES_PER_TOKEN
 from .frames import token_frames
 
@@ -90,11 +90,33 @@ def frames_collide(frames: torch.Tensor, own_xy: torch.Tensor, own_half: torch.T
     p, fr = close.nonzero(as_tuple=True)
     row, k, fo = pi[p], pk[p], fr.clamp(max=other_cos.shape[1] - 1)
     heading = frames[pi[p], pc[p], fr, 2]
-    hit = boxes_overlap_rotated(d[p, fr], heading.cos(), heading.sin(), own_half[row], other_cos[row, fo, k], other_sin[row, fo, k],
-                                other_half[row, k])
+    hit = _overlap_sat(d[p, fr], heading.cos(), heading.sin(), own_half[row], other_cos[row, fo, k], other_sin[row, fo, k],
+                       other_half[row, k])
     out = torch.zeros(r, c, dtype=torch.bool, device=frames.device)
     out[row[hit], pc[p][hit]] = True
     return out
+
+
+def _overlap_sat(d: torch.Tensor, ca: torch.Tensor, sa: torch.Tensor, a_half: torch.Tensor, cb: torch.Tensor, sb: torch.Tensor,
+                 b_half: torch.Tensor) -> torch.Tensor:
+    """:func:`~smart_marl.geometry_torch.boxes_overlap_rotated`, bit for bit, with fewer operations: of
+    the eight direction products its four axes read, two are a box's own (``ca * ca + sa * sa`` ...)
+    and the others are, up to sign and the order of commutative terms (exact in floating point),
+    ``ca * cb + sa * sb`` and ``sa * cb - ca * sb``; each is computed once."""
+    a0, a1, b0, b1 = a_half[..., 0], a_half[..., 1], b_half[..., 0], b_half[..., 1]
+    p1 = (ca * cb + sa * sb).abs()
+    p2 = (sa * cb - ca * sb).abs()
+    nsa, nsb = -sa, -sb
+    own_a1 = a0 * (ca * ca + sa * sa).abs() + a1 * (sa * ca - ca * sa).abs()  # axis (ca, sa)
+    own_a2 = a0 * (nsa * ca + ca * sa).abs() + a1 * (ca * ca - nsa * sa).abs()  # axis (-sa, ca)
+    own_b3 = b0 * (cb * cb + sb * sb).abs() + b1 * (sb * cb - cb * sb).abs()  # axis (cb, sb)
+    own_b4 = b0 * (nsb * cb + cb * sb).abs() + b1 * (cb * cb - nsb * sb).abs()  # axis (-sb, cb)
+    dx, dy = d[..., 0], d[..., 1]
+    hit = (dx * ca + dy * sa).abs() < own_a1 + (b0 * p1 + b1 * p2)
+    hit &= (dx * nsa + dy * ca).abs() < own_a2 + (b0 * p2 + b1 * p1)
+    hit &= (dx * cb + dy * sb).abs() < (a0 * p1 + a1 * p2) + own_b3
+    hit &= (dx * nsb + dy * cb).abs() < (a0 * p2 + a1 * p1) + own_b4
+    return hit
 
 
 def constant_velocity_pose(pose: torch.Tensor, previous_pose: torch.Tensor) -> torch.Tensor:
