@@ -40,6 +40,7 @@ from dataclasses import dataclass
 
 import torch
 
+from smart_marl.geometry_torch import block_bounds, block_lower_bound, kept
 from smart_marl.model.layers import smallest_k
 from smart_marl.scenario import SignalState
 
@@ -49,6 +50,10 @@ from .errors import EnvConfigError
 PAST_OFFSETS_FRAMES = (5, 10, 15, 20)  # 0.5 s .. 2.0 s ago
 HISTORY_FRAMES = max(PAST_OFFSETS_FRAMES) + 1  # frames of pose history the environment keeps
 NUM_MAP_TYPES = 7
+ROAD_BLOCK = 8
+"""Road points per block of the nearest-road-point search's bound (:func:`nearest_road_points`)."""
+ROAD_CANDIDATES = 48
+"""Blocks of smallest bound whose points every observation measures first."""
 _RED = {SignalState.ARROW_STOP, SignalState.STOP, SignalState.FLASHING_STOP}
 _YELLOW = {SignalState.ARROW_CAUTION, SignalState.CAUTION, SignalState.FLASHING_CAUTION}
 _GREEN = {SignalState.ARROW_GO, SignalState.GO}
@@ -116,6 +121,61 @@ def _nearest(d2: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
     return idx.masked_fill(~ok, 0), ok
 
 
+def nearest_road_points(scenes: SceneBatch, xy: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(indices, valid) [B, C, k] of the ``k`` road points of each scene nearest to ``xy`` [B, C, 2]
+    (nearest first, ties lowest index first; invalid index 0 where a scene has fewer), as
+    :func:`_nearest` on the squared distance to every road point, measured on few: no point of a block
+    (:func:`~smart_marl.geometry_torch.block_bounds`, ``ROAD_BLOCK`` consecutive points, kept until a
+    refill rewrites the road) is nearer than the block's bound; every point of the ``ROAD_CANDIDATES``
+    blocks of smallest bound is measured, and where the k-th nearest of them is nearer than every
+    other block's bound, they hold the k nearest; elsewhere every block whose bound is within that
+    distance is measured."""
+    b, c = xy.shape[:2]
+    p = scenes.road_xy.shape[1]
+    kb = max(ROAD_CANDIDATES, -(-k // ROAD_BLOCK))
+    if p <= kb * ROAD_BLOCK:  # a small map: every point
+        d2 = (scenes.road_xy[:, None] - xy[:, :, None]).square().sum(-1).masked_fill(~scenes.road_valid[:, None], float("inf"))
+        return _nearest(d2, k)
+    centre, radius = kept(scenes, "_road_blocks", (scenes.road_xy, scenes.road_valid),
+                          lambda: block_bounds(scenes.road_xy[:, :, None], scenes.road_valid, ROAD_BLOCK), ROAD_BLOCK)
+    nb = centre.shape[1]
+    bound = block_lower_bound(xy, centre, radius)  # [B, C, nb]
+    lb, blk = torch.topk(bound, min(kb + 1, nb), dim=-1, largest=False)
+    rest = lb[..., kb] if kb < nb else torch.full((b, c), float("inf"), dtype=xy.dtype, device=xy.device)
+    scene = torch.arange(b, device=xy.device)[:, None].expand(b, c).reshape(-1)
+    idx, ok, kth = _nearest_in_road_blocks(scenes, xy.reshape(b * c, 2), scene, blk[..., :kb].sort(dim=-1).values.reshape(b * c, kb), k)
+    idx, ok, kth = idx.view(b, c, k), ok.view(b, c, k), kth.view(b, c)
+    qb, qc = (~((kth < rest) | (rest == float("inf")))).nonzero(as_tuple=True)
+    if len(qb):  # a point outside the candidate blocks may be among the k nearest
+        need = bound[qb, qc] <= kth[qb, qc, None]  # [U, nb]
+        count = need.sum(-1)
+        blocks = torch.where(need, torch.arange(nb, device=xy.device), nb).sort(dim=-1).values
+        lo = 0
+        while lo < nb:  # rows needing about as many blocks together
+            hi = min(2 * max(lo, kb), nb)
+            i = ((count > lo) & (count <= hi)).nonzero().squeeze(1)
+            if len(i):
+                idx[qb[i], qc[i]], ok[qb[i], qc[i]], _ = _nearest_in_road_blocks(scenes, xy[qb[i], qc[i]], qb[i], blocks[i, :hi], k)
+            lo = hi
+    return idx, ok
+
+
+def _nearest_in_road_blocks(scenes: SceneBatch, xy: torch.Tensor, scene: torch.Tensor, blocks: torch.Tensor,
+                            k: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(indices [U, k], valid [U, k], distance of the k-th [U], ``inf`` if fewer) of the k road points of
+    scenes ``scene`` [U] nearest to ``xy`` [U, 2] among the points of blocks ``blocks`` [U, m]
+    (ascending; ``nb`` or more: none)."""
+    p = scenes.road_xy.shape[1]
+    pts = (blocks[..., None] * ROAD_BLOCK + torch.arange(ROAD_BLOCK, device=xy.device)).flatten(1)  # [U, m * block], ascending
+    inside = pts < p
+    pts = torch.where(inside, pts, torch.zeros_like(pts))
+    rows = scene[:, None]
+    d2 = (scenes.road_xy[rows, pts] - xy[:, None]).square().sum(-1).masked_fill(~(inside & scenes.road_valid[rows, pts]), float("inf"))
+    val, sub = smallest_k(d2, k)
+    ok = torch.isfinite(val)
+    return pts.gather(-1, sub).masked_fill(~ok, 0), ok, val[:, -1].sqrt()
+
+
 def _one_hot(index: torch.Tensor, size: int, dtype) -> torch.Tensor:
     return torch.nn.functional.one_hot(index.clamp(0, size - 1), size).to(dtype)
 
@@ -176,8 +236,7 @@ def build_observations(cfg: ObservationConfig, scenes: SceneBatch, ctrl_track: t
 
     # M nearest road points
     m = cfg.num_road_points
-    rd2 = (scenes.road_xy[:, None] - me[:, :, None, :2]).square().sum(-1).masked_fill(~scenes.road_valid[:, None], float("inf"))
-    ridx, rok = _nearest(rd2, m)  # [B, C, M]
+    ridx, rok = nearest_road_points(scenes, me[..., :2], m)  # [B, C, M]
     rxy = _to_local(me, scenes.road_xy.gather(1, ridx.reshape(b, -1, 1).expand(-1, -1, 2)).view(b, c, m, 2))
     rtype = _one_hot(scenes.road_type.gather(1, ridx.reshape(b, -1)).view(b, c, m), NUM_MAP_TYPES, dtype)
     parts["road"] = torch.cat([torch.ones_like(rxy[..., :1]), rxy, rtype], -1) * rok[..., None]

@@ -40,8 +40,15 @@ def boxes_overlap(a_xy: torch.Tensor, a_heading: torch.Tensor, a_half: torch.Ten
     """bool [...]: do oriented boxes ``a`` and ``b`` overlap (separating axis theorem; touching is
     not overlapping). ``xy`` [..., 2], ``heading`` [...], ``half`` [..., 2] half length and half
     width; all broadcast."""
-    d = b_xy - a_xy
-    ca, sa, cb, sb = a_heading.cos(), a_heading.sin(), b_heading.cos(), b_heading.sin()
+    return boxes_overlap_rotated(b_xy - a_xy, a_heading.cos(), a_heading.sin(), a_half, b_heading.cos(), b_heading.sin(), b_half)
+
+
+def boxes_overlap_rotated(d: torch.Tensor, a_cos: torch.Tensor, a_sin: torch.Tensor, a_half: torch.Tensor, b_cos: torch.Tensor,
+                          b_sin: torch.Tensor, b_half: torch.Tensor) -> torch.Tensor:
+    """:func:`boxes_overlap` of boxes given by the offset ``d`` [..., 2] from ``a``'s centre to ``b``'s,
+    the cosine and sine of their headings [...] and their half sizes [..., 2] (for callers that test
+    one box against many: its cosine and sine computed once)."""
+    ca, sa, cb, sb = a_cos, a_sin, b_cos, b_sin
     hit = None
     for ux, uy in ((ca, sa), (-sa, ca), (cb, sb), (-sb, cb)):  # the four edge normals
         ext_a = a_half[..., 0] * (ux * ca + uy * sa).abs() + a_half[..., 1] * (uy * ca - ux * sa).abs()
@@ -119,6 +126,59 @@ class RoadEdgeTensors:
     def num_segments(self) -> int:
         return int(self.start.shape[1])
 
+    def blocks(self, size: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
+        """(centre [B, S / size, 2], radius [B, S / size]): each run of ``size`` consecutive segments
+        (a road edge's polyline goes on in the next segments) inside a circle; ``radius`` is ``-inf``
+        on a block without a valid segment. Computed once and kept until a tensor of the edges is
+        replaced or written to (a refill)."""
+        return kept(self, "_blocks", (self.start, self.end, self.valid), lambda: _segment_blocks(self.start, self.end, self.valid, size), size)
+
+
+def kept(owner, name: str, inputs: tuple[torch.Tensor, ...], compute, *extra):
+    """``compute()``, kept in ``owner`` (under ``name``) until one of the tensors ``inputs`` is replaced
+    or written to in place (its version counter moves) or ``extra`` changes: derived constants of
+    scenes that a refill may rewrite."""
+    key = (*extra, *[(t, t._version) for t in inputs])
+    cached = owner.__dict__.get(name)
+    if cached is None or len(cached[0]) != len(key) or any(
+            (a[0] is not b[0] or a[1] != b[1]) if isinstance(a, tuple) else a != b for a, b in zip(cached[0], key)):
+        owner.__dict__[name] = cached = (key, compute())
+    return cached[1]
+
+
+def block_bounds(xy: torch.Tensor, valid: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(centre [B, nb, 2], radius [B, nb]) of each run of ``size`` consecutive items (a polyline's
+    segments or points go on in the next ones) of ``B`` rows, ``nb = ceil(P / size)``: every point
+    ``xy`` [B, P, E, 2] of the run's ``valid`` [B, P] items within ``radius`` of the centre of their
+    bounding box (``-inf``: a run without a valid item). A segment (E = 2: its ends) lies in the
+    circle with its ends; so no item of a block is nearer to a point than its distance to the centre
+    less the radius."""
+    b, p, e = xy.shape[:3]
+    nb = -(-p // size)
+    ok = valid[..., None].expand(b, p, e)
+    if nb * size > p:
+        xy = torch.cat([xy, xy.new_zeros(b, nb * size - p, e, 2)], 1)
+        ok = torch.cat([ok, ok.new_zeros(b, nb * size - p, e)], 1)
+    xy, ok = xy.reshape(b, nb, size * e, 2), ok.reshape(b, nb, size * e)
+    lo = xy.masked_fill(~ok[..., None], float("inf")).amin(2)
+    hi = xy.masked_fill(~ok[..., None], float("-inf")).amax(2)
+    centre = torch.where(ok.any(2)[..., None], (lo + hi) / 2, torch.zeros_like(lo))  # [B, nb, 2]
+    radius = (xy - centre[:, :, None]).norm(dim=-1).masked_fill(~ok, float("-inf")).amax(2)
+    return centre, radius
+
+
+def block_lower_bound(query: torch.Tensor, centre: torch.Tensor, radius: torch.Tensor) -> torch.Tensor:
+    """[B, Q, nb] a lower bound of the 2D distance from points ``query`` [B, Q, 2] to any item of
+    each block of their row (:func:`block_bounds`), less a margin for rounding; ``inf`` for an empty block."""
+    dist = (query[:, :, None] - centre[:, None]).norm(dim=-1)
+    bound = dist - radius[:, None] - 1e-5 * (dist + radius[:, None].abs()) - 1e-3
+    return bound.masked_fill(radius[:, None] == float("-inf"), float("inf"))
+
+
+def _segment_blocks(start: torch.Tensor, end: torch.Tensor, valid: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """:meth:`RoadEdgeTensors.blocks`."""
+    return block_bounds(torch.stack([start[..., :2], end[..., :2]], 2), valid, size)
+
 
 def _dtype(name: str, dtype):
     return dtype if name in ("start", "end") else torch.long if name in ("prior", "next_") else torch.bool
@@ -137,64 +197,64 @@ def _stretched_distance2(points: torch.Tensor, start: torch.Tensor, end: torch.T
     return d[..., 0] ** 2 + d[..., 1] ** 2 + (z_stretch * d[..., 2]) ** 2
 
 
-def nearest_road_edge(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: float = Z_STRETCH, candidates: int = 16,
+SEGMENT_BLOCK = 16
+"""Segments per block of the nearest-edge search's bound (:meth:`RoadEdgeTensors.blocks`)."""
+
+
+def nearest_road_edge(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: float = Z_STRETCH, candidates: int = 12,
                       max_pairs: int = 1 << 20) -> torch.Tensor:
     """[B, Q] the index of the segment nearest to each point [B, Q, 3] of its scene by 3D distance with z
     stretched (the lowest index on ties), as :func:`smart_marl.geometry.nearest_segment_indices`.
 
-    Exact with pruning: a segment is never nearer than its 2D lower bound (distance to its midpoint
-    minus half its length); the ``candidates`` segments of smallest bound are measured, and a point
-    whose nearest candidate is nearer than every other segment's bound is done; the few others are
-    measured against every segment."""
+    Exact with pruning: no segment of a block (:meth:`RoadEdgeTensors.blocks`, ``SEGMENT_BLOCK``
+    consecutive segments) is nearer than the distance to the block's centre less its radius (the
+    block's bound). Every segment of the ``candidates`` blocks of smallest bound is measured; a point
+    whose nearest of them is nearer than every other block's bound is done; the others are measured
+    against every segment of each block whose bound is within that distance, ``max_pairs`` (point,
+    segment) pairs at a time."""
     b, q = points.shape[:2]
-    s = edges.num_segments
-    mid = 0.5 * (edges.start[..., :2] + edges.end[..., :2])  # [B, S, 2]
-    half = 0.5 * (edges.end[..., :2] - edges.start[..., :2]).norm(dim=-1)  # [B, S]
-    k = min(candidates, s)
-    cand_lb = torch.full((b, q, k), float("inf"), dtype=points.dtype, device=points.device)
-    cand = torch.zeros(b, q, k, dtype=torch.long, device=points.device)  # a scene with fewer segments: segment 0 again
-    for rows, sb in _scene_blocks(edges.valid, q, max_pairs):  # the bound of every (point, segment) pair, a few scenes at a time
-        kb = min(k, sb)
-        lb = ((points[rows, :, None, :2] - mid[rows, None, :sb]).norm(dim=-1) - half[rows, None, :sb])
-        cand_lb[rows, :, :kb], cand[rows, :, :kb] = torch.topk(lb.masked_fill(~edges.valid[rows, None, :sb], float("inf")), kb, dim=-1,
-                                                               largest=False)
-    cand, by_index = cand.sort(dim=-1)  # the lowest index first among equally near candidates
-    cand_lb = cand_lb.gather(-1, by_index)
-    pick = lambda t: t.gather(1, cand.reshape(b, -1)[..., None].expand(-1, -1, 3)).view(b, q, k, 3)  # noqa: E731
-    d2 = _stretched_distance2(points[:, :, None], pick(edges.start), pick(edges.end), z_stretch)
-    d2 = d2.masked_fill(~edges.valid.gather(1, cand.reshape(b, -1)).view(b, q, k), float("inf"))
-    best = d2.argmin(-1, keepdim=True)
-    nearest = cand.gather(-1, best)[..., 0]
-    sure = (d2.gather(-1, best)[..., 0].sqrt() < cand_lb.amax(-1)) | (k == s)  # no segment outside the candidates is as near
-    qb, qq = (~sure & edges.valid.any(1)[:, None]).nonzero(as_tuple=True)
-    if len(qb):  # the rest: every segment of their scene
-        full = _stretched_distance2(points[qb, qq][:, None], edges.start[qb], edges.end[qb], z_stretch)
-        nearest[qb, qq] = full.masked_fill(~edges.valid[qb], float("inf")).argmin(-1)
+    centre, radius = edges.blocks(SEGMENT_BLOCK)  # [B, nb, 2], [B, nb]
+    nb = centre.shape[1]
+    kb = min(max(int(candidates), 1), nb)
+    bound = block_lower_bound(points[..., :2], centre, radius)  # [B, Q, nb]
+    lb, blk = torch.topk(bound, min(kb + 1, nb), dim=-1, largest=False)
+    rest = lb[..., kb] if kb < nb else torch.full((b, q), float("inf"), dtype=points.dtype, device=points.device)
+    scene = torch.arange(b, device=points.device)[:, None].expand(b, q).reshape(-1)
+    blk = blk[..., :kb].sort(dim=-1).values.reshape(b * q, kb)  # by index: the lowest index first among equally near segments
+    nearest, best = _nearest_in_blocks(points.reshape(b * q, 3), scene, blk, edges, z_stretch)
+    nearest, best = nearest.view(b, q), best.view(b, q)
+    unsure = (best >= rest) & edges.valid.any(1)[:, None]  # a segment outside the candidate blocks may be as near
+    qb, qq = unsure.nonzero(as_tuple=True)
+    if len(qb):
+        need = bound[qb, qq] <= best[qb, qq, None]  # [U, nb] every block that may hold a segment as near
+        count = need.sum(-1)
+        blocks = torch.where(need, torch.arange(nb, device=points.device), nb).sort(dim=-1).values  # needed ones first, by index
+        lo = 0
+        while lo < nb:  # points needing about as many blocks together (a point far off the road needs many)
+            hi = min(2 * max(lo, kb), nb)
+            sel = ((count > lo) & (count <= hi)).nonzero().squeeze(1)
+            step = max(1, max_pairs // (hi * SEGMENT_BLOCK))
+            for k in range(0, len(sel), step):
+                i = sel[k:k + step]
+                nearest[qb[i], qq[i]] = _nearest_in_blocks(points[qb[i], qq[i]], qb[i], blocks[i, :hi], edges, z_stretch)[0]
+            lo = hi
     return nearest
 
 
-def _scene_blocks(valid: torch.Tensor, q: int, max_pairs: int):
-    """(scenes, segments) blocks of :func:`nearest_road_edge`'s bounds: ``scenes`` (a slice or index of
-    rows of ``valid`` [B, S]) whose (point, segment) pairs, ``q`` points a scene, number at most about
-    ``max_pairs``, and the segments to read (one past the last valid one of any of them). On the CPU the
-    scenes go in order of their segment count, so that a batch's largest scene does not set every
-    scene's work; elsewhere in row order, every segment."""
-    b, s = valid.shape
-    if valid.device.type != "cpu":
-        rows = max(1, max_pairs // max(q * s, 1))
-        yield from ((slice(lo, lo + rows), s) for lo in range(0, b, rows))
-        return
-    ends = (valid * torch.arange(1, s + 1)).amax(1)  # [B] one past each scene's last segment
-    order = ends.argsort()
-    ends = ends[order].tolist()
-    lo = 0
-    while lo < b:
-        hi = lo + 1
-        while hi < b and (hi + 1 - lo) * q * ends[hi] <= max_pairs:
-            hi += 1
-        if ends[hi - 1]:
-            yield order[lo:hi], ends[hi - 1]
-        lo = hi
+def _nearest_in_blocks(points: torch.Tensor, scene: torch.Tensor, blocks: torch.Tensor, edges: RoadEdgeTensors,
+                       z_stretch: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(index, distance) [U] of the nearest segment to points [U, 3] of scenes ``scene`` [U] among the
+    segments of blocks ``blocks`` [U, m] (ascending; ``nb`` or more: none), the lowest index on ties
+    (distance ``inf`` where none is valid)."""
+    s = edges.num_segments
+    seg = (blocks[..., None] * SEGMENT_BLOCK + torch.arange(SEGMENT_BLOCK, device=points.device)).flatten(1)  # [U, m * block]
+    inside = seg < s
+    seg = torch.where(inside, seg, torch.zeros_like(seg))
+    rows = scene[:, None]
+    d2 = _stretched_distance2(points[:, None], edges.start[rows, seg], edges.end[rows, seg], z_stretch)
+    d2 = d2.masked_fill(~(inside & edges.valid[rows, seg]), float("inf"))
+    best = d2.argmin(-1, keepdim=True)
+    return seg.gather(-1, best)[:, 0], d2.gather(-1, best)[:, 0].sqrt()
 
 
 def signed_distance_to_road_edges(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: float = Z_STRETCH,
@@ -236,5 +296,5 @@ def box_corners_bottom(xy: torch.Tensor, heading: torch.Tensor, size: torch.Tens
     return torch.cat([xy4, zb], -1)
 
 
-__all__ = ["RoadEdgeTensors", "box_corners", "box_corners_bottom", "boxes_overlap", "nearest_road_edge", "polygon_distance",
+__all__ = ["RoadEdgeTensors", "box_corners", "box_corners_bottom", "boxes_overlap", "boxes_overlap_rotated", "nearest_road_edge", "polygon_distance",
            "rounded_boxes_overlap", "signed_distance_to_road_edges"]

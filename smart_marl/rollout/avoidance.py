@@ -66,6 +66,59 @@ def boxes_overlap_near(a_xy: torch.Tensor, a_heading: torch.Tensor, a_half: torc
     return out
 
 
+def frames_collide(frames: torch.Tensor, own_xy: torch.Tensor, own_half: torch.Tensor, other_xy: torch.Tensor,
+                   other_cos: torch.Tensor, other_sin: torch.Tensor, other_half: torch.Tensor, other_gap: torch.Tensor,
+                   other_ok: torch.Tensor) -> torch.Tensor:
+    """bool [R, c]: does a box of half size ``own_half`` [R, 2] on frames ``frames`` [R, c, F, 3] (c
+    candidate paths per row, e.g. tokens, that start at ``own_xy`` [R, 2]) overlap, on the same frame,
+    one of ``K`` others: centres ``other_xy`` [R, F, K, 2], the cosine and sine of their headings
+    ``other_cos`` / ``other_sin`` [R, F or 1, K], half sizes ``other_half`` [R, K, 2], where
+    ``other_ok`` [R, K]. The same as :func:`boxes_overlap_near` on every (path, frame, other), run
+    only on the (path, other) pairs that can come close: ``other_gap`` [R, K] is a lower bound of the
+    other's distance to ``own_xy`` on every frame (its distance now less how far it travels), and a
+    path that stays within ``e`` of ``own_xy`` cannot reach an other whose gap is ``e`` plus the two
+    half diagonals or more."""
+    r, c, f = frames.shape[:3]
+    own_r, other_r = own_half.norm(dim=-1), other_half.norm(dim=-1)  # [R], [R, K] half diagonals
+    extent = (frames[..., :2] - own_xy[:, None, None]).norm(dim=-1).amax(-1)  # [R, c] farthest the path gets
+    reach = extent[..., None] + (own_r[:, None] + other_r)[:, None]  # [R, c, K]
+    can = other_ok[:, None] & (other_gap[:, None] < reach + 1e-3 + 1e-5 * reach.abs())  # margin for rounding: only more pairs
+    pi, pc, pk = can.nonzero(as_tuple=True)  # [P] the (row, path, other) pairs to test on every frame
+    d = other_xy[pi, :, pk] - frames[pi, pc, :, :2]  # [P, F, 2]
+    # the exact test where the centres are closer than the two half diagonals (:func:`boxes_overlap_near`)
+    close = d.norm(dim=-1) < own_r[pi, None] + other_r[pi, pk, None]  # [P, F]
+    p, fr = close.nonzero(as_tuple=True)
+    row, k, fo = pi[p], pk[p], fr.clamp(max=other_cos.shape[1] - 1)
+    heading = frames[pi[p], pc[p], fr, 2]
+    hit = _overlap_sat(d[p, fr], heading.cos(), heading.sin(), own_half[row], other_cos[row, fo, k], other_sin[row, fo, k],
+                       other_half[row, k])
+    out = torch.zeros(r, c, dtype=torch.bool, device=frames.device)
+    out[row[hit], pc[p][hit]] = True
+    return out
+
+
+def _overlap_sat(d: torch.Tensor, ca: torch.Tensor, sa: torch.Tensor, a_half: torch.Tensor, cb: torch.Tensor, sb: torch.Tensor,
+                 b_half: torch.Tensor) -> torch.Tensor:
+    """:func:`~smart_marl.geometry_torch.boxes_overlap_rotated`, bit for bit, with fewer operations: of
+    the eight direction products its four axes read, two are a box's own (``ca * ca + sa * sa`` ...)
+    and the others are, up to sign and the order of commutative terms (exact in floating point),
+    ``ca * cb + sa * sb`` and ``sa * cb - ca * sb``; each is computed once."""
+    a0, a1, b0, b1 = a_half[..., 0], a_half[..., 1], b_half[..., 0], b_half[..., 1]
+    p1 = (ca * cb + sa * sb).abs()
+    p2 = (sa * cb - ca * sb).abs()
+    nsa, nsb = -sa, -sb
+    own_a1 = a0 * (ca * ca + sa * sa).abs() + a1 * (sa * ca - ca * sa).abs()  # axis (ca, sa)
+    own_a2 = a0 * (nsa * ca + ca * sa).abs() + a1 * (ca * ca - nsa * sa).abs()  # axis (-sa, ca)
+    own_b3 = b0 * (cb * cb + sb * sb).abs() + b1 * (sb * cb - cb * sb).abs()  # axis (cb, sb)
+    own_b4 = b0 * (nsb * cb + cb * sb).abs() + b1 * (cb * cb - nsb * sb).abs()  # axis (-sb, cb)
+    dx, dy = d[..., 0], d[..., 1]
+    hit = (dx * ca + dy * sa).abs() < own_a1 + (b0 * p1 + b1 * p2)
+    hit &= (dx * nsa + dy * ca).abs() < own_a2 + (b0 * p2 + b1 * p1)
+    hit &= (dx * cb + dy * sb).abs() < (a0 * p1 + a1 * p2) + own_b3
+    hit &= (dx * nsb + dy * cb).abs() < (a0 * p2 + a1 * p1) + own_b4
+    return hit
+
+
 def constant_velocity_pose(pose: torch.Tensor, previous_pose: torch.Tensor) -> torch.Tensor:
     """[..., 3] where each agent will be one token later if it repeats its last token's displacement
     (heading held); an agent with no previous pose (NaN) stays where it is."""
@@ -103,7 +156,10 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     # 1. the rows that need checking: those whose first tokens (the top k) can reach another agent; the
     # others draw their top k whatever is excluded further down, so nothing of theirs is
     gi, si = rows // n, rows % n
-    first = torch.topk(logits, v if top_k is None or top_k <= 0 else min(int(top_k), v), dim=-1).indices  # [M, k]
+    head, tied = _top_set(logits, v if top_k is None or top_k <= 0 else min(int(top_k), v))  # [M, k] each row's first tokens
+    first = head.clone()
+    if bool(tied.any()):  # topk's own pick where a tie crosses the k-th token
+        first[tied] = torch.topk(logits[tied], head.shape[1], dim=-1).indices
     reach = token_reach(token_poses)[agent_type[gi, si][:, None], first].amax(-1)  # [M] farthest a first token goes
     own_xy, own_r = pose[gi, si, :2], half[gi, si].norm(dim=-1)
     gap = (pose[gi][:, :, :2] - own_xy[:, None]).norm(dim=-1) - travel[gi]  # [M, N] nearest they come
@@ -112,7 +168,7 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     sub = maybe.any(-1).nonzero().squeeze(1)
     if not len(sub):
         return out
-    logits, rows, gi, si = logits[sub], rows[sub], gi[sub], si[sub]
+    logits, rows, gi, si, head, tied = logits[sub], rows[sub], gi[sub], si[sub], head[sub], tied[sub]
     m = len(sub)
     # 2. each such row's NEIGHBOURS nearest present others, not overlapping it now
     own_pose, own_before, own_half, own_type = pose[gi, si], previous_pose[gi, si], half[gi, si], agent_type[gi, si]
@@ -136,19 +192,21 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     else:
         other_h = other_h[:, None, :]
 
+    # how near each neighbour can come during the step, for the pair bound of ``collides``
+    other_cos, other_sin = other_h.cos(), other_h.sin()  # [M, 5 or 1, K]
+    other_gap = (now_xy - own_pose[:, None, :2]).norm(dim=-1) - travel[gi[:, None], near]  # [M, K]
+
     def collides(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
         """[R, c]: does token ``tok`` [R, c] of rows ``r`` [R] overlap a neighbour on any of its frames."""
         local = token_poses[own_type[r][:, None], tok]  # [R, c, 6, 3]
         frames = token_frames(local, own_pose[r][:, None].expand(-1, tok.shape[1], -1),
                               own_before[r][:, None].expand(-1, tok.shape[1], -1), interpolation)  # [R, c, 5, 3]
-        hit = boxes_overlap_near(frames[:, :, :, None, :2], frames[:, :, :, None, 2], own_half[r][:, None, None, None],
-                                 other_xy[r][:, None], other_h[r][:, None], other_half[r][:, None, None],
-                                 where=near_ok[r][:, None, None])  # [R, c, 5, K]
-        return hit.flatten(2).any(-1)
+        return frames_collide(frames, own_pose[r, :2], own_half[r], other_xy[r], other_cos[r], other_sin[r], other_half[r],
+                              other_gap[r], near_ok[r])
 
     finite = torch.isfinite(logits).sum(-1)  # [M] tokens of the row's type
     want = finite if top_k is None or top_k <= 0 else finite.clamp(max=int(top_k))
-    excluded = _exclude_in_order(logits, finite, want, near_ok.any(-1), collides)
+    excluded = _exclude_in_order(logits, finite, want, near_ok.any(-1), collides, (head, tied))
     excluded[excluded.sum(-1) >= finite] = False  # every token of the type is excluded: leave the row alone
     out[sub] = excluded
     return out
@@ -163,18 +221,42 @@ def token_reach(token_poses: torch.Tensor) -> torch.Tensor:
     return torch.maximum(xy.amax(-1), 1.5 * xy[..., -1])
 
 
+def _top_set(logits: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """([M, k] long, [M] bool): each row's ``k`` most likely tokens of ``logits`` [M, V], read off the
+    top ``k + 1``, and the rows where the k-th is not strictly more likely than the next (a tie, or
+    k = V). On the other rows these are, as a set, what any ranking's first ``k`` are (``torch.topk``
+    with any k >= ``k``, a sort): no tie can swap a token in or out."""
+    m, v = logits.shape
+    if k >= v:
+        return torch.topk(logits, v, dim=-1).indices, torch.ones(m, dtype=torch.bool, device=logits.device)
+    vals, idx = torch.topk(logits, k + 1, dim=-1)
+    return idx[:, :k], ~(vals[:, k - 1] > vals[:, k])
+
+
 def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Tensor, todo: torch.Tensor,
-                      test: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
+                      test: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+                      head: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """bool [M, V]: tokens ``test(rows [R], tokens [R, c]) -> bool [R, c]`` rejects, checked most
-    likely first (by ``logits`` [M, V]) in chunks (``want`` tokens, then twice as many each round)
-    until ``want`` [M] have passed or the row's ``finite`` [M] tokens are exhausted; rows not in
-    ``todo`` [M] are not checked."""
+    likely first (by ``logits`` [M, V], ``torch.topk``'s ranking of the first ``SORTED_DEPTH``) in
+    chunks (``want`` tokens, then twice as many each round) until ``want`` [M] have passed or the row's
+    ``finite`` [M] tokens are exhausted; rows not in ``todo`` [M] are not checked. ``head``: the
+    :func:`_top_set` of ``logits`` if known; where it is not tied and has the first chunk's size, the
+    first chunk is read off it, and only the rows that go on are ranked further (most rows stop there)."""
     m, v = logits.shape
     excluded = torch.zeros(m, v, dtype=torch.bool, device=logits.device)
     passed = torch.zeros(m, dtype=torch.long, device=logits.device)
     todo = todo.clone()
-    order = torch.topk(logits, min(SORTED_DEPTH, v), dim=-1).indices  # [M, D] most likely first
     start, chunk = 0, max(int(want.max()) if m else 1, 1)
+    depth = min(SORTED_DEPTH, v)
+    if head is None or head[0].shape[1] != chunk or chunk >= depth:
+        head = _top_set(logits, chunk) if chunk < depth else None
+    if head is None:
+        order, ranked = torch.topk(logits, depth, dim=-1).indices, torch.ones(m, dtype=torch.bool, device=logits.device)
+    else:  # [M, D] most likely first: the first chunk of every row, the rest of the tied ones
+        order, ranked = torch.zeros(m, depth, dtype=torch.long, device=logits.device), head[1].clone()
+        order[:, :chunk] = head[0]
+        if bool(ranked.any()):
+            order[ranked] = torch.topk(logits[ranked], depth, dim=-1).indices
     while todo.any() and start < v:
         r = todo.nonzero().squeeze(1)
         if start + chunk > order.shape[1] and order.shape[1] < v:
@@ -183,6 +265,11 @@ def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Te
             order = torch.zeros(m, v, dtype=torch.long, device=logits.device)  # rows done by now are not read again
             order[r] = torch.sort(logits[r], dim=-1, descending=True, stable=True).indices
             excluded[r], passed[r], start = False, 0, 0
+            ranked[:] = True
+        elif start > 0 and not bool(ranked[r].all()):  # past the first chunk: topk's ranking (its first chunk is the same set)
+            late = r[~ranked[r]]
+            order[late] = torch.topk(logits[late], depth, dim=-1).indices
+            ranked[late] = True
         tok = order[r, start:start + chunk]  # [R, c]
         in_vocab = torch.arange(start, start + tok.shape[1], device=tok.device)[None] < finite[r, None]
         hit = test(r, tok) & in_vocab

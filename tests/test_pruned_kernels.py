@@ -1,0 +1,258 @@
+"""The pruned kernels of the environment's step give exactly what the plain computation gives: the
+collision-aware sampler's pair bound (:func:`smart_marl.rollout.avoidance.frames_collide` against
+:func:`~smart_marl.rollout.avoidance.boxes_overlap_near` on every pair) and the offroad test's nearest
+road edge in segment blocks (:func:`smart_marl.geometry_torch.nearest_road_edge` against every
+segment), the observation's nearest road points in blocks (:func:`envs._observation.nearest_road_points`
+against every point). Each case is built so that a bound cut too tight would drop what is near, and a test each
+shows that a wrong bound is noticed."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from smart_marl.rollout.avoidance import boxes_overlap_near, frames_collide
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
+
+
+def _crowd(seed: int, r: int = 40, c: int = 12, f: int = 5, k: int = 16, spread: float = 12.0, headings: int = 5):
+    """Random rows: paths of c candidates from the row's centre (straight, curved, long and short),
+    and k others moving over the frames (``headings`` 1: a held heading; 5: one per frame)."""
+    g = torch.Generator().manual_seed(seed)
+    u = lambda *s: torch.rand(*s, generator=g, dtype=torch.float64)  # noqa: E731
+    own_xy = (u(r, 2) - 0.5) * spread
+    own_half = torch.stack([0.4 + 2.2 * u(r), 0.4 + 0.8 * u(r)], -1)
+    h0 = (u(r, 1, 1) - 0.5) * 2 * math.pi
+    speed = 12 * u(r, c, 1) ** 2  # up to 12 m a step
+    turn = (u(r, c, 1) - 0.5) * 1.5
+    s = torch.arange(1, f + 1, dtype=torch.float64) / f
+    heading = h0 + turn * s
+    step = speed * s
+    frames = torch.stack([own_xy[:, None, None, 0] + step * heading.cos(), own_xy[:, None, None, 1] + step * heading.sin(), heading], -1)
+    now = own_xy[:, None] + (u(r, k, 2) - 0.5) * spread
+    move = (u(r, k, 2) - 0.5) * 10
+    other_xy = now[:, None] + s[None, :, None, None] * move[:, None]  # [R, F, K, 2]
+    other_h = (u(r, headings, k) - 0.5) * 2 * math.pi
+    other_half = torch.stack([0.4 + 2.2 * u(r, k), 0.4 + 0.8 * u(r, k)], -1)
+    ok = u(r, k) < 0.85
+    gap = (now - own_xy[:, None]).norm(dim=-1) - move.norm(dim=-1)
+    return frames, own_xy, own_half, other_xy, other_h, other_half, gap, ok
+
+
+def _plain(frames, own_half, other_xy, other_h, other_half, ok):
+    """Every (row, path, frame, other) through boxes_overlap_near: [R, c]."""
+    hit = boxes_overlap_near(frames[..., None, :2], frames[..., None, 2], own_half[:, None, None, None], other_xy[:, None],
+                             other_h[:, None], other_half[:, None, None], where=ok[:, None, None])
+    return hit.flatten(2).any(-1)
+
+
+@pytest.mark.parametrize("seed,spread,headings,k", [(0, 30.0, 5, 16), (1, 12.0, 1, 3), (2, 50.0, 5, 16), (3, 8.0, 1, 1)])
+def test_the_pair_bound_of_the_sampler_keeps_every_colliding_pair(seed, spread, headings, k):
+    frames, own_xy, own_half, other_xy, other_h, other_half, gap, ok = _crowd(seed, k=k, spread=spread, headings=headings)
+    want = _plain(frames, own_half, other_xy, other_h, other_half, ok)
+    got = frames_collide(frames, own_xy, own_half, other_xy, other_h.cos(), other_h.sin(), other_half, gap, ok)
+    assert 0.05 < want.double().mean() < 0.95, want.double().mean()  # both outcomes are exercised
+    assert torch.equal(got, want)
+
+
+def test_the_pair_bound_fails_when_the_gap_is_overstated():
+    """The check above would notice a bound that is too tight: with the others' travel left out of
+    their gap (a wrong bound), pairs that do collide are dropped."""
+    frames, own_xy, own_half, other_xy, other_h, other_half, gap, ok = _crowd(0, spread=30.0)
+    want = _plain(frames, own_half, other_xy, other_h, other_half, ok)
+    wrong_gap = (other_xy[:, 0] - own_xy[:, None]).norm(dim=-1)  # distance on the first frame, travel ignored
+    got = frames_collide(frames, own_xy, own_half, other_xy, other_h.cos(), other_h.sin(), other_half, wrong_gap, ok)
+    assert not torch.equal(got, want)
+
+
+# ------------------------------------------------------------------ the nearest road edge in blocks
+def _edges(seed: int, sizes=(700, 333, 0, 64), shuffle: bool = False, dtype=torch.float64):
+    """Road edges of scenes with ``sizes`` segments: polylines of short segments (as the real ones),
+    in order or shuffled (blocks of consecutive segments then spread over the scene), with duplicated
+    segments (equally near: the lowest index wins)."""
+    from smart_marl.geometry_torch import RoadEdgeTensors
+
+    g = torch.Generator().manual_seed(seed)
+    s = max(sizes)
+    start, end = torch.zeros(len(sizes), s, 3, dtype=dtype), torch.zeros(len(sizes), s, 3, dtype=dtype)
+    valid = torch.zeros(len(sizes), s, dtype=torch.bool)
+    for b, n in enumerate(sizes):
+        if not n:
+            continue
+        turn = torch.cumsum((torch.rand(n, generator=g, dtype=dtype) - 0.5) * 0.3, 0)
+        jump = torch.rand(n, generator=g) < 0.03  # a new polyline elsewhere
+        step = torch.stack([turn.cos(), turn.sin()], -1) * 0.5
+        step[jump] = (torch.rand(int(jump.sum()), 2, generator=g, dtype=dtype) - 0.5) * 120
+        xy = torch.cumsum(step, 0) - 30
+        z = torch.rand(n, 1, generator=g, dtype=dtype) * 2
+        a, e = torch.cat([xy, z], -1), torch.cat([xy + torch.stack([turn.cos(), turn.sin()], -1) * 0.5, z], -1)
+        dup = torch.arange(n) % 7 == 3  # copies of an earlier segment
+        a[dup], e[dup] = a[torch.arange(n)[dup] - 2], e[torch.arange(n)[dup] - 2]
+        order = torch.randperm(n, generator=g) if shuffle else torch.arange(n)
+        start[b, :n], end[b, :n], valid[b, :n] = a[order], e[order], True
+    zeros, no = torch.zeros(len(sizes), s, dtype=torch.long), torch.zeros(len(sizes), s, dtype=torch.bool)
+    return RoadEdgeTensors(start=start, end=end, prior=zeros, next_=zeros, has_prior=no, has_next=no, convex_prior=no,
+                           convex_next=no, valid=valid)
+
+
+def _exhaustive_nearest(points, edges, z=3.0):
+    sp = points[:, :, None] - edges.start[:, None]
+    e = (edges.end - edges.start)[:, None]
+    t = ((sp[..., :2] * e[..., :2]).sum(-1) / (e[..., :2] ** 2).sum(-1).clamp_min(1e-30)).clamp(0, 1)
+    d = sp - e * t[..., None]
+    return (d[..., 0] ** 2 + d[..., 1] ** 2 + (z * d[..., 2]) ** 2).masked_fill(~edges.valid[:, None], float("inf")).argmin(-1)
+
+
+def _points(seed: int, b: int, q: int = 300, spread: float = 200.0, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    return torch.cat([(torch.rand(b, q, 2, generator=g, dtype=dtype) - 0.5) * spread, torch.rand(b, q, 1, generator=g, dtype=dtype) * 3],
+                     -1)
+
+
+@pytest.mark.parametrize("shuffle", [False, True])
+@pytest.mark.parametrize("candidates", [1, 3, 12, 10**6])
+def test_the_nearest_edge_search_in_segment_blocks_equals_the_exhaustive_one(shuffle, candidates):
+    """Near and far points (a far one needs many blocks), blocks of ordered and of shuffled segments,
+    a segment count that is not a multiple of the block, a scene without edges, equally near copies."""
+    from smart_marl.geometry_torch import nearest_road_edge
+
+    edges = _edges(0, shuffle=shuffle)
+    pts = _points(1, 4)
+    want = _exhaustive_nearest(pts, edges)
+    has = edges.valid.any(1)
+    for pairs in (1 << 20, 3000):
+        got = nearest_road_edge(pts, edges, z_stretch=3.0, candidates=candidates, max_pairs=pairs)
+        assert torch.equal(got[has], want[has])
+
+
+def test_the_segment_blocks_follow_edits_of_the_edges():
+    """The blocks are kept between calls; a refill that writes new segments in place is seen."""
+    from smart_marl.geometry_torch import nearest_road_edge
+
+    edges, other = _edges(0), _edges(7)
+    pts = _points(2, 4)
+    nearest_road_edge(pts, edges, z_stretch=3.0)
+    edges.start[0], edges.end[0] = other.start[0], other.end[0]  # in place, as SceneBatch.write does
+    assert torch.equal(nearest_road_edge(pts, edges, z_stretch=3.0)[0], _exhaustive_nearest(pts, edges)[0])
+
+
+def test_the_nearest_edge_search_fails_with_a_block_bound_that_is_too_tight(monkeypatch):
+    """The checks above would notice a wrong bound: blocks whose radius is halved miss nearer segments."""
+    import smart_marl.geometry_torch as gt
+
+    edges = _edges(0)
+    pts = _points(1, 4)
+    want = _exhaustive_nearest(pts, edges)
+    plain = gt._segment_blocks
+    monkeypatch.setattr(gt, "_segment_blocks", lambda *a: (plain(*a)[0], plain(*a)[1] / 2))
+    got = gt.nearest_road_edge(pts, edges, z_stretch=3.0, candidates=1)
+    assert not torch.equal(got[edges.valid.any(1)], want[edges.valid.any(1)])
+
+
+# ----------------------------------------------------------- the nearest road points of an observation
+class _Roads:
+    """The two fields of a SceneBatch that :func:`envs._observation.nearest_road_points` reads."""
+
+    def __init__(self, road_xy, road_valid):
+        self.road_xy, self.road_valid = road_xy, road_valid
+
+
+def _roads(seed: int, sizes=(3000, 1200, 40, 0), shuffle: bool = False):
+    """Road points ~2 m apart along polylines (many side by side, as lanes are), equally near copies."""
+    g = torch.Generator().manual_seed(seed)
+    p = max(sizes)
+    xy, valid = torch.zeros(len(sizes), p, 2), torch.zeros(len(sizes), p, dtype=torch.bool)
+    for b, n in enumerate(sizes):
+        if not n:
+            continue
+        turn = torch.cumsum((torch.rand(n, generator=g) - 0.5) * 0.2, 0)
+        step = torch.stack([turn.cos(), turn.sin()], -1) * 2.0
+        jump = torch.rand(n, generator=g) < 0.05
+        step[jump] = (torch.rand(int(jump.sum()), 2, generator=g) - 0.5) * 80
+        pts = torch.cumsum(step, 0) - 40
+        dup = torch.arange(n) % 5 == 4
+        pts[dup] = pts[torch.arange(n)[dup] - 3]
+        order = torch.randperm(n, generator=g) if shuffle else torch.arange(n)
+        xy[b, :n], valid[b, :n] = pts[order], True
+    return _Roads(xy, valid)
+
+
+@pytest.mark.parametrize("shuffle", [False, True])
+@pytest.mark.parametrize("candidates", [1, 48])
+def test_the_nearest_road_points_in_blocks_equal_the_plain_search(shuffle, candidates, monkeypatch):
+    """Points on and far off the map, ordered and shuffled road points, a map smaller than the
+    candidates, a scene without road points (all invalid), ties between copies."""
+    import envs._observation as ob
+
+    monkeypatch.setattr(ob, "ROAD_CANDIDATES", candidates)
+    roads = _roads(0, shuffle=shuffle)
+    g = torch.Generator().manual_seed(1)
+    xy = (torch.rand(4, 30, 2, generator=g) - 0.5) * torch.tensor([150.0, 150.0])
+    xy[:, :5] = roads.road_xy[:, :5] + 0.5  # right beside road points
+    for k in (32, 3):
+        d2 = (roads.road_xy[:, None] - xy[:, :, None]).square().sum(-1).masked_fill(~roads.road_valid[:, None], float("inf"))
+        want = ob._nearest(d2, k)
+        got = ob.nearest_road_points(roads, xy, k)
+        assert torch.equal(got[1], want[1]) and torch.equal(got[0], want[0]), k
+
+
+def test_the_nearest_road_points_fail_with_a_block_bound_that_is_too_tight(monkeypatch):
+    import envs._observation as ob
+
+    roads = _roads(0)
+    xy = (torch.rand(4, 30, 2, generator=torch.Generator().manual_seed(1)) - 0.5) * 150
+    d2 = (roads.road_xy[:, None] - xy[:, :, None]).square().sum(-1).masked_fill(~roads.road_valid[:, None], float("inf"))
+    want = ob._nearest(d2, 32)
+    plain = ob.block_bounds
+    monkeypatch.setattr(ob, "block_bounds", lambda *a: (plain(*a)[0], plain(*a)[1] / 3))
+    monkeypatch.setattr(ob, "ROAD_CANDIDATES", 1)
+    assert not torch.equal(ob.nearest_road_points(roads, xy, 32)[0], want[0])
+
+
+# --------------------------------------------------------------- the sampler's ranking, read off the top k + 1
+@pytest.mark.parametrize("levels", [4, 50, 100000])
+def test_the_first_chunk_read_off_the_top_set_excludes_what_topk_s_ranking_excludes(levels):
+    """Logits with many ties (few levels) and without; tokens rejected by a fixed rule; some rows
+    go deep (most of their tokens rejected). The reference ranks every row with topk up front."""
+    from smart_marl.rollout.avoidance import _exclude_in_order, _top_set
+
+    g = torch.Generator().manual_seed(levels)
+    m, v, k = 300, 200, 6
+    logits = torch.randint(0, levels, (m, v), generator=g).float()
+    logits[:20, 150:] = float("-inf")  # a smaller vocabulary
+    logits[20:25, 3:] = float("-inf")  # fewer tokens than k
+    finite = torch.isfinite(logits).sum(-1)
+    want = finite.clamp(max=k)
+    blocked = torch.rand(m, v, generator=g) < torch.linspace(0.05, 0.995, m)[:, None]  # deeper rows further down
+    test = lambda r, tok: blocked[r[:, None], tok]  # noqa: E731
+    todo = torch.rand(m, generator=g) < 0.9
+    head, tied = _top_set(logits, k)
+    assert tied[20:25].all() and (tied[25:].sum() > 10 or levels > 1000)  # ties across the k-th token are exercised
+    want_out = _exclude_in_order(logits, finite, want, todo, test, (head, torch.ones_like(tied)))  # topk for every row
+    assert torch.equal(_exclude_in_order(logits, finite, want, todo, test, (head, tied)), want_out)
+    assert torch.equal(_exclude_in_order(logits, finite, want, todo, test), want_out)
+    if levels == 4:  # the test notices a first chunk read off a tied top set
+        assert not torch.equal(_exclude_in_order(logits, finite, want, todo, test, (head, torch.zeros_like(tied))), want_out)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_samplers_box_test_with_shared_products_equals_the_separating_axis_test(dtype):
+    """Every outcome the same, touching boxes included (the sums are reordered only where exact)."""
+    from smart_marl.geometry_torch import boxes_overlap_rotated
+    from smart_marl.rollout.avoidance import _overlap_sat
+
+    g = torch.Generator().manual_seed(3)
+    n = 200000
+    u = lambda *s: torch.rand(*s, generator=g, dtype=dtype)  # noqa: E731
+    ha, hb = (u(n) - 0.5) * 7, (u(n) - 0.5) * 7
+    ha[:1000], hb[:1000] = 0.0, torch.tensor(math.pi / 2, dtype=dtype)  # axis-aligned: exact touching
+    a_half, b_half = 0.3 + 2 * u(n, 2), 0.3 + 2 * u(n, 2)
+    d = (u(n, 2) - 0.5) * 8
+    d[:1000, 0] = a_half[:1000, 0] + b_half[:1000, 1]  # edge on edge
+    args = (d, ha.cos(), ha.sin(), a_half, hb.cos(), hb.sin(), b_half)
+    want = boxes_overlap_rotated(*args)
+    assert 0.2 < want.double().mean() < 0.8
+    assert torch.equal(_overlap_sat(*args), want)
