@@ -169,3 +169,24 @@ def test_keeping_gaps_and_braking_leaders_need_catk(sample_vocab):
     with pytest.raises(TrainConfigError, match="brake_leaders"):
         load_train_config({"catk_top_k": 8, "catk_avoid": True, "brake_leaders": 1.5})
     assert load_train_config({"catk_top_k": 8, "catk_avoid": True, "brake_leaders": 0.5}).brake_leaders == 0.5
+
+
+def test_a_closed_loop_batch_over_the_whole_vocabulary_is_the_teacher_forced_batch(sample_scenes, sample_vocab, tiny_smart,
+                                                                                     road_vocab, one_torch_thread):
+    """The training path of CAT-K (items -> closed_loop_batch) builds, with K = every token, the batch the
+    teacher-forced path builds: whatever CAT-K changes in training comes from the top-K restriction alone."""
+    from smart_marl.model.batch import collate_scenes
+    from smart_marl.train_data import TokenizedScenes, closed_loop_batch
+
+    model = tiny_smart(sample_vocab)
+    args = dict(seed=0, noise_topk=0, road_mask_prob=0.15, road_keep_radius_m=30.0)
+    keys = [(i, 7 + i) for i in range(len(sample_scenes))]
+    forced = collate_scenes([TokenizedScenes(sample_scenes, sample_vocab, road_vocab, **args)[k] for k in keys])
+    items = [TokenizedScenes(sample_scenes, sample_vocab, road_vocab, closed_loop=True, **args)[k] for k in keys]
+    every = max(v.size for v in sample_vocab.types.values())
+    closed = closed_loop_batch(model, items, sample_vocab, every, 0.15, 30.0, 0, torch.device("cpu"))
+    for name, value in vars(forced).items():
+        if isinstance(value, torch.Tensor):
+            assert value.shape == getattr(closed, name).shape, name
+            assert torch.allclose(value.float(), getattr(closed, name).float(), atol=1e-5), name
+    assert forced.target_valid.sum() > 100
