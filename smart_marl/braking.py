@@ -67,6 +67,13 @@ def leader_follower_pairs(scene: Scenario, max_gap_m: float = FOLLOW_GAP_M, max_
     return out[:max_pairs] if max_pairs else out
 
 
+def _last_if_unbroken(valid: np.ndarray, onset_frame: int) -> int | None:
+    """A track's last valid frame when it is valid without a gap from ``onset_frame - 1`` to it and that
+    frame is at or after the onset; else None (the track cannot brake from there)."""
+    last = int(np.flatnonzero(valid)[-1]) if valid.any() else -1
+    return last if last >= onset_frame and valid[onset_frame - 1 : last + 1].all() else None
+
+
 def brake_along_log(scene: Scenario, track: int, onset_frame: int, decel_mps2: float) -> Scenario:
     """``scene`` with track ``track`` braking at ``decel_mps2`` from ``onset_frame`` on, along its logged path,
     to a standstill where it stays. The track must be valid from ``onset_frame - 1`` to its last valid frame
@@ -78,9 +85,8 @@ def brake_along_log(scene: Scenario, track: int, onset_frame: int, decel_mps2: f
         raise ValueError(f"brake_along_log: onset frame {onset_frame} outside 1..{scene.num_frames - 1}")
     if decel_mps2 <= 0:
         raise ValueError(f"brake_along_log: decel_mps2 must be > 0, got {decel_mps2}")
-    valid = tr.valid[track]
-    last = int(np.flatnonzero(valid)[-1]) if valid.any() else -1
-    if last < onset_frame or not valid[onset_frame - 1 : last + 1].all():
+    last = _last_if_unbroken(tr.valid[track], onset_frame)
+    if last is None:
         raise ValueError(f"brake_along_log: track {track} (id {int(tr.ids[track])}) is not valid without a gap "
                          f"from frame {onset_frame - 1} to its end")
     path = tr.position[track, onset_frame - 1 : last + 1].astype(np.float64)  # the logged path from the frame before the onset
@@ -120,9 +126,7 @@ def braking_leaders(scene: Scenario, rng: np.random.Generator, share: float, dec
         done.add(leader)
         brakes, decel, onset = rng.random() < share, rng.uniform(*decel_mps2), rng.uniform(*onset_s)
         frame = scene.current_frame + 1 + int(round(onset / DT_S))
-        valid = scene.tracks.valid[leader]
-        last = int(np.flatnonzero(valid)[-1])
-        if brakes and frame <= last and valid[frame - 1 : last + 1].all():
+        if brakes and _last_if_unbroken(scene.tracks.valid[leader], frame) is not None:
             out.append((leader, frame, float(decel)))
     return out
 
