@@ -109,9 +109,11 @@ class _GapKeeper:
             tp[i, : vocab[t].size] = torch.from_numpy(vocab[t].poses)
         self.token_poses, self.agent_type, self.agent_shape = tp.to(device), agent_type.to(device), agent_shape.to(device)
         self.slot_of_row, self.has_slot = slot_of_row, (slot_of_row >= 0).numpy()
+        self.flat = slot_of_row[slot_of_row >= 0]  # the slot of each row that has one
+        hs = self.has_slot  # the log of the rows with a slot (the only ones read): [rows with a slot, T, ...]
         self.log_pose = np.concatenate([np.concatenate([sc.tracks.position[..., :2], sc.tracks.heading[..., None]], -1)
-                                        for sc in scenes])  # [N_rows, T, 3]
-        self.log_valid = np.concatenate([sc.tracks.valid for sc in scenes])
+                                        for sc in scenes])[hs]
+        self.log_valid = np.concatenate([sc.tracks.valid for sc in scenes])[hs]
         self.bounds, self.top_k, self.device = bounds, top_k, device
         self.state: tuple | None = None
 
@@ -122,20 +124,19 @@ class _GapKeeper:
         leader that brakes in the log is seen braking, not at constant velocity)."""
         g, n = self.agent_type.shape
         hs, b0 = self.has_slot, int(self.bounds[k])
-        now = np.where(partial.reached_valid[hs, k][:, None], partial.reached[hs, k], self.log_pose[hs, b0])
+        now = np.where(partial.reached_valid[hs, k][:, None], partial.reached[hs, k], self.log_pose[:, b0])
         before = np.where(partial.valid[hs, k - 1][:, None], partial.start_pose[hs, k - 1], np.nan)
-        flat = self.slot_of_row[self.slot_of_row >= 0]
+        flat = self.flat
         pose, prev = torch.zeros(g * n, 3), torch.full((g * n, 3), float("nan"))
         present = torch.zeros(g * n, dtype=torch.bool)
         pose[flat], prev[flat] = torch.from_numpy(now).float(), torch.from_numpy(before).float()
-        present[flat] = torch.from_numpy(self.log_valid[hs, b0])
+        present[flat] = torch.from_numpy(self.log_valid[:, b0])
         # where the others go during the step: their logged motion of the step, from where they are
         frames = np.arange(b0 + 1, b0 + FRAMES_PER_TOKEN + 1)
-        log = self.log_pose[hs][:, frames]  # [S, 5, 3]
-        moved = log + (now - self.log_pose[hs, b0])[:, None]
+        moved = self.log_pose[:, frames] + (now - self.log_pose[:, b0])[:, None]  # [rows, 5, 3]
         known = torch.zeros(g * n, dtype=torch.bool)
         known_frames = torch.zeros(g * n, FRAMES_PER_TOKEN, 3)
-        known[flat] = torch.from_numpy(self.log_valid[hs][:, np.r_[b0, frames]].all(1))
+        known[flat] = torch.from_numpy(self.log_valid[:, np.r_[b0, frames]].all(1))
         known_frames[flat] = torch.from_numpy(moved).float()
         d = self.device
         self.state = (pose.view(g, n, 3).to(d), prev.view(g, n, 3).to(d), present.view(g, n).to(d),

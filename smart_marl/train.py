@@ -354,10 +354,12 @@ def _out_of_time(started: float, limit_s: float | None, info, device: torch.devi
     the same step (the first rank's clock decides)."""
     if limit_s is None:
         return False
-    over = torch.tensor([time.perf_counter() - started > limit_s], dtype=torch.int32, device=device)
-    if info.enabled:
-        dist.broadcast(over, 0)
-    return bool(over.item())
+    over = time.perf_counter() - started > limit_s
+    if not info.enabled:
+        return over
+    flag = torch.tensor([over], dtype=torch.int32, device=device)
+    dist.broadcast(flag, 0)
+    return bool(flag.item())
 
 
 def _datasets(cfg: TrainConfig, tokens: TokenCache | None, scenes, mv: MotionVocabulary, rv: RoadVocabulary,
