@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import time
 import warnings
 from dataclasses import dataclass
@@ -72,6 +71,7 @@ from smart_marl.model.checkpoint import CheckpointError
 from smart_marl.model.checkpoint import load_prior as load_smart_prior
 from smart_marl.runlog import RunLog
 from smart_marl.scenario import AgentType
+from smart_marl.train import init_distributed, leave_distributed, resolve_device
 
 from .evaluate import evaluate_policies
 from .finetune_config import (MAX_EVAL_EPISODES, POLICY_NETWORK_FIELDS, FinetuneConfig, FinetuneConfigError, FinetuneError,
@@ -234,18 +234,6 @@ def batch_stats(batch, temperature: float = 1.0, reference_top_k: int | None = N
 
 
 # ------------------------------------------------------------------------------ distributed
-def _distributed() -> tuple[int, int]:
-    """(rank, world size): under torchrun (``WORLD_SIZE`` > 1) the process group is started
-    (gloo on the CPU, nccl on CUDA) if it is not yet."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
-        return 0, 1
-    if not dist.is_initialized():
-        backend = "nccl" if torch.cuda.is_available() and os.environ.get("LOCAL_RANK") is not None else "gloo"
-        dist.init_process_group(backend)
-    return dist.get_rank(), dist.get_world_size()
-
-
 def _average_gradients(params, world: int) -> None:
     for p in params:
         if p.grad is not None:
@@ -347,12 +335,13 @@ def _ppo_update(cfg: FinetuneConfig, learner: _Learner, batch, device, world: in
 
 
 def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
-    rank, world = _distributed()
+    device = resolve_device(cfg.device)
+    info = init_distributed(device)  # under torchrun: gloo on the CPU, nccl on CUDA
+    rank, world = info.rank, info.world_size
     if cfg.torch_threads > 0:
         torch.set_num_threads(cfg.torch_threads)
     torch.manual_seed(cfg.seed + rank)
     np.random.seed(cfg.seed + rank)
-    device = torch.device(cfg.device)
     out_dir = Path(cfg.out_dir)
     if rank == 0:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -396,6 +385,7 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
         if cfg.time_limit_s and row["seconds"] >= cfg.time_limit_s:  # every rank sees the same (averaged) seconds
             break
     collector.shutdown()
+    leave_distributed(info)
     scene_ids = pool.scenario_ids()
     if rank != 0:
         return FinetuneResult(out_dir, None, history, None, scene_ids, learner.net)

@@ -87,6 +87,7 @@ class DistInfo:
     rank: int = 0
     world_size: int = 1
     local_rank: int = 0
+    started: bool = False  # this run started the process group (and ends it: leave_distributed)
 
     @property
     def enabled(self) -> bool:
@@ -102,9 +103,21 @@ def init_distributed(device: torch.device) -> DistInfo:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world <= 1:
         return DistInfo()
-    if not dist.is_initialized():
+    started = not dist.is_initialized()
+    if started:
         dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
-    return DistInfo(rank=dist.get_rank(), world_size=dist.get_world_size(), local_rank=int(os.environ.get("LOCAL_RANK", "0")))
+    return DistInfo(rank=dist.get_rank(), world_size=dist.get_world_size(), local_rank=int(os.environ.get("LOCAL_RANK", "0")),
+                    started=started)
+
+
+def leave_distributed(info: DistInfo) -> None:
+    """After a run's last collective: wait for every rank, and end the process group if the run
+    started it. A rank that exits with the group alive can abort ("terminate called without an
+    active exception", SIGABRT) while process 0 still writes its files."""
+    if info.enabled:
+        dist.barrier()
+        if info.started:
+            dist.destroy_process_group()
 
 
 def resolve_device(name: str, info: DistInfo | None = None) -> torch.device:
@@ -526,6 +539,5 @@ def train(cfg: TrainConfig, scenes: Sequence[Scenario] | None = None,
             save("final", {"train": last_train, "val": last_val})
     if log is not None:
         log.close()
-    if info.enabled:
-        dist.barrier()
+    leave_distributed(info)
     return TrainResult(out_dir=out_dir, step=step, last_train=last_train, last_val=last_val, checkpoint=ckpt_path, resumed_from=resumed_from)
