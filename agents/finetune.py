@@ -56,6 +56,7 @@ import torch
 import torch.distributed as dist
 from tensordict.nn import TensorDictModule
 from torchrl.collectors import Collector
+from torchrl.data import Categorical
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import ValueEstimators
 
@@ -78,11 +79,13 @@ from .finetune_config import (MAX_EVAL_EPISODES, POLICY_NETWORK_FIELDS, Finetune
                               load_finetune_config)
 from .kl_ppo import PriorKLPPOLoss
 from .policy import (Critic, ExpertTensorPolicy, FinetunedTensorPolicy, PolicyError, PolicyLogits, PriorTensorPolicy,
-                     TensorPolicy, actor_from_weights, prior_digest, read_policy, save_policy, token_motion_features)
+                     TensorPolicy, actor_from_weights, expert_within_top_k, prior_digest, read_policy, save_policy, token_end_poses,
+                     token_motion_features)
 from .prior_policy import kl_to_prior
 
 OBS_KEY = (GROUP, "observation", "observation")
 PRIOR_KEY = (GROUP, "observation", "prior_logits")
+EXPERT_KEY = (GROUP, "expert_action")
 
 
 # ------------------------------------------------------------------------------ scenes, env
@@ -146,9 +149,27 @@ def core_scenes(cfg: FinetuneConfig, pool: ScenePool, vocab, count: int, exclude
     return out
 
 
+class ExpertLabelledEnv(SmartTrafficBatchedEnv):
+    """The batched env that also hands out, at every state, the restricted expert's token of each
+    agent (``EXPERT_KEY`` [B, A]: :func:`agents.policy.expert_within_top_k` at the reference's top-k):
+    the labels of the imitation term, for the states the policy itself reaches (DAgger's data)."""
+
+    def _make_specs(self) -> None:
+        super()._make_specs()
+        self.observation_spec[EXPERT_KEY] = Categorical(self.vocab_size, (self.num_scenes, self.max_agents), device=self.device)
+
+    def _output(self, step):
+        td = super()._output(step)
+        if not hasattr(self, "_ends"):
+            self._ends = token_end_poses(self.motion_vocab, self.vocab_size)[0]
+        td.set(EXPERT_KEY, expert_within_top_k(self.core, td.get(PRIOR_KEY), self.reference_top_k, self._ends))
+        return td
+
+
 def training_env(cfg: FinetuneConfig, pool: ScenePool, model, vocab, seed: int) -> SmartTrafficBatchedEnv:
-    """The batched env of the run over the training pool."""
-    return SmartTrafficBatchedEnv(
+    """The batched env of the run over the training pool (with the expert's labels when the run imitates)."""
+    env_class = ExpertLabelledEnv if cfg.imitation > 0 else SmartTrafficBatchedEnv
+    return env_class(
         scenarios=pool.subset(range(len(pool)), order="random", seed=seed), prior=model, motion_vocab=vocab, num_scenes=cfg.num_envs,
         controlled=controlled_selection(cfg), max_agents=cfg.max_agents, background=cfg.background, horizon_steps=cfg.horizon_steps,
         reward=dict(cfg.reward) or None, terminate_on=tuple(cfg.terminate_on), top_k=cfg.top_k, temperature=cfg.temperature,
@@ -207,7 +228,7 @@ def load_policy(path: str | Path = "embedded") -> tuple[FinetuneConfig, PolicyLo
 # ---------------------------------------------------------------------------------- logging
 COLUMNS = ["iteration", "frames", "seconds", "scenes_seen", "return_per_agent_episode", "goal_rate", "collision_rate",
            "offroad_rate", "kl_to_prior", "agent_episodes", "loss_objective", "loss_critic", "loss_entropy", "loss_prior_kl",
-           "entropy", "clip_fraction"]
+           "entropy", "clip_fraction", "loss_imitation"]
 
 
 def batch_stats(batch, temperature: float = 1.0, reference_top_k: int | None = None) -> dict[str, float]:
@@ -293,7 +314,7 @@ def _learner(cfg: FinetuneConfig, env: SmartTrafficBatchedEnv, model, vocab, dev
     loss = PriorKLPPOLoss(actor, critic, beta=cfg.beta, prior_logits_key=PRIOR_KEY, agent_mask_key=(GROUP, "mask"),
                           prior_temperature=cfg.temperature, reference_top_k=cfg.reference_top_k, clip_epsilon=cfg.clip_epsilon,
                           entropy_bonus=cfg.entropy_coeff > 0, entropy_coeff=cfg.entropy_coeff, critic_coeff=cfg.critic_coeff,
-                          normalize_advantage=cfg.normalize_advantage)
+                          normalize_advantage=cfg.normalize_advantage, imitation=cfg.imitation, expert_action_key=EXPERT_KEY)
     loss.set_keys(reward=(GROUP, "reward"), action=(GROUP, "action"), sample_log_prob=(GROUP, "action_log_prob"),
                   value=(GROUP, "state_value"), done=(GROUP, "done"), terminated=(GROUP, "terminated"),
                   advantage=(GROUP, "advantage"), value_target=(GROUP, "value_target"))
@@ -319,8 +340,9 @@ def _ppo_update(cfg: FinetuneConfig, learner: _Learner, batch, device, world: in
         for i in range(0, data.shape[0], mb_size):
             out = loss(data[perm[i : i + mb_size]].to(device))
             total = out["loss_objective"] + out["loss_critic"] + out["loss_prior_kl"]
-            if "loss_entropy" in out.keys():
-                total = total + out["loss_entropy"]
+            for extra in ("loss_entropy", "loss_imitation"):
+                if extra in out.keys():
+                    total = total + out[extra]
             learner.optimizer.zero_grad()
             total.backward()
             if world > 1:
@@ -328,7 +350,7 @@ def _ppo_update(cfg: FinetuneConfig, learner: _Learner, batch, device, world: in
             torch.nn.utils.clip_grad_norm_(learner.params, cfg.max_grad_norm)
             learner.optimizer.step()
             steps += 1
-            for k in ("loss_objective", "loss_critic", "loss_entropy", "loss_prior_kl", "entropy", "clip_fraction"):
+            for k in ("loss_objective", "loss_critic", "loss_entropy", "loss_prior_kl", "loss_imitation", "entropy", "clip_fraction"):
                 if k in out.keys():
                     sums[k] = sums.get(k, 0.0) + float(out[k].detach())
     return {k: v / max(steps, 1) for k, v in sums.items()}

@@ -65,6 +65,9 @@ class FinetuneConfig:
     critic: str = "mappo"  # "mappo" (centralised) or "ippo" (decentralised)
     # PPO and the prior KL
     beta: float = 0.1  # KL(pi || reference) coefficient
+    imitation: float = 0.0  # weight of the cross-entropy to the expert's token within the reference's top-k (the log-following
+    # expert restricted to the policy's action space, agents.policy.expert_within_top_k) on the states the policy reaches
+    # (DAgger's data): imitation before and beside the reward; 0: none
     gamma: float = 0.99
     lmbda: float = 0.95
     clip_epsilon: float = 0.2
@@ -156,7 +159,7 @@ _FINETUNE_RULES = {
     "terminate_on": lambda v: None if isinstance(v, tuple) and all(isinstance(e, str) for e in v) else f"must be a list of event names, got {v!r}",
     "top_k": optional(integer(1)), "temperature": temperature_rule, "reference_top_k": optional(integer(1)), "residual": flag,
     "actor_head": one_of(*ACTOR_HEADS), "hidden": integer(1, 4096, "16x the default"), "depth": integer(1, 16),
-    "obs_scale": number(0.0, low_open=True), "critic": text, "beta": number(0.0), "gamma": number(0.0, 1.0),
+    "obs_scale": number(0.0, low_open=True), "critic": text, "beta": number(0.0), "imitation": number(0.0), "gamma": number(0.0, 1.0),
     "lmbda": number(0.0, 1.0), "clip_epsilon": number(0.0, low_open=True), "entropy_coeff": number(0.0),
     "critic_coeff": number(0.0), "normalize_advantage": flag, "lr": number(0.0, low_open=True), "max_grad_norm": number(0.0),
     "frames_per_batch": integer(1, 10**6, "a million env steps per iteration"), "iterations": integer(1, 10**6),

@@ -34,16 +34,19 @@ class PriorKLPPOLoss(ClipPPOLoss):
     Extra keyword arguments: ``beta`` (the KL coefficient), ``prior_logits_key`` (where the prior's
     logits are), ``agent_mask_key`` (bool, True for agents that acted; also the mask of the parent's
     losses), ``prior_temperature`` (the prior's sampling temperature T), ``reference_top_k`` (the
-    reference's k; None: the full softmax). ``loss.reference`` names the reference. Everything else
-    goes to :class:`~torchrl.objectives.ClipPPOLoss`.
+    reference's k; None: the full softmax), ``imitation`` (with > 0, ``imitation`` times the
+    cross-entropy of the expert's tokens at ``expert_action_key`` is added as ``loss_imitation``).
+    ``loss.reference`` names the reference. Everything else goes to :class:`~torchrl.objectives.ClipPPOLoss`.
     """
 
     def __init__(self, actor_network, critic_network, *, beta: float = 0.1,
                  prior_logits_key: NestedKey = ("agents", "observation", "prior_logits"),
                  agent_mask_key: NestedKey | None = ("agents", "mask"), prior_temperature: float = 1.0,
-                 reference_top_k: int | None = None, **kwargs) -> None:
+                 reference_top_k: int | None = None, imitation: float = 0.0,
+                 expert_action_key: NestedKey = ("agents", "expert_action"), **kwargs) -> None:
         super().__init__(actor_network, critic_network, **kwargs)
         self.register_buffer("beta", torch.tensor(float(beta)))
+        self.imitation, self.expert_action_key = float(imitation), expert_action_key
         self.prior_logits_key = prior_logits_key
         self.agent_mask_key = agent_mask_key
         self.prior_temperature = float(prior_temperature)
@@ -77,4 +80,18 @@ class PriorKLPPOLoss(ClipPPOLoss):
         kl_mean = torch.where(valid, kl, torch.zeros_like(kl)).sum() / count
         td_out.set("loss_prior_kl", self.beta * kl_mean)
         td_out.set("kl_to_prior", kl_mean.detach())
+        if self.imitation > 0:
+            td_out.set("loss_imitation", self.imitation * self.imitation_loss(logp, tensordict, valid))
         return td_out
+
+    def imitation_loss(self, policy_log_probs: torch.Tensor, tensordict: TensorDictBase, valid: torch.Tensor) -> torch.Tensor:
+        """The mean cross-entropy of the expert's tokens (``expert_action_key`` [...]) under the policy,
+        over the ``valid`` rows whose expert token the policy can take."""
+        expert = tensordict.get(self.expert_action_key, None)
+        if expert is None:
+            raise KeyError(f"imitation: the batch has no expert tokens at {self.expert_action_key!r} (an env that labels them: "
+                           "agents.finetune.ExpertLabelledEnv)")
+        expert = expert.reshape(valid.shape)
+        nll = -policy_log_probs.gather(-1, expert[..., None].long()).squeeze(-1)
+        ok = valid & torch.isfinite(nll)
+        return torch.where(ok, nll, torch.zeros_like(nll)).sum() / ok.sum().clamp_min(1)

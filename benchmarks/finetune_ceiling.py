@@ -2,12 +2,12 @@
 fine-tuning action space.)
 
 The fine-tuned policies pick among the prior's top 3 tokens (``reference_top_k=3``). This runs a
-policy that knows the answer within that space: the log-following expert (:func:`agents.scripted.
-log_following_tokens`) restricted to the prior's top k tokens (of those, the token whose 0.5 s end
-pose comes closest to the expert token's: distance in metres plus 2 m per radian of heading), on the
-held-out scenes and seeds of ``benchmarks/finetune_generalisation.py`` with its rows' settings. If even
-this policy stays near the prior, no reward or amount of data can teach a top-k policy much more.
-One JSON line per (set, k), rows cached in ``--run-dir`` like the generalisation benchmark's.
+policy that knows the answer within that space: the log-following expert restricted to the prior's
+top k (:class:`agents.policy.ExpertWithinTopK`: of those tokens, the one whose 0.5 s end pose comes
+closest to the expert token's, distance in metres plus 2 m per radian of heading), on the held-out
+scenes and seeds of ``benchmarks/finetune_generalisation.py`` with its rows' settings. If even this policy
+stays near the prior, no reward or amount of data can teach a top-k policy much more. One JSON
+line per (set, k), rows cached in ``--run-dir`` like the generalisation benchmark's.
 
     .venv/bin/python benchmarks/finetune_ceiling.py --heldout data/rl_heldout --ks 3,16 --run-dir runs/generalisation
 """
@@ -15,7 +15,6 @@ One JSON line per (set, k), rows cached in ``--run-dir`` like the generalisation
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -27,34 +26,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from finetune_generalisation import cached, emit, evaluate, held_out  # noqa: E402
 
-from agents.policy import TensorPolicy, token_end_poses  # noqa: E402
-from agents.scripted import log_following_tokens  # noqa: E402
+from agents.policy import ExpertWithinTopK  # noqa: E402
 from smart_marl.scenario import AgentType  # noqa: E402
-
-HEADING_M_PER_RAD = 2.0
-
-
-class ExpertWithinTopK(TensorPolicy):
-    """The log-following expert's choice among the prior's top ``k`` tokens (module docstring)."""
-
-    top_k = 1
-
-    def __init__(self, k: int, vocab, vocab_size: int) -> None:
-        self.k, self.name = int(k), f"expert within prior top-{k}"
-        self.ends = token_end_poses(vocab, vocab_size)[0]  # where each type's tokens end after 0.5 s: forward, left, turn
-
-    def log_probs(self, core, observation, prior_logits):
-        expert = log_following_tokens(core).to(prior_logits.device)  # [B, C]
-        types = core.scenes.types.gather(1, core.ctrl_track.clamp(min=0)).long().clamp(max=2)
-        ends = self.ends.to(prior_logits.device)
-        cand = prior_logits.topk(self.k, -1).indices  # [B, C, k]
-        want = ends[types, expert]  # [B, C, 3]
-        got = ends[types[..., None].expand_as(cand), cand]  # [B, C, k, 3]
-        dh = torch.remainder(got[..., 2] - want[..., None, 2] + torch.pi, 2 * torch.pi) - torch.pi
-        dist = (got[..., :2] - want[..., None, :2]).norm(dim=-1) + HEADING_M_PER_RAD * dh.abs()
-        best = cand.gather(-1, dist.argmin(-1, keepdim=True))
-        out = torch.full(prior_logits.shape, float("-inf"), device=prior_logits.device)
-        return out.scatter(-1, best, 0.0)
 
 
 def main() -> int:
