@@ -79,7 +79,7 @@ from .finetune_config import (MAX_EVAL_EPISODES, POLICY_NETWORK_FIELDS, Finetune
                               load_finetune_config)
 from .kl_ppo import PriorKLPPOLoss
 from .policy import (Critic, ExpertTensorPolicy, FinetunedTensorPolicy, PolicyError, PolicyLogits, PriorTensorPolicy,
-                     TensorPolicy, actor_from_weights, expert_within_top_k, prior_digest, read_policy, save_policy, token_end_poses,
+                     TensorPolicy, actor_from_weights, expert_within_top_k, prior_digest, read_policy, save_policy,
                      token_motion_features)
 from .prior_policy import kl_to_prior
 
@@ -160,9 +160,7 @@ class ExpertLabelledEnv(SmartTrafficBatchedEnv):
 
     def _output(self, step):
         td = super()._output(step)
-        if not hasattr(self, "_ends"):
-            self._ends = token_end_poses(self.motion_vocab, self.vocab_size)[0]
-        td.set(EXPERT_KEY, expert_within_top_k(self.core, td.get(PRIOR_KEY), self.reference_top_k, self._ends))
+        td.set(EXPERT_KEY, expert_within_top_k(self.core, td.get(PRIOR_KEY), self.reference_top_k))
         return td
 
 

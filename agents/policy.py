@@ -270,39 +270,25 @@ class ExpertTensorPolicy(TensorPolicy):
         return out.scatter(-1, tokens[..., None].to(out.device), 0.0)
 
 
-EXPERT_HEADING_M_PER_RAD = 2.0
-"""How a token's end heading weighs against its end position when the restricted expert picks the token
-nearest the expert's: metres per radian."""
-
-
-def expert_within_top_k(core, prior_logits: torch.Tensor, k: int | None, ends: torch.Tensor) -> torch.Tensor:
-    """[B, C] the log-following expert's token restricted to the prior's top ``k`` (the tokens of
-    :func:`~smart_marl.rollout.top_k_mask`, the support of a policy with ``reference_top_k=k``): of those,
-    the token whose 0.5 s end pose (``ends`` [3, V, 3], :func:`token_end_poses`) is nearest the expert's,
-    in metres plus :data:`EXPERT_HEADING_M_PER_RAD` per radian of heading. Padded and done slots: 0."""
-    expert = log_following_tokens(core).to(prior_logits.device)  # [B, C]
-    types = core.scenes.types.gather(1, core.ctrl_track.clamp(min=0)).long().clamp(max=2).to(prior_logits.device)
-    ends = ends.to(prior_logits.device)
-    want = ends[types, expert]  # [B, C, 3]
-    got = ends[types]  # [B, C, V, 3]
-    dh = torch.remainder(got[..., 2] - want[..., None, 2] + torch.pi, 2 * torch.pi) - torch.pi
-    dist = (got[..., :2] - want[..., None, :2]).norm(dim=-1) + EXPERT_HEADING_M_PER_RAD * dh.abs()
-    best = dist.masked_fill(~top_k_mask(prior_logits, k), float("inf")).argmin(-1)
-    return torch.where(core.live.to(best.device), best, torch.zeros_like(best))
+def expert_within_top_k(core, prior_logits: torch.Tensor, k: int | None) -> torch.Tensor:
+    """[B, C] the log-following expert restricted to the prior's top ``k`` tokens (those of
+    :func:`~smart_marl.rollout.top_k_mask`, the action space of a policy with ``reference_top_k=k``): of
+    them, the token that, followed by any token, comes closest to the logged path over the next two
+    token steps (:func:`agents.scripted.log_following_tokens` with ``allowed``). Padded and done slots: 0."""
+    return log_following_tokens(core, allowed=top_k_mask(prior_logits, k)).to(prior_logits.device)
 
 
 class ExpertWithinTopK(TensorPolicy):
-    """The log-following expert's choice among the prior's top ``k`` tokens (:func:`expert_within_top_k`):
+    """The log-following expert restricted to the prior's top ``k`` tokens (:func:`expert_within_top_k`):
     how good a policy acting in that space can be. One-hot on its token."""
 
     top_k = 1
 
-    def __init__(self, k: int, vocab, vocab_size: int) -> None:
+    def __init__(self, k: int) -> None:
         self.k, self.name = int(k), f"expert within prior top-{k}"
-        self.ends = token_end_poses(vocab, vocab_size)[0]
 
     def log_probs(self, core, observation, prior_logits):
-        best = expert_within_top_k(core, prior_logits, self.k, self.ends)
+        best = expert_within_top_k(core, prior_logits, self.k)
         out = torch.full(prior_logits.shape, float("-inf"), device=prior_logits.device)
         return out.scatter(-1, best[..., None], 0.0)
 

@@ -215,12 +215,13 @@ class ScriptedPolicy:
         return actions
 
 
-def log_following_tokens(core) -> torch.Tensor:
+def log_following_tokens(core, allowed: torch.Tensor | None = None) -> torch.Tensor:
     """[B, C] the expert's token of every controlled slot of a :class:`envs._core.TrafficCore`: the token
     of its type whose placed poses come closest to its logged path over the next two token steps
     (:func:`~smart_marl.tokens.motion.match_token_path`, from the pose it has reached, so quantisation
     errors are corrected at the next step). Frames the log misses hold the last logged pose before
-    them (the agent stops where its log ends). Padded and done slots get token 0."""
+    them (the agent stops where its log ends). ``allowed`` [B, C, V] bool: the tokens each slot may
+    take (the first of the matched pair), None: all. Padded and done slots get token 0."""
     sb, dev = core.scenes, core.device
     b, c = core.ctrl_track.shape
     track = core.ctrl_track.clamp(min=0)
@@ -241,7 +242,7 @@ def log_following_tokens(core) -> torch.Tensor:
         sel = live & (types == t)
         vocab = core.motion_vocab[AgentType(t)]
         out[sel] = match_token_path(torch.from_numpy(vocab.poses.astype(np.float64)).to(dev), vocab.size, start[sel], seg[sel],
-                                    path_heading_weight(t))
+                                    path_heading_weight(t), None if allowed is None else allowed.to(dev)[sel])
     return out
 
 

@@ -3,8 +3,8 @@ fine-tuning action space.)
 
 The fine-tuned policies pick among the prior's top 3 tokens (``reference_top_k=3``). This runs a
 policy that knows the answer within that space: the log-following expert restricted to the prior's
-top k (:class:`agents.policy.ExpertWithinTopK`: of those tokens, the one whose 0.5 s end pose comes
-closest to the expert token's, distance in metres plus 2 m per radian of heading), on the held-out
+top k (:class:`agents.policy.ExpertWithinTopK`: of those tokens, the one that, followed by any token,
+comes closest to the logged path over the next two token steps), on the held-out
 scenes and seeds of ``benchmarks/finetune_generalisation.py`` with its rows' settings. If even this policy
 stays near the prior, no reward or amount of data can teach a top-k policy much more. One JSON
 line per (set, k), rows cached in ``--run-dir`` like the generalisation benchmark's.
@@ -27,7 +27,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from finetune_generalisation import cached, emit, evaluate, held_out  # noqa: E402
 
 from agents.policy import ExpertWithinTopK  # noqa: E402
-from smart_marl.scenario import AgentType  # noqa: E402
 
 
 def main() -> int:
@@ -49,7 +48,6 @@ def main() -> int:
     torch.set_num_threads(args.threads)
     base = ft.load_finetune_config(args.config, list(args.overrides))
     model, vocab = ft.load_prior(base.prior)
-    vocab_size = vocab[AgentType.VEHICLE].size
     run_dir = Path(args.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     sets = [("generated", args.heldout, args.eval_scenes, args.eval_seeds)]
@@ -58,7 +56,7 @@ def main() -> int:
         scenes = held_out(ft, base, vocab, spec, count)
         seeds = list(range(base.eval_seed, base.eval_seed + num_seeds))
         for k in (int(x) for x in args.ks.split(",")):
-            policy = ExpertWithinTopK(k, vocab, vocab_size)
+            policy = ExpertWithinTopK(k)
             path = run_dir / f"eval_{name}_expert_within_top-{k}.json"
             row = cached(path, lambda: evaluate(ft, base, scenes, {policy.name: policy}, seeds, model, vocab))["rows"][policy.name]
             emit({"kind": "eval", "set": name, "policy": policy.name, "k": k, "scenes": len(scenes), "seeds": num_seeds, "row": row})

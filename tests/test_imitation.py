@@ -54,7 +54,7 @@ def test_labels_are_the_restricted_experts_tokens_inside_the_top_k(env):
         expert = log_following_tokens(env.core)
         expert_inside = top_k_mask(prior, K).gather(-1, expert[..., None]).squeeze(-1) & live
         assert torch.equal(label[expert_inside], expert[expert_inside])
-        evaluated = ExpertWithinTopK(K, env.motion_vocab, env.vocab_size).log_probs(env.core, None, prior).argmax(-1)
+        evaluated = ExpertWithinTopK(K).log_probs(env.core, None, prior).argmax(-1)
         assert torch.equal(evaluated[live], label[live])
         checked, own = checked + int(live.sum()), own + int(expert_inside.sum())
         td["agents", "action"] = prior.argmax(-1)

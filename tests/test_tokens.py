@@ -332,8 +332,9 @@ def test_cli_vocab_build_on_a_sample_scene_writes_loadable_files(sample_scene_fi
     assert load_road_vocabulary(tmp_path / "road_32").size == 32
 
 
-def _pair_search_by_brute_force(poses, cur, targets, heading_weight):
-    """match_token_path's look-ahead by its definition: every one of the V x V token pairs scored."""
+def _pair_search_by_brute_force(poses, cur, targets, heading_weight, allowed=None):
+    """match_token_path's look-ahead by its definition: every one of the V x V token pairs scored
+    (with ``allowed`` [M, V]: every pair whose first token the row allows)."""
     import torch
 
     from smart_marl.tokens.motion import compose_poses
@@ -344,11 +345,14 @@ def _pair_search_by_brute_force(poses, cur, targets, heading_weight):
     second = torch.as_tensor(compose_poses(np.repeat(p[:, -1].numpy()[:, None, None], 5, 2), p.numpy()[None]))
     pair = torch.cat([first, second], 2)  # (V, V, 10, 3): token b placed at the end of token a
     out = []
-    for c, t in zip(cur, targets):
+    for i, (c, t) in enumerate(zip(cur, targets)):
         world = torch.as_tensor(compose_poses(np.repeat(c[None, None, None], 10, 2), pair.numpy()))
         err = (world[..., :2] - t[:, :2]).norm(dim=-1).mean(-1) + heading_weight * torch.as_tensor(
             wrap_angle((world[..., 2] - t[:, 2]).numpy())).abs().mean(-1)
-        out.append(int(err.amin(1).argmin()))
+        best = err.amin(1)
+        if allowed is not None:
+            best = best.masked_fill(~torch.as_tensor(allowed[i]), float("inf"))
+        out.append(int(best.argmin()))
     return out
 
 
@@ -370,3 +374,13 @@ def test_path_matching_look_ahead_equals_scoring_every_token_pair():
     targets = compose_poses(cur[:, None], local)
     got = match_token_path(torch.from_numpy(poses), 160, torch.from_numpy(cur), torch.from_numpy(targets), 2.0)
     assert got.tolist() == _pair_search_by_brute_force(poses, cur, targets, 2.0)
+    # restricted to a few first tokens per row (a policy's top k), the pair's second token still any:
+    # the best allowed pair, which is not the unrestricted choice where that one is not allowed
+    allowed = rng.random((6, 160)) < 0.05
+    allowed[np.arange(3), got[:3].numpy()] = True  # rows 0-2 keep their unrestricted choice
+    allowed[np.arange(3, 6), got[3:].numpy()] = False
+    limited = match_token_path(torch.from_numpy(poses), 160, torch.from_numpy(cur), torch.from_numpy(targets), 2.0,
+                               allowed=torch.from_numpy(allowed))
+    assert limited.tolist() == _pair_search_by_brute_force(poses, cur, targets, 2.0, allowed)
+    assert limited[:3].tolist() == got[:3].tolist() and (limited[3:] != got[3:]).all()
+    assert allowed[np.arange(6), limited.numpy()].all()

@@ -546,7 +546,7 @@ def match_token_ends(end_poses: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def match_token_path(token_poses: torch.Tensor, vocab_size: int, current_pose: torch.Tensor, targets: torch.Tensor,
-                     heading_weight: float = PATH_HEADING_WEIGHT_M_PER_RAD) -> torch.Tensor:
+                     heading_weight: float = PATH_HEADING_WEIGHT_M_PER_RAD, allowed: torch.Tensor | None = None) -> torch.Tensor:
     """The token closest to a scripted motion, per row.
 
     token_poses [V, 6, 3] (one type's token poses in the token's start frame; rows beyond
@@ -555,6 +555,8 @@ def match_token_path(token_poses: torch.Tensor, vocab_size: int, current_pose: t
     minimising the mean position error plus ``heading_weight`` x the mean heading error. With 10
     targets it looks one token ahead: the first token of the best *pair* of tokens (V^2 pairs), so
     that a token which is good now but leaves the agent badly oriented for the next one loses.
+    ``allowed`` [M, >= vocab_size] bool: the first tokens each row may take (e.g. a policy's action
+    space, the prior's top k; the second token of a pair is any), None: all.
     """
     poses = token_poses[:vocab_size, 1:].to(torch.float64)  # (V, 5, 3)
     cur = current_pose.to(torch.float64)
@@ -569,6 +571,8 @@ def match_token_path(token_poses: torch.Tensor, vocab_size: int, current_pose: t
         return pos + heading_weight * wrap_angle(dh).abs().mean(-1)
 
     first = error(poses[None], local[:, None, :FRAMES_PER_TOKEN])  # (M, V)
+    if allowed is not None:  # a first token not allowed is never scored: its pairs' bound is inf
+        first = first.masked_fill(~allowed[:, :first.shape[1]].to(first.device), math.inf)
     if local.shape[1] < 2 * FRAMES_PER_TOKEN:
         return first.argmin(1)
     # pairs: token b placed at the end of token a. A pair's error is the mean of its first token's
@@ -578,6 +582,8 @@ def match_token_path(token_poses: torch.Tensor, vocab_size: int, current_pose: t
     end = poses[:, -1]  # (V, 3)
     bx, by = poses[None, :, :, 0], poses[None, :, :, 1]
     order = first.argsort(1)  # (M, V) first tokens, best first
+    if allowed is not None:  # only the allowed ones can be scored (the rest sort last, at inf)
+        order = order[:, :max(int(torch.isfinite(first).sum(1).max()), 1)]
     pair_err = torch.full_like(first, math.inf)  # (M, V) each scored first token's best pair
     for lo in range(0, first.shape[1], PAIR_CHUNK):
         ids = order[:, lo:lo + PAIR_CHUNK]  # (M, C)
