@@ -34,8 +34,8 @@ def _crowd(seed: int, r: int = 40, c: int = 12, f: int = 5, k: int = 16, spread:
     frames = torch.stack([own_xy[:, None, None, 0] + step * heading.cos(), own_xy[:, None, None, 1] + step * heading.sin(), heading], -1)
     now = own_xy[:, None] + (u(r, k, 2) - 0.5) * spread
     move = (u(r, k, 2) - 0.5) * 10
-    other_xy = now[:, None] + s[None, :, None, None] * move[:, None]  # [R, F, K, 2]
-    other_h = (u(r, headings, k) - 0.5) * 2 * math.pi
+    other_xy = now[:, :, None] + s[None, None, :, None] * move[:, :, None]  # [R, K, F, 2]
+    other_h = (u(r, k, headings) - 0.5) * 2 * math.pi
     other_half = torch.stack([0.4 + 2.2 * u(r, k), 0.4 + 0.8 * u(r, k)], -1)
     ok = u(r, k) < 0.85
     gap = (now - own_xy[:, None]).norm(dim=-1) - move.norm(dim=-1)
@@ -44,8 +44,8 @@ def _crowd(seed: int, r: int = 40, c: int = 12, f: int = 5, k: int = 16, spread:
 
 def _plain(frames, own_half, other_xy, other_h, other_half, ok):
     """Every (row, path, frame, other) through boxes_overlap_near: [R, c]."""
-    hit = boxes_overlap_near(frames[..., None, :2], frames[..., None, 2], own_half[:, None, None, None], other_xy[:, None],
-                             other_h[:, None], other_half[:, None, None], where=ok[:, None, None])
+    hit = boxes_overlap_near(frames[..., None, :2], frames[..., None, 2], own_half[:, None, None, None], other_xy.transpose(1, 2)[:, None],
+                             other_h.transpose(1, 2)[:, None], other_half[:, None, None], where=ok[:, None, None])
     return hit.flatten(2).any(-1)
 
 
@@ -63,7 +63,7 @@ def test_the_pair_bound_fails_when_the_gap_is_overstated():
     their gap (a wrong bound), pairs that do collide are dropped."""
     frames, own_xy, own_half, other_xy, other_h, other_half, gap, ok = _crowd(0, spread=30.0)
     want = _plain(frames, own_half, other_xy, other_h, other_half, ok)
-    wrong_gap = (other_xy[:, 0] - own_xy[:, None]).norm(dim=-1)  # distance on the first frame, travel ignored
+    wrong_gap = (other_xy[:, :, 0] - own_xy[:, None]).norm(dim=-1)  # distance on the first frame, travel ignored
     got = frames_collide(frames, own_xy, own_half, other_xy, other_h.cos(), other_h.sin(), other_half, wrong_gap, ok)
     assert not torch.equal(got, want)
 

@@ -71,30 +71,37 @@ def frames_collide(frames: torch.Tensor, own_xy: torch.Tensor, own_half: torch.T
                    other_ok: torch.Tensor) -> torch.Tensor:
     """bool [R, c]: does a box of half size ``own_half`` [R, 2] on frames ``frames`` [R, c, F, 3] (c
     candidate paths per row, e.g. tokens, that start at ``own_xy`` [R, 2]) overlap, on the same frame,
-    one of ``K`` others: centres ``other_xy`` [R, F, K, 2], the cosine and sine of their headings
-    ``other_cos`` / ``other_sin`` [R, F or 1, K], half sizes ``other_half`` [R, K, 2], where
+    one of ``K`` others: centres ``other_xy`` [R, K, F, 2], the cosine and sine of their headings
+    ``other_cos`` / ``other_sin`` [R, K, F or 1], half sizes ``other_half`` [R, K, 2], where
     ``other_ok`` [R, K]. The same as :func:`boxes_overlap_near` on every (path, frame, other), run
     only on the (path, other) pairs that can come close: ``other_gap`` [R, K] is a lower bound of the
     other's distance to ``own_xy`` on every frame (its distance now less how far it travels), and a
     path that stays within ``e`` of ``own_xy`` cannot reach an other whose gap is ``e`` plus the two
-    half diagonals or more."""
+    half diagonals or more. The pairs' operands are gathered as whole rows of flattened views (one
+    index each, not an index per dimension): the same values, a fraction of the indexing time."""
     r, c, f = frames.shape[:3]
+    k, fo = other_xy.shape[1], other_cos.shape[2]
     own_r, other_r = own_half.norm(dim=-1), other_half.norm(dim=-1)  # [R], [R, K] half diagonals
     extent = (frames[..., :2] - own_xy[:, None, None]).norm(dim=-1).amax(-1)  # [R, c] farthest the path gets
     reach = extent[..., None] + (own_r[:, None] + other_r)[:, None]  # [R, c, K]
     can = other_ok[:, None] & (other_gap[:, None] < reach + 1e-3 + 1e-5 * reach.abs())  # margin for rounding: only more pairs
     pi, pc, pk = can.nonzero(as_tuple=True)  # [P] the (row, path, other) pairs to test on every frame
-    d = other_xy[pi, :, pk] - frames[pi, pc, :, :2]  # [P, F, 2]
+    path, other = pi * c + pc, pi * k + pk  # the pairs' rows of frames [R * c, F, 3] and of the others [R * K, ...]
+    own_frames = frames.reshape(r * c, f, 3).index_select(0, path)  # [P, F, 3]
+    d = other_xy.reshape(r * k, f, 2).index_select(0, other) - own_frames[..., :2]  # [P, F, 2]
     # the exact test where the centres are closer than the two half diagonals (:func:`boxes_overlap_near`)
-    close = d.norm(dim=-1) < own_r[pi, None] + other_r[pi, pk, None]  # [P, F]
-    p, fr = close.nonzero(as_tuple=True)
-    row, k, fo = pi[p], pk[p], fr.clamp(max=other_cos.shape[1] - 1)
-    heading = frames[pi[p], pc[p], fr, 2]
-    hit = _overlap_sat(d[p, fr], heading.cos(), heading.sin(), own_half[row], other_cos[row, fo, k], other_sin[row, fo, k],
-                       other_half[row, k])
-    out = torch.zeros(r, c, dtype=torch.bool, device=frames.device)
-    out[row[hit], pc[p][hit]] = True
-    return out
+    close = d.norm(dim=-1) < (own_r.index_select(0, pi) + other_r.reshape(-1).index_select(0, other))[:, None]  # [P, F]
+    q = close.reshape(-1).nonzero().squeeze(1)  # [Q] flat (pair, frame)
+    p, fr = q // f, q % f
+    heading = own_frames.reshape(-1, 3).index_select(0, q)[:, 2]
+    row, at = pi.index_select(0, p), other.index_select(0, p)
+    slot = at * fo + fr.clamp(max=fo - 1)  # the other's heading on that frame (or its one heading)
+    hit = _overlap_sat(d.reshape(-1, 2).index_select(0, q), heading.cos(), heading.sin(), own_half.index_select(0, row),
+                       other_cos.reshape(-1).index_select(0, slot), other_sin.reshape(-1).index_select(0, slot),
+                       other_half.reshape(-1, 2).index_select(0, at))
+    out = torch.zeros(r * c, dtype=torch.bool, device=frames.device)
+    out[path.index_select(0, p)[hit]] = True
+    return out.view(r, c)
 
 
 def _overlap_sat(d: torch.Tensor, ca: torch.Tensor, sa: torch.Tensor, a_half: torch.Tensor, cb: torch.Tensor, sb: torch.Tensor,
@@ -179,21 +186,21 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     usable[torch.arange(m, device=rows.device), si] = False
     near_d, near = torch.topk(dist.masked_fill(~usable, float("inf")), min(NEIGHBOURS, n - 1), dim=-1, largest=False)
     near_ok = torch.isfinite(near_d)  # [M, K]
-    # the neighbours on the token's 5 frames, at constant velocity: [M, 5, K, 2], heading held
+    # the neighbours on the token's 5 frames, at constant velocity: [M, K, 5, 2], heading held (the
+    # cosines and sines of the headings taken per slot, before the gather that repeats them per row)
     s = torch.arange(1, FRAMES_PER_TOKEN + 1, dtype=pose.dtype, device=pose.device) / FRAMES_PER_TOKEN
     now_xy, step_xy = pose[gi[:, None], near, :2], ahead[gi[:, None], near, :2] - pose[gi[:, None], near, :2]
-    other_xy = now_xy[:, None] + s[None, :, None, None] * step_xy[:, None]
-    other_h, other_half = pose[gi[:, None], near, 2], half[gi[:, None], near]
+    other_xy = now_xy[:, :, None] + s[None, None, :, None] * step_xy[:, :, None]
+    other_half = half[gi[:, None], near]
+    other_cos, other_sin = pose[..., 2].cos()[gi[:, None], near, None], pose[..., 2].sin()[gi[:, None], near, None]  # [M, K, 1]
     if known is not None:  # forced neighbours: their own frames of this step
-        kn = known[gi[:, None], near]  # [M, K]
-        kf = known_frames[gi[:, None], near].transpose(1, 2)  # [M, 5, K, 3]
-        other_xy = torch.where(kn[:, None, :, None], kf[..., :2], other_xy)
-        other_h = torch.where(kn[:, None, :], kf[..., 2], other_h[:, None, :].expand(-1, FRAMES_PER_TOKEN, -1))
-    else:
-        other_h = other_h[:, None, :]
+        kn = known[gi[:, None], near][..., None]  # [M, K, 1]
+        kf = known_frames[gi[:, None], near]  # [M, K, 5, 3]
+        other_xy = torch.where(kn[..., None], kf[..., :2], other_xy)
+        other_cos = torch.where(kn, known_frames[..., 2].cos()[gi[:, None], near], other_cos)  # [M, K, 5]
+        other_sin = torch.where(kn, known_frames[..., 2].sin()[gi[:, None], near], other_sin)
 
     # how near each neighbour can come during the step, for the pair bound of ``collides``
-    other_cos, other_sin = other_h.cos(), other_h.sin()  # [M, 5 or 1, K]
     other_gap = (now_xy - own_pose[:, None, :2]).norm(dim=-1) - travel[gi[:, None], near]  # [M, K]
 
     def collides(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
