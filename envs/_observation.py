@@ -169,8 +169,10 @@ def _nearest_in_road_blocks(scenes: SceneBatch, xy: torch.Tensor, scene: torch.T
     pts = (blocks[..., None] * ROAD_BLOCK + torch.arange(ROAD_BLOCK, device=xy.device)).flatten(1)  # [U, m * block], ascending
     inside = pts < p
     pts = torch.where(inside, pts, torch.zeros_like(pts))
-    rows = scene[:, None]
-    d2 = (scenes.road_xy[rows, pts] - xy[:, None]).square().sum(-1).masked_fill(~(inside & scenes.road_valid[rows, pts]), float("inf"))
+    flat = (scene[:, None] * p + pts).reshape(-1)  # rows of the flattened road (one index: a fast gather)
+    near = scenes.road_xy.reshape(-1, 2).index_select(0, flat).view(*pts.shape, 2)
+    valid = scenes.road_valid.reshape(-1).index_select(0, flat).view(pts.shape)
+    d2 = (near - xy[:, None]).square().sum(-1).masked_fill(~(inside & valid), float("inf"))
     val, sub = smallest_k(d2, k)
     ok = torch.isfinite(val)
     return pts.gather(-1, sub).masked_fill(~ok, 0), ok, val[:, -1].sqrt()

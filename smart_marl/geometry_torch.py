@@ -169,10 +169,14 @@ def block_bounds(xy: torch.Tensor, valid: torch.Tensor, size: int) -> tuple[torc
 
 def block_lower_bound(query: torch.Tensor, centre: torch.Tensor, radius: torch.Tensor) -> torch.Tensor:
     """[B, Q, nb] a lower bound of the 2D distance from points ``query`` [B, Q, 2] to any item of
-    each block of their row (:func:`block_bounds`), less a margin for rounding; ``inf`` for an empty block."""
-    dist = (query[:, :, None] - centre[:, None]).norm(dim=-1)
-    bound = dist - radius[:, None] - 1e-5 * (dist + radius[:, None].abs()) - 1e-3
-    return bound.masked_fill(radius[:, None] == float("-inf"), float("inf"))
+    each block of their row (:func:`block_bounds`), less a margin for rounding; ``inf`` for an empty block.
+    The radius and its margin are folded per block first (``-inf`` stays: the bound comes out ``inf``)
+    and the distance is taken from its two coordinates in place: one pass over [B, Q, nb] per operation
+    (the bound is read as a bound only, never compared with a distance as equal)."""
+    reach = torch.where(radius == float("-inf"), radius, radius + 1e-5 * radius.abs() + 1e-3)[:, None]  # [B, 1, nb]
+    dx = query[..., 0, None] - centre[:, None, :, 0]
+    dy = query[..., 1, None] - centre[:, None, :, 1]
+    return dx.square_().add_(dy.square_()).sqrt_().mul_(1 - 1e-5).sub_(reach)
 
 
 def _segment_blocks(start: torch.Tensor, end: torch.Tensor, valid: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -250,9 +254,10 @@ def _nearest_in_blocks(points: torch.Tensor, scene: torch.Tensor, blocks: torch.
     seg = (blocks[..., None] * SEGMENT_BLOCK + torch.arange(SEGMENT_BLOCK, device=points.device)).flatten(1)  # [U, m * block]
     inside = seg < s
     seg = torch.where(inside, seg, torch.zeros_like(seg))
-    rows = scene[:, None]
-    d2 = _stretched_distance2(points[:, None], edges.start[rows, seg], edges.end[rows, seg], z_stretch)
-    d2 = d2.masked_fill(~(inside & edges.valid[rows, seg]), float("inf"))
+    flat = (scene[:, None] * s + seg).reshape(-1)  # rows of the flattened edges (one index: a fast gather)
+    start, end = (t.reshape(-1, 3).index_select(0, flat).view(*seg.shape, 3) for t in (edges.start, edges.end))
+    d2 = _stretched_distance2(points[:, None], start, end, z_stretch)
+    d2 = d2.masked_fill(~(inside & edges.valid.reshape(-1).index_select(0, flat).view(seg.shape)), float("inf"))
     best = d2.argmin(-1, keepdim=True)
     return seg.gather(-1, best)[:, 0], d2.gather(-1, best)[:, 0].sqrt()
 
