@@ -238,6 +238,52 @@ def test_the_first_chunk_read_off_the_top_set_excludes_what_topk_s_ranking_exclu
         assert not torch.equal(_exclude_in_order(logits, finite, want, todo, test, (head, torch.zeros_like(tied))), want_out)
 
 
+def _chunked_search(logits, finite, want, todo, blocked, chunk, depth):
+    """The sampler's search row by row, as it was written first: topk's ranking of the first ``depth``
+    tokens in chunks (``chunk``, then twice as many each round); past it, every token ranked by a
+    stable sort and checked again from the top; a row whose every token is blocked left alone."""
+    m, v = logits.shape
+    ranked, full = torch.topk(logits, depth, dim=-1).indices, torch.sort(logits, dim=-1, descending=True, stable=True).indices
+    out = torch.zeros(m, v, dtype=torch.bool)
+    for i in todo.nonzero().squeeze(1).tolist():
+        order, start, c, passed, marks = ranked[i], 0, chunk, 0, {}
+        while True:
+            if start + c > len(order) and len(order) < v:
+                order, start, passed, marks = full[i], 0, 0, {}
+            for j, t in enumerate(order[start:start + c].tolist()):
+                if start + j < finite[i]:
+                    marks[t] = bool(blocked[i, t])
+                    passed += not marks[t]
+            start, c = start + c, 2 * c
+            if passed >= want[i] or start >= finite[i] or start >= v:
+                break
+        for t, hit in marks.items():
+            out[i, t] = hit and passed > 0
+    return out
+
+
+@pytest.mark.parametrize("levels", [4, 100000])
+def test_the_samplers_search_excludes_what_a_row_by_row_search_excludes(levels):
+    """Rows that stop in every round, rows that go past the first ranking (most of their tokens
+    blocked, some on a small vocabulary) and rows whose every token is blocked (left alone: the
+    search reads that off its count of passed tokens)."""
+    from smart_marl.rollout.avoidance import SORTED_DEPTH, _exclude_in_order
+
+    g = torch.Generator().manual_seed(levels)
+    m, v, k = 200, 300, 6
+    logits = torch.randint(0, levels, (m, v), generator=g).float()
+    logits[:30, 100:] = float("-inf")  # a smaller vocabulary
+    finite = torch.isfinite(logits).sum(-1)
+    want = finite.clamp(max=k)
+    blocked = torch.rand(m, v, generator=g) < torch.linspace(0.3, 1.0, m)[:, None] ** 0.25  # deeper rows further down
+    blocked[-10:] = True  # boxed in: every token blocked
+    test = lambda r, tok: blocked[r[:, None], tok]  # noqa: E731
+    todo = torch.rand(m, generator=g) < 0.9
+    got = _exclude_in_order(logits, finite, want, todo, test)
+    assert torch.equal(got, _chunked_search(logits, finite, want, todo, blocked, k, SORTED_DEPTH))
+    assert (got.sum(-1) > SORTED_DEPTH).sum() > 20 and not got[-10:].any()  # deep rows, boxed-in rows left alone
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_the_samplers_box_test_with_shared_products_equals_the_separating_axis_test(dtype):
     """Every outcome the same, touching boxes included (the sums are reordered only where exact)."""
