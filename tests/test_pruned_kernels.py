@@ -1,6 +1,7 @@
 """The pruned kernels of the environment's step give exactly what the plain computation gives: the
 collision-aware sampler's pair bound (:func:`smart_marl.rollout.avoidance.frames_collide` against
-:func:`~smart_marl.rollout.avoidance.boxes_overlap_near` on every pair) and the offroad test's nearest
+:func:`~smart_marl.rollout.avoidance.boxes_overlap_near` on every pair), the collision event's pair
+bound (:func:`envs._reward.collisions` against every pair on every frame) and the offroad test's nearest
 road edge in segment blocks (:func:`smart_marl.geometry_torch.nearest_road_edge` against every
 segment), the observation's nearest road points in blocks (:func:`envs._observation.nearest_road_points`
 against every point). Each case is built so that a bound cut too tight would drop what is near, and a test each
@@ -66,6 +67,51 @@ def test_the_pair_bound_fails_when_the_gap_is_overstated():
     wrong_gap = (other_xy[:, :, 0] - own_xy[:, None]).norm(dim=-1)  # distance on the first frame, travel ignored
     got = frames_collide(frames, own_xy, own_half, other_xy, other_h.cos(), other_h.sin(), other_half, wrong_gap, ok)
     assert not torch.equal(got, want)
+
+
+# ------------------------------------------------------------------ the collision event's pair bound
+def _plain_collisions(ctrl_track, live, frames, present, box_size):
+    """The collision event measured on every (agent, other, frame): [B, C]."""
+    from envs._scene_batch import gather_tracks
+    from smart_marl.geometry_torch import rounded_boxes_overlap
+
+    n = frames.shape[1]
+    mine, my_size = gather_tracks(frames, ctrl_track), gather_tracks(box_size[..., :2], ctrl_track)
+    reach = box_size[..., :2].norm(dim=-1) / 2
+    dist = (mine[:, :, None, :, :2] - frames[:, None, :, :, :2]).norm(dim=-1)  # [B, C, N, F]
+    other = torch.arange(n)[None, None] != ctrl_track[..., None]
+    cand = (dist < gather_tracks(reach, ctrl_track)[..., None, None] + reach[:, None, :, None]) & (
+        other & present[:, None] & live[..., None])[..., None]
+    bi, ci, ni, fi = cand.nonzero(as_tuple=True)
+    pa, pb = mine[bi, ci, fi], frames[bi, ni, fi]
+    hit = rounded_boxes_overlap(pa[:, :2], pa[:, 2], my_size[bi, ci], pb[:, :2], pb[:, 2], box_size[bi, ni, :2])
+    out = torch.zeros(ctrl_track.shape, dtype=torch.bool)
+    out[bi[hit], ci[hit]] = True
+    return out
+
+
+@pytest.mark.parametrize("seed,spread", [(0, 20.0), (1, 60.0), (2, 8.0)])
+def test_the_collision_event_s_pair_bound_keeps_every_colliding_pair(seed, spread):
+    """Boxes that move fast (up to 15 m a step, so that pairs far apart on the first frame meet later),
+    turn, and pass close by; agents with NaN poses on some frames."""
+    from envs._reward import collisions
+
+    g = torch.Generator().manual_seed(seed)
+    u = lambda *s: torch.rand(*s, generator=g)  # noqa: E731
+    b, n, c, f = 6, 40, 8, 5
+    start, heading = (u(b, n, 2) - 0.5) * spread, (u(b, n, 1) - 0.5) * 2 * math.pi
+    speed = 15 * u(b, n, 1) ** 2
+    s = torch.arange(1, f + 1) / f
+    h = heading + (u(b, n, 1) - 0.5) * s
+    frames = torch.stack([start[..., :1] + speed * s * h.cos(), start[..., 1:] + speed * s * h.sin(), h], -1)  # [B, N, F, 3]
+    frames[0, 3, 2] = float("nan")
+    box_size = torch.stack([1 + 4 * u(b, n), 0.5 + 1.5 * u(b, n), torch.ones(b, n)], -1)
+    ctrl_track = torch.randint(0, n, (b, c), generator=g)
+    ctrl_track[:, -1] = 3
+    live, present = u(b, c) < 0.9, u(b, n) < 0.9
+    want = _plain_collisions(ctrl_track, live, frames, present, box_size)
+    assert 0.1 < want.float().mean() < 0.9, want.float().mean()
+    assert torch.equal(collisions(ctrl_track, live, frames, present, box_size), want)
 
 
 # ------------------------------------------------------------------ the nearest road edge in blocks
