@@ -119,7 +119,8 @@ def offroad(scenes: SceneBatch, ctrl_track: torch.Tensor, live: torch.Tensor, la
     corners = box_corners_bottom(last_pose[..., :2], last_pose[..., 2], gather_tracks(scenes.box_size, ctrl_track),
                                  gather_tracks(scenes.z, ctrl_track))  # [B, C, 4, 3]
     b, c = ctrl_track.shape
-    dist = signed_distance_to_road_edges(corners.reshape(b, c * 4, 3), scenes.edges).view(b, c, 4)
+    # a box's corners searched together (group=4)
+    dist = signed_distance_to_road_edges(corners.reshape(b, c * 4, 3), scenes.edges, group=4).view(b, c, 4)
     return veh & (dist.amax(-1) > 0)
 
 

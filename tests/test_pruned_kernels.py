@@ -45,8 +45,9 @@ def _crowd(seed: int, r: int = 40, c: int = 12, f: int = 5, k: int = 16, spread:
 
 def _plain(frames, own_half, other_xy, other_h, other_half, ok):
     """Every (row, path, frame, other) through boxes_overlap_near: [R, c]."""
-    hit = boxes_overlap_near(frames[..., None, :2], frames[..., None, 2], own_half[:, None, None, None], other_xy.transpose(1, 2)[:, None],
-                             other_h.transpose(1, 2)[:, None], other_half[:, None, None], where=ok[:, None, None])
+    hit = boxes_overlap_near(frames[..., None, :2], frames[..., None, 2], own_half[:, None, None, None],
+                             other_xy.transpose(1, 2)[:, None], other_h.transpose(1, 2)[:, None], other_half[:, None, None],
+                             where=ok[:, None, None])
     return hit.flatten(2).any(-1)
 
 
@@ -171,6 +172,32 @@ def test_the_nearest_edge_search_in_segment_blocks_equals_the_exhaustive_one(shu
     has = edges.valid.any(1)
     for pairs in (1 << 20, 3000):
         got = nearest_road_edge(pts, edges, z_stretch=3.0, candidates=candidates, max_pairs=pairs)
+        assert torch.equal(got[has], want[has])
+
+
+def _corners(seed: int, b: int, boxes: int = 80, spread: float = 200.0):
+    """[B, 4 * boxes, 3] the corners of boxes up to 12 m long, a box's 4 corners one after the other."""
+    from smart_marl.geometry_torch import box_corners
+
+    centre = _points(seed, b, boxes, spread)
+    g = torch.Generator().manual_seed(seed + 1)
+    u = lambda: torch.rand(b, boxes, generator=g, dtype=centre.dtype)  # noqa: E731
+    heading, length, width = (u() - 0.5) * 2 * math.pi, 1 + 11 * u(), 0.5 + 2 * u()
+    xy = box_corners(centre[..., :2], heading, length, width)  # [B, boxes, 4, 2]
+    return torch.cat([xy, centre[..., None, 2:].expand(-1, -1, 4, 1)], -1).reshape(b, 4 * boxes, 3)
+
+
+@pytest.mark.parametrize("candidates", [1, 12])
+def test_the_nearest_edge_search_of_a_box_s_corners_together_equals_the_exhaustive_one(candidates):
+    """The corners of a box searched as a run (``group=4``): the run's bound holds for each corner."""
+    from smart_marl.geometry_torch import nearest_road_edge
+
+    edges = _edges(0)
+    pts = _corners(3, 4)
+    want = _exhaustive_nearest(pts, edges)
+    has = edges.valid.any(1)
+    for pairs in (1 << 20, 3000):
+        got = nearest_road_edge(pts, edges, z_stretch=3.0, candidates=candidates, max_pairs=pairs, group=4)
         assert torch.equal(got[has], want[has])
 
 

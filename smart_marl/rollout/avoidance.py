@@ -188,8 +188,8 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     own_pose, own_before, own_half, own_type = pose[gi, si], previous_pose[gi, si], half[gi, si], agent_type[gi, si]
     dist = (ahead[gi][:, :, :2] - own_pose[:, None, :2]).norm(dim=-1)  # [M, N]
     others, there = pose[gi], present[gi]  # [M, N, 3], [M, N]
-    blocked_now = boxes_overlap_near(own_pose[:, None, :2], own_pose[:, None, 2], own_half[:, None], others[:, :, :2], others[:, :, 2],
-                                     half[gi], where=there, apart=apart)
+    blocked_now = boxes_overlap_near(own_pose[:, None, :2], own_pose[:, None, 2], own_half[:, None], others[:, :, :2],
+                                     others[:, :, 2], half[gi], where=there, apart=apart)
     usable = there & ~blocked_now
     usable[torch.arange(m, device=rows.device), si] = False
     near_d, near = torch.topk(dist.masked_fill(~usable, float("inf")), min(NEIGHBOURS, n - 1), dim=-1, largest=False)
@@ -205,7 +205,8 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     s = torch.arange(1, FRAMES_PER_TOKEN + 1, dtype=pose.dtype, device=pose.device) / FRAMES_PER_TOKEN
     now_xy = at_near(pose[..., :2])
     other_xy = now_xy[:, :, None] + s[None, None, :, None] * (at_near(ahead[..., :2]) - now_xy)[:, :, None]
-    other_half, other_cos, other_sin = at_near(half), at_near(pose[..., 2].cos())[..., None], at_near(pose[..., 2].sin())[..., None]
+    other_half = at_near(half)
+    other_cos, other_sin = at_near(pose[..., 2].cos())[..., None], at_near(pose[..., 2].sin())[..., None]  # [M, K, 1]
     if known is not None:  # forced neighbours: their own frames of this step
         kn = at_near(known)[..., None]  # [M, K, 1]
         other_xy = torch.where(kn[..., None], at_near(known_frames[..., :2]), other_xy)
@@ -216,8 +217,8 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     def collides(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
         """[R, c]: does token ``tok`` [R, c] of rows ``r`` [R] overlap a neighbour on any of its frames."""
         local = token_poses[own_type[r][:, None], tok]  # [R, c, 6, 3]
-        frames = token_frames(local, own_pose[r][:, None].expand(-1, tok.shape[1], -1),
-                              own_before[r][:, None].expand(-1, tok.shape[1], -1), interpolation)  # [R, c, 5, 3]
+        # the row's pose broadcast, not expanded: what depends on it alone is computed once a row
+        frames = token_frames(local, own_pose[r][:, None], own_before[r][:, None], interpolation)  # [R, c, 5, 3]
         return frames_collide(frames, own_pose[r, :2], own_half[r], other_xy[r], other_cos[r], other_sin[r], other_half[r],
                               other_gap[r], near_ok[r])
 
