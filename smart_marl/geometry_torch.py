@@ -172,7 +172,7 @@ def block_lower_bound(query: torch.Tensor, centre: torch.Tensor, radius: torch.T
     each block of their row (:func:`block_bounds`), less a margin for rounding; ``inf`` for an empty block.
     The radius and its margin are folded per block first (``-inf`` stays: the bound comes out ``inf``)
     and the distance is taken from its two coordinates in place: one pass over [B, Q, nb] per operation
-    (the bound is read as a bound only, never compared with a distance as equal)."""
+    (the searches read it as a bound only: any lower bound gives them the same result)."""
     reach = torch.where(radius == float("-inf"), radius, radius + 1e-5 * radius.abs() + 1e-3)[:, None]  # [B, 1, nb]
     dx = query[..., 0, None] - centre[:, None, :, 0]
     dy = query[..., 1, None] - centre[:, None, :, 1]

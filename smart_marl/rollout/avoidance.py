@@ -222,7 +222,8 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
         return frames_collide(frames, own_pose[r, :2], own_half[r], other_xy[r], other_cos[r], other_sin[r], other_half[r],
                               other_gap[r], near_ok[r])
 
-    finite = ((logits > float("-inf")) & (logits < float("inf"))).sum(-1)  # [M] tokens of the row's type (isfinite, 3x faster)
+    # [M] tokens of the row's type: isfinite as two comparisons (3x faster on the CPU)
+    finite = ((logits > float("-inf")) & (logits < float("inf"))).sum(-1)
     want = finite if top_k is None or top_k <= 0 else finite.clamp(max=int(top_k))
     out[sub] = _exclude_in_order(logits, finite, want, near_ok.any(-1), collides, (head, tied))
     return out
