@@ -169,10 +169,14 @@ def block_bounds(xy: torch.Tensor, valid: torch.Tensor, size: int) -> tuple[torc
 
 def block_lower_bound(query: torch.Tensor, centre: torch.Tensor, radius: torch.Tensor) -> torch.Tensor:
     """[B, Q, nb] a lower bound of the 2D distance from points ``query`` [B, Q, 2] to any item of
-    each block of their row (:func:`block_bounds`), less a margin for rounding; ``inf`` for an empty block."""
-    dist = (query[:, :, None] - centre[:, None]).norm(dim=-1)
-    bound = dist - radius[:, None] - 1e-5 * (dist + radius[:, None].abs()) - 1e-3
-    return bound.masked_fill(radius[:, None] == float("-inf"), float("inf"))
+    each block of their row (:func:`block_bounds`), less a margin for rounding; ``inf`` for an empty block.
+    The radius and its margin are folded per block first (``-inf`` stays: the bound comes out ``inf``)
+    and the distance is taken from its two coordinates in place: one pass over [B, Q, nb] per operation
+    (the searches read it as a bound only: any lower bound gives them the same result)."""
+    reach = torch.where(radius == float("-inf"), radius, radius + 1e-5 * radius.abs() + 1e-3)[:, None]  # [B, 1, nb]
+    dx = query[..., 0, None] - centre[:, None, :, 0]
+    dy = query[..., 1, None] - centre[:, None, :, 1]
+    return dx.square_().add_(dy.square_()).sqrt_().mul_(1 - 1e-5).sub_(reach)
 
 
 def _segment_blocks(start: torch.Tensor, end: torch.Tensor, valid: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -202,7 +206,7 @@ SEGMENT_BLOCK = 16
 
 
 def nearest_road_edge(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: float = Z_STRETCH, candidates: int = 12,
-                      max_pairs: int = 1 << 20) -> torch.Tensor:
+                      max_pairs: int = 1 << 20, group: int = 1) -> torch.Tensor:
     """[B, Q] the index of the segment nearest to each point [B, Q, 3] of its scene by 3D distance with z
     stretched (the lowest index on ties), as :func:`smart_marl.geometry.nearest_segment_indices`.
 
@@ -211,22 +215,27 @@ def nearest_road_edge(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: f
     block's bound). Every segment of the ``candidates`` blocks of smallest bound is measured; a point
     whose nearest of them is nearer than every other block's bound is done; the others are measured
     against every segment of each block whose bound is within that distance, ``max_pairs`` (point,
-    segment) pairs at a time."""
+    segment) pairs at a time. ``group``: the points come in runs of that many close together (a box's
+    corners; Q a multiple of it), bounded together: the bound from the run's centre less the run's
+    radius holds for each of its points, so the blocks are ranked and their segments gathered once a run."""
     b, q = points.shape[:2]
     centre, radius = edges.blocks(SEGMENT_BLOCK)  # [B, nb, 2], [B, nb]
     nb = centre.shape[1]
     kb = min(max(int(candidates), 1), nb)
-    bound = block_lower_bound(points[..., :2], centre, radius)  # [B, Q, nb]
+    xy = points[..., :2].reshape(b, q // group, group, 2)
+    mid = (xy.amin(2) + xy.amax(2)) / 2  # [B, Q / group, 2]
+    bound = block_lower_bound(mid, centre, radius) - (xy - mid[:, :, None]).norm(dim=-1).amax(-1)[..., None]  # [B, Q / group, nb]
     lb, blk = torch.topk(bound, min(kb + 1, nb), dim=-1, largest=False)
-    rest = lb[..., kb] if kb < nb else torch.full((b, q), float("inf"), dtype=points.dtype, device=points.device)
-    scene = torch.arange(b, device=points.device)[:, None].expand(b, q).reshape(-1)
-    blk = blk[..., :kb].sort(dim=-1).values.reshape(b * q, kb)  # by index: the lowest index first among equally near segments
-    nearest, best = _nearest_in_blocks(points.reshape(b * q, 3), scene, blk, edges, z_stretch)
+    rest = lb[..., kb] if kb < nb else torch.full(bound.shape[:2], float("inf"), dtype=points.dtype, device=points.device)
+    scene = torch.arange(b, device=points.device)[:, None].expand(b, q // group).reshape(-1)
+    blk = blk[..., :kb].sort(dim=-1).values.reshape(-1, kb)  # by index: the lowest index first among equally near segments
+    nearest, best = _nearest_in_blocks(points.reshape(-1, group, 3), scene, blk, edges, z_stretch)
     nearest, best = nearest.view(b, q), best.view(b, q)
-    unsure = (best >= rest) & edges.valid.any(1)[:, None]  # a segment outside the candidate blocks may be as near
+    # a segment outside the candidate blocks may be as near
+    unsure = (best >= rest.repeat_interleave(group, 1)) & edges.valid.any(1)[:, None]
     qb, qq = unsure.nonzero(as_tuple=True)
     if len(qb):
-        need = bound[qb, qq] <= best[qb, qq, None]  # [U, nb] every block that may hold a segment as near
+        need = bound[qb, qq // group] <= best[qb, qq, None]  # [U, nb] every block that may hold a segment as near
         count = need.sum(-1)
         blocks = torch.where(need, torch.arange(nb, device=points.device), nb).sort(dim=-1).values  # needed ones first, by index
         lo = 0
@@ -236,35 +245,38 @@ def nearest_road_edge(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: f
             step = max(1, max_pairs // (hi * SEGMENT_BLOCK))
             for k in range(0, len(sel), step):
                 i = sel[k:k + step]
-                nearest[qb[i], qq[i]] = _nearest_in_blocks(points[qb[i], qq[i]], qb[i], blocks[i, :hi], edges, z_stretch)[0]
+                near = _nearest_in_blocks(points[qb[i], qq[i], None], qb[i], blocks[i, :hi], edges, z_stretch)[0]
+                nearest[qb[i], qq[i]] = near[:, 0]
             lo = hi
     return nearest
 
 
 def _nearest_in_blocks(points: torch.Tensor, scene: torch.Tensor, blocks: torch.Tensor, edges: RoadEdgeTensors,
                        z_stretch: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """(index, distance) [U] of the nearest segment to points [U, 3] of scenes ``scene`` [U] among the
-    segments of blocks ``blocks`` [U, m] (ascending; ``nb`` or more: none), the lowest index on ties
+    """(index, distance) [U, g] of the nearest segment to points [U, g, 3] of scenes ``scene`` [U] among
+    the segments of blocks ``blocks`` [U, m] (ascending; ``nb`` or more: none), the lowest index on ties
     (distance ``inf`` where none is valid)."""
     s = edges.num_segments
     seg = (blocks[..., None] * SEGMENT_BLOCK + torch.arange(SEGMENT_BLOCK, device=points.device)).flatten(1)  # [U, m * block]
     inside = seg < s
     seg = torch.where(inside, seg, torch.zeros_like(seg))
-    rows = scene[:, None]
-    d2 = _stretched_distance2(points[:, None], edges.start[rows, seg], edges.end[rows, seg], z_stretch)
-    d2 = d2.masked_fill(~(inside & edges.valid[rows, seg]), float("inf"))
+    flat = (scene[:, None] * s + seg).reshape(-1)  # rows of the flattened edges (one index: a fast gather)
+    start, end = (t.reshape(-1, 3).index_select(0, flat).view(seg.shape[0], 1, seg.shape[1], 3) for t in (edges.start, edges.end))
+    d2 = _stretched_distance2(points[:, :, None], start, end, z_stretch)  # [U, g, m * block]
+    d2 = d2.masked_fill(~(inside & edges.valid.reshape(-1).index_select(0, flat).view(seg.shape))[:, None], float("inf"))
     best = d2.argmin(-1, keepdim=True)
-    return seg.gather(-1, best)[:, 0], d2.gather(-1, best)[:, 0].sqrt()
+    return seg[:, None].expand_as(d2).gather(-1, best)[..., 0], d2.gather(-1, best)[..., 0].sqrt()
 
 
 def signed_distance_to_road_edges(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: float = Z_STRETCH,
-                                  max_pairs: int = 1 << 20) -> torch.Tensor:
+                                  max_pairs: int = 1 << 20, group: int = 1) -> torch.Tensor:
     """Signed 2D distance [B, Q] of points [B, Q, 3] to their scene's road edges, positive off the road,
     as :func:`smart_marl.geometry.signed_distance_to_road_edges`: the nearest segment by 3D distance
     with z stretched ``z_stretch`` times (the lowest index on ties, :func:`nearest_road_edge`), the 2D
     distance to it, its sign by the neighbour rule. ``max_pairs`` bounds the (point, segment) pairs
-    held at once. A scene without segments gives ``-inf`` (nowhere is off its road)."""
-    nearest = nearest_road_edge(points, edges, z_stretch, max_pairs=max_pairs)
+    held at once, ``group`` runs of points close together (:func:`nearest_road_edge`). A scene without
+    segments gives ``-inf`` (nowhere is off its road)."""
+    nearest = nearest_road_edge(points, edges, z_stretch, max_pairs=max_pairs, group=group)
     gather = lambda t: t.gather(1, nearest)  # noqa: E731  [B, S] -> [B, Q]
     gather3 = lambda t, idx=None: t.gather(1, (nearest if idx is None else idx)[..., None].expand(-1, -1, 3))  # noqa: E731
 

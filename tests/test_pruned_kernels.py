@@ -1,6 +1,7 @@
 """The pruned kernels of the environment's step give exactly what the plain computation gives: the
 collision-aware sampler's pair bound (:func:`smart_marl.rollout.avoidance.frames_collide` against
-:func:`~smart_marl.rollout.avoidance.boxes_overlap_near` on every pair) and the offroad test's nearest
+:func:`~smart_marl.rollout.avoidance.boxes_overlap_near` on every pair), the collision event's pair
+bound (:func:`envs._reward.collisions` against every pair on every frame) and the offroad test's nearest
 road edge in segment blocks (:func:`smart_marl.geometry_torch.nearest_road_edge` against every
 segment), the observation's nearest road points in blocks (:func:`envs._observation.nearest_road_points`
 against every point). Each case is built so that a bound cut too tight would drop what is near, and a test each
@@ -34,8 +35,8 @@ def _crowd(seed: int, r: int = 40, c: int = 12, f: int = 5, k: int = 16, spread:
     frames = torch.stack([own_xy[:, None, None, 0] + step * heading.cos(), own_xy[:, None, None, 1] + step * heading.sin(), heading], -1)
     now = own_xy[:, None] + (u(r, k, 2) - 0.5) * spread
     move = (u(r, k, 2) - 0.5) * 10
-    other_xy = now[:, None] + s[None, :, None, None] * move[:, None]  # [R, F, K, 2]
-    other_h = (u(r, headings, k) - 0.5) * 2 * math.pi
+    other_xy = now[:, :, None] + s[None, None, :, None] * move[:, :, None]  # [R, K, F, 2]
+    other_h = (u(r, k, headings) - 0.5) * 2 * math.pi
     other_half = torch.stack([0.4 + 2.2 * u(r, k), 0.4 + 0.8 * u(r, k)], -1)
     ok = u(r, k) < 0.85
     gap = (now - own_xy[:, None]).norm(dim=-1) - move.norm(dim=-1)
@@ -44,8 +45,9 @@ def _crowd(seed: int, r: int = 40, c: int = 12, f: int = 5, k: int = 16, spread:
 
 def _plain(frames, own_half, other_xy, other_h, other_half, ok):
     """Every (row, path, frame, other) through boxes_overlap_near: [R, c]."""
-    hit = boxes_overlap_near(frames[..., None, :2], frames[..., None, 2], own_half[:, None, None, None], other_xy[:, None],
-                             other_h[:, None], other_half[:, None, None], where=ok[:, None, None])
+    hit = boxes_overlap_near(frames[..., None, :2], frames[..., None, 2], own_half[:, None, None, None],
+                             other_xy.transpose(1, 2)[:, None], other_h.transpose(1, 2)[:, None], other_half[:, None, None],
+                             where=ok[:, None, None])
     return hit.flatten(2).any(-1)
 
 
@@ -63,9 +65,54 @@ def test_the_pair_bound_fails_when_the_gap_is_overstated():
     their gap (a wrong bound), pairs that do collide are dropped."""
     frames, own_xy, own_half, other_xy, other_h, other_half, gap, ok = _crowd(0, spread=30.0)
     want = _plain(frames, own_half, other_xy, other_h, other_half, ok)
-    wrong_gap = (other_xy[:, 0] - own_xy[:, None]).norm(dim=-1)  # distance on the first frame, travel ignored
+    wrong_gap = (other_xy[:, :, 0] - own_xy[:, None]).norm(dim=-1)  # distance on the first frame, travel ignored
     got = frames_collide(frames, own_xy, own_half, other_xy, other_h.cos(), other_h.sin(), other_half, wrong_gap, ok)
     assert not torch.equal(got, want)
+
+
+# ------------------------------------------------------------------ the collision event's pair bound
+def _plain_collisions(ctrl_track, live, frames, present, box_size):
+    """The collision event measured on every (agent, other, frame): [B, C]."""
+    from envs._scene_batch import gather_tracks
+    from smart_marl.geometry_torch import rounded_boxes_overlap
+
+    n = frames.shape[1]
+    mine, my_size = gather_tracks(frames, ctrl_track), gather_tracks(box_size[..., :2], ctrl_track)
+    reach = box_size[..., :2].norm(dim=-1) / 2
+    dist = (mine[:, :, None, :, :2] - frames[:, None, :, :, :2]).norm(dim=-1)  # [B, C, N, F]
+    other = torch.arange(n)[None, None] != ctrl_track[..., None]
+    cand = (dist < gather_tracks(reach, ctrl_track)[..., None, None] + reach[:, None, :, None]) & (
+        other & present[:, None] & live[..., None])[..., None]
+    bi, ci, ni, fi = cand.nonzero(as_tuple=True)
+    pa, pb = mine[bi, ci, fi], frames[bi, ni, fi]
+    hit = rounded_boxes_overlap(pa[:, :2], pa[:, 2], my_size[bi, ci], pb[:, :2], pb[:, 2], box_size[bi, ni, :2])
+    out = torch.zeros(ctrl_track.shape, dtype=torch.bool)
+    out[bi[hit], ci[hit]] = True
+    return out
+
+
+@pytest.mark.parametrize("seed,spread", [(0, 20.0), (1, 60.0), (2, 8.0)])
+def test_the_collision_event_s_pair_bound_keeps_every_colliding_pair(seed, spread):
+    """Boxes that move fast (up to 15 m a step, so that pairs far apart on the first frame meet later),
+    turn, and pass close by; agents with NaN poses on some frames."""
+    from envs._reward import collisions
+
+    g = torch.Generator().manual_seed(seed)
+    u = lambda *s: torch.rand(*s, generator=g)  # noqa: E731
+    b, n, c, f = 6, 40, 8, 5
+    start, heading = (u(b, n, 2) - 0.5) * spread, (u(b, n, 1) - 0.5) * 2 * math.pi
+    speed = 15 * u(b, n, 1) ** 2
+    s = torch.arange(1, f + 1) / f
+    h = heading + (u(b, n, 1) - 0.5) * s
+    frames = torch.stack([start[..., :1] + speed * s * h.cos(), start[..., 1:] + speed * s * h.sin(), h], -1)  # [B, N, F, 3]
+    frames[0, 3, 2] = float("nan")
+    box_size = torch.stack([1 + 4 * u(b, n), 0.5 + 1.5 * u(b, n), torch.ones(b, n)], -1)
+    ctrl_track = torch.randint(0, n, (b, c), generator=g)
+    ctrl_track[:, -1] = 3
+    live, present = u(b, c) < 0.9, u(b, n) < 0.9
+    want = _plain_collisions(ctrl_track, live, frames, present, box_size)
+    assert 0.1 < want.float().mean() < 0.9, want.float().mean()
+    assert torch.equal(collisions(ctrl_track, live, frames, present, box_size), want)
 
 
 # ------------------------------------------------------------------ the nearest road edge in blocks
@@ -125,6 +172,32 @@ def test_the_nearest_edge_search_in_segment_blocks_equals_the_exhaustive_one(shu
     has = edges.valid.any(1)
     for pairs in (1 << 20, 3000):
         got = nearest_road_edge(pts, edges, z_stretch=3.0, candidates=candidates, max_pairs=pairs)
+        assert torch.equal(got[has], want[has])
+
+
+def _corners(seed: int, b: int, boxes: int = 80, spread: float = 200.0):
+    """[B, 4 * boxes, 3] the corners of boxes up to 12 m long, a box's 4 corners one after the other."""
+    from smart_marl.geometry_torch import box_corners
+
+    centre = _points(seed, b, boxes, spread)
+    g = torch.Generator().manual_seed(seed + 1)
+    u = lambda: torch.rand(b, boxes, generator=g, dtype=centre.dtype)  # noqa: E731
+    heading, length, width = (u() - 0.5) * 2 * math.pi, 1 + 11 * u(), 0.5 + 2 * u()
+    xy = box_corners(centre[..., :2], heading, length, width)  # [B, boxes, 4, 2]
+    return torch.cat([xy, centre[..., None, 2:].expand(-1, -1, 4, 1)], -1).reshape(b, 4 * boxes, 3)
+
+
+@pytest.mark.parametrize("candidates", [1, 12])
+def test_the_nearest_edge_search_of_a_box_s_corners_together_equals_the_exhaustive_one(candidates):
+    """The corners of a box searched as a run (``group=4``): the run's bound holds for each corner."""
+    from smart_marl.geometry_torch import nearest_road_edge
+
+    edges = _edges(0)
+    pts = _corners(3, 4)
+    want = _exhaustive_nearest(pts, edges)
+    has = edges.valid.any(1)
+    for pairs in (1 << 20, 3000):
+        got = nearest_road_edge(pts, edges, z_stretch=3.0, candidates=candidates, max_pairs=pairs, group=4)
         assert torch.equal(got[has], want[has])
 
 
@@ -236,6 +309,52 @@ def test_the_first_chunk_read_off_the_top_set_excludes_what_topk_s_ranking_exclu
     assert torch.equal(_exclude_in_order(logits, finite, want, todo, test), want_out)
     if levels == 4:  # the test notices a first chunk read off a tied top set
         assert not torch.equal(_exclude_in_order(logits, finite, want, todo, test, (head, torch.zeros_like(tied))), want_out)
+
+
+def _chunked_search(logits, finite, want, todo, blocked, chunk, depth):
+    """The sampler's search row by row, as it was written first: topk's ranking of the first ``depth``
+    tokens in chunks (``chunk``, then twice as many each round); past it, every token ranked by a
+    stable sort and checked again from the top; a row whose every token is blocked left alone."""
+    m, v = logits.shape
+    ranked, full = torch.topk(logits, depth, dim=-1).indices, torch.sort(logits, dim=-1, descending=True, stable=True).indices
+    out = torch.zeros(m, v, dtype=torch.bool)
+    for i in todo.nonzero().squeeze(1).tolist():
+        order, start, c, passed, marks = ranked[i], 0, chunk, 0, {}
+        while True:
+            if start + c > len(order) and len(order) < v:
+                order, start, passed, marks = full[i], 0, 0, {}
+            for j, t in enumerate(order[start:start + c].tolist()):
+                if start + j < finite[i]:
+                    marks[t] = bool(blocked[i, t])
+                    passed += not marks[t]
+            start, c = start + c, 2 * c
+            if passed >= want[i] or start >= finite[i] or start >= v:
+                break
+        for t, hit in marks.items():
+            out[i, t] = hit and passed > 0
+    return out
+
+
+@pytest.mark.parametrize("levels", [4, 100000])
+def test_the_samplers_search_excludes_what_a_row_by_row_search_excludes(levels):
+    """Rows that stop in every round, rows that go past the first ranking (most of their tokens
+    blocked, some on a small vocabulary) and rows whose every token is blocked (left alone: the
+    search reads that off its count of passed tokens)."""
+    from smart_marl.rollout.avoidance import SORTED_DEPTH, _exclude_in_order
+
+    g = torch.Generator().manual_seed(levels)
+    m, v, k = 200, 300, 6
+    logits = torch.randint(0, levels, (m, v), generator=g).float()
+    logits[:30, 100:] = float("-inf")  # a smaller vocabulary
+    finite = torch.isfinite(logits).sum(-1)
+    want = finite.clamp(max=k)
+    blocked = torch.rand(m, v, generator=g) < torch.linspace(0.3, 1.0, m)[:, None] ** 0.25  # deeper rows further down
+    blocked[-10:] = True  # boxed in: every token blocked
+    test = lambda r, tok: blocked[r[:, None], tok]  # noqa: E731
+    todo = torch.rand(m, generator=g) < 0.9
+    got = _exclude_in_order(logits, finite, want, todo, test)
+    assert torch.equal(got, _chunked_search(logits, finite, want, todo, blocked, k, SORTED_DEPTH))
+    assert (got.sum(-1) > SORTED_DEPTH).sum() > 20 and not got[-10:].any()  # deep rows, boxed-in rows left alone
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

@@ -56,7 +56,9 @@ def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int =
     if temperature <= 0:
         raise ValueError(f"temperature must be > 0, got {temperature}")
     lead, v = logits.shape[:-1], logits.shape[-1]
-    flat = logits.reshape(-1, v) / temperature  # (M, V)
+    flat = logits.reshape(-1, v)  # (M, V)
+    if temperature != 1.0:  # dividing by 1 changes nothing (and is a pass over [M, V])
+        flat = flat / temperature
     logp = torch.log_softmax(flat, dim=-1)
     k = v if top_k is None or top_k <= 0 else min(int(top_k), v)
     drawn = flat if exclude is None else flat.masked_fill(exclude.reshape(-1, v), float("-inf"))
