@@ -265,9 +265,13 @@ class ExpertTensorPolicy(TensorPolicy):
     top_k = 1
 
     def log_probs(self, core, observation, prior_logits):
-        tokens = log_following_tokens(core)  # [B, C]
-        out = torch.full(prior_logits.shape, float("-inf"), device=prior_logits.device)
-        return out.scatter(-1, tokens[..., None].to(out.device), 0.0)
+        return _one_hot_log_probs(log_following_tokens(core), prior_logits)
+
+
+def _one_hot_log_probs(tokens: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """[..., V] log-probabilities of a deterministic choice: 0 on ``tokens`` [...], -inf elsewhere (shaped as ``like``)."""
+    out = torch.full(like.shape, float("-inf"), device=like.device)
+    return out.scatter(-1, tokens[..., None].to(out.device), 0.0)
 
 
 def expert_within_top_k(core, prior_logits: torch.Tensor, k: int | None) -> torch.Tensor:
@@ -288,10 +292,9 @@ class ExpertWithinTopK(TensorPolicy):
         self.k, self.name = int(k), f"expert within prior top-{k}"
 
     def log_probs(self, core, observation, prior_logits):
-        best = expert_within_top_k(core, prior_logits, self.k)
-        out = torch.full(prior_logits.shape, float("-inf"), device=prior_logits.device)
-        return out.scatter(-1, best[..., None], 0.0)
+        return _one_hot_log_probs(expert_within_top_k(core, prior_logits, self.k), prior_logits)
 
 
-__all__ = ["ACTOR_HEADS", "Critic", "ExpertTensorPolicy", "ExpertWithinTopK", "FinetunedTensorPolicy", "PolicyError", "PolicyLogits", "PriorTensorPolicy",
-           "TensorPolicy", "actor_from_weights", "expert_within_top_k", "read_policy", "save_policy", "token_end_poses", "token_motion_features"]
+__all__ = ["ACTOR_HEADS", "Critic", "ExpertTensorPolicy", "ExpertWithinTopK", "FinetunedTensorPolicy", "PolicyError",
+           "PolicyLogits", "PriorTensorPolicy", "TensorPolicy", "actor_from_weights", "expert_within_top_k", "read_policy",
+           "save_policy", "token_end_poses", "token_motion_features"]
