@@ -15,7 +15,11 @@ Prints one JSON line per configuration:
   that starts every scene's prior once: both envs keep freshly started prior states);
 * ``rss_mb``: the process's resident memory (every configuration's env is alive: the last lines carry all);
 * ``speedup_vs_pettingzoo``: agent-steps/s against the PettingZoo line of the same run (medians), and
-  ``speedup_per_repeat``: the ratio within each repeat (the repeats interleave every configuration).
+  ``speedup_per_repeat``: the ratio within each repeat (the repeats interleave every configuration);
+* ``forward_us_per_agent_step``: the prior's forward alone, per agent-step (microseconds), and on the
+  batched lines ``speedup_bound_forward_only``: the speed-up the batched env would reach if nothing
+  but its forward took time (the PettingZoo env's whole step per agent-step over the batched forward's),
+  the ceiling that work outside the forward cannot lift.
 
 Actions: each controlled agent takes its prior's most likely token; ``terminate_on=()`` so that an
 episode runs its full horizon. Scenes: ``--scenes`` (default: the shared real scenes with a moving
@@ -141,6 +145,7 @@ def summarise(runs: list[dict]) -> dict:
                 controlled_agent_steps_per_s=round(statistics.median(r["ctrl_steps"] / r["step_s"] for r in runs), 1),
                 env_steps_per_s=round(statistics.median(r["env_steps"] / r["step_s"] for r in runs), 2),
                 outside_forward_share=round(1.0 - med("forward_s") / med("step_s"), 3),
+                forward_us_per_agent_step=round(1e6 * statistics.median(r["forward_s"] / r["agent_steps"] for r in runs), 1),
                 reset_ms_per_scene=round(1000 * statistics.median(r["reset_s"] / max(r["resets"], 1) for r in runs), 1),
                 agent_steps_per_s_runs=[round(x, 1) for x in rates])
 
@@ -206,6 +211,7 @@ def main() -> int:
         line["speedup_vs_pettingzoo"] = round(line["agent_steps_per_s"] / base["agent_steps_per_s"], 2)
         ratios = [(r["agent_steps"] / r["step_s"]) / (p["agent_steps"] / p["step_s"]) for r, p in zip(runs[b], runs["pettingzoo"])]
         line["speedup_per_repeat"] = [round(x, 2) for x in ratios]
+        line["speedup_bound_forward_only"] = round(1e6 / base["agent_steps_per_s"] / line["forward_us_per_agent_step"], 2)
         print(json.dumps(line), flush=True)
     return 0
 

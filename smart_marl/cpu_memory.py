@@ -1,4 +1,4 @@
-"""Process memory settings for CPU training: keep freed memory in the process.
+"""Process memory settings for CPU training and stepping the environment: keep freed memory in the process.
 
 A SMART training step on the CPU allocates and frees gigabytes of short-lived tensors (relative
 positional embeddings of every neighbour pair, and their gradients). glibc's allocator serves
@@ -10,6 +10,10 @@ machine, 0.6-0.7 million page faults and about half of the step's time in the ke
 give freed memory back to the system, so later steps reuse pages that are already mapped. The
 process keeps its peak size for its lifetime (what a training process does anyway). It changes
 where memory comes from, never a number the model computes. Elsewhere than glibc it does nothing.
+
+``smart-marl train`` applies it, and so does every environment on the CPU (``envs._core.TrafficCore``): a
+step allocates and frees tensors of megabytes too; with these settings both faces of the environment
+stepped about 10% faster, with a fifth of the page faults (``benchmarks/env_throughput.py``, 2 threads).
 """
 
 from __future__ import annotations

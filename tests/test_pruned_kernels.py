@@ -311,9 +311,9 @@ def test_the_first_chunk_read_off_the_top_set_excludes_what_topk_s_ranking_exclu
         assert not torch.equal(_exclude_in_order(logits, finite, want, todo, test, (head, torch.zeros_like(tied))), want_out)
 
 
-def _chunked_search(logits, finite, want, todo, blocked, chunk, depth):
+def _chunked_search(logits, finite, want, todo, blocked, chunk, depth, growth):
     """The sampler's search row by row, as it was written first: topk's ranking of the first ``depth``
-    tokens in chunks (``chunk``, then twice as many each round); past it, every token ranked by a
+    tokens in chunks (``chunk``, then ``growth`` times as many each round); past it, every token ranked by a
     stable sort and checked again from the top; a row whose every token is blocked left alone."""
     m, v = logits.shape
     ranked, full = torch.topk(logits, depth, dim=-1).indices, torch.sort(logits, dim=-1, descending=True, stable=True).indices
@@ -327,7 +327,7 @@ def _chunked_search(logits, finite, want, todo, blocked, chunk, depth):
                 if start + j < finite[i]:
                     marks[t] = bool(blocked[i, t])
                     passed += not marks[t]
-            start, c = start + c, 2 * c
+            start, c = start + c, growth * c
             if passed >= want[i] or start >= finite[i] or start >= v:
                 break
         for t, hit in marks.items():
@@ -340,7 +340,7 @@ def test_the_samplers_search_excludes_what_a_row_by_row_search_excludes(levels):
     """Rows that stop in every round, rows that go past the first ranking (most of their tokens
     blocked, some on a small vocabulary) and rows whose every token is blocked (left alone: the
     search reads that off its count of passed tokens)."""
-    from smart_marl.rollout.avoidance import SORTED_DEPTH, _exclude_in_order
+    from smart_marl.rollout.avoidance import CHUNK_GROWTH, SORTED_DEPTH, _exclude_in_order
 
     g = torch.Generator().manual_seed(levels)
     m, v, k = 200, 300, 6
@@ -353,7 +353,7 @@ def test_the_samplers_search_excludes_what_a_row_by_row_search_excludes(levels):
     test = lambda r, tok: blocked[r[:, None], tok]  # noqa: E731
     todo = torch.rand(m, generator=g) < 0.9
     got = _exclude_in_order(logits, finite, want, todo, test)
-    assert torch.equal(got, _chunked_search(logits, finite, want, todo, blocked, k, SORTED_DEPTH))
+    assert torch.equal(got, _chunked_search(logits, finite, want, todo, blocked, k, SORTED_DEPTH, CHUNK_GROWTH))
     assert (got.sum(-1) > SORTED_DEPTH).sum() > 20 and not got[-10:].any()  # deep rows, boxed-in rows left alone
 
 
@@ -375,3 +375,35 @@ def test_the_samplers_box_test_with_shared_products_equals_the_separating_axis_t
     want = boxes_overlap_rotated(*args)
     assert 0.2 < want.double().mean() < 0.8
     assert torch.equal(_overlap_sat(*args), want)
+
+
+@pytest.mark.parametrize("levels", [4, 100000])
+def test_the_search_s_round_sizes_change_nothing_that_is_drawn(levels, monkeypatch):
+    """Larger rounds check tokens further down than needed and exclude more of them; the top k left
+    over stay those of rounds that double (the search as first written): the same values, and with
+    logits that do not tie (a model's), the same tokens and so the same draws. Where a tied token
+    below the k-th passed one is blocked, doubling left it unchecked and topk could take it in
+    place of its unblocked twin; larger rounds exclude it."""
+    from smart_marl.rollout import avoidance
+    from smart_marl.rollout.sampling import sample_tokens
+
+    g = torch.Generator().manual_seed(levels)
+    m, v, k = 200, 300, 6
+    logits = torch.randint(0, levels, (m, v), generator=g).float() if levels < 1000 else torch.randn(m, v, generator=g)
+    logits[:30, 100:] = float("-inf")
+    finite = torch.isfinite(logits).sum(-1)
+    blocked = torch.rand(m, v, generator=g) < torch.linspace(0.1, 1.0, m)[:, None] ** 0.25
+    test = lambda r, tok: blocked[r[:, None], tok]  # noqa: E731
+    todo = torch.ones(m, dtype=torch.bool)
+    masks = {}
+    for growth in (2, avoidance.CHUNK_GROWTH, 8):
+        monkeypatch.setattr(avoidance, "CHUNK_GROWTH", growth)
+        masks[growth] = avoidance._exclude_in_order(logits, finite, finite.clamp(max=k), todo, test)
+    assert not torch.equal(masks[2], masks[8])  # the larger rounds do check (and exclude) more
+    draws = {growth: sample_tokens(logits, torch.Generator().manual_seed(1), k, exclude=mask)[0]
+             for growth, mask in masks.items()}
+    kept = {growth: torch.topk(logits.masked_fill(mask, float("-inf")), k, dim=-1) for growth, mask in masks.items()}
+    for growth in masks:
+        assert torch.equal(kept[growth].values, kept[2].values)
+        if levels > 1000:
+            assert torch.equal(kept[growth].indices, kept[2].indices) and torch.equal(draws[growth], draws[2])

@@ -47,6 +47,14 @@ SORTED_DEPTH = 64
 """How many of each row's most likely tokens are ranked up front (the rest only for the rare row that
 gets that deep)."""
 
+CHUNK_GROWTH = 4
+"""How many times more tokens each round of the search checks than the round before. A round costs
+about a millisecond whatever its size (some forty tensor operations) on top of about a microsecond a
+token; the rows that go on past the first round are few, so fewer, larger rounds cost less: at 32
+real scenes a step's search fell from 8 rounds to 5 and from about 34 to 29 ms going from 2 to 4.
+Checking more tokens than needed changes nothing drawn: the extra ones rank below the ``want``-th
+token that passed, and sampling takes the top ``k`` of what is left."""
+
 
 def boxes_overlap_near(a_xy: torch.Tensor, a_heading: torch.Tensor, a_half: torch.Tensor, b_xy: torch.Tensor,
                        b_heading: torch.Tensor, b_half: torch.Tensor, where: torch.Tensor | None = None,
@@ -255,7 +263,7 @@ def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Te
                       head: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """bool [M, V]: tokens ``test(rows [R], tokens [R, c]) -> bool [R, c]`` rejects, checked most
     likely first (by ``logits`` [M, V], ``torch.topk``'s ranking of the first ``SORTED_DEPTH``) in
-    chunks (``want`` tokens, then twice as many each round) until ``want`` [M] have passed or the row's
+    chunks (``want`` tokens, then :data:`CHUNK_GROWTH` times as many each round) until ``want`` [M] have passed or the row's
     ``finite`` [M] tokens are exhausted; rows not in ``todo`` [M] are not checked, and a row whose every
     token is rejected is left alone (nothing excluded; read off the count of passed tokens, not a sum
     over [M, V]). ``head``: the :func:`_top_set` of ``logits`` if known; where it is not tied and has
@@ -295,7 +303,7 @@ def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Te
         excluded[r[:, None], tok] = hit
         passed[r] += (in_vocab & ~hit).sum(-1)
         start += tok.shape[1]
-        chunk *= 2
+        chunk *= CHUNK_GROWTH
         todo[r] = (passed[r] < want[r]) & (start < finite[r])
     excluded[checked & (passed == 0)] = False  # every token of the row rejected (or none to check)
     return excluded
