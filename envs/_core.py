@@ -107,8 +107,8 @@ class TrafficCore:
         self.top_k, self.temperature, self.avoid_collisions = int(top_k), float(temperature), bool(avoid_collisions)
         self.device, self.dtype = torch.device(device), dtype
         if self.device.type == "cpu":
-            # a step allocates and frees tensors of megabytes (attention edges, their embeddings): served from
-            # fresh pages each time, they cost 10% of a step in page faults (both faces, measured side by side)
+            # a step allocates and frees tensors of megabytes (attention edges, their embeddings): kept in the
+            # process, their pages are not faulted in afresh every step (smart_marl.cpu_memory)
             keep_freed_memory()
         self.token_poses = token_pose_table(motion_vocab, self.device).to(dtype)
         self.vocab_sizes = torch.tensor([motion_vocab[t].size for t in MOTION_TYPES], dtype=torch.long)

@@ -12,8 +12,9 @@ process keeps its peak size for its lifetime (what a training process does anywa
 where memory comes from, never a number the model computes. Elsewhere than glibc it does nothing.
 
 ``smart-marl train`` applies it, and so does every environment on the CPU (``envs._core.TrafficCore``): a
-step allocates and frees tensors of megabytes too; with these settings both faces of the environment
-stepped about 10% faster, with a fifth of the page faults (``benchmarks/env_throughput.py``, 2 threads).
+step allocates and frees tensors of megabytes too; with these settings an environment benchmark process
+took a third to a fifth of the page faults and 0.8 s of system time instead of 2-3 s
+(``docs/benchmarks/env_keep_freed_memory_ab_2026-11-26.jsonl``).
 """
 
 from __future__ import annotations
