@@ -61,8 +61,12 @@ def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int =
         flat = flat / temperature
     logp = torch.log_softmax(flat, dim=-1)
     k = v if top_k is None or top_k <= 0 else min(int(top_k), v)
-    drawn = flat if exclude is None else flat.masked_fill(exclude.reshape(-1, v), float("-inf"))
-    top_val, top_idx = torch.topk(drawn, k, dim=-1)  # (M, k), -inf entries (beyond the type's size) get zero probability
+    top_val, top_idx = torch.topk(flat, k, dim=-1)  # (M, k), -inf entries (beyond the type's size) get zero probability
+    if exclude is not None:  # the top k of the rows that lose a token (topk is row by row: the others' stay as they are)
+        ex = exclude.reshape(-1, v)
+        r = ex.any(-1).nonzero().squeeze(1)
+        if len(r):
+            top_val[r], top_idx[r] = torch.topk(flat[r].masked_fill_(ex[r], float("-inf")), k, dim=-1)
     probs = torch.softmax(top_val, dim=-1)
     if flat.shape[0]:
         pick = torch.multinomial(probs, 1, generator=generator)  # (M, 1)
