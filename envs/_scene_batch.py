@@ -18,7 +18,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from smart_marl.geometry_torch import RoadEdgeTensors
+from smart_marl.geometry_torch import RoadEdgeTensors, rows_rewritten
 from smart_marl.padding import grow, put_rows
 
 from ._scene import SceneStatic
@@ -102,17 +102,19 @@ class SceneBatch:
         dtype, device = self.box_size.dtype, self.box_size.device
         new = SceneBatch.build(statics, dtype, device)
         index = torch.as_tensor(list(rows), dtype=torch.long, device=device)
-        for name, (fill, dims) in _LAYOUT.items():
-            mine, theirs = getattr(self, name), getattr(new, name)
-            mine = grow(mine, {d: theirs.shape[d] for d in dims}, fill)
-            put_rows(mine, index, theirs, fill)
-            setattr(self, name, mine)
+        with rows_rewritten(self, index):  # the road's search blocks: the new rows' alone
+            for name, (fill, dims) in _LAYOUT.items():
+                mine, theirs = getattr(self, name), getattr(new, name)
+                mine = grow(mine, {d: theirs.shape[d] for d in dims}, fill)
+                put_rows(mine, index, theirs, fill)
+                setattr(self, name, mine)
         size = max(self.edges.num_segments, new.edges.num_segments)
-        for f in fields(RoadEdgeTensors):
-            fill = RoadEdgeTensors.FILL[f.name]
-            mine = grow(getattr(self.edges, f.name), {1: size}, fill)
-            put_rows(mine, index, getattr(new.edges, f.name), fill)
-            setattr(self.edges, f.name, mine)
+        with rows_rewritten(self.edges, index):
+            for f in fields(RoadEdgeTensors):
+                fill = RoadEdgeTensors.FILL[f.name]
+                mine = grow(getattr(self.edges, f.name), {1: size}, fill)
+                put_rows(mine, index, getattr(new.edges, f.name), fill)
+                setattr(self.edges, f.name, mine)
         for b, st in zip(rows, statics):
             self.statics[b] = st
 

@@ -407,3 +407,43 @@ def test_the_search_s_round_sizes_change_nothing_that_is_drawn(levels, monkeypat
         assert torch.equal(kept[growth].values, kept[2].values)
         if levels > 1000:
             assert torch.equal(kept[growth].indices, kept[2].indices) and torch.equal(draws[growth], draws[2])
+
+
+def test_a_refill_of_some_rows_recomputes_their_search_blocks_alone():
+    """The road's search blocks (offroad's segment blocks, the observations' road-point blocks) are kept
+    through a refill that writes rows in place: the refilled rows are recomputed, the values stay the same
+    tensors, and they equal the blocks computed afresh. A refill that grows the padding drops them (they
+    are computed whole at the next search)."""
+    from envs._observation import ROAD_BLOCK, nearest_road_points
+    from envs._scene import scene_static
+    from envs._scene_batch import SceneBatch
+    from envs._setup import load_scenes
+    from smart_marl.geometry_torch import SEGMENT_BLOCK, block_bounds
+
+    statics = [scene_static(s) for s in load_scenes("embedded")]  # 3849, 3863, 5547, 2212 road points
+    batch = SceneBatch.build([statics[2], statics[0], statics[1]])
+    xy = torch.zeros(3, 2, 2)
+
+    def fresh():
+        seg = block_bounds(torch.stack([batch.edges.start[..., :2], batch.edges.end[..., :2]], 2), batch.edges.valid, SEGMENT_BLOCK)
+        return seg, block_bounds(batch.road_xy[:, :, None], batch.road_valid, ROAD_BLOCK)
+
+    seg = batch.edges.blocks(SEGMENT_BLOCK)
+    nearest_road_points(batch, xy, 32)
+    road = batch.__dict__["_road_blocks"].values
+    row_before = [t[1].clone() for t in (*seg, *road)]
+    batch.write([1], [statics[3]])  # a smaller scene: written in place
+    assert batch.edges.__dict__["_blocks"].values is seg and batch.__dict__["_road_blocks"].values is road  # kept, not dropped
+    assert all(not torch.equal(t[1], b) for t, b in zip((*seg, *road), row_before))  # row 1 recomputed
+    want_seg, want_road = fresh()
+    for got, want in zip((*batch.edges.blocks(SEGMENT_BLOCK), *road), (*want_seg, *want_road)):
+        assert torch.equal(got, want)
+    nearest_road_points(batch, xy, 32)
+    assert batch.__dict__["_road_blocks"].values is road  # still current: no whole recompute
+    batch2 = SceneBatch.build([statics[3], statics[0]])
+    before = batch2.edges.blocks(SEGMENT_BLOCK)
+    batch2.write([0], [statics[2]])  # a larger scene: the padding grows, the kept blocks are dropped
+    after = batch2.edges.blocks(SEGMENT_BLOCK)
+    assert after is not before and after[0].shape[1] > before[0].shape[1]
+    want = block_bounds(torch.stack([batch2.edges.start[..., :2], batch2.edges.end[..., :2]], 2), batch2.edges.valid, SEGMENT_BLOCK)
+    assert all(torch.equal(a, w) for a, w in zip(after, want))
