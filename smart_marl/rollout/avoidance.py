@@ -53,7 +53,8 @@ about a millisecond whatever its size (some forty tensor operations) on top of a
 token; the rows that go on past the first round are few, so fewer, larger rounds cost less: at 32
 real scenes a step's search fell from 8 rounds to 5 and from about 34 to 29 ms going from 2 to 4.
 Checking more tokens than needed changes nothing drawn: the extra ones rank below the ``want``-th
-token that passed, and sampling takes the top ``k`` of what is left."""
+token that passed, and sampling takes the top ``k`` of what is left (where a logit ties with that
+token's, a blocked twin that smaller rounds left unchecked is now excluded too)."""
 
 
 def boxes_overlap_near(a_xy: torch.Tensor, a_heading: torch.Tensor, a_half: torch.Tensor, b_xy: torch.Tensor,
@@ -263,10 +264,10 @@ def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Te
                       head: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """bool [M, V]: tokens ``test(rows [R], tokens [R, c]) -> bool [R, c]`` rejects, checked most
     likely first (by ``logits`` [M, V], ``torch.topk``'s ranking of the first ``SORTED_DEPTH``) in
-    chunks (``want`` tokens, then :data:`CHUNK_GROWTH` times as many each round) until ``want`` [M] have passed or the row's
-    ``finite`` [M] tokens are exhausted; rows not in ``todo`` [M] are not checked, and a row whose every
-    token is rejected is left alone (nothing excluded; read off the count of passed tokens, not a sum
-    over [M, V]). ``head``: the :func:`_top_set` of ``logits`` if known; where it is not tied and has
+    chunks (``want`` tokens, then :data:`CHUNK_GROWTH` times as many each round) until ``want`` [M]
+    have passed or the row's ``finite`` [M] tokens are exhausted; rows not in ``todo`` [M] are not
+    checked, and a row whose every token is rejected is left alone (nothing excluded; read off the
+    count of passed tokens, not a sum over [M, V]). ``head``: the :func:`_top_set` of ``logits`` if known; where it is not tied and has
     the first chunk's size, the first chunk is read off it, and only the rows that go on are ranked
     further (most rows stop there)."""
     m, v = logits.shape
