@@ -137,8 +137,8 @@ def nearest_road_points(scenes: SceneBatch, xy: torch.Tensor, k: int) -> tuple[t
         d2 = (scenes.road_xy[:, None] - xy[:, :, None]).square().sum(-1).masked_fill(~scenes.road_valid[:, None], float("inf"))
         return _nearest(d2, k)
     centre, radius = kept(scenes, "_road_blocks", (scenes.road_xy, scenes.road_valid),
-                          lambda: block_bounds(scenes.road_xy[:, :, None], scenes.road_valid, ROAD_BLOCK), ROAD_BLOCK,
-                          rows=lambda i: block_bounds(scenes.road_xy[i, :, None], scenes.road_valid[i], ROAD_BLOCK))
+                          lambda i=slice(None): block_bounds(scenes.road_xy[i, :, None], scenes.road_valid[i], ROAD_BLOCK), ROAD_BLOCK,
+                          by_rows=True)
     nb = centre.shape[1]
     bound = block_lower_bound(xy, centre, radius)  # [B, C, nb]
     lb, blk = torch.topk(bound, min(kb + 1, nb), dim=-1, largest=False)

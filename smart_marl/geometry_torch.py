@@ -132,56 +132,51 @@ class RoadEdgeTensors:
         (a road edge's polyline goes on in the next segments) inside a circle; ``radius`` is ``-inf``
         on a block without a valid segment. Computed once and kept until a tensor of the edges is
         replaced or written to (a refill)."""
-        return kept(self, "_blocks", (self.start, self.end, self.valid), lambda: _segment_blocks(self.start, self.end, self.valid, size), size,
-                    rows=lambda i: _segment_blocks(self.start[i], self.end[i], self.valid[i], size))
+        return kept(self, "_blocks", (self.start, self.end, self.valid),
+                    lambda i=slice(None): _segment_blocks(self.start[i], self.end[i], self.valid[i], size), size, by_rows=True)
 
 
-def kept(owner, name: str, inputs: tuple[torch.Tensor, ...], compute, *extra, rows=None):
+def kept(owner, name: str, inputs: tuple[torch.Tensor, ...], compute, *extra, by_rows: bool = False):
     """``compute()``, kept in ``owner`` (under ``name``) until one of the tensors ``inputs`` is replaced
     or written to in place (its version counter moves) or ``extra`` changes: derived constants of
-    scenes that a refill may rewrite. ``rows``: for values made of rows of the inputs' rows (a tuple of
-    tensors, row ``b`` computed from the inputs' row ``b`` alone), ``rows(index)`` computes rows ``index``
-    alone, so that :func:`rows_rewritten` can keep them through a refill of some rows."""
-    key = _kept_key(inputs, extra)
+    scenes that a refill may rewrite. ``by_rows``: the values are a tuple of tensors whose row ``b``
+    comes from the inputs' row ``b`` alone, and ``compute(index)`` computes rows ``index`` alone (all
+    rows by default), so that :func:`rows_rewritten` keeps them through a refill of some rows."""
     cached = owner.__dict__.get(name)
-    if cached is None or not _same_key(cached.key, key):
-        owner.__dict__[name] = cached = _Kept(key, compute(), rows)
+    if cached is None or cached.extra != extra or len(cached.inputs) != len(inputs) or any(
+            a is not b for a, b in zip(cached.inputs, inputs)) or cached.versions != _versions(inputs):
+        owner.__dict__[name] = cached = _Kept(extra, tuple(inputs), _versions(inputs), compute(), compute if by_rows else None)
     return cached.values
 
 
 class _Kept(NamedTuple):
-    key: tuple  # extra, then (tensor, version) of each input
+    extra: tuple
+    inputs: tuple  # the tensors the values come from
+    versions: tuple  # their version counters when the values were computed
     values: object
-    rows: Callable | None
+    rows: Callable | None  # rows(index): the values' rows ``index`` alone
 
 
-def _kept_key(inputs: tuple[torch.Tensor, ...], extra: tuple) -> tuple:
-    return (*extra, *[(t, t._version) for t in inputs])
-
-
-def _same_key(a: tuple, b: tuple) -> bool:
-    return len(a) == len(b) and all((x[0] is y[0] and x[1] == y[1]) if isinstance(x, tuple) else x == y for x, y in zip(a, b))
+def _versions(inputs) -> tuple:
+    return tuple(t._version for t in inputs)
 
 
 @contextmanager
 def rows_rewritten(owner, index: torch.Tensor):
     """Around a refill that writes rows ``index`` of ``owner``'s tensors in place: what :func:`kept` keeps
-    in ``owner`` with a ``rows`` function, current before, has those rows recomputed after and stays kept
-    (a refill of a few scenes then recomputes their rows, not the whole batch's). Where an input was not
-    written in place (replaced by a larger one, or not touched), the value is left to :func:`kept`, which
-    recomputes it whole where it must."""
-    def inputs(key: tuple) -> list:
-        return [x for x in key if isinstance(x, tuple)]  # (tensor, version) of each input
-
+    in ``owner`` by rows, current before, has those rows recomputed after and stays kept (a refill of a
+    few scenes then recomputes their rows, not the whole batch's). Where an input was not written in
+    place (replaced by a larger one, or not touched), the value is left to :func:`kept`, which recomputes
+    it whole where it must."""
     before = {name: c for name, c in owner.__dict__.items()
-              if isinstance(c, _Kept) and c.rows is not None and all(t._version == v for t, v in inputs(c.key))}
+              if isinstance(c, _Kept) and c.rows is not None and c.versions == _versions(c.inputs)}
     yield
-    for name, (key, values, rows) in before.items():
-        if all(t._version != v for t, v in inputs(key)):  # every input written in place: the same tensors, new rows
-            for mine, new in zip(values, rows(index)):
+    for name, c in before.items():
+        now = _versions(c.inputs)
+        if all(v != w for v, w in zip(now, c.versions)):  # every input written in place: the same tensors, new rows
+            for mine, new in zip(c.values, c.rows(index)):
                 mine[index] = new
-            extra = tuple(x for x in key if not isinstance(x, tuple))
-            owner.__dict__[name] = _Kept(_kept_key(tuple(t for t, _ in inputs(key)), extra), values, rows)
+            owner.__dict__[name] = c._replace(versions=now)
 
 
 def block_bounds(xy: torch.Tensor, valid: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -267,9 +267,9 @@ def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Te
     chunks (``want`` tokens, then :data:`CHUNK_GROWTH` times as many each round) until ``want`` [M]
     have passed or the row's ``finite`` [M] tokens are exhausted; rows not in ``todo`` [M] are not
     checked, and a row whose every token is rejected is left alone (nothing excluded; read off the
-    count of passed tokens, not a sum over [M, V]). ``head``: the :func:`_top_set` of ``logits`` if known; where it is not tied and has
-    the first chunk's size, the first chunk is read off it, and only the rows that go on are ranked
-    further (most rows stop there)."""
+    count of passed tokens, not a sum over [M, V]). ``head``: the :func:`_top_set` of ``logits`` if
+    known; where it is not tied and has the first chunk's size, the first chunk is read off it, and only
+    the rows that go on are ranked further (most rows stop there)."""
     m, v = logits.shape
     excluded = torch.zeros(m, v, dtype=torch.bool, device=logits.device)
     passed = torch.zeros(m, dtype=torch.long, device=logits.device)
