@@ -22,6 +22,8 @@ What each argument takes (the documented meanings):
 * ``render_size_px``: an integer in 16..:data:`MAX_RENDER_SIZE_PX`; ``render_radius_m`` a finite number in
   (0, :data:`MAX_RENDER_RADIUS_M`];
 * ``avoid_collisions``: True or False (not the string "false");
+* ``shield``: True (every check of :data:`envs._shield.SHIELD_CHECKS`), False / None / an empty list (none),
+  or a list of check names (a bare string is one name), normalised to a tuple in ``SHIELD_CHECKS`` order;
 * ``controlled``: "sdc", "predict", "vehicles", "all", "moving_vehicles", a callable, or a list of track
   ids (integers) and agent names (strings);
 * ``reset(seed)``: None or an integer in 0..2**63 - 1; ``reset(options)``: None or a dict; its key
@@ -44,6 +46,7 @@ from ._dynamics import BACKGROUNDS
 from ._observation import ObservationConfig
 from ._reward import TERMINATION_EVENTS, RewardConfig
 from ._setup import SELECTIONS
+from ._shield import SHIELD_CHECKS
 from .errors import EnvConfigError, EnvConfigTypeError
 
 MAX_HORIZON_STEPS = 10_000
@@ -117,7 +120,7 @@ def _controlled(value: Any) -> Any:
 def check_env_arguments(*, background: Any, horizon_steps: Any, scene_order: Any, terminate_on: Any, render_mode: Any,
                         render_modes: Iterable[str], max_agents: Any, top_k: Any, temperature: Any, reference_top_k: Any,
                         render_size_px: Any, render_radius_m: Any, avoid_collisions: Any, reward: Any, observation: Any,
-                        controlled: Any, device: Any = "cpu") -> dict[str, Any]:
+                        controlled: Any, device: Any = "cpu", shield: Any = ()) -> dict[str, Any]:
     """The constructor's arguments checked and normalised (see the module docstring), as a dict of
     the same names; :class:`~envs.errors.EnvConfigError` naming the first one that is refused."""
     return {
@@ -138,7 +141,23 @@ def check_env_arguments(*, background: Any, horizon_steps: Any, scene_order: Any
         "observation": _observation(observation),
         "controlled": _controlled(controlled),
         "device": _device(device),
+        "shield": shield_checks(shield),
     }
+
+
+def shield_checks(value: Any) -> tuple[str, ...]:
+    """The shield's checks (module docstring); :class:`~envs.errors.EnvConfigError` naming a bad entry."""
+    if value is None or value is False:
+        return ()
+    if value is True:
+        return SHIELD_CHECKS
+    names = (value,) if isinstance(value, str) else value
+    if not isinstance(names, (list, tuple)):
+        raise EnvConfigTypeError(f"shield must be True, False or a list of {list(SHIELD_CHECKS)}, got {shown(value)}")
+    bad = [v for v in names if v not in SHIELD_CHECKS]
+    if bad:
+        raise EnvConfigError(f"shield: unknown check(s) {bad}; known: {list(SHIELD_CHECKS)}")
+    return tuple(c for c in SHIELD_CHECKS if c in names)
 
 
 def _device(value: Any):
@@ -168,4 +187,4 @@ def check_reset_arguments(seed_value: Any, options: Any, num_scenes: int) -> tup
 
 
 __all__ = ["MAX_HORIZON_STEPS", "MAX_RENDER_SIZE_PX", "MAX_RENDER_RADIUS_M", "OBSERVATION_RULES", "REWARD_RULES",
-           "check_env_arguments", "check_reset_arguments"]
+           "check_env_arguments", "check_reset_arguments", "shield_checks"]

@@ -47,6 +47,7 @@ from ._observation import HISTORY_FRAMES, ObservationConfig, build_observations
 from ._reward import TERMINATION_EVENTS, RewardConfig, StepReward, route_progress_m, step_reward
 from ._scene import SceneStatic
 from ._scene_batch import SceneBatch, gather_tracks
+from ._shield import unsafe_tokens
 
 
 START_CHUNK = 16
@@ -96,7 +97,7 @@ class TrafficCore:
                  reward: RewardConfig | None = None, terminate_on: Sequence[str] = TERMINATION_EVENTS,
                  observation: ObservationConfig | None = None, top_k: int = DEFAULT_TOP_K, temperature: float = 1.0,
                  avoid_collisions: bool = True, device="cpu", dtype=torch.float32, prior_cache_size: int = 8,
-                 record: bool = False) -> None:
+                 record: bool = False, shield: Sequence[str] = (), shield_top_k: int | None = None) -> None:
         if background not in BACKGROUNDS:
             raise ValueError(f"background must be one of {BACKGROUNDS}, got {background!r}")
         self.model, self.motion_vocab, self.background = model, motion_vocab, background
@@ -106,6 +107,8 @@ class TrafficCore:
         self.obs_config = observation or ObservationConfig()
         self.top_k, self.temperature, self.avoid_collisions = int(top_k), float(temperature), bool(avoid_collisions)
         self.device, self.dtype = torch.device(device), dtype
+        self.shield, self.shield_top_k = tuple(shield), shield_top_k  # envs._shield: checks, and the k the policy draws from
+        self._unsafe: tuple[torch.Tensor, torch.Tensor] | None = None  # (the logits it was computed on, the shield's mask)
         if self.device.type == "cpu":
             # a step allocates and frees tensors of megabytes (attention edges, their embeddings): kept in the
             # process, their pages are not faulted in afresh every step (smart_marl.cpu_memory)
@@ -321,13 +324,19 @@ class TrafficCore:
     def prior_logits(self) -> torch.Tensor | None:
         """[B, C, Vmax] the prior's logits of each controlled agent's next token (``-inf`` beyond its
         type's vocabulary; all zeros for padded and done agents: the prior has no next token for
-        them), or None without a prior."""
+        them), or None without a prior. With a shield (:mod:`envs._shield`), ``-inf`` on the tokens it
+        takes out."""
         logits = self.forward()
         if logits is None:
             return None
         slot = gather_tracks(self.slot_of_track, self.ctrl_track)  # [B, C]
         out = logits.gather(1, slot.clamp(min=0)[..., None].expand(-1, -1, logits.shape[-1]))
         has = self.live & (slot >= 0) & self.prior.valid.gather(1, slot.clamp(min=0))
+        if self.shield:  # once per step (the logits are a new tensor every step, and after a reset or refill)
+            if self._unsafe is None or self._unsafe[0] is not logits:
+                self._unsafe = (logits, unsafe_tokens(self.shield, self.prior, self.scenes, self.ctrl_track, slot.clamp(min=0), has,
+                                                      out, self.shield_top_k))
+            out = out.masked_fill(self._unsafe[1], float("-inf"))
         return torch.where(has[..., None], out, torch.zeros_like(out))
 
     def trajectories(self, row: int = 0) -> tuple[np.ndarray, np.ndarray]:

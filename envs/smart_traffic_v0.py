@@ -43,6 +43,11 @@ k: that distribution restricted to its top k tokens and renormalised, the prior 
 :func:`smart_marl.rollout.reference_log_probs`). The ``"dict"`` observation's ``action_mask``
 is the reference's support (every token without a top-k), ``env.reference`` names it.
 
+The shield (``shield=True`` or a list of :data:`envs._shield.SHIELD_CHECKS`; off by default): the tokens
+that would run a controlled agent into another agent (at constant velocity) or a vehicle off the road are
+taken out of its prior logits (``-inf``), so out of the action mask and the reference too
+(:mod:`envs._shield`).
+
 ``infos[agent]`` (fixed keys and shapes, so TorchRL can stack them): ``prior_logits`` [V] and
 ``prior_log_probs`` [V] (the reference's log-probabilities, ``-inf`` outside its top-k) of the
 agent's *next* token (zeros once it is done), ``reference_top_k`` (the reference's k, 0 for the
@@ -106,13 +111,13 @@ class SmartTrafficEnv(ParallelEnv):
                  max_agents: int | None = None, terminate_on: Sequence[str] = TERMINATION_EVENTS,
                  scene_order: str = "sequential", motion_vocab: MotionVocabulary | None = None, top_k: int = DEFAULT_TOP_K,
                  temperature: float = 1.0, render_size_px: int = 400, render_radius_m: float = 50.0,
-                 reference_top_k: int | None = None, avoid_collisions: bool = True, device="cpu") -> None:
+                 reference_top_k: int | None = None, avoid_collisions: bool = True, shield=(), device="cpu") -> None:
         a = check_env_arguments(background=background, horizon_steps=horizon_steps, scene_order=scene_order,
                                 terminate_on=terminate_on, render_mode=render_mode, render_modes=self.metadata["render_modes"],
                                 max_agents=max_agents, top_k=top_k, temperature=temperature, reference_top_k=reference_top_k,
                                 render_size_px=render_size_px, render_radius_m=render_radius_m,
                                 avoid_collisions=avoid_collisions, reward=reward, observation=observation, controlled=controlled,
-                                device=device)
+                                device=device, shield=shield)
         if render_mode == "human" and not _has_display():
             raise EnvConfigError("render_mode='human' opens a matplotlib window, but there is no display (DISPLAY and "
                                  "WAYLAND_DISPLAY are unset); use render_mode='rgb_array' (and EpisodeRecorder) instead")
@@ -139,7 +144,9 @@ class SmartTrafficEnv(ParallelEnv):
         self.render_size_px, self.render_radius_m = a["render_size_px"], a["render_radius_m"]
         self.core = TrafficCore(self.model, self.motion_vocab, self.background, self.horizon_steps, self.reward_config,
                                 self.terminate_on, self.obs_config, self.top_k, self.temperature, self.avoid_collisions,
-                                device=self.device, dtype=torch.float64, prior_cache_size=self.PRIOR_STATE_CACHE, record=True)
+                                device=self.device, dtype=torch.float64, prior_cache_size=self.PRIOR_STATE_CACHE, record=True,
+                                shield=a["shield"], shield_top_k=self.reference_top_k)
+        self.shield = a["shield"]
         self._statics: dict[int, SceneStatic] = {}
         self._obs_spaces: dict[str, spaces.Space] = {}
         self._act_spaces: dict[str, spaces.Space] = {}
@@ -300,9 +307,12 @@ class SmartTrafficEnv(ParallelEnv):
             v = self.vocab_sizes[int(self.static.types[self.ctrl_tracks[i]])]
             d = {"observation": vec[i], "action_mask": np.ones(v, np.int8)}
             if prior is not None:
-                d["prior_logits"] = prior[i, :v].copy()
-                if self.reference_top_k and d["prior_logits"].any():
-                    d["action_mask"] = top_k_mask(torch.from_numpy(d["prior_logits"]), self.reference_top_k).numpy().astype(np.int8)
+                d["prior_logits"] = logits = prior[i, :v].copy()
+                if logits.any():  # the reference's support: the shield's -inf out, then its top k
+                    mask = np.isfinite(logits)
+                    if self.reference_top_k:
+                        mask &= top_k_mask(torch.from_numpy(logits), self.reference_top_k).numpy()
+                    d["action_mask"] = mask.astype(np.int8)
             out[a] = d
         return out
 
@@ -463,7 +473,8 @@ def parallel_env(scenarios="embedded", prior="embedded", controlled="sdc", backg
     ``scene_order`` ("sequential" or "random" with the reset seed), ``motion_vocab`` (needed with
     ``prior=None``), ``top_k``, ``temperature``, ``reference_top_k``, ``avoid_collisions`` (the prior's
     background keeps its sampled tokens out of other agents' boxes, :mod:`smart_marl.rollout.avoidance`;
-    default True), ``render_size_px``, ``render_radius_m``, ``device`` (``"cuda"``: the prior and the state on the
+    default True), ``shield`` (the same for the controlled agents' action masks, plus staying on the road:
+    :mod:`envs._shield`; default off), ``render_size_px``, ``render_radius_m``, ``device`` (``"cuda"``: the prior and the state on the
     GPU; what a step returns is numpy as always)."""
     return SmartTrafficEnv(scenarios=scenarios, prior=prior, controlled=controlled, background=background,
                            horizon_steps=horizon_steps, reward=reward, observation=observation, render_mode=render_mode,

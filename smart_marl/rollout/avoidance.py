@@ -149,7 +149,8 @@ def constant_velocity_pose(pose: torch.Tensor, previous_pose: torch.Tensor) -> t
 def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor, previous_pose: torch.Tensor,
                     size: torch.Tensor, present: torch.Tensor, agent_type: torch.Tensor, token_poses: torch.Tensor,
                     top_k: int, interpolation: str = "spline", known_frames: torch.Tensor | None = None,
-                    known: torch.Tensor | None = None) -> torch.Tensor:
+                    known: torch.Tensor | None = None,
+                    also: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
     """bool [M, V]: the tokens that sampling rows ``rows`` [M] (flat indices into the G x N slots)
     must not draw (module docstring).
 
@@ -160,11 +161,14 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     whole vocabulary is checked), ``interpolation`` how the token's frames are drawn
     (:func:`~smart_marl.rollout.frames.token_frames`). ``known_frames`` [G, N, 5, 3] and ``known`` [G, N]: the
     slots whose frames of this step are known before the draw (their token is forced: a policy's or a
-    script's), checked against where they will really be instead of at constant velocity."""
+    script's), checked against where they will really be instead of at constant velocity. ``also``: a
+    second test ``also(rows [R], tokens [R, c]) -> bool [R, c]`` (rows: indices into ``rows``) whose
+    tokens are excluded too, in the same search (every row is checked; the shield of :mod:`envs._shield`
+    adds leaving the road)."""
     n = pose.shape[1]
     m, v = logits.shape
     out = torch.zeros(m, v, dtype=torch.bool, device=logits.device)
-    if m == 0 or n < 2:
+    if m == 0 or (n < 2 and also is None):
         return out
     half = size[..., :2].to(pose.dtype) / 2
     ahead = constant_velocity_pose(pose, previous_pose)
@@ -187,7 +191,7 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     gap = apart - travel[gi]  # [M, N] nearest they come
     maybe = present[gi] & (gap < reach[:, None] + own_r[:, None] + radius[gi])
     maybe[torch.arange(m, device=rows.device), si] = False
-    sub = maybe.any(-1).nonzero().squeeze(1)
+    sub = (maybe.any(-1) | (also is not None)).nonzero().squeeze(1)
     if not len(sub):
         return out
     logits, rows, gi, si, head, tied = logits[sub], rows[sub], gi[sub], si[sub], head[sub], tied[sub]
@@ -228,13 +232,15 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
         local = token_poses[own_type[r][:, None], tok]  # [R, c, 6, 3]
         # the row's pose broadcast, not expanded: what depends on it alone is computed once a row
         frames = token_frames(local, own_pose[r][:, None], own_before[r][:, None], interpolation)  # [R, c, 5, 3]
-        return frames_collide(frames, own_pose[r, :2], own_half[r], other_xy[r], other_cos[r], other_sin[r], other_half[r],
-                              other_gap[r], near_ok[r])
+        hit = frames_collide(frames, own_pose[r, :2], own_half[r], other_xy[r], other_cos[r], other_sin[r], other_half[r],
+                             other_gap[r], near_ok[r])
+        return hit if also is None else hit | also(sub[r], tok)
 
     # [M] tokens of the row's type: isfinite as two comparisons (3x faster on the CPU)
     finite = ((logits > float("-inf")) & (logits < float("inf"))).sum(-1)
     want = finite if top_k is None or top_k <= 0 else finite.clamp(max=int(top_k))
-    out[sub] = _exclude_in_order(logits, finite, want, near_ok.any(-1), collides, (head, tied))
+    todo = near_ok.any(-1) | (also is not None)
+    out[sub] = _exclude_in_order(logits, finite, want, todo, collides, (head, tied))
     return out
 
 

@@ -1,0 +1,92 @@
+"""Environment stage, the shield: the tokens a controlled agent may not take because they would run it
+into another agent or off the road (safe RL's action shielding, here a mask on the prior's logits).
+
+What comes in: the prior's state (every simulated agent's pose, the pose its last token started at,
+box, type; :class:`smart_marl.rollout.RolloutState`), the scenes' road edges, the controlled agents'
+slots and their prior logits ``[B, C, V]``, the checks and the ``k`` the policy draws from. What goes
+out: ``bool [B, C, V]``, true on the tokens to take out (their logits become ``-inf``).
+
+The checks (``SHIELD_CHECKS``), on the tokens most likely first, until ``k`` pass both:
+
+* ``"collision"``: the background's collision-aware rule (:mod:`smart_marl.rollout.avoidance`, the same
+  code): the token's five 10 Hz frames overlap the box of one of the agent's nearest others, each
+  moving at constant velocity (a policy does not know the others' next tokens when it chooses);
+* ``"offroad"``: a vehicle whose box, at the token's end (the step's last frame, where the reward's
+  offroad event is measured), has a corner beyond a road edge (:func:`envs._reward.offroad`'s test).
+
+So the top ``k`` of the shielded logits are the ``k`` most likely tokens that pass, and the reference of
+fine-tuning (the prior's top ``k``, renormalised) is the prior as the shield lets it drive. An agent
+all of whose tokens fail keeps them all (nothing is taken out), as in the background's rule. What the
+shield cannot see: the others' real next moves (a car that brakes hard, a policy's neighbour), the
+rounded boxes of the events (a little smaller than the exact boxes checked here), offroad on the
+step's in-between frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields
+from typing import Sequence
+
+import torch
+
+from smart_marl.geometry_torch import RoadEdgeTensors, box_corners_bottom, signed_distance_to_road_edges
+from smart_marl.rollout import RolloutState
+from smart_marl.rollout.avoidance import excluded_tokens
+from smart_marl.rollout.frames import compose_torch
+from smart_marl.scenario import AgentType
+
+from ._scene_batch import SceneBatch
+
+SHIELD_CHECKS = ("collision", "offroad")
+
+
+def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch, ctrl_track: torch.Tensor,
+                  ctrl_slot: torch.Tensor, acting: torch.Tensor, logits: torch.Tensor, top_k: int | None) -> torch.Tensor:
+    """bool [B, C, V]: the tokens the shield takes out (module docstring) for the controlled agents
+    ``acting`` [B, C] (tracks ``ctrl_track`` [B, C], slots ``ctrl_slot`` [B, C] in ``prior``, one group
+    per scene), whose prior logits are ``logits`` [B, C, V]; ``top_k`` the policy's k (None: every token)."""
+    out = torch.zeros(logits.shape, dtype=torch.bool, device=logits.device)
+    if not checks or not bool(acting.any()):
+        return out
+    cb, cc = acting.nonzero(as_tuple=True)  # [M] the agents, scene by scene
+    slot = ctrl_slot[cb, cc]
+    also = None
+    if "offroad" in checks:
+        track = ctrl_track[cb, cc]
+        vehicle = scenes.types[cb, track] == int(AgentType.VEHICLE)
+        size, z = scenes.box_size[cb, track], scenes.z[cb, track]
+        local_end = prior.token_poses[prior.agent_type[cb, slot], :, -1]  # [M, V, 3] each token's end, agent frame
+        now = prior.current_pose[cb, slot]
+
+        def off_road(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
+            """[R, c]: token ``tok`` [R, c] of agents ``r`` [R] ends with a corner off the road."""
+            end = compose_torch(now[r][:, None], local_end[r].gather(1, tok[..., None].expand(-1, -1, 3)))  # [R, c, 3]
+            corners = box_corners_bottom(end[..., :2], end[..., 2], size[r][:, None].expand(-1, tok.shape[1], -1),
+                                         z[r][:, None].expand(-1, tok.shape[1]))  # [R, c, 4, 3]
+            return vehicle[r][:, None] & (_edge_distance(scenes.edges, cb[r], corners) > 0)
+
+        also = off_road
+    present = prior.simulated if "collision" in checks else torch.zeros_like(prior.simulated)  # no other agent blocks
+    rows = cb * prior.num_slots + slot
+    k = 0 if top_k is None else int(top_k)
+    out[cb, cc] = excluded_tokens(logits[cb, cc], rows, prior.pose, prior.previous_pose, prior.agent_shape, present,
+                                  prior.agent_type, prior.token_poses.to(prior.pose.dtype), k, prior.interpolation, also=also)
+    return out
+
+
+def _edge_distance(edges: RoadEdgeTensors, scene: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
+    """[R, c] the largest signed distance to the road edges of a box's 4 ``corners`` [R, c, 4, 3] (row
+    ``i``'s in scene ``scene[i]``, ``scene`` ascending): the rows packed scene by scene, the scenes
+    they are in alone searched."""
+    r, c = corners.shape[:2]
+    used, where = torch.unique_consecutive(scene, return_inverse=True)
+    counts = torch.bincount(where, minlength=len(used))
+    rank = torch.arange(r, device=scene.device) - (counts.cumsum(0) - counts)[where]
+    packed = corners.new_zeros(len(used), int(counts.max()), c * 4, 3)
+    packed[where, rank] = corners.reshape(r, c * 4, 3)
+    sub = RoadEdgeTensors(**{f.name: getattr(edges, f.name)[used] for f in fields(RoadEdgeTensors)})
+    dist = signed_distance_to_road_edges(packed.view(len(used), -1, 3), sub, group=4)
+    return dist.view(len(used), -1, c, 4)[where, rank].amax(-1)
+
+
+__all__ = ["SHIELD_CHECKS", "unsafe_tokens"]

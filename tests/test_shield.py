@@ -1,0 +1,163 @@
+"""The shield (envs._shield): the tokens that would run a controlled agent into another agent or a
+vehicle off the road are taken out of its prior logits. Checked against a brute force of its own
+(every other agent at constant velocity, every frame; the reward's offroad test at the token's end),
+through both faces of the environment and the fine-tuning config."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from envs import smart_traffic_v0
+from envs._reward import offroad
+from envs._shield import SHIELD_CHECKS
+from envs.errors import EnvConfigError, EnvConfigTypeError
+from smart_marl.embedded import sample_scenarios
+from smart_marl.geometry_torch import boxes_overlap
+from smart_marl.model.checkpoint import load_prior
+from smart_marl.rollout.avoidance import constant_velocity_pose, excluded_tokens
+from smart_marl.rollout.frames import token_frames
+from smart_marl.scenario import AgentType
+from smart_marl.tokens import FRAMES_PER_TOKEN
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
+K = 3
+
+
+@pytest.fixture(scope="module")
+def prior():
+    return load_prior("embedded", "cpu")
+
+
+@pytest.fixture(scope="module")
+def samples():
+    return sample_scenarios()
+
+
+def _env(samples, prior, **kw):
+    model, vocab = prior
+    args = dict(scenarios=samples, prior=model, motion_vocab=vocab, controlled="vehicles", max_agents=8, horizon_steps=6,
+                terminate_on=(), reference_top_k=K, observation="dict", shield=True)
+    args.update(kw)
+    return smart_traffic_v0.parallel_env(**args)
+
+
+def _brute_force(core, b: int, c: int, tokens: torch.Tensor) -> torch.Tensor:
+    """bool [T]: does each token of controlled slot ``c`` of scene row ``b`` overlap another simulated agent
+    (exact boxes, on the same frame, the other at constant velocity) or, for a vehicle, end with a corner
+    off the road; pairs overlapping already now are left out (the rule's exception)."""
+    pr = core.prior
+    track = int(core.ctrl_track[b, c])
+    s = int(core.slot_of_track[b, track])
+    pose, before = pr.pose[b], pr.previous_pose[b]
+    local = pr.token_poses[pr.agent_type[b, s], tokens]  # [T, 6, 3]
+    frames = token_frames(local, pose[s][None], before[s][None], pr.interpolation)  # [T, 5, 3]
+    ahead = constant_velocity_pose(pose, before)
+    step = torch.arange(1, FRAMES_PER_TOKEN + 1, dtype=pose.dtype) / FRAMES_PER_TOKEN
+    half = pr.agent_shape[b, :, :2] / 2
+    hit = torch.zeros(len(tokens), dtype=torch.bool)
+    for o in pr.simulated[b].nonzero().squeeze(1).tolist():
+        if o == s or boxes_overlap(pose[s, :2], pose[s, 2], half[s], pose[o, :2], pose[o, 2], half[o]):
+            continue
+        other_xy = pose[o, :2] + step[:, None] * (ahead[o, :2] - pose[o, :2])  # [5, 2]
+        hit |= boxes_overlap(frames[..., :2], frames[..., 2], half[s], other_xy, pose[o, 2], half[o]).any(-1)
+    ends = frames[:, -1].to(core.pose.dtype)  # [T, 3]
+    ctrl = torch.full((core.num_scenes, len(tokens)), -1, dtype=torch.long)
+    ctrl[b] = track
+    last = torch.zeros(core.num_scenes, len(tokens), 3, dtype=core.pose.dtype)
+    last[b] = ends
+    off = offroad(core.scenes, ctrl, ctrl >= 0, last)[b]
+    return hit | off
+
+
+def test_shield_arguments_are_checked_and_normalised(samples, prior):
+    assert _env(samples[:1], prior).shield == SHIELD_CHECKS
+    assert _env(samples[:1], prior, shield=["offroad", "collision"]).shield == SHIELD_CHECKS  # the canonical order
+    assert _env(samples[:1], prior, shield="offroad").shield == ("offroad",)
+    assert _env(samples[:1], prior, shield=False).shield == ()
+    with pytest.raises(EnvConfigError, match=r"shield: unknown check\(s\) \['seatbelt'\]"):
+        _env(samples[:1], prior, shield=["seatbelt"])
+    with pytest.raises(EnvConfigTypeError, match="shield must be True, False or a list"):
+        _env(samples[:1], prior, shield=3)
+
+
+def test_the_shield_takes_out_exactly_unsafe_tokens_and_keeps_k_safe_ones_on_top(samples, prior):
+    env = _env(samples, prior)
+    rng = np.random.default_rng(0)
+    fastest = int(prior[1][AgentType.VEHICLE].poses[:, -1, 0].argmax())
+    taken_out, checked_agents = 0, 0
+    for index in range(len(samples)):
+        obs, _ = env.reset(seed=index, options={"scene_index": index})
+        for step in range(4):
+            if not env.agents:
+                break
+            core = env.core
+            shielded = core.prior_logits()
+            core.shield = ()
+            plain = core.prior_logits()
+            core.shield = SHIELD_CHECKS
+            for c in core.live[0].nonzero().squeeze(1).tolist():
+                gone = torch.isinf(shielded[0, c]) & torch.isfinite(plain[0, c])
+                assert torch.equal(shielded[0, c][~gone], plain[0, c][~gone])  # nothing else changes
+                top = torch.topk(shielded[0, c], K).indices
+                unsafe_top = _brute_force(core, 0, c, top)
+                if gone.any():  # what it took out is unsafe, and its top k are safe
+                    assert _brute_force(core, 0, c, gone.nonzero().squeeze(1)).all()
+                    assert not unsafe_top.any()
+                    taken_out += int(gone.sum())
+                else:  # nothing taken out: the prior's own top k are safe (or every token failed: left alone)
+                    assert not unsafe_top.any() or _brute_force(core, 0, c, torch.topk(plain[0, c], 64).indices).all()
+                mask = obs[env.agents[c]]["action_mask"].astype(bool) if env.agents[c] in obs else None
+                if mask is not None:  # the action mask is the shielded top k
+                    assert set(np.flatnonzero(mask)) == set(top.tolist())
+                checked_agents += 1
+            # every other step the agents ignore their masks and take the token that goes farthest ahead: off the
+            # road and into others, where the shield has work to do
+            obs, *_ = env.step({a: fastest if step % 2 else int(rng.choice(np.flatnonzero(obs[a]["action_mask"])))
+                                for a in env.agents})
+    assert checked_agents > 20 and taken_out > 0  # the sample scenes exercise it
+
+
+def test_an_agent_whose_every_token_fails_keeps_them_all_and_a_lone_agent_is_still_checked():
+    logits = torch.tensor([[3.0, 2.0, 1.0, 0.0]])
+    pose = torch.zeros(1, 1, 3)
+    size = torch.tensor([[[4.0, 2.0, 1.5]]])
+    poses = torch.linspace(0, 1, 6)[None, None, :, None] * torch.tensor([[[1.0, 0, 0], [2, 0, 0], [3, 0, 0], [4, 0, 0]]])[:, :, None]
+    args = (logits, torch.tensor([0]), pose, pose.clone(), size, torch.ones(1, 1, dtype=torch.bool), torch.zeros(1, 1, dtype=torch.long),
+            poses, 2)
+    everything = excluded_tokens(*args, also=lambda r, tok: torch.ones(tok.shape, dtype=torch.bool))
+    assert not everything.any()  # every token fails: none is taken out
+    far = excluded_tokens(*args, also=lambda r, tok: tok <= 1)  # the first two fail; the next two pass
+    assert far.tolist() == [[True, True, False, False]]
+    assert not excluded_tokens(*args).any()  # without the second test a lone agent has nothing to avoid
+
+
+def test_the_batched_env_and_a_finetuning_config_carry_the_shield(samples, prior):
+    pytest.importorskip("torchrl", reason="the rl extra (torchrl) is not installed")
+    from torchrl.envs.utils import check_env_specs
+
+    from agents.finetune_config import FinetuneConfigError, load_finetune_config
+    from envs import smart_traffic_batched_v0
+
+    model, vocab = prior
+    env = smart_traffic_batched_v0.SmartTrafficBatchedEnv(scenarios=samples, prior=model, motion_vocab=vocab, num_scenes=3,
+                                                          controlled="vehicles", max_agents=4, horizon_steps=3, reference_top_k=K,
+                                                          shield=True, scene_order="sequential")
+    check_env_specs(env, seed=0)
+    td = env.reset()
+    fastest = int(vocab[AgentType.VEHICLE].poses[:, -1, 0].argmax())
+    seen = 0
+    for _ in range(2):  # the agents take the token that goes farthest ahead, whatever their masks say
+        td["agents", "action"] = torch.full_like(td["agents", "mask"], fastest, dtype=torch.long)
+        td = env.step(td)["next"]
+        logits, live = td["agents", "observation", "prior_logits"], td["agents", "mask"]
+        seen += int(torch.isinf(logits[live]).sum())
+        assert torch.isfinite(logits[live]).sum(-1).min() >= K  # k tokens are always left to draw from
+        assert not torch.isinf(logits[~live]).any()  # padded and done slots stay zeros
+    assert seen > 0
+    cfg = load_finetune_config("tiny", ["shield=true"])
+    assert cfg.shield == SHIELD_CHECKS and cfg.to_dict()["shield"] == list(SHIELD_CHECKS)
+    assert load_finetune_config("tiny", ['shield=["offroad"]']).shield == ("offroad",)
+    with pytest.raises(FinetuneConfigError, match="shield must be a list of"):
+        load_finetune_config("tiny", ['shield=["brakes"]'])
