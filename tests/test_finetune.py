@@ -11,6 +11,7 @@ folder: a trained prior is not needed for the properties pinned here."""
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -509,3 +510,24 @@ def test_tiny_finetune_then_evaluate_on_held_out_scenes(shared_data, prior_path,
     for r in rows.values():
         assert 0 < r["meta_metric"] < 1 and 0 <= r["collision_rate"] <= 1 and np.isfinite(r["progress_m"])
     assert rows["expert (log)"]["min_ade"] < rows["prior full softmax"]["min_ade"]  # the log-follower stays near its log
+
+
+def test_a_short_run_with_the_shield_trains_on_masked_logits_and_evaluates_with_it(shared_data, prior_path, tmp_path, monkeypatch):
+    """The shield puts -inf in the prior's logits: PPO, the KL and the evaluation must stay finite, and the
+    checkpoint keeps the setting (the policy is evaluated with the shield it was trained with)."""
+    import envs._core
+
+    taken_out = []
+    shield = envs._core.unsafe_tokens
+    monkeypatch.setattr(envs._core, "unsafe_tokens", lambda *a: taken_out.append(int((out := shield(*a)).sum())) or out)
+    cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, tmp_path, iterations=2, frames_per_batch=32, minibatch_size=32,
+                                            ppo_epochs=1, eval_episodes=1, critic="ippo", shield=["collision", "offroad"]))
+    result = finetune(cfg)
+    for row in result.history:
+        assert all(math.isfinite(row[k]) for k in ("loss_objective", "loss_critic", "loss_prior_kl", "kl_to_prior")), row
+    assert result.history[1]["kl_to_prior"] > 1e-6  # it learnt something
+    saved, _, _ = load_policy(result.checkpoint)
+    assert saved.shield == ("collision", "offroad")
+    rows = result.evaluation["rows"]
+    assert math.isfinite(rows["fine-tuned"]["kl_to_reference"]) and rows["fine-tuned"]["agent_episodes"] > 0
+    assert sum(taken_out) > 0  # the shield did take tokens out along the way
