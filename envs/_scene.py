@@ -13,7 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from smart_marl.geometry import RoadEdgeSegments
-from smart_marl.scenario import MapFeatureType, Scenario
+from smart_marl.geometry_torch import scene_road_edges
+from smart_marl.scenario import Scenario
 from smart_marl.tokens import MOTION_TYPES
 
 ROAD_POINT_SPACING_M = 2.0  # road points kept for observations: about one every 2 m along each polyline
@@ -63,22 +64,13 @@ def _road_points(scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:
     return pts[first], rm.types[feat[first]].astype(np.int64)
 
 
-def _road_edges(scenario: Scenario) -> RoadEdgeSegments | None:
-    rm = scenario.road_map
-    edges = [rm.feature_points(i) for i in rm.indices_of(MapFeatureType.ROAD_EDGE)]
-    seg = RoadEdgeSegments.from_polylines(edges)
-    return seg if seg.num_segments else None
-
-
 def scene_static(scenario: Scenario) -> SceneStatic:
     tr = scenario.tracks
     cf = scenario.current_frame
     names = tr.names()
     types = tr.types.astype(np.int64)
     is_motion = np.isin(types, [int(t) for t in MOTION_TYPES])
-    seen = tr.valid[:, : cf + 1]
-    last = np.where(seen.any(1), cf - np.argmax(seen[:, ::-1], axis=1), 0)
-    z = tr.position[np.arange(tr.num_tracks), last, 2].astype(np.float64)
+    z = tr.z_at(cf)
     # logged route: positions from the current frame to the end, valid frames only
     route_xy = tr.position[:, cf:, :2].astype(np.float64)
     route_valid = tr.valid[:, cf:].copy()
@@ -101,7 +93,7 @@ def scene_static(scenario: Scenario) -> SceneStatic:
     return SceneStatic(
         scenario=scenario, names=names, name_to_track={n: i for i, n in enumerate(names)}, types=types, is_motion=is_motion,
         controllable=is_motion & tr.valid[:, cf], box_size=tr.box_size().astype(np.float64), z=z, road_xy=road_xy,
-        road_type=road_type, road_edges=_road_edges(scenario), route_xy=route_xy, route_valid=route_valid, route_arc_m=arc,
+        road_type=road_type, road_edges=scene_road_edges(scenario.road_map), route_xy=route_xy, route_valid=route_valid, route_arc_m=arc,
         route_length_m=length, goal_xy=goal, light_xy=scenario.traffic_lights.stop_points[:, :2].astype(np.float64),
     )
 

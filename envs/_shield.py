@@ -24,12 +24,11 @@ step's in-between frames.
 
 from __future__ import annotations
 
-from dataclasses import fields
 from typing import Sequence
 
 import torch
 
-from smart_marl.geometry_torch import RoadEdgeTensors, box_corners_bottom, signed_distance_to_road_edges
+from smart_marl.geometry_torch import boxes_off_road
 from smart_marl.rollout import RolloutState
 from smart_marl.rollout.avoidance import excluded_tokens
 from smart_marl.rollout.frames import compose_torch
@@ -53,19 +52,7 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
     also = None
     if "offroad" in checks:
         track = ctrl_track[cb, cc]
-        vehicle = scenes.types[cb, track] == int(AgentType.VEHICLE)
-        size, z = scenes.box_size[cb, track], scenes.z[cb, track]
-        local_end = prior.token_poses[prior.agent_type[cb, slot], :, -1]  # [M, V, 3] each token's end, agent frame
-        now = prior.current_pose[cb, slot]
-
-        def off_road(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
-            """[R, c]: token ``tok`` [R, c] of agents ``r`` [R] ends with a corner off the road."""
-            end = compose_torch(now[r][:, None], local_end[r].gather(1, tok[..., None].expand(-1, -1, 3)))  # [R, c, 3]
-            corners = box_corners_bottom(end[..., :2], end[..., 2], size[r][:, None].expand(-1, tok.shape[1], -1),
-                                         z[r][:, None].expand(-1, tok.shape[1]))  # [R, c, 4, 3]
-            return vehicle[r][:, None] & (_edge_distance(scenes.edges, cb[r], corners) > 0)
-
-        also = off_road
+        also = _offroad_test(scenes, cb, track, prior.current_pose[cb, slot], prior.token_poses[prior.agent_type[cb, slot], :, -1])
     present = prior.simulated if "collision" in checks else torch.zeros_like(prior.simulated)  # no other agent blocks
     rows = cb * prior.num_slots + slot
     k = 0 if top_k is None else int(top_k)
@@ -74,19 +61,18 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
     return out
 
 
-def _edge_distance(edges: RoadEdgeTensors, scene: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
-    """[R, c] the largest signed distance to the road edges of a box's 4 ``corners`` [R, c, 4, 3] (row
-    ``i``'s in scene ``scene[i]``, ``scene`` ascending): the rows packed scene by scene, the scenes
-    they are in alone searched."""
-    r, c = corners.shape[:2]
-    used, where = torch.unique_consecutive(scene, return_inverse=True)
-    counts = torch.bincount(where, minlength=len(used))
-    rank = torch.arange(r, device=scene.device) - (counts.cumsum(0) - counts)[where]
-    packed = corners.new_zeros(len(used), int(counts.max()), c * 4, 3)
-    packed[where, rank] = corners.reshape(r, c * 4, 3)
-    sub = RoadEdgeTensors(**{f.name: getattr(edges, f.name)[used] for f in fields(RoadEdgeTensors)})
-    dist = signed_distance_to_road_edges(packed.view(len(used), -1, 3), sub, group=4)
-    return dist.view(len(used), -1, c, 4)[where, rank].amax(-1)
+def _offroad_test(scenes: SceneBatch, scene: torch.Tensor, track: torch.Tensor, pose: torch.Tensor, token_ends: torch.Tensor):
+    """``also`` of :func:`~smart_marl.rollout.avoidance.excluded_tokens` for agents ``track`` [M] of scenes ``scene``
+    [M] (ascending) at ``pose`` [M, 3], their type's token ends ``token_ends`` [M, V, 3] in their own frame:
+    ``test(r [R], tokens [R, c]) -> bool [R, c]``, a vehicle's token that ends with a bottom corner of its box
+    beyond a road edge (:func:`~smart_marl.geometry_torch.boxes_off_road`, the reward's offroad event)."""
+    vehicle = scenes.types[scene, track] == int(AgentType.VEHICLE)
+    size, z = scenes.box_size[scene, track], scenes.z[scene, track]
+
+    def test(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
+        end = compose_torch(pose[r][:, None], token_ends[r].gather(1, tok[..., None].expand(-1, -1, 3)))  # [R, c, 3]
+        return vehicle[r][:, None] & boxes_off_road(scenes.edges, scene[r], end[..., :2], end[..., 2], size[r], z[r])
+    return test
 
 
 __all__ = ["SHIELD_CHECKS", "unsafe_tokens"]

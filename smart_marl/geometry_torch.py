@@ -20,6 +20,7 @@ from typing import Callable, NamedTuple, Sequence
 import torch
 
 from .geometry import CORNER_ROUNDING_FACTOR, Z_STRETCH, RoadEdgeSegments
+from .road_map import MapFeatureType
 
 _SIGN_L = (1.0, -1.0, -1.0, 1.0)  # front-left, rear-left, rear-right, front-right (counter-clockwise)
 _SIGN_W = (1.0, 1.0, -1.0, -1.0)
@@ -333,6 +334,39 @@ def signed_distance_to_road_edges(points: torch.Tensor, edges: RoadEdgeTensors, 
     return torch.where(any_edge, sign * d2, torch.full_like(d2, float("-inf")))
 
 
+def scene_road_edges(road_map) -> RoadEdgeSegments | None:
+    """The road-edge segments of a scene's :class:`~smart_marl.road_map.RoadMap` (its ROAD_EDGE polylines, in
+    the scene's frame), or None when it has none."""
+    seg = RoadEdgeSegments.from_polylines([road_map.feature_points(i) for i in road_map.indices_of(MapFeatureType.ROAD_EDGE)])
+    return seg if seg.num_segments else None
+
+
+OFF_ROAD_BLOCK_POINTS = 1 << 15
+"""Box corners :func:`boxes_off_road` measures at once."""
+
+
+def boxes_off_road(edges: RoadEdgeTensors, scene: torch.Tensor, xy: torch.Tensor, heading: torch.Tensor, size: torch.Tensor,
+                   z: torch.Tensor) -> torch.Tensor:
+    """bool [R, c]: does a box (centre ``xy`` [R, c, 2], ``heading`` [R, c], ``size`` [R, 3] length, width,
+    height, its centre's height ``z`` [R]; row ``i`` in scene ``scene[i]`` of ``edges``, ``scene`` ascending)
+    have a bottom corner off the road (signed distance to the road edges > 0: the offroad event's test)?
+    The rows are packed scene by scene and only the scenes they are in are searched."""
+    r, c = xy.shape[:2]
+    step = max(1, OFF_ROAD_BLOCK_POINTS // (4 * c))
+    if r > step:  # in blocks of rows: the edge search's intermediates grow with the points searched at once
+        return torch.cat([boxes_off_road(edges, scene[i:i + step], xy[i:i + step], heading[i:i + step], size[i:i + step],
+                                         z[i:i + step]) for i in range(0, r, step)])
+    corners = box_corners_bottom(xy, heading, size[:, None].expand(-1, c, -1), z[:, None].expand(-1, c))  # [R, c, 4, 3]
+    used, where = torch.unique_consecutive(scene, return_inverse=True)
+    counts = torch.bincount(where, minlength=len(used))
+    rank = torch.arange(r, device=scene.device) - (counts.cumsum(0) - counts)[where]
+    packed = corners.new_zeros(len(used), int(counts.max()), c * 4, 3)
+    packed[where, rank] = corners.reshape(r, c * 4, 3)
+    sub = RoadEdgeTensors(**{f.name: getattr(edges, f.name)[used] for f in fields(RoadEdgeTensors)})
+    dist = signed_distance_to_road_edges(packed.view(len(used), -1, 3), sub, group=4)
+    return dist.view(len(used), -1, c, 4)[where, rank].amax(-1) > 0
+
+
 def box_corners_bottom(xy: torch.Tensor, heading: torch.Tensor, size: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
     """The 4 bottom corners [..., 4, 3] of boxes (``size`` [..., 3] length, width, height; ``z`` the
     box centre's height), the points the offroad test reads (:func:`smart_marl.geometry.box_distance_to_road_edge`)."""
@@ -341,5 +375,5 @@ def box_corners_bottom(xy: torch.Tensor, heading: torch.Tensor, size: torch.Tens
     return torch.cat([xy4, zb], -1)
 
 
-__all__ = ["RoadEdgeTensors", "box_corners", "box_corners_bottom", "boxes_overlap", "boxes_overlap_rotated", "nearest_road_edge", "polygon_distance",
-           "rounded_boxes_overlap", "signed_distance_to_road_edges"]
+__all__ = ["RoadEdgeTensors", "box_corners", "box_corners_bottom", "boxes_off_road", "boxes_overlap", "boxes_overlap_rotated", "nearest_road_edge", "polygon_distance",
+           "rounded_boxes_overlap", "scene_road_edges", "signed_distance_to_road_edges"]

@@ -202,6 +202,13 @@ class Tracks:
                 out = np.nanmedian(size, axis=1)
         return np.nan_to_num(out, nan=0.0).astype(np.float32)
 
+    def z_at(self, frame: int) -> np.ndarray:
+        """[N] float64, each track's z at its last valid frame at or before ``frame`` (its first frame's
+        when it has none): the height its box is carried at in simulation."""
+        seen = self.valid[:, : frame + 1]
+        last = np.where(seen.any(1), frame - np.argmax(seen[:, ::-1], axis=1), 0)
+        return self.position[np.arange(len(self.ids)), last, 2].astype(np.float64)
+
     def names(self) -> list[str]:
         """``"vehicle_1234"``-style names: type and track id."""
         return [f"{AgentType(int(t)).name.lower()}_{int(i)}" for t, i in zip(self.types, self.ids)]

@@ -161,3 +161,32 @@ def test_the_batched_env_and_a_finetuning_config_carry_the_shield(samples, prior
     assert load_finetune_config("tiny", ['shield=["offroad"]']).shield == ("offroad",)
     with pytest.raises(FinetuneConfigError, match="shield must be a list of"):
         load_finetune_config("tiny", ['shield=["brakes"]'])
+
+
+def test_boxes_off_road_is_the_offroad_event_in_any_blocks_of_rows(samples, monkeypatch):
+    """The shield's offroad check (rows packed scene by scene, in blocks) against the reward's offroad test
+    of the same boxes, scene by scene."""
+    import smart_marl.geometry_torch as gt
+    from envs._scene import scene_static
+    from envs._scene_batch import SceneBatch
+
+    sb = SceneBatch.build([scene_static(sc) for sc in samples[:3]], torch.float64, "cpu")
+    gen = torch.Generator().manual_seed(0)
+    scene = torch.tensor([0] * 5 + [2] * 7)  # rows of scenes 0 and 2, none of scene 1
+    vehicles = [(sb.types[b] == int(AgentType.VEHICLE)).nonzero().squeeze(1) for b in range(sb.num_scenes)]
+    track = torch.stack([vehicles[int(b)][k % len(vehicles[int(b)])] for k, b in enumerate(scene)])  # vehicles: the event's agents
+    lo, hi = sb.log_pose[..., :2].amin((1, 2)), sb.log_pose[..., :2].amax((1, 2))  # [B, 2] each scene's extent
+    xy = lo[scene][:, None] + (hi - lo)[scene][:, None] * torch.rand(len(scene), 6, 2, generator=gen, dtype=torch.float64)
+    heading = torch.rand(len(scene), 6, generator=gen, dtype=torch.float64) * 6.28
+    size, z = sb.box_size[scene, track], sb.z[scene, track]
+    got = gt.boxes_off_road(sb.edges, scene, xy, heading, size, z)
+    monkeypatch.setattr(gt, "OFF_ROAD_BLOCK_POINTS", 4 * 6 * 2)  # two rows a block
+    assert torch.equal(gt.boxes_off_road(sb.edges, scene, xy, heading, size, z), got)
+    for i in range(len(scene)):
+        b = int(scene[i])
+        ctrl = torch.full((sb.num_scenes, 6), -1, dtype=torch.long)
+        ctrl[b] = track[i]
+        last = torch.zeros(sb.num_scenes, 6, 3, dtype=torch.float64)
+        last[b] = torch.cat([xy[i], heading[i][:, None]], -1)
+        assert torch.equal(offroad(sb, ctrl, ctrl >= 0, last)[b], got[i])
+    assert got.any() and not got.all()  # both outcomes exercised
