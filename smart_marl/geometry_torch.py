@@ -350,7 +350,8 @@ def boxes_off_road(edges: RoadEdgeTensors, scene: torch.Tensor, xy: torch.Tensor
     """bool [R, c]: does a box (centre ``xy`` [R, c, 2], ``heading`` [R, c], ``size`` [R, 3] length, width,
     height, its centre's height ``z`` [R]; row ``i`` in scene ``scene[i]`` of ``edges``, ``scene`` ascending)
     have a bottom corner off the road (signed distance to the road edges > 0: the offroad event's test)?
-    The rows are packed scene by scene and only the scenes they are in are searched."""
+    The rows are packed scene by scene; when they are in most of the scenes, the batch's edges are searched
+    (their blocks are kept from call to call), else only those of the scenes they are in."""
     r, c = xy.shape[:2]
     step = max(1, OFF_ROAD_BLOCK_POINTS // (4 * c))
     if r > step:  # in blocks of rows: the edge search's intermediates grow with the points searched at once
@@ -360,11 +361,15 @@ def boxes_off_road(edges: RoadEdgeTensors, scene: torch.Tensor, xy: torch.Tensor
     used, where = torch.unique_consecutive(scene, return_inverse=True)
     counts = torch.bincount(where, minlength=len(used))
     rank = torch.arange(r, device=scene.device) - (counts.cumsum(0) - counts)[where]
-    packed = corners.new_zeros(len(used), int(counts.max()), c * 4, 3)
+    b = edges.valid.shape[0]
+    if 2 * len(used) > b:  # most scenes: every scene's row (the others padding), the edges as they are
+        where, sub = used[where], edges
+    else:  # a few scenes: theirs alone (their blocks computed afresh)
+        sub = RoadEdgeTensors(**{f.name: getattr(edges, f.name)[used] for f in fields(RoadEdgeTensors)})
+    packed = corners.new_zeros(sub.valid.shape[0], int(counts.max()), c * 4, 3)
     packed[where, rank] = corners.reshape(r, c * 4, 3)
-    sub = RoadEdgeTensors(**{f.name: getattr(edges, f.name)[used] for f in fields(RoadEdgeTensors)})
-    dist = signed_distance_to_road_edges(packed.view(len(used), -1, 3), sub, group=4)
-    return dist.view(len(used), -1, c, 4)[where, rank].amax(-1) > 0
+    dist = signed_distance_to_road_edges(packed.view(packed.shape[0], -1, 3), sub, group=4)
+    return dist.view(packed.shape[0], -1, c, 4)[where, rank].amax(-1) > 0
 
 
 def box_corners_bottom(xy: torch.Tensor, heading: torch.Tensor, size: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
