@@ -155,7 +155,8 @@ def main() -> int:
     p.add_argument("--scenes", default=None, help="scenes (any path read_scenarios reads; default: the shared real scenes)")
     p.add_argument("--prior", default="embedded")
     p.add_argument("--num-scenes", default="1,8,32,128", help="batch sizes of the batched env")
-    p.add_argument("--steps", type=int, default=32, help="timed steps per configuration and repeat")
+    p.add_argument("--steps", type=int, default=32, help="timed steps per configuration and repeat, at least (more where it takes "
+                   "more for every scene to be played once)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--horizon", type=int, default=16)
     p.add_argument("--background", default="prior", choices=("prior", "log", "constant_velocity"))
@@ -202,10 +203,13 @@ def main() -> int:
         batched[b] = env
     # the repeats interleave the configurations, so that a load that comes and goes weighs on all of them alike
     runs = {"pettingzoo": [], **{b: [] for b in sizes}}
+    # every repeat plays every scene at least once on each env (the PettingZoo env starts from the first scene each
+    # time; the batched env goes on through the pool): both are timed on the same scenes, not on the first few
+    every = len(usable) * args.horizon
     for _ in range(args.repeats):
-        runs["pettingzoo"].append(time_pettingzoo(pz, usable, args.steps))
+        runs["pettingzoo"].append(time_pettingzoo(pz, usable, max(args.steps, every)))
         for b in sizes:
-            runs[b].append(time_batched(batched[b], args.steps))
+            runs[b].append(time_batched(batched[b], max(args.steps, -(-every // b))))
     base = summarise(runs["pettingzoo"])
     print(json.dumps(dict(env="pettingzoo", num_scenes=1, **base, rss_mb=round(rss_mb()), **common)), flush=True)
     for b in sizes:

@@ -145,3 +145,20 @@ def test_a_collector_resets_only_the_done_scenes(samples, prior):
     done = batches[0]["next", "done"].squeeze(-1)
     assert done[:, 1].all() and not done[:, 0].any()  # every 2 steps each scene ends and is refilled
     assert (batches[0]["agents", "mask"][:, 2].any(-1)).all()
+
+
+def test_refills_of_a_one_scene_batch_leave_the_kept_fresh_states_as_they_were(samples, prior):
+    """A batch of one scene is a copy of the scene's kept fresh prior state, not a fork sharing its tensors:
+    refills write into the batch's state in place and must not write into the kept ones (a later episode of
+    the scene would start from another scene's agents, or fail on tensors that alias)."""
+    env = batched(samples, prior, num_scenes=1, horizon_steps=1, terminate_on=())
+    td = env.reset()
+    kept = {key: {name: getattr(st, name).clone() for name in ("agent_type", "pose", "simulated", "road_x")}
+            for key, st in env.core._pristine.items()}
+    for _ in range(2 * len(samples)):  # every scene twice: each refill puts the next one in the row
+        td["agents", "action"] = td["agents", "observation", "prior_logits"].argmax(-1)
+        td = step_mdp(env.step(td))
+        td = env.reset(td.set("_reset", td["done"].clone()))
+    for key, before in kept.items():
+        for name, value in before.items():
+            assert torch.equal(getattr(env.core._pristine[key], name), value), (key, name)

@@ -63,8 +63,8 @@ def stack_states(states: Sequence[RolloutState], seed: int) -> RolloutState:
     sampler seeded with ``seed``. The inputs are not changed and share nothing written later."""
     _check(states)
     states = _same_phase(states)
-    if len(states) == 1:
-        return states[0].fork(seed)
+    # one state too goes through the concatenations below (copies): a fork alone would share the tensors that
+    # replace_scenes writes in place, and a refill of the result would write into the state it came from
     first = states[0]
     n = max(st.num_slots for st in states)
     pieces = max(st.road_pose.shape[1] for st in states)
