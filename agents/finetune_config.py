@@ -10,10 +10,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from envs._arguments import MAX_HORIZON_STEPS
+from envs._arguments import MAX_HORIZON_STEPS, shield_checks
 from envs._reward import RewardConfig
 from envs._setup import MOVING_MIN_ROUTE_M
-from envs._shield import SHIELD_CHECKS
+from envs.errors import EnvConfigError
 from smart_marl.config_files import (apply_overrides, check_fields, device_problem, flag, integer, number, one_of, optional,
                                      output_dir_problem, read_config_file, text)
 from smart_marl.config_files import seed as seed_rule
@@ -126,11 +126,13 @@ def load_finetune_config(config: str | Mapping[str, Any] | None = None, override
         values.update(read_config_file(p, "fine-tuning", FinetuneError))
     values = {k: v for k, v in values.items() if not k.startswith("_")}  # "_comment" and the like
     values = apply_overrides(values, overrides, FinetuneConfig, "reward", "reward", "fine-tuning", FinetuneConfigError)
-    for name in ("terminate_on", "shield"):  # lists in JSON
-        if isinstance(values.get(name), (list, tuple)):
-            values[name] = tuple(values[name])
-    if values.get("shield") is True:  # shield=true: every check
-        values["shield"] = SHIELD_CHECKS
+    if isinstance(values.get("terminate_on"), (list, tuple)):
+        values["terminate_on"] = tuple(values["terminate_on"])
+    if "shield" in values:  # the env's own reading of it: true, false, a name or a list of names
+        try:
+            values["shield"] = shield_checks(values["shield"])
+        except EnvConfigError as exc:
+            raise FinetuneConfigError(f"fine-tuning config: {exc}") from None
     cfg = FinetuneConfig(**values)
     check_fields(cfg, _FINETUNE_RULES, "fine-tuning", FinetuneConfigError)
     if cfg.critic not in ("mappo", "ippo"):
@@ -165,8 +167,6 @@ _FINETUNE_RULES = {
     else f"must map reward terms to finite weights, got {v!r}",
     "terminate_on": lambda v: None if isinstance(v, tuple) and all(isinstance(e, str) for e in v) else f"must be a list of event names, got {v!r}",
     "top_k": optional(integer(1)), "temperature": temperature_rule, "reference_top_k": optional(integer(1)), "residual": flag,
-    "shield": lambda v: None if isinstance(v, tuple) and all(c in SHIELD_CHECKS for c in v)
-    else f"must be a list of {list(SHIELD_CHECKS)}, got {v!r}",
     "actor_head": one_of(*ACTOR_HEADS), "hidden": integer(1, 4096, "16x the default"), "depth": integer(1, 16),
     "obs_scale": number(0.0, low_open=True), "critic": text, "beta": number(0.0), "imitation": number(0.0), "gamma": number(0.0, 1.0),
     "lmbda": number(0.0, 1.0), "clip_epsilon": number(0.0, low_open=True), "entropy_coeff": number(0.0),

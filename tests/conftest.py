@@ -78,6 +78,14 @@ def kdisks_vocab():
 
 
 @pytest.fixture(scope="session")
+def embedded_prior():
+    """(model, motion vocabulary) of the package's embedded prior, on the CPU."""
+    from smart_marl.model.checkpoint import load_prior
+
+    return load_prior("embedded", "cpu")
+
+
+@pytest.fixture(scope="session")
 def sample_scenes():
     """The package's embedded sample scenes (smart_marl.embedded; SUMO, 91 frames, current frame 10):
     sumo-7-000000-00 .. -03 with 22, 25, 44 and 10 tracks (vehicles, pedestrians and cyclists; no OTHER).

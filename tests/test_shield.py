@@ -13,9 +13,7 @@ from envs import smart_traffic_v0
 from envs._reward import offroad
 from envs._shield import SHIELD_CHECKS
 from envs.errors import EnvConfigError, EnvConfigTypeError
-from smart_marl.embedded import sample_scenarios
 from smart_marl.geometry_torch import boxes_overlap
-from smart_marl.model.checkpoint import load_prior
 from smart_marl.rollout.avoidance import constant_velocity_pose, excluded_tokens
 from smart_marl.rollout.frames import token_frames
 from smart_marl.scenario import AgentType
@@ -25,19 +23,9 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.p
 K = 3
 
 
-@pytest.fixture(scope="module")
-def prior():
-    return load_prior("embedded", "cpu")
-
-
-@pytest.fixture(scope="module")
-def samples():
-    return sample_scenarios()
-
-
-def _env(samples, prior, **kw):
+def _env(scenes, prior, **kw):
     model, vocab = prior
-    args = dict(scenarios=samples, prior=model, motion_vocab=vocab, controlled="vehicles", max_agents=8, horizon_steps=6,
+    args = dict(scenarios=scenes, prior=model, motion_vocab=vocab, controlled="vehicles", max_agents=8, horizon_steps=6,
                 terminate_on=(), reference_top_k=K, observation="dict", shield=True)
     args.update(kw)
     return smart_traffic_v0.parallel_env(**args)
@@ -71,23 +59,23 @@ def _brute_force(core, b: int, c: int, tokens: torch.Tensor) -> torch.Tensor:
     return hit | off
 
 
-def test_shield_arguments_are_checked_and_normalised(samples, prior):
-    assert _env(samples[:1], prior).shield == SHIELD_CHECKS
-    assert _env(samples[:1], prior, shield=["offroad", "collision"]).shield == SHIELD_CHECKS  # the canonical order
-    assert _env(samples[:1], prior, shield="offroad").shield == ("offroad",)
-    assert _env(samples[:1], prior, shield=False).shield == ()
+def test_shield_arguments_are_checked_and_normalised(sample_scenes, embedded_prior):
+    assert _env(sample_scenes[:1], embedded_prior).shield == SHIELD_CHECKS
+    assert _env(sample_scenes[:1], embedded_prior, shield=["offroad", "collision"]).shield == SHIELD_CHECKS  # the canonical order
+    assert _env(sample_scenes[:1], embedded_prior, shield="offroad").shield == ("offroad",)
+    assert _env(sample_scenes[:1], embedded_prior, shield=False).shield == ()
     with pytest.raises(EnvConfigError, match=r"shield: unknown check\(s\) \['seatbelt'\]"):
-        _env(samples[:1], prior, shield=["seatbelt"])
+        _env(sample_scenes[:1], embedded_prior, shield=["seatbelt"])
     with pytest.raises(EnvConfigTypeError, match="shield must be True, False or a list"):
-        _env(samples[:1], prior, shield=3)
+        _env(sample_scenes[:1], embedded_prior, shield=3)
 
 
-def test_the_shield_takes_out_exactly_unsafe_tokens_and_keeps_k_safe_ones_on_top(samples, prior):
-    env = _env(samples, prior)
+def test_the_shield_takes_out_exactly_unsafe_tokens_and_keeps_k_safe_ones_on_top(sample_scenes, embedded_prior):
+    env = _env(sample_scenes, embedded_prior)
     rng = np.random.default_rng(0)
-    fastest = int(prior[1][AgentType.VEHICLE].poses[:, -1, 0].argmax())
+    fastest = int(embedded_prior[1][AgentType.VEHICLE].poses[:, -1, 0].argmax())
     taken_out, checked_agents = 0, 0
-    for index in range(len(samples)):
+    for index in range(len(sample_scenes)):
         obs, _ = env.reset(seed=index, options={"scene_index": index})
         for step in range(4):
             if not env.agents:
@@ -133,15 +121,15 @@ def test_an_agent_whose_every_token_fails_keeps_them_all_and_a_lone_agent_is_sti
     assert not excluded_tokens(*args).any()  # without the second test a lone agent has nothing to avoid
 
 
-def test_the_batched_env_and_a_finetuning_config_carry_the_shield(samples, prior):
+def test_the_batched_env_and_a_finetuning_config_carry_the_shield(sample_scenes, embedded_prior):
     pytest.importorskip("torchrl", reason="the rl extra (torchrl) is not installed")
     from torchrl.envs.utils import check_env_specs
 
     from agents.finetune_config import FinetuneConfigError, load_finetune_config
     from envs import smart_traffic_batched_v0
 
-    model, vocab = prior
-    env = smart_traffic_batched_v0.SmartTrafficBatchedEnv(scenarios=samples, prior=model, motion_vocab=vocab, num_scenes=3,
+    model, vocab = embedded_prior
+    env = smart_traffic_batched_v0.SmartTrafficBatchedEnv(scenarios=sample_scenes, prior=model, motion_vocab=vocab, num_scenes=3,
                                                           controlled="vehicles", max_agents=4, horizon_steps=3, reference_top_k=K,
                                                           shield=True, scene_order="sequential")
     check_env_specs(env, seed=0)
@@ -159,18 +147,18 @@ def test_the_batched_env_and_a_finetuning_config_carry_the_shield(samples, prior
     cfg = load_finetune_config("tiny", ["shield=true"])
     assert cfg.shield == SHIELD_CHECKS and cfg.to_dict()["shield"] == list(SHIELD_CHECKS)
     assert load_finetune_config("tiny", ['shield=["offroad"]']).shield == ("offroad",)
-    with pytest.raises(FinetuneConfigError, match="shield must be a list of"):
+    with pytest.raises(FinetuneConfigError, match=r"shield: unknown check\(s\) \['brakes'\]"):
         load_finetune_config("tiny", ['shield=["brakes"]'])
 
 
-def test_boxes_off_road_is_the_offroad_event_in_any_blocks_of_rows(samples, monkeypatch):
+def test_boxes_off_road_is_the_offroad_event_in_any_blocks_of_rows(sample_scenes, monkeypatch):
     """The shield's offroad check (rows packed scene by scene, in blocks) against the reward's offroad test
     of the same boxes, scene by scene."""
     import smart_marl.geometry_torch as gt
     from envs._scene import scene_static
     from envs._scene_batch import SceneBatch
 
-    sb = SceneBatch.build([scene_static(sc) for sc in samples[:3]], torch.float64, "cpu")
+    sb = SceneBatch.build([scene_static(sc) for sc in sample_scenes[:3]], torch.float64, "cpu")
     gen = torch.Generator().manual_seed(0)
     scene = torch.tensor([0] * 5 + [2] * 7)  # rows of scenes 0 and 2, none of scene 1
     vehicles = [(sb.types[b] == int(AgentType.VEHICLE)).nonzero().squeeze(1) for b in range(sb.num_scenes)]
