@@ -13,6 +13,7 @@ from typing import Any, Mapping, Sequence
 from envs._arguments import MAX_HORIZON_STEPS, shield_checks
 from envs._reward import RewardConfig
 from envs._setup import MOVING_MIN_ROUTE_M
+from envs._shield import SHIELD_CHECKS
 from envs.errors import EnvConfigError
 from smart_marl.config_files import (apply_overrides, check_fields, device_problem, flag, integer, number, one_of, optional,
                                      output_dir_problem, read_config_file, text)
@@ -167,6 +168,7 @@ _FINETUNE_RULES = {
     else f"must map reward terms to finite weights, got {v!r}",
     "terminate_on": lambda v: None if isinstance(v, tuple) and all(isinstance(e, str) for e in v) else f"must be a list of event names, got {v!r}",
     "top_k": optional(integer(1)), "temperature": temperature_rule, "reference_top_k": optional(integer(1)), "residual": flag,
+    "shield": lambda v: None if isinstance(v, tuple) and set(v) <= set(SHIELD_CHECKS) else f"must be a list of {list(SHIELD_CHECKS)}, got {v!r}",
     "actor_head": one_of(*ACTOR_HEADS), "hidden": integer(1, 4096, "16x the default"), "depth": integer(1, 16),
     "obs_scale": number(0.0, low_open=True), "critic": text, "beta": number(0.0), "imitation": number(0.0), "gamma": number(0.0, 1.0),
     "lmbda": number(0.0, 1.0), "clip_epsilon": number(0.0, low_open=True), "entropy_coeff": number(0.0),
