@@ -8,7 +8,7 @@ Prints one JSON line per number of scenes: ``num_scenes``, ``device`` (and ``gpu
 token exclusion, dynamics, events, rewards, observations), ``refill_ms_per_scene``, peak memory. The step
 is the core's, with observations and the controlled agents' prior logits read every step, as the TorchRL
 face reads them; TorchRL's own bookkeeping is not included (``env_throughput.py`` measures the TorchRL face).
-Actions: each controlled agent's prior most likely token. Finished scenes are refilled from the pool in
+Actions: each controlled agent's prior most likely token (with ``--shield``, of the tokens the shield leaves). Finished scenes are refilled from the pool in
 order (their starts are kept after the first pass, which is not timed). Medians of ``--repeats``.
 
     python benchmarks/env_throughput_core.py --device cuda --num-scenes 32,128,512,1024 --scenes DIR_OR_SHARDS...
@@ -83,6 +83,8 @@ def main() -> int:
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--no-collision-avoidance", action="store_true")
+    p.add_argument("--shield", action="store_true", help="the controlled agents' shield (envs._shield: collision and offroad), "
+                   "checked to the top 3")
     p.add_argument("--tf32", action="store_true", help="CUDA: TensorFloat-32 matrix products (torch.backends.cuda.matmul.allow_tf32)")
     p.add_argument("--profile", action="store_true", help="also print torch.profiler's table of the timed steps' heaviest operations")
     args = p.parse_args()
@@ -93,6 +95,7 @@ def main() -> int:
 
     from envs._core import TrafficCore
     from envs._pool import ScenePool, next_scenes
+    from envs._shield import SHIELD_CHECKS
     from smart_marl.model.checkpoint import load_prior
     from smart_marl.tokens import MOTION_TYPES
 
@@ -103,14 +106,15 @@ def main() -> int:
     common = dict(benchmark="env_throughput_core", background="prior", prior=args.prior, controlled=args.controlled,
                   max_agents=args.max_agents, horizon_steps=args.horizon, device=str(device), torch=torch.__version__,
                   torch_threads=args.threads, cpu=platform.processor() or platform.machine(), cpus=os.cpu_count(),
-                  avoid_collisions=not args.no_collision_avoidance, tf32=args.tf32)
+                  avoid_collisions=not args.no_collision_avoidance, shield=args.shield, tf32=args.tf32)
     if device.type == "cuda":
         common["gpu"] = torch.cuda.get_device_name(device)
     for b in [int(x) for x in args.num_scenes.split(",")]:
         pool = ScenePool(args.scenes, "sequential", max_loaded=4096)
         common["pool_scenes"] = len(pool)
         core = TrafficCore(model, vocab, "prior", args.horizon, terminate_on=(), device=device, prior_cache_size=4096,
-                           avoid_collisions=not args.no_collision_avoidance)
+                           avoid_collisions=not args.no_collision_avoidance,
+                           **(dict(shield=SHIELD_CHECKS, shield_top_k=3) if args.shield else {}))
         t0 = time.perf_counter()
         _, scenes = next_scenes(pool, b, args.controlled, args.max_agents, types)
         core.reset(scenes, seed=0, num_agents=args.max_agents)

@@ -129,6 +129,8 @@ def main() -> int:
     p.add_argument("--png", default="docs/images/finetune_generalisation.png")
     p.add_argument("--rows", default="expert (log),prior full softmax",
                    help="baseline rows besides the reference (prior top-k), comma-separated")
+    p.add_argument("--skip-reference", action="store_true",
+                   help="leave out the reference's row (the prior at the reference's top-k; one measured elsewhere)")
     p.add_argument("--only", choices=("train", "eval-generated", "eval-real", "table"), default=None,
                    help="do one piece of the work (the runs it needs must exist for eval-*)")
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides for every run")
@@ -181,11 +183,13 @@ def main() -> int:
         seeds = list(range(base.eval_seed, base.eval_seed + num_seeds))
         baselines = ft.evaluation_policies(base, None)
         reference = next(iter(k for k in baselines if k.startswith("prior top-")), "prior full softmax")
-        # the reference and the fine-tuned policies first (what the targets compare), the other rows after
-        todo = [(reference, baselines[reference], "baselines")]
+        # the fine-tuned policies and the reference first (what the targets compare), the other rows after
+        todo = []
         for n in sorted(runs, reverse=True):
             cfg_n, net, _ = ft.load_policy(runs[n])
             todo.append((f"fine-tuned {n}", ft.evaluation_policies(cfg_n, net)["fine-tuned"], "fine-tuned"))
+        if not args.skip_reference:
+            todo.append((reference, baselines[reference], "baselines"))
         todo += [(k, p, "baselines") for k, p in baselines.items() if k != reference and k in args.rows.split(",")]
         rows = {}
         for row_name, policy, kind in todo:

@@ -10,6 +10,9 @@
 # reference (prior top-3) and the fine-tuned policy on the first 200 held-out generated scenes x EVAL_SEEDS seeds and
 # on the real held-out scenes x REAL_SEEDS seeds, then the expert and the full softmax, on the GPU, until the script's
 # deadline (each row is cached as it finishes, so a row that did not finish is left out).
+# EXTRA: more key=value overrides for the run and its evaluation (e.g. 'shield=["collision","offroad"] reference_top_k=16');
+# SKIP_REF=1 leaves the reference's rows out; CORE_BENCH="256,1024" first times the env's core on the GPU at those numbers
+# of scenes, without and with the shield (benchmarks/env_throughput_core.py).
 set -u
 OUT=${OUT:-runs/gpu_ft}
 DEADLINE=$((SECONDS + ${TOTAL_S:-560}))
@@ -23,9 +26,17 @@ export PYTHONPATH=/tmp/pk:$PWD PYTHONUNBUFFERED=1
 { nvidia-smi --query-gpu=name,memory.total --format=csv,noheader; nproc; } >> "$OUT/setup.log" 2>&1
 python3 benchmarks/scene_pack.py unpack gpu_scenes_ft/train.npz.xz /tmp/train >> "$OUT/setup.log" 2>&1
 python3 benchmarks/scene_pack.py unpack gpu_scenes_ft/heldout.npz.xz /tmp/heldout >> "$OUT/setup.log" 2>&1
+read -r -a EXTRA_OVER <<< "${EXTRA:-}"
+if [ -n "${CORE_BENCH:-}" ]; then
+  for flag in "" --shield; do
+    timeout "${T_CORE:-60}" python3 benchmarks/env_throughput_core.py --device cuda --threads 8 --scenes /tmp/train \
+        --num-scenes "$CORE_BENCH" --steps 16 --repeats 2 $flag >> "$OUT/core_throughput.jsonl" 2>> "$OUT/core_throughput.err"
+    echo "core bench [$flag] rc=$? at ${SECONDS}s" >> "$OUT/core_throughput.err"
+  done
+fi
 COMMON=(--train /tmp/train --heldout /tmp/heldout --sizes "$N" --run-dir "$RUN" --threads "${THREADS:-8}")
 OVER=(device="$DEV" num_envs="${NUM_ENVS:-512}" frames_per_batch="${FRAMES:-8192}" minibatch_size="${MB:-512}"
-      prior_cache_size="${CACHE:-2048}" iterations=100000 time_limit_s="${TRAIN_S:-330}" checkpoint_every="${CKPT:-20}" tensorboard=false torch_threads="${THREADS:-8}")
+      prior_cache_size="${CACHE:-2048}" iterations=100000 time_limit_s="${TRAIN_S:-330}" checkpoint_every="${CKPT:-20}" tensorboard=false torch_threads="${THREADS:-8}" "${EXTRA_OVER[@]}")
 timeout "$(left)" python3 benchmarks/finetune_generalisation.py "${COMMON[@]}" --only train "${OVER[@]}" \
     > "$OUT/train.jsonl" 2> "$OUT/train.err"
 echo "train rc=$? at ${SECONDS}s" >> "$OUT/train.err"
@@ -33,12 +44,13 @@ tar czf "$OUT/policy.tgz" -C "$RUN" "train_$N/checkpoints/policy_last.json" "tra
     "train_$N/run.json" "train_$N/config.json" 2>> "$OUT/train.err"
 python3 benchmarks/scene_pack.py unpack gpu_scenes_ft/real.npz.xz /tmp/real >> "$OUT/setup.log" 2>&1
 # the reference and the fine-tuned policy on both held-out sets first, then the expert and the full softmax
-EVAL=(device="$DEV" num_envs="${EVAL_ENVS:-800}" frames_per_batch=8192)
+EVAL=(device="$DEV" num_envs="${EVAL_ENVS:-800}" frames_per_batch=8192 "${EXTRA_OVER[@]}")
+SKIP=(); [ -n "${SKIP_REF:-}" ] && SKIP=(--skip-reference)
 for rows in "" "expert (log),prior full softmax"; do
-  for set in generated real; do
+  for set in real generated; do
     timeout "$(left)" python3 benchmarks/finetune_generalisation.py "${COMMON[@]}" --real-heldout /tmp/real \
         --only "eval-$set" --rows "$rows" --eval-scenes "${EVAL_SCENES:-200}" --eval-seeds "${EVAL_SEEDS:-8}" \
-        --real-seeds "${REAL_SEEDS:-48}" "${EVAL[@]}" >> "$OUT/eval.jsonl" 2>> "$OUT/eval.err"
+        --real-seeds "${REAL_SEEDS:-48}" "${SKIP[@]}" "${EVAL[@]}" >> "$OUT/eval.jsonl" 2>> "$OUT/eval.err"
     echo "eval $set [$rows] rc=$? at ${SECONDS}s" >> "$OUT/eval.err"
   done
 done
