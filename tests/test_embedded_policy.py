@@ -35,7 +35,8 @@ def test_the_shipped_policy_drives_the_sample_scenes_near_its_reference(shipped)
     cfg, net, _ = shipped
     model, vocab = load_prior("embedded")
     env = SmartTrafficBatchedEnv(scenarios="embedded", prior=model, motion_vocab=vocab, num_scenes=4, controlled="moving_vehicles",
-                                 max_agents=cfg.max_agents, horizon_steps=4, reference_top_k=cfg.reference_top_k, scene_order="sequential")
+                                 max_agents=cfg.max_agents, horizon_steps=4, reference_top_k=cfg.reference_top_k, shield=cfg.shield,
+                                 scene_order="sequential")
     td = env.reset()
     kls = []
     with torch.no_grad():
@@ -49,7 +50,7 @@ def test_the_shipped_policy_drives_the_sample_scenes_near_its_reference(shipped)
             td["agents", "action"] = logits.argmax(-1)
             td = env.step(td)["next"]
     kl = torch.cat(kls)
-    # fine-tuned: it moved away from the prior's top 3 (the run ended at a KL of 0.28 per step), but not far
+    # fine-tuned: it moved away from the shielded prior's top 16 (the run ended at a KL of 0.48 per step), but not far
     assert len(kl) > 0 and 1e-3 < float(kl.mean()) < 3.0, float(kl.mean())
 
 
@@ -69,3 +70,16 @@ def test_a_policy_trained_on_a_gpu_loads_on_the_cpu(tmp_path):
     (tmp_path / "gpu.json").write_text(json.dumps(meta))
     cfg, net, _ = load_policy(tmp_path / "gpu.json")
     assert cfg.device == "cpu" and all(p.device.type == "cpu" for p in net.parameters())
+
+
+def test_the_shipped_policy_evaluates_in_one_call_with_its_shield():
+    """The card's ``evaluate_checkpoint("embedded")``: the package's sample scenes after its first two, the rows
+    of the evaluation, the shielded prior's top 16 as the reference."""
+    from agents.finetune import evaluate_checkpoint
+
+    result = evaluate_checkpoint("embedded", episodes=1)
+    assert result["reference"] == "prior top-16"
+    rows = result["rows"]
+    assert {"expert (log)", "prior top-16", "fine-tuned"} <= set(rows)
+    tuned = rows["fine-tuned"]
+    assert tuned["agent_episodes"] > 0 and 0.0 <= tuned["goal_rate"] <= 1.0 and 0.0 < tuned["kl_to_reference"] < float("inf")
