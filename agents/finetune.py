@@ -54,6 +54,7 @@ from typing import Sequence
 import numpy as np
 import torch
 import torch.distributed as dist
+from torch import nn
 from tensordict.nn import TensorDictModule
 from torchrl.collectors import Collector
 from torchrl.data import Categorical
@@ -308,6 +309,8 @@ def _learner(cfg: FinetuneConfig, env: SmartTrafficBatchedEnv, model, vocab, dev
     obs_dim, vocab_size = int(env.observation_spec[OBS_KEY].shape[-1]), int(env.observation_spec[PRIOR_KEY].shape[-1])
     dims = {"obs_dim": obs_dim, "vocab_size": vocab_size, "n_agents": cfg.max_agents, "prior_sha256": prior_digest(model)}
     net, actor, critic = build_modules(cfg, obs_dim, vocab_size, cfg.max_agents, vocab)
+    if cfg.init is not None:
+        start_from(cfg.init, cfg, dims, net, critic.module)
     actor, critic = actor.to(device), critic.to(device)
     loss = PriorKLPPOLoss(actor, critic, beta=cfg.beta, prior_logits_key=PRIOR_KEY, agent_mask_key=(GROUP, "mask"),
                           prior_temperature=cfg.temperature, reference_top_k=cfg.reference_top_k, clip_epsilon=cfg.clip_epsilon,
@@ -322,6 +325,29 @@ def _learner(cfg: FinetuneConfig, env: SmartTrafficBatchedEnv, model, vocab, dev
         for p in params:
             dist.broadcast(p.data, 0)
     return _Learner(net, critic, actor, loss, params, torch.optim.Adam(params, lr=cfg.lr), dims)
+
+
+def start_from(path, cfg: FinetuneConfig, dims: dict, net: PolicyLogits, critic: nn.Module) -> None:
+    """Loads the actor and critic weights of the policy checkpoint ``path`` (``init``) into ``net`` and
+    ``critic``, after checking that it is this run's network (``POLICY_NETWORK_FIELDS``, the observation and
+    action sizes of ``dims``) on this run's prior (its weights digest)."""
+    try:
+        meta, weights = read_policy(path)
+    except PolicyError as exc:
+        raise FinetuneError(f"init: {exc}") from exc
+    saved = meta.get("config", {})
+    differ = [f"{k}={getattr(cfg, k)!r} (the checkpoint's: {saved.get(k)!r})" for k in POLICY_NETWORK_FIELDS
+              if k in saved and saved[k] != getattr(cfg, k)]
+    differ += [f"{k} {dims[k]} (the checkpoint's: {meta.get(k)})" for k in ("obs_dim", "vocab_size", "n_agents") if meta.get(k) != dims[k]]
+    if meta.get("prior_sha256") not in (None, dims["prior_sha256"]):
+        differ.append(f"the prior (weights digest {dims['prior_sha256'][:12]}..., the checkpoint's: {meta['prior_sha256'][:12]}...)")
+    if differ:
+        raise FinetuneConfigError(f"init={path!r}: the checkpoint is another network than this run's: {', '.join(differ)}")
+    for prefix, module in (("actor.", net), ("critic.", critic)):
+        try:
+            module.load_state_dict({k[len(prefix):]: v for k, v in weights.items() if k.startswith(prefix)})
+        except RuntimeError as exc:
+            raise FinetuneError(f"init={path!r}: its {prefix[:-1]} weights do not fit this run's ({str(exc)[:300]})") from exc
 
 
 def _ppo_update(cfg: FinetuneConfig, learner: _Learner, batch, device, world: int) -> dict[str, float]:
@@ -509,4 +535,4 @@ def evaluate_checkpoint(path, overrides: Sequence[str] = (), episodes: int | Non
 
 __all__ = ["FinetuneConfig", "FinetuneConfigError", "FinetuneError", "FinetuneResult", "build_modules", "controlled_selection",
            "core_scenes", "evaluate_checkpoint", "evaluate_finetuned", "evaluation_core", "evaluation_policies", "finetune",
-           "held_out_scenes", "load_finetune_config", "load_policy", "load_prior", "training_env", "training_pool"]
+           "held_out_scenes", "load_finetune_config", "load_policy", "load_prior", "start_from", "training_env", "training_pool"]

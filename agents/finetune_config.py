@@ -62,6 +62,8 @@ class FinetuneConfig:
     # vehicle off the road ("offroad") taken out of the prior's logits, so of the action mask and the reference; in training
     # and evaluation alike (every row but the expert's); () none, ("collision", "offroad") both
     # policy and critic
+    init: str | None = None  # a policy checkpoint to start from (NAME, NAME.json or "embedded"): its actor and critic weights;
+    # its network (the fields of POLICY_NETWORK_FIELDS, observation and action sizes) and its prior must be this run's
     residual: bool = True  # logits = prior_logits / T + f(obs), f starting at 0
     actor_head: str = "per_token"  # f(obs): "per_token" (one output per token id) or "motion" (token_motion_features)
     hidden: int = 128
@@ -161,7 +163,7 @@ POLICY_NETWORK_FIELDS = ("hidden", "depth", "residual", "actor_head", "obs_scale
 """The FinetuneConfig fields a saved policy's network is built with: fixed by its checkpoint."""
 
 _FINETUNE_RULES = {
-    "scenes": _scenes_rule, "num_scenes": optional(integer(1)), "prior": text, "num_envs": integer(1, 4096, "scenes in one batch"),
+    "scenes": _scenes_rule, "num_scenes": optional(integer(1)), "prior": text, "init": optional(text), "num_envs": integer(1, 4096, "scenes in one batch"),
     "controlled": text, "moving_min_route_m": number(0.0), "max_agents": integer(1, 1024),
     "background": text, "horizon_steps": integer(1, MAX_HORIZON_STEPS, "the env's longest episode"),
     "reward": lambda v: None if isinstance(v, dict) and all(number()(w) is None for w in v.values())

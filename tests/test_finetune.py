@@ -531,3 +531,30 @@ def test_a_short_run_with_the_shield_trains_on_masked_logits_and_evaluates_with_
     rows = result.evaluation["rows"]
     assert math.isfinite(rows["fine-tuned"]["kl_to_reference"]) and rows["fine-tuned"]["agent_episodes"] > 0
     assert sum(taken_out) > 0  # the shield did take tokens out along the way
+
+
+def test_a_run_started_from_a_checkpoint_takes_its_actor_and_critic_and_refuses_another_network(shared_data, prior_path, tmp_path):
+    """``init=CHECKPOINT``: the run's first batch is collected by the checkpoint's actor (not at the prior, as a
+    fresh run's is), both networks hold its weights, and a checkpoint of another network is refused by name."""
+    from agents.finetune import start_from
+    from agents.policy import read_policy
+
+    short = dict(iterations=2, frames_per_batch=32, minibatch_size=32, ppo_epochs=1, eval_episodes=0, critic="ippo", lr=0.01)
+    first = finetune(load_finetune_config("tiny", tiny(shared_data, prior_path, tmp_path / "a", **short)))
+    assert first.history[-1]["kl_to_prior"] > 1e-6
+    cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, tmp_path / "b", **short, init=str(first.checkpoint)))
+    second = finetune(cfg)
+    assert second.history[0]["kl_to_prior"] > 1e-6  # a fresh run's first batch is at the prior (KL 0)
+    meta, weights = read_policy(first.checkpoint)
+    model, vocab = load_prior(cfg.prior)
+    dims = {k: meta[k] for k in ("obs_dim", "vocab_size", "n_agents")} | {"prior_sha256": meta["prior_sha256"]}
+    net, _, critic = build_modules(cfg, dims["obs_dim"], dims["vocab_size"], dims["n_agents"], vocab)
+    start_from(first.checkpoint, cfg, dims, net, critic.module)
+    for prefix, module in (("actor.", net), ("critic.", critic.module)):
+        for k, v in module.state_dict().items():
+            torch.testing.assert_close(v, weights[prefix + k], rtol=0, atol=0)
+    other = load_finetune_config("tiny", tiny(shared_data, prior_path, tmp_path / "c", **short, init=str(first.checkpoint), hidden=16))
+    with pytest.raises(FinetuneConfigError, match=r"hidden=16 \(the checkpoint's: 64\)"):
+        finetune(other)
+    with pytest.raises(FinetuneError, match="init: .*not a policy checkpoint"):
+        finetune(load_finetune_config("tiny", tiny(shared_data, prior_path, tmp_path / "d", **short, init=str(tmp_path / "none"))))
