@@ -83,3 +83,14 @@ def test_the_shipped_policy_evaluates_in_one_call_with_its_shield():
     assert {"expert (log)", "prior top-16", "fine-tuned"} <= set(rows)
     tuned = rows["fine-tuned"]
     assert tuned["agent_episodes"] > 0 and 0.0 <= tuned["goal_rate"] <= 1.0 and 0.0 < tuned["kl_to_reference"] < float("inf")
+
+
+def test_the_shield_config_is_the_shipped_policys_recipe(shipped):
+    """The named config ``shield`` (its card's recipe) builds the shipped policy's network, with its shield and beta."""
+    from agents.finetune import load_finetune_config
+    from agents.finetune_config import POLICY_NETWORK_FIELDS
+
+    cfg, _, _ = shipped
+    recipe = load_finetune_config("shield")
+    assert {k: getattr(recipe, k) for k in POLICY_NETWORK_FIELDS} == {k: getattr(cfg, k) for k in POLICY_NETWORK_FIELDS}
+    assert (recipe.shield, recipe.beta, recipe.num_scenes) == (cfg.shield, cfg.beta, 2000)

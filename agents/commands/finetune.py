@@ -24,14 +24,14 @@ def register(subparsers) -> None:
         "finetune", help="fine-tune controlled agents with PPO + KL to the SMART prior (TorchRL); --evaluate compares with the prior",
         description="Fine-tune the agents a policy controls in the smart_traffic_v0 env with multi-agent PPO (MAPPO or IPPO, "
                     "TorchRL) plus beta * KL(policy || SMART prior). The config is a JSON/TOML file of FinetuneConfig fields or a "
-                    "named config (agents/configs/finetune/: tiny, default, scale); key=value overrides follow, e.g. scenes=DIR prior=CKPT "
+                    "named config (agents/configs/finetune/: tiny, default, scale, shield); key=value overrides follow, e.g. scenes=DIR prior=CKPT "
                     "beta=0.1 iterations=50 out_dir=runs/ft. Writes finetune.csv, TensorBoard logs, policy checkpoints and, "
                     "with eval_episodes > 0, evaluation.json (held-out scenes). With --evaluate CHECKPOINT, runs the expert "
                     "(log-following), the prior top-k, the prior's full softmax and that policy on held-out scenes (eval_scenes; "
                     "default: the scenes after the fine-tuning ones) with the same seeds, full horizon, no termination, and "
                     "prints collision / offroad / goal rates, progress, KL and the controlled agents' realism (overrides apply "
                     "to the checkpoint's config).")
-    p.add_argument("--config", default=None, help="fine-tuning config file (.json/.toml) or a named config (tiny, default, scale)")
+    p.add_argument("--config", default=None, help="fine-tuning config file (.json/.toml) or a named config (tiny, default, scale, shield)")
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides, values parsed as JSON when they parse")
     p.add_argument("--out", default=None, type=output_dir, metavar="DIR", help="the run's folder (default: the config's out_dir)")
     p.add_argument("--device", default=None, type=device, help="torch device for the policy and its updates (default: the config's, cpu)")
