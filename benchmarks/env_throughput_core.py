@@ -8,8 +8,9 @@ Prints one JSON line per number of scenes: ``num_scenes``, ``device`` (and ``gpu
 token exclusion, dynamics, events, rewards, observations), ``refill_ms_per_scene``, peak memory. The step
 is the core's, with observations and the controlled agents' prior logits read every step, as the TorchRL
 face reads them; TorchRL's own bookkeeping is not included (``env_throughput.py`` measures the TorchRL face).
-Actions: each controlled agent's prior most likely token (with ``--shield``, of the tokens the shield leaves). Finished scenes are refilled from the pool in
-order (their starts are kept after the first pass, which is not timed). Medians of ``--repeats``.
+Actions: each controlled agent's prior most likely token (with ``--shield``, of the tokens the shield leaves).
+Finished scenes are refilled from the pool in order (their starts are kept after the first pass, which is not
+timed). Medians of ``--repeats``.
 
     python benchmarks/env_throughput_core.py --device cuda --num-scenes 32,128,512,1024 --scenes DIR_OR_SHARDS...
 """
