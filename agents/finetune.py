@@ -76,8 +76,8 @@ from smart_marl.scenario import AgentType
 from smart_marl.train import init_distributed, leave_distributed, resolve_device
 
 from .evaluate import evaluate_policies
-from .finetune_config import (MAX_EVAL_EPISODES, POLICY_NETWORK_FIELDS, FinetuneConfig, FinetuneConfigError, FinetuneError,
-                              load_finetune_config)
+from .finetune_config import (MAX_EVAL_EPISODES, FinetuneConfig, FinetuneConfigError, FinetuneError, load_finetune_config,
+                              network_differences)
 from .kl_ppo import PriorKLPPOLoss
 from .policy import (Critic, ExpertTensorPolicy, FinetunedTensorPolicy, PolicyError, PolicyLogits, PriorTensorPolicy,
                      TensorPolicy, actor_from_weights, expert_within_top_k, prior_digest, read_policy, save_policy,
@@ -335,9 +335,7 @@ def start_from(path, cfg: FinetuneConfig, dims: dict, net: PolicyLogits, critic:
         meta, weights = read_policy(path)
     except PolicyError as exc:
         raise FinetuneError(f"init: {exc}") from exc
-    saved = meta.get("config", {})
-    differ = [f"{k}={getattr(cfg, k)!r} (the checkpoint's: {saved.get(k)!r})" for k in POLICY_NETWORK_FIELDS
-              if k in saved and saved[k] != getattr(cfg, k)]
+    differ = network_differences(cfg, meta.get("config", {}))
     differ += [f"{k} {dims[k]} (the checkpoint's: {meta.get(k)})" for k in ("obs_dim", "vocab_size", "n_agents") if meta.get(k) != dims[k]]
     if meta.get("prior_sha256") not in (None, dims["prior_sha256"]):
         differ.append(f"the prior (weights digest {dims['prior_sha256'][:12]}..., the checkpoint's: {meta['prior_sha256'][:12]}...)")
@@ -522,8 +520,7 @@ def evaluate_checkpoint(path, overrides: Sequence[str] = (), episodes: int | Non
     cfg, net, meta = load_policy(path)
     if overrides:
         saved, cfg = cfg, load_finetune_config(cfg.to_dict(), overrides)
-        fixed = [f"{k}={getattr(cfg, k)!r} (the checkpoint's: {getattr(saved, k)!r})" for k in POLICY_NETWORK_FIELDS
-                 if getattr(cfg, k) != getattr(saved, k)]
+        fixed = network_differences(cfg, saved.to_dict())
         if fixed:
             raise FinetuneConfigError(f"{', '.join(fixed)}: the policy's network was built with the checkpoint's value, "
                                       f"which evaluation keeps; fine-tune a new policy to change it")

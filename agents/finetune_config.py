@@ -162,6 +162,13 @@ MAX_EVAL_EPISODES = 1024
 POLICY_NETWORK_FIELDS = ("hidden", "depth", "residual", "actor_head", "obs_scale", "temperature", "reference_top_k", "max_agents")
 """The FinetuneConfig fields a saved policy's network is built with: fixed by its checkpoint."""
 
+
+def network_differences(cfg: FinetuneConfig, saved: Mapping[str, Any]) -> list[str]:
+    """``"field=value (the checkpoint's: value)"`` for each of :data:`POLICY_NETWORK_FIELDS` where ``cfg`` differs
+    from a checkpoint's config ``saved`` (a field it does not hold is not compared)."""
+    return [f"{k}={getattr(cfg, k)!r} (the checkpoint's: {saved[k]!r})" for k in POLICY_NETWORK_FIELDS
+            if k in saved and saved[k] != getattr(cfg, k)]
+
 _FINETUNE_RULES = {
     "scenes": _scenes_rule, "num_scenes": optional(integer(1)), "prior": text, "init": optional(text), "num_envs": integer(1, 4096, "scenes in one batch"),
     "controlled": text, "moving_min_route_m": number(0.0), "max_agents": integer(1, 1024),
@@ -186,5 +193,5 @@ _FINETUNE_RULES = {
 """What each FinetuneConfig field takes (the env checks ``controlled``, ``background`` and the reward terms by name)."""
 
 
-__all__ = ["CONFIG_DIR", "FinetuneConfig", "FinetuneConfigError", "FinetuneError", "MAX_EVAL_EPISODES", "POLICY_NETWORK_FIELDS",
+__all__ = ["CONFIG_DIR", "FinetuneConfig", "FinetuneConfigError", "FinetuneError", "MAX_EVAL_EPISODES", "POLICY_NETWORK_FIELDS", "network_differences",
            "load_finetune_config", "named_configs"]
