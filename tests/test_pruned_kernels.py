@@ -409,6 +409,32 @@ def test_the_search_s_round_sizes_change_nothing_that_is_drawn(levels, monkeypat
             assert torch.equal(kept[growth].indices, kept[2].indices) and torch.equal(draws[growth], draws[2])
 
 
+@pytest.mark.parametrize("levels", [3, 100000])
+def test_the_sampler_reading_a_shared_ranking_draws_what_it_draws_ranking_alone(levels):
+    """The engine ranks the top k + 1 once for the collision check and the sampler. Read off it, the
+    sampler draws the same tokens with the same log-probabilities, with and without exclusions; with
+    few levels most rows have equal values among their top k + 1, which it ranks again (a tie that
+    topk orders either way)."""
+    from smart_marl.rollout.sampling import _first_k, sample_tokens
+
+    g = torch.Generator().manual_seed(levels)
+    m, v, k = 400, 120, 6
+    logits = torch.randint(0, levels, (m, v), generator=g).float() if levels < 1000 else torch.randn(m, v, generator=g)
+    logits[:20, 4:] = float("-inf")  # fewer tokens than k + 1
+    exclude = torch.rand(m, v, generator=g) < 0.3
+    exclude[torch.arange(m), logits.argmax(-1)] = False  # every row keeps a token
+    top = torch.topk(logits, k + 1, dim=-1)
+    for ex in (None, exclude):
+        want = sample_tokens(logits, torch.Generator().manual_seed(5), k, exclude=ex)
+        got = sample_tokens(logits, torch.Generator().manual_seed(5), k, exclude=ex, top=(top.values, top.indices))
+        assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
+    vals, idx = _first_k(logits, (top.values, top.indices), k)
+    ranked = torch.topk(logits, k, dim=-1)
+    assert torch.equal(vals, ranked.values) and torch.equal(idx, ranked.indices)
+    if levels < 1000:  # the check notices a shared ranking read without ranking the tied rows again
+        assert not torch.equal(top.indices[:, :k], ranked.indices)
+
+
 def test_a_refill_of_some_rows_recomputes_their_search_blocks_alone():
     """The road's search blocks (offroad's segment blocks, the observations' road-point blocks) are kept
     through a refill that writes rows in place: the refilled rows are recomputed, the values stay the same

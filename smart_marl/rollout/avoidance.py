@@ -150,7 +150,8 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
                     size: torch.Tensor, present: torch.Tensor, agent_type: torch.Tensor, token_poses: torch.Tensor,
                     top_k: int, interpolation: str = "spline", known_frames: torch.Tensor | None = None,
                     known: torch.Tensor | None = None,
-                    also: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
+                    also: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+                    top: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """bool [M, V]: the tokens that sampling rows ``rows`` [M] (flat indices into the G x N slots)
     must not draw (module docstring).
 
@@ -164,7 +165,8 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     script's), checked against where they will really be instead of at constant velocity. ``also``: a
     second test ``also(rows [R], tokens [R, c]) -> bool [R, c]`` (rows: indices into ``rows``) whose
     tokens are excluded too, in the same search (every row is checked; the shield of :mod:`envs._shield`
-    adds leaving the road)."""
+    adds leaving the road). ``top``: ``torch.topk(logits, top_k + 1)`` where the caller has it (the
+    engine ranks once for this and for the sampler)."""
     n = pose.shape[1]
     m, v = logits.shape
     out = torch.zeros(m, v, dtype=torch.bool, device=logits.device)
@@ -180,7 +182,7 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     # 1. the rows that need checking: those whose first tokens (the top k) can reach another agent; the
     # others draw their top k whatever is excluded further down, so nothing of theirs is
     gi, si = rows // n, rows % n
-    head, tied = _top_set(logits, v if top_k is None or top_k <= 0 else min(int(top_k), v))  # [M, k] each row's first tokens
+    head, tied = _top_set(logits, v if top_k is None or top_k <= 0 else min(int(top_k), v), top)  # [M, k] each row's first tokens
     first = head.clone()
     if bool(tied.any()):  # topk's own pick where a tie crosses the k-th token
         first[tied] = torch.topk(logits[tied], head.shape[1], dim=-1).indices
@@ -207,8 +209,8 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     usable[torch.arange(m, device=rows.device), si] = False
     near_d, near = torch.topk(dist.masked_fill(~usable, float("inf")), min(NEIGHBOURS, n - 1), dim=-1, largest=False)
     near_ok = torch.isfinite(near_d)  # [M, K]
-    # the neighbours on the token's 5 frames, at constant velocity: [M, K, 5, 2], heading held (the
-    # cosines and sines of the headings taken per slot, before the gather that repeats them per row)
+    # the neighbours on the token's 5 frames, at constant velocity with the heading held (forced ones on
+    # their own frames): [M, K, 5, 2] and the cosines and sines of their headings [M, K, 1 or 5]
     slot = (gi[:, None] * n + near).reshape(-1)
 
     def at_near(t: torch.Tensor) -> torch.Tensor:
@@ -216,15 +218,14 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
         return t.reshape(-1, *t.shape[2:]).index_select(0, slot).view(*near.shape, *t.shape[2:])
 
     s = torch.arange(1, FRAMES_PER_TOKEN + 1, dtype=pose.dtype, device=pose.device) / FRAMES_PER_TOKEN
-    now_xy = at_near(pose[..., :2])
-    other_xy = now_xy[:, :, None] + s[None, None, :, None] * (at_near(ahead[..., :2]) - now_xy)[:, :, None]
-    other_half = at_near(half)
-    other_cos, other_sin = at_near(pose[..., 2].cos())[..., None], at_near(pose[..., 2].sin())[..., None]  # [M, K, 1]
-    if known is not None:  # forced neighbours: their own frames of this step
-        kn = at_near(known)[..., None]  # [M, K, 1]
-        other_xy = torch.where(kn[..., None], at_near(known_frames[..., :2]), other_xy)
-        other_cos = torch.where(kn, at_near(known_frames[..., 2].cos()), other_cos)  # [M, K, 5]
-        other_sin = torch.where(kn, at_near(known_frames[..., 2].sin()), other_sin)
+    # every slot's frames first ([G, N, 5, 2]: fewer than the rows' neighbours), then one gather
+    slot_xy = pose[:, :, None, :2] + s[:, None] * (ahead - pose)[:, :, None, :2]
+    slot_cos, slot_sin = pose[..., 2].cos()[..., None], pose[..., 2].sin()[..., None]  # [G, N, 1]
+    if known is not None:  # forced slots: their own frames of this step
+        slot_xy = torch.where(known[..., None, None], known_frames[..., :2], slot_xy)
+        slot_cos = torch.where(known[..., None], known_frames[..., 2].cos(), slot_cos)  # [G, N, 5]
+        slot_sin = torch.where(known[..., None], known_frames[..., 2].sin(), slot_sin)
+    other_xy, other_cos, other_sin, other_half = at_near(slot_xy), at_near(slot_cos), at_near(slot_sin), at_near(half)
     other_gap = gap.gather(1, near)  # [M, K] how near each neighbour can come during the step (the bound of ``collides``)
 
     def collides(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
@@ -253,15 +254,16 @@ def token_reach(token_poses: torch.Tensor) -> torch.Tensor:
     return torch.maximum(xy.amax(-1), 1.5 * xy[..., -1])
 
 
-def _top_set(logits: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _top_set(logits: torch.Tensor, k: int, top: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """([M, k] long, [M] bool): each row's ``k`` most likely tokens of ``logits`` [M, V], read off the
-    top ``k + 1``, and the rows where the k-th is not strictly more likely than the next (a tie, or
-    k = V). On the other rows these are, as a set, what any ranking's first ``k`` are (``torch.topk``
-    with any k >= ``k``, a sort): no tie can swap a token in or out."""
+    top ``k + 1`` (``top``: ``torch.topk(logits, k + 1)`` where the caller has it), and the rows where
+    the k-th is not strictly more likely than the next (a tie, or k = V). On the other rows these are,
+    as a set, what any ranking's first ``k`` are (``torch.topk`` with any k >= ``k``, a sort): no tie
+    can swap a token in or out."""
     m, v = logits.shape
     if k >= v:
         return torch.topk(logits, v, dim=-1).indices, torch.ones(m, dtype=torch.bool, device=logits.device)
-    vals, idx = torch.topk(logits, k + 1, dim=-1)
+    vals, idx = torch.topk(logits, k + 1, dim=-1) if top is None else top
     return idx[:, :k], ~(vals[:, k - 1] > vals[:, k])
 
 

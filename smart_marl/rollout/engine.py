@@ -385,22 +385,29 @@ class RolloutState:
         rows = sim.reshape(-1).nonzero().squeeze(1)
         forced_rows = forced_tokens.reshape(-1)[rows] if forced_tokens is not None else None
         row_logits = logits.reshape(g * n, -1)[rows]
+        v, k = row_logits.shape[1], self.top_k
+        # the top k + 1, ranked once for the collision check and the sampler (both read them)
+        top = torch.topk(row_logits, k + 1, dim=-1) if 0 < k < v and (self.avoid_collisions or self.temperature == 1.0) else None
         exclude = None
         if self.avoid_collisions:
             pick = torch.ones(len(rows), dtype=torch.bool, device=self.device) if forced_rows is None else forced_rows < 0
             known = known_frames = None
             if forced_tokens is not None:  # the forced agents' frames of this step, seen by the others' check
                 known = sim & (forced_tokens >= 0)
-                if known.any():
-                    local = self.token_poses[self.agent_type, forced_tokens.clamp(min=0)]
-                    known_frames = token_frames(local, self.pose, self.previous_pose, self.interpolation)
+                kg, ks = known.nonzero(as_tuple=True)
+                if len(kg):  # placed where they are forced only (a few of the slots)
+                    local = self.token_poses[self.agent_type[kg, ks], forced_tokens[kg, ks]]
+                    known_frames = self.pose.new_zeros(g, n, FRAMES_PER_TOKEN, 3)
+                    known_frames[kg, ks] = token_frames(local, self.pose[kg, ks], self.previous_pose[kg, ks], self.interpolation)
                 else:
                     known = None
             exclude = torch.zeros(row_logits.shape, dtype=torch.bool, device=self.device)
             exclude[pick] = excluded_tokens(row_logits[pick], rows[pick], self.pose, self.previous_pose, self.agent_shape, sim,
                                             self.agent_type, self.token_poses, self.top_k, self.interpolation,
-                                            known_frames=known_frames, known=known)
-        tok_rows, logp_rows = sample_tokens(row_logits, self.generator, self.top_k, self.temperature, forced_rows, exclude)
+                                            known_frames=known_frames, known=known,
+                                            top=None if top is None else (top.values[pick], top.indices[pick]))
+        tok_rows, logp_rows = sample_tokens(row_logits, self.generator, self.top_k, self.temperature, forced_rows, exclude,
+                                            None if top is None else (top.values, top.indices))
         tokens = torch.full((g * n,), -1, dtype=torch.long, device=self.device)
         tokens[rows] = tok_rows
         log_probs = torch.zeros(g * n, device=self.device)

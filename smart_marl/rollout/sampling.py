@@ -44,14 +44,17 @@ costs speed and, beyond 8, interactive realism."""
 
 
 def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int = DEFAULT_TOP_K, temperature: float = 1.0,
-                  forced: torch.Tensor | None = None, exclude: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                  forced: torch.Tensor | None = None, exclude: torch.Tensor | None = None,
+                  top: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Top-k sampling with renormalised probabilities.
 
     logits [..., V] (``-inf`` for tokens outside the agent's vocabulary; a row must have at
     least one finite entry), forced [...] int64 (``-1``: sample; otherwise that token is taken),
     exclude [..., V] bool (tokens that may not be drawn: the top k are taken among the others; a row
     must keep at least one finite entry) -> (tokens [...] int64, log_probs [...] under
-    ``log_softmax(logits / temperature)``, the distribution before ``exclude``).
+    ``log_softmax(logits / temperature)``, the distribution before ``exclude``). ``top``:
+    ``torch.topk(logits, top_k + 1)`` [M, k + 1] where the caller has it (read, at temperature 1, instead
+    of ranking again; rows with equal values among them are ranked again, so the draw is the same).
     """
     if temperature <= 0:
         raise ValueError(f"temperature must be > 0, got {temperature}")
@@ -61,7 +64,10 @@ def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int =
         flat = flat / temperature
     logp = torch.log_softmax(flat, dim=-1)
     k = v if top_k is None or top_k <= 0 else min(int(top_k), v)
-    top_val, top_idx = torch.topk(flat, k, dim=-1)  # (M, k), -inf entries (beyond the type's size) get zero probability
+    if top is not None and temperature == 1.0 and k < v:
+        top_val, top_idx = _first_k(flat, top, k)
+    else:
+        top_val, top_idx = torch.topk(flat, k, dim=-1)  # (M, k), -inf entries (beyond the type's size) get zero probability
     if exclude is not None:  # the top k of the rows that lose a token (topk is row by row: the others' stay as they are)
         ex = exclude.reshape(-1, v)
         r = ex.any(-1).nonzero().squeeze(1)
@@ -78,6 +84,18 @@ def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int =
         tokens = torch.where(f >= 0, f, tokens)
     log_probs = logp.gather(1, tokens[:, None]).squeeze(1)
     return tokens.view(lead), log_probs.view(lead)
+
+
+def _first_k(flat: torch.Tensor, top: tuple[torch.Tensor, torch.Tensor], k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``torch.topk(flat, k)`` read off ``top`` = ``torch.topk(flat, k + 1)``: where the k + 1 values are
+    distinct, the first k are the same values and indices in the same order; rows with equal values
+    (which ``topk`` may order either way) are ranked again."""
+    vals, idx = top
+    top_val, top_idx = vals[:, :k].clone(), idx[:, :k].clone()
+    tie = (vals[:, 1:] == vals[:, :-1]).any(-1).nonzero().squeeze(1)
+    if len(tie):
+        top_val[tie], top_idx[tie] = torch.topk(flat[tie], k, dim=-1)
+    return top_val, top_idx
 
 
 def top_k_mask(logits: torch.Tensor, top_k: int | None) -> torch.Tensor:
