@@ -147,6 +147,20 @@ def test_tokens_beyond_the_types_vocabulary_are_never_checked_or_counted():
     assert out.tolist() == [[True, False, False, False, False]]
 
 
+def test_a_vocabulary_size_given_stands_for_counting_the_finite_logits():
+    """The engine hands over its types' vocabulary sizes (a model's logits are finite on them): the same
+    exclusions as counting; a size that does not match the logits (here 5 where 3 are finite) is noticed."""
+    pose, prev, size, present, types = _scene()
+    logits = torch.tensor([[4.0, 1.0, 3.0, float("-inf"), float("-inf")]])
+    counted = excluded_tokens(logits, torch.tensor([0]), pose, prev, size, present, types, _poses(ENDS), top_k=0)
+    given = excluded_tokens(logits, torch.tensor([0]), pose, prev, size, present, types, _poses(ENDS), top_k=0,
+                            vocab_sizes=torch.tensor([3]))
+    assert given.tolist() == counted.tolist()
+    wrong = excluded_tokens(logits, torch.tensor([0]), pose, prev, size, present, types, _poses(ENDS), top_k=0,
+                            vocab_sizes=torch.tensor([5]))
+    assert wrong.tolist() != counted.tolist()
+
+
 def test_sampling_with_exclusions_is_top_k_of_the_distribution_without_them():
     g = torch.Generator().manual_seed(0)
     logits = torch.randn(500, 40)

@@ -15,20 +15,20 @@ from torchrl.envs.utils import check_env_specs, step_mdp  # noqa: E402
 
 from envs import smart_traffic_batched_v0, smart_traffic_v0  # noqa: E402
 from envs._setup import select_controlled  # noqa: E402
-from smart_marl.embedded import sample_scenarios  # noqa: E402
-from smart_marl.model.checkpoint import load_prior  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 
 
 @pytest.fixture(scope="module")
-def prior():
-    return load_prior("embedded", "cpu")
+def prior(embedded_prior):
+    """(model, motion vocabulary) of the embedded prior (tests/conftest.py)."""
+    return embedded_prior
 
 
 @pytest.fixture(scope="module")
-def samples():
-    return sample_scenarios()
+def samples(sample_scenes):
+    """The package's sample scenes (tests/conftest.py)."""
+    return sample_scenes
 
 
 def batched(samples, prior, **kw):

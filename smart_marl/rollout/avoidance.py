@@ -151,7 +151,8 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
                     top_k: int, interpolation: str = "spline", known_frames: torch.Tensor | None = None,
                     known: torch.Tensor | None = None,
                     also: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
-                    top: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+                    top: tuple[torch.Tensor, torch.Tensor] | None = None,
+                    vocab_sizes: torch.Tensor | None = None) -> torch.Tensor:
     """bool [M, V]: the tokens that sampling rows ``rows`` [M] (flat indices into the G x N slots)
     must not draw (module docstring).
 
@@ -166,7 +167,9 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     second test ``also(rows [R], tokens [R, c]) -> bool [R, c]`` (rows: indices into ``rows``) whose
     tokens are excluded too, in the same search (every row is checked; the shield of :mod:`envs._shield`
     adds leaving the road). ``top``: ``torch.topk(logits, top_k + 1)`` where the caller has it (the
-    engine ranks once for this and for the sampler)."""
+    engine ranks once for this and for the sampler). ``vocab_sizes`` [types]: each type's vocabulary
+    size, where the caller knows that ``logits`` are finite on it (a model's next-token logits:
+    :meth:`~smart_marl.model.SMART.next_token_logits`); the finite tokens are counted otherwise."""
     n = pose.shape[1]
     m, v = logits.shape
     out = torch.zeros(m, v, dtype=torch.bool, device=logits.device)
@@ -238,7 +241,10 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
         return hit if also is None else hit | also(sub[r], tok)
 
     # [M] tokens of the row's type: isfinite as two comparisons (3x faster on the CPU)
-    finite = ((logits > float("-inf")) & (logits < float("inf"))).sum(-1)
+    if vocab_sizes is not None:
+        finite = vocab_sizes.to(own_type.device).index_select(0, own_type)
+    else:
+        finite = ((logits > float("-inf")) & (logits < float("inf"))).sum(-1)
     want = finite if top_k is None or top_k <= 0 else finite.clamp(max=int(top_k))
     todo = near_ok.any(-1) | (also is not None)
     out[sub] = _exclude_in_order(logits, finite, want, todo, collides, (head, tied))

@@ -405,7 +405,8 @@ class RolloutState:
             exclude[pick] = excluded_tokens(row_logits[pick], rows[pick], self.pose, self.previous_pose, self.agent_shape, sim,
                                             self.agent_type, self.token_poses, self.top_k, self.interpolation,
                                             known_frames=known_frames, known=known,
-                                            top=None if top is None else (top.values[pick], top.indices[pick]))
+                                            top=None if top is None else (top.values[pick], top.indices[pick]),
+                                            vocab_sizes=self.vocab_sizes)
         tok_rows, logp_rows = sample_tokens(row_logits, self.generator, self.top_k, self.temperature, forced_rows, exclude,
                                             None if top is None else (top.values, top.indices))
         tokens = torch.full((g * n,), -1, dtype=torch.long, device=self.device)
