@@ -4,6 +4,7 @@ running a red light (the 2025 rules' traffic-light violation)."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import math
 from pathlib import Path
@@ -146,3 +147,65 @@ def test_background_collisions_leave_out_the_other_controlled_agents(reactivity)
 
     assert first_collision_kinds(poses, present, box, [0, 1])[0] == "rear_ended"  # 1 ran into 0
     assert reactivity.background_collision_kinds(poses, present, box, [0, 1]) == [None, "rear_ended"]
+
+
+# ------------------------------------------------------------------------------------ why a log slows
+def _straight_road_scene(motions: list, stop_sign_x: float | None = None):
+    """A scene on a straight lane along x: one vehicle per entry of ``motions`` ((x0, y, speed at each of
+    the 91 frames)), a stop sign at ``stop_sign_x`` if given, no signals."""
+    from smart_marl.scenario import (DT_S, LaneType, MapFeatureType, RoadMap, SceneFrame, Scenario, TrafficLights,
+                                     Tracks)
+
+    t = 91
+    features = [dict(id=1, type=MapFeatureType.LANE, subtype=LaneType.SURFACE_STREET, speed_limit_mph=30.0,
+                      points=np.stack([np.linspace(-100, 200, 31), np.zeros(31), np.zeros(31)], 1))]
+    if stop_sign_x is not None:
+        features.append(dict(id=2, type=MapFeatureType.STOP_SIGN, points=[[stop_sign_x, 2.0, 0.0]]))
+    n = len(motions)
+    pos, vel = np.zeros((n, t, 3)), np.zeros((n, t, 2))
+    for i, (x0, y, speed) in enumerate(motions):
+        pos[i, :, 0] = x0 + np.concatenate([[0.0], np.cumsum(speed[1:] * DT_S)])
+        pos[i, :, 1] = y
+        vel[i, :, 0] = speed
+    return Scenario(scenario_id="straight", source="synthetic", timestamps_s=np.arange(t) * DT_S, current_frame=10,
+                    tracks=Tracks(ids=np.arange(n) + 1, types=np.zeros(n, np.int8), position=pos, heading=np.zeros((n, t)),
+                                  velocity=vel, size=np.tile([4.6, 1.9, 1.6], (n, t, 1)), valid=np.ones((n, t), bool)),
+                    road_map=RoadMap.from_features(features),
+                    traffic_lights=TrafficLights(lane_ids=np.zeros(0, np.int64), states=np.zeros((t, 0), np.int8),
+                                                 present=np.zeros((t, 0), bool), stop_points=np.zeros((0, 3))),
+                    sdc_index=0, predict_indices=[], frame=SceneFrame(0.0, 0.0, 0.0, 0.0))
+
+
+def _braking(v0: float, until: float, start: int = 15, decel: float = 3.0) -> np.ndarray:
+    """Speeds over 91 frames: ``v0``, from frame ``start`` down at ``decel`` m/s2 to ``until``."""
+    v = v0 - decel * np.clip(np.arange(91) - start, 0, None) * 0.1
+    return np.maximum(v, until)
+
+
+def test_slowing_causes_split_a_stop_at_a_stop_sign_from_a_queue_behind_a_braking_car():
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("slowing_causes", BENCHMARKS / "slowing_causes.py")
+    sc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sc)
+    # a car that stops at a stop sign 60 m ahead; a car in the next lane that keeps its speed
+    scene = _straight_road_scene([(0.0, 0.0, _braking(10.0, 0.0)), (0.0, 3.5, np.full(91, 10.0))], stop_sign_x=62.0)
+    slowing = sc.slowing_vehicles(scene, np.ones(2, bool))
+    assert [s[0] for s in slowing] == [0]
+    assert sc.what_it_meets(scene, 0) == (["stop_sign"], None)
+    # no sign: a car brakes for nothing anyone can see; the one 15 m behind it slows in its queue
+    scene = _straight_road_scene([(15.0, 0.0, _braking(10.0, 2.0)), (0.0, 0.0, _braking(10.0, 2.0, start=20)),
+                                  (0.0, 3.5, np.full(91, 10.0))])
+    assert [s[0] for s in sc.slowing_vehicles(scene, np.ones(3, bool))] == [0, 1]
+    assert sc.what_it_meets(scene, 0) == ([], None)
+    assert sc.what_it_meets(scene, 1) == (["queue"], 0)
+    # a light 50 m ahead that turns red after 2 s
+    scene = _straight_road_scene([(0.0, 0.0, _braking(10.0, 0.0))])
+    states = np.where(np.arange(91) >= 30, 4, 6)[:, None]  # STOP from frame 30, GO before
+    lights = dataclasses.replace(scene.traffic_lights, lane_ids=np.array([1]), states=states, present=np.ones((91, 1), bool),
+                                 stop_points=np.array([[60.0, 0.0, 0.0]]))
+    assert sc.what_it_meets(dataclasses.replace(scene, traffic_lights=lights), 0) == (["red_light_later"], None)
+    lights = dataclasses.replace(lights, states=np.full((91, 1), 4))
+    assert sc.what_it_meets(dataclasses.replace(scene, traffic_lights=lights), 0) == (["red_light"], None)
+    # the sign behind the car (passed before the current frame) is not met
+    scene = _straight_road_scene([(0.0, 0.0, _braking(10.0, 0.0))], stop_sign_x=-5.0)
+    assert sc.what_it_meets(scene, 0) == ([], None)
