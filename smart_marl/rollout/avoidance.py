@@ -220,15 +220,8 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
         """[M, K, ...] the neighbours' entries of ``t`` [G, N, ...] (one flat index: a fast gather)."""
         return t.reshape(-1, *t.shape[2:]).index_select(0, slot).view(*near.shape, *t.shape[2:])
 
-    s = torch.arange(1, FRAMES_PER_TOKEN + 1, dtype=pose.dtype, device=pose.device) / FRAMES_PER_TOKEN
-    # every slot's frames first ([G, N, 5, 2]: fewer than the rows' neighbours), then one gather
-    slot_xy = pose[:, :, None, :2] + s[:, None] * (ahead - pose)[:, :, None, :2]
-    slot_cos, slot_sin = pose[..., 2].cos()[..., None], pose[..., 2].sin()[..., None]  # [G, N, 1]
-    if known is not None:  # forced slots: their own frames of this step
-        slot_xy = torch.where(known[..., None, None], known_frames[..., :2], slot_xy)
-        slot_cos = torch.where(known[..., None], known_frames[..., 2].cos(), slot_cos)  # [G, N, 5]
-        slot_sin = torch.where(known[..., None], known_frames[..., 2].sin(), slot_sin)
-    other_xy, other_cos, other_sin, other_half = at_near(slot_xy), at_near(slot_cos), at_near(slot_sin), at_near(half)
+    other_xy, other_cos, other_sin = (at_near(t) for t in _slot_frames(pose, ahead, known, known_frames))
+    other_half = at_near(half)
     other_gap = gap.gather(1, near)  # [M, K] how near each neighbour can come during the step (the bound of ``collides``)
 
     def collides(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
@@ -249,6 +242,22 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     todo = near_ok.any(-1) | (also is not None)
     out[sub] = _exclude_in_order(logits, finite, want, todo, collides, (head, tied))
     return out
+
+
+def _slot_frames(pose: torch.Tensor, ahead: torch.Tensor, known: torch.Tensor | None,
+                 known_frames: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every slot's centres on the step's 5 frames [G, N, 5, 2] and the cosine and sine of its heading
+    [G, N, 1 or 5]: from ``pose`` to ``ahead`` [G, N, 3] at constant velocity, the heading held, or where
+    ``known`` [G, N], the frames ``known_frames`` [G, N, 5, 3] (built per slot, fewer than the rows'
+    neighbours, then gathered once)."""
+    s = torch.arange(1, FRAMES_PER_TOKEN + 1, dtype=pose.dtype, device=pose.device) / FRAMES_PER_TOKEN
+    xy = pose[:, :, None, :2] + s[:, None] * (ahead - pose)[:, :, None, :2]
+    cos, sin = pose[..., 2].cos()[..., None], pose[..., 2].sin()[..., None]
+    if known is not None:
+        xy = torch.where(known[..., None, None], known_frames[..., :2], xy)
+        cos = torch.where(known[..., None], known_frames[..., 2].cos(), cos)
+        sin = torch.where(known[..., None], known_frames[..., 2].sin(), sin)
+    return xy, cos, sin
 
 
 def token_reach(token_poses: torch.Tensor) -> torch.Tensor:
