@@ -43,6 +43,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import prior_speed_drift as drift  # noqa: E402  (benchmarks/ is not a package)
+from prior_speed_drift import _speeds_from_positions  # noqa: E402
 
 from smart_marl.braking import LANE_HALF_M, SAME_DIRECTION_RAD  # noqa: E402
 from smart_marl.model.checkpoint import load_prior  # noqa: E402
@@ -69,11 +70,6 @@ def _ahead(pose: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1)
 
 
-def _speeds(xy: np.ndarray, before: np.ndarray) -> np.ndarray:
-    """Speeds [..., T] (m/s) of positions [..., T, 2] whose position one frame earlier is ``before`` [..., 2]."""
-    return np.linalg.norm(np.diff(np.concatenate([before[..., None, :], xy], -2), axis=-2), axis=-1) / 0.1
-
-
 def slowing_vehicles(scene, simulated: np.ndarray) -> list[tuple[int, float, float, np.ndarray]]:
     """(track, speed now, logged mean speed at 7-8 s, the late frames it is logged on [F] bool) of the
     simulated vehicles whose log slows (module docstring)."""
@@ -90,7 +86,7 @@ def slowing_vehicles(scene, simulated: np.ndarray) -> list[tuple[int, float, flo
         late = ok & (np.arange(FRAMES) >= FRAMES - LATE)
         if late.sum() * 2 < LATE:
             continue
-        speed = _speeds(tr.position[i, frames, :2], tr.position[i, cf, :2])
+        speed = _speeds_from_positions(tr.position[i, frames, :2], tr.position[i, cf, :2])
         log_late = float(speed[late].mean())
         if log_late < (1 - TREND_BAND) * now:
             out.append((int(i), now, log_late, late))
@@ -148,7 +144,7 @@ def scene_records(res, scene) -> list[dict]:
     frames = np.arange(cf + 1, cf + 1 + FRAMES)
 
     def rollout_late(j: int, on: np.ndarray) -> float:
-        sim = _speeds(res.trajectory[:, j, :, :2].astype(np.float64), np.broadcast_to(tr.position[j, cf, :2], (res.trajectory.shape[0], 2)))
+        sim = _speeds_from_positions(res.trajectory[:, j, :, :2].astype(np.float64), np.broadcast_to(tr.position[j, cf, :2], (res.trajectory.shape[0], 2)))
         return float(sim.mean(0)[on].mean())
 
     out = []
@@ -159,7 +155,7 @@ def scene_records(res, scene) -> list[dict]:
         if leader is not None and leader < len(simulated) and simulated[leader]:
             both = late & tr.valid[leader, frames] & tr.valid[leader, frames - 1]
             if both.any():
-                lead_log = _speeds(tr.position[leader, frames, :2], tr.position[leader, cf, :2])
+                lead_log = _speeds_from_positions(tr.position[leader, frames, :2], tr.position[leader, cf, :2])
                 rec["leader_log"], rec["leader_rollout"] = float(lead_log[both].mean()), rollout_late(leader, both)
                 log_gap = np.linalg.norm(tr.position[leader, frames, :2] - tr.position[i, frames, :2], axis=-1)
                 sim_gap = np.linalg.norm(res.trajectory[:, leader, :, :2] - res.trajectory[:, i, :, :2], axis=-1).mean(0)
