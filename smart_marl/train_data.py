@@ -95,8 +95,9 @@ class TokenizedScenes(Dataset):
 
     def __init__(self, scenes: Sequence[Scenario], motion_vocab: MotionVocabulary, road_vocab: RoadVocabulary, seed: int,
                  noise_topk: int, road_mask_prob: float, road_keep_radius_m: float | None, cache_size: int = 512,
-                 closed_loop: bool = False, road_types: str = "all") -> None:
+                 closed_loop: bool = False, road_types: str = "all", stop_signs: bool = False) -> None:
         self.scenes, self.motion_vocab, self.road_vocab, self.road_types = scenes, motion_vocab, road_vocab, road_types
+        self.stop_signs = stop_signs
         self.seed, self.noise_topk, self.road_mask_prob = seed, noise_topk, road_mask_prob
         self.road_keep_radius_m, self.cache_size, self.closed_loop = road_keep_radius_m, cache_size, closed_loop
         self._roads: dict[int, RoadArrays] = {}
@@ -110,7 +111,7 @@ class TokenizedScenes(Dataset):
         scenario = self.scenes[index]
         road = self._roads.get(index)
         if road is None:
-            road = scene_road(scenario, self.road_vocab, self.road_types)
+            road = scene_road(scenario, self.road_vocab, self.road_types, self.stop_signs)
             if len(self._roads) < self.cache_size:
                 self._roads[index] = road
         if self.closed_loop:

@@ -386,6 +386,18 @@ def test_speed_limits_are_drawn_from_the_configured_levels_and_weights():
         SumoConfig(speed_levels_mps=(13.89, 25.0))  # the default weights are for the default five levels
 
 
+def test_junction_weights_set_how_often_each_junction_kind_is_drawn():
+    """``generate-sumo --junction-weights 0,0,1,3,0``: normalised, and the networks' junction kinds follow them."""
+    from smart_marl.commands.generate_sumo import junction_changes
+    from smart_marl.sources.sumo_sim import network_spec
+
+    changes = junction_changes((0.0, 0.0, 1.0, 3.0, 0.0))
+    assert changes == {"junction_weights": (0.0, 0.0, 0.25, 0.75, 0.0)} and junction_changes(None) == {}
+    drawn = [network_spec(np.random.default_rng(i), SumoConfig(**changes)).junction_type for i in range(400)]
+    assert set(drawn) == {"priority_stop", "allway_stop"}
+    assert drawn.count("allway_stop") / len(drawn) == pytest.approx(0.75, abs=0.06)
+
+
 def test_random_walk_goes_straight_on_and_stops_at_a_dead_end():
     from smart_marl.sources.sumo_sim import EdgeGraph, random_walk
 

@@ -143,6 +143,25 @@ def test_training_reads_the_cache_and_refuses_what_it_cannot_serve(setup, tmp_pa
         train(load_train_config(base, {"out_dir": str(tmp_path / "noise"), "token_noise_topk": 5}))
     with pytest.raises(TokenCacheError, match="road_keep_radius_m"):
         train(load_train_config(base, {"out_dir": str(tmp_path / "radius"), "road_keep_radius_m": 20.0}))
+    with pytest.raises(TokenCacheError, match="stop_signs"):
+        train(load_train_config({**base, "model_overrides": {"road_types": "sumo", "stop_signs": True}},
+                                {"out_dir": str(tmp_path / "stops")}))
+
+
+def test_a_cache_from_before_stop_signs_existed_reads_as_made_without_them(setup, tmp_path):
+    import json
+    import shutil
+
+    ck, _, _, out, _ = setup
+    old = tmp_path / "old"
+    shutil.copytree(out, old)
+    manifest = json.loads((old / "token_cache.json").read_text())
+    assert manifest.pop("stop_signs") is False
+    (old / "token_cache.json").write_text(json.dumps(manifest))
+    cache = TokenCache(old, 0, 0.0)
+    cache.check(ck.motion_vocab, ck.road_vocab, "sumo", RADIUS)
+    with pytest.raises(TokenCacheError, match="stop_signs: cache False, run True"):
+        cache.check(ck.motion_vocab, ck.road_vocab, "sumo", RADIUS, stop_signs=True)
 
 
 def test_cli_pretokenize(setup, tmp_path, capsys):

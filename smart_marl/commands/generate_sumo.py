@@ -7,6 +7,7 @@ import os
 
 from ..errors import SmartMarlError, UsageError
 from ..sources.sumo import SumoConfig, SumoUnavailableError, generate_to_dir
+from ..sources.sumo_net import JUNCTION_TYPES
 from ..sources.sumo_sim import MAX_SPEED_LIMIT_MPS, MIN_SPEED_LIMIT_MPS
 from ..config_files import number
 from .arguments import bounded_int, bounded_number, numbers_list, output_dir, positive_int, positive_numbers, seed, workers
@@ -51,6 +52,9 @@ def register(subparsers) -> None:
     p.add_argument("--no-parked-cars", action="store_true",
                    help="no parked cars beside the kerbs (the tuned generator parks cars on 20-90%% of the kerb, drawn "
                         "per simulation, as real scenes have them; --legacy implies none)")
+    p.add_argument("--junction-weights", type=positive_numbers, default=None, metavar="W,W,W,W,W",
+                   help="how often each junction kind is drawn, one weight per kind of " + ", ".join(JUNCTION_TYPES)
+                        + " (normalised; default: the config's, 0.3, 0.5, 0.1, 0.08, 0.02 for the tuned traffic)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -69,6 +73,16 @@ def speed_changes(limits_kmh: tuple[float, ...] | None, w: tuple[float, ...] | N
     return {"speed_levels_mps": levels, "speed_weights": tuple(x / sum(w) for x in w)}
 
 
+def junction_changes(w: tuple[float, ...] | None) -> dict:
+    """SumoConfig changes of ``--junction-weights`` (relative weights, one per junction kind)."""
+    if w is None:
+        return {}
+    if len(w) != len(JUNCTION_TYPES):
+        raise UsageError(f"argument --junction-weights: {len(w)} weights for the {len(JUNCTION_TYPES)} junction kinds "
+                         f"({', '.join(JUNCTION_TYPES)})")
+    return {"junction_weights": tuple(x / sum(w) for x in w)}
+
+
 def run(args) -> int:
     make_config = SumoConfig.legacy if args.legacy else SumoConfig
     changes = {} if args.demand_scale is None else {"demand_scale": args.demand_scale}
@@ -77,6 +91,7 @@ def run(args) -> int:
     if args.no_parked_cars:
         changes.update(parked_occupancy=(0.0, 0.0))
     changes.update(speed_changes(args.speed_limits, args.speed_weights))
+    changes.update(junction_changes(args.junction_weights))
     config = make_config(scenes_per_sim=args.scenes_per_sim, radius_m=args.radius, pedestrians=not args.no_pedestrians,
                          bicycles=not args.no_bicycles, sublane=args.sublane, **changes)
     try:

@@ -17,7 +17,7 @@ from typing import Any, Mapping, NamedTuple
 import torch
 import torch.nn as nn
 
-from ..config_files import check_fields, integer, number, one_of, sequence, text
+from ..config_files import check_fields, flag, integer, number, one_of, sequence, text
 from ..errors import SmartMarlError
 from .layers import mlp
 from .motionnet import NUM_MOTION_TYPES, MotionCache, MotionNet
@@ -51,6 +51,7 @@ class SmartConfig:
     num_freq_bands: int = 64
     dropout: float = 0.1
     road_types: str = "all"  # the road kinds the type embedding tells apart (batch.ROAD_TYPE_SETS): "all" or "sumo"
+    stop_signs: bool = False  # lanes a stop sign controls carry the light code FLASHING_STOP (batch.scene_road)
 
     def __post_init__(self) -> None:
         check_fields(self, MODEL_RULES, "model", ModelConfigError)
@@ -90,7 +91,7 @@ MODEL_RULES = {
     "map_radius_m": _RADIUS, "road_radius_m": _RADIUS, "temporal_window_tokens": integer(1, 64, "32 s of history"),
     "agent_neighbours": integer(1, 1024), "map_neighbours": integer(1, 1024), "road_neighbours": integer(1, 1024),
     "road_piece_points": integer(2, 64), "num_freq_bands": integer(1, 1024), "dropout": number(0.0, 1.0, high_open=True),
-    "road_types": one_of("all", "sumo"),
+    "road_types": one_of("all", "sumo"), "stop_signs": flag,
 }
 """What each SmartConfig field takes (:mod:`smart_marl.config_files` rules), checked whenever a config is made:
 from a name, a training config's overrides or a checkpoint's ``model_config``."""
