@@ -22,9 +22,9 @@ def _lane(fid: int, start, end) -> dict:
 
 
 # an approach (1) ending at the stop line x = 0, the lane across the junction (2) starting there, a lane
-# leaving the junction the other way (3) with the sign on its left, and a lane far away (4); the sign
-# stands at the kerb, right of the approach, 1 m before the stop line
-LANES = [_lane(1, (-40, 0), (0, 0)), _lane(2, (0, 0), (20, 0)), _lane(3, (1, 3.5), (-40, 3.5)), _lane(4, (60, 40), (90, 40))]
+# leaving the junction the other way (3) that starts 4.5 m from the sign but with the sign on its left, and a
+# lane far away (4); the sign stands at the kerb, right of the approach, 1 m before the stop line
+LANES = [_lane(1, (-40, 0), (0, 0)), _lane(2, (0, 0), (20, 0)), _lane(3, (-1, 2), (-40, 2)), _lane(4, (60, 40), (90, 40))]
 SIGN = dict(id=9, type=MapFeatureType.STOP_SIGN, points=[[-1.0, -2.5, 0.0]])
 
 

@@ -15,6 +15,7 @@ from .arguments import bounded_int, bounded_number, numbers_list, output_dir, po
 speed_limits_kmh = numbers_list(number(round(MIN_SPEED_LIMIT_MPS * 3.6), round(MAX_SPEED_LIMIT_MPS * 3.6),
                                        why="km/h; netgenerate fails on limits near 0"), "speed_limits_kmh")
 """``--speed-limits``: comma-separated km/h, each within the limits a SUMO network takes (5-200)."""
+_DEFAULT_JUNCTION_WEIGHTS = SumoConfig.__dataclass_fields__["junction_weights"].default
 
 
 def register(subparsers) -> None:
@@ -54,7 +55,8 @@ def register(subparsers) -> None:
                         "per simulation, as real scenes have them; --legacy implies none)")
     p.add_argument("--junction-weights", type=positive_numbers, default=None, metavar="W,W,W,W,W",
                    help="how often each junction kind is drawn, one weight per kind of " + ", ".join(JUNCTION_TYPES)
-                        + " (normalised; default: the config's, 0.3, 0.5, 0.1, 0.08, 0.02 for the tuned traffic)")
+                        + " (normalised; default: the config's, " + ", ".join(map(str, _DEFAULT_JUNCTION_WEIGHTS))
+                        + " for the tuned traffic)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 

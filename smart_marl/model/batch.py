@@ -149,11 +149,11 @@ def stop_sign_lanes(road_map) -> np.ndarray:
       8 m of it (:data:`STOP_SIGN_APPROACH_M`), the sign on their right and not more than 3 m behind. On the 6 real
       scenes whose signs are linked this finds 76% of the linked lanes, and 60% of what it finds is linked."""
     o = road_map.point_offsets
-    first = road_map.points[o[:-1].clip(max=len(road_map.points) - 1), :2]
+    first = road_map.points[o[:-1].clip(max=len(road_map.points) - 1), :2]  # [F, 2] each feature's first / last point
     last = road_map.points[(o[1:] - 1).clip(min=0), :2]
     links = road_map.link_indices(LinkType.STOP_SIGN_LANE)
-    sign_xy = road_map.points[o[links[:, 0]], :2]
-    approach = np.linalg.norm(last[links[:, 1]] - sign_xy, axis=1) < np.linalg.norm(first[links[:, 1]] - sign_xy, axis=1)
+    linked_xy = first[links[:, 0]]  # a sign's one point
+    approach = np.linalg.norm(last[links[:, 1]] - linked_xy, axis=1) < np.linalg.norm(first[links[:, 1]] - linked_xy, axis=1)
     follow = road_map.link_indices(LinkType.SUCCESSOR)
     lanes = [links[~approach, 1], follow[np.isin(follow[:, 0], links[approach, 1]), 1]]
     signs = road_map.indices_of(MapFeatureType.STOP_SIGN)
@@ -161,9 +161,9 @@ def stop_sign_lanes(road_map) -> np.ndarray:
     cand = road_map.indices_of(MapFeatureType.LANE)
     cand = cand[np.diff(o)[cand] >= 2]
     if len(unlinked) and len(cand):
-        sign_xy = road_map.points[o[unlinked], :2]
-        starts = _sign_on_right(first[cand], road_map.points[o[cand] + 1, :2] - first[cand], sign_xy, STOP_SIGN_REACH_M)
-        ends = _sign_on_right(last[cand], last[cand] - road_map.points[o[cand + 1] - 2, :2], sign_xy, STOP_SIGN_APPROACH_M)
+        unlinked_xy = first[unlinked]
+        starts = _sign_on_right(first[cand], road_map.points[o[cand] + 1, :2] - first[cand], unlinked_xy, STOP_SIGN_REACH_M)
+        ends = _sign_on_right(last[cand], last[cand] - road_map.points[o[cand + 1] - 2, :2], unlinked_xy, STOP_SIGN_APPROACH_M)
         joined = np.linalg.norm(first[cand][:, None] - last[cand][ends][None], axis=-1).min(1, initial=np.inf) <= 1.0
         lanes.append(cand[starts | joined])
     return np.unique(np.concatenate(lanes)).astype(np.int64)
