@@ -20,7 +20,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
-from ..scenario import AgentType, LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadLineType, Scenario, SignalState
+from ..scenario import LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadLineType, Scenario, SignalState
 from ..tokens import MotionVocabulary, tokenize_motion
 from ..tokens.road import RoadVocabulary, match_road_pieces, road_pieces, road_successor_pairs
 from .roadnet import NUM_LIGHT_STATES, NUM_ROAD_TYPES
