@@ -92,7 +92,7 @@ def main(argv=None) -> int:
     model, vocab, road_vocab = ck.model.eval(), ck.motion_vocab, ck.road_vocab
     cache = SceneCache(args.cache)
     scenes = [cache[i] for i in range(min(args.scenes, len(cache)))]
-    roads = [scene_road(sc, road_vocab, model.config.road_types, model.config.stop_signs) for sc in scenes]
+    roads = [scene_road(sc, road_vocab, model.config.road_settings) for sc in scenes]
     modes = {"teacher_forcing": [tokenize_motion(sc, vocab) for sc in scenes],
              "catk": catk_tokens(model, scenes, roads, vocab, args.top_k, avoid=args.avoid)}
     for mode, tokens in modes.items():

@@ -125,7 +125,7 @@ def teacher_forced_bias(ck, scene, top_k: int = 5) -> tuple[dict, np.ndarray]:
     mean speeds, sum of target-token speeds, rows] over every step with a logged input token)."""
     mv = ck.motion_vocab
     mt = tokenize_motion(scene, mv)
-    d = scene_tensors(scene, mv, scene_road(scene, ck.road_vocab, ck.model.config.road_types, ck.model.config.stop_signs), noise_topk=0, road_mask_prob=0.0, rng=0, motion_tokens=mt)
+    d = scene_tensors(scene, mv, scene_road(scene, ck.road_vocab, ck.model.config.road_settings), noise_topk=0, road_mask_prob=0.0, rng=0, motion_tokens=mt)
     b = collate_scenes([d])
     feats, _ = ck.model(b)
     logits = ck.model.motion_logits(feats, b.agent_type)

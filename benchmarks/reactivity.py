@@ -354,7 +354,7 @@ def main(argv=None) -> None:
     ap.add_argument("--set", dest="sets", action="append", metavar="NAME=PATH[,PATH...]",
                     help="a named set of scenes (files, folders, globs); repeatable (default: the shared real 91-frame scenes)")
     ap.add_argument("--parts", default="a,b,c,d,e")
-    ap.add_argument("--sampling", default="default,plain", help="default (collision-aware), plain, or both")
+    ap.add_argument("--sampling", default="default,plain", help="comma-separated: default (collision-aware), plain")
     ap.add_argument("--seeds", default="0,1")
     ap.add_argument("--rollouts", type=int, default=8, help="rollouts per scene for (a) and (b)")
     ap.add_argument("--case-rollouts", type=int, default=4, help="rollouts per braking / cut-in case")

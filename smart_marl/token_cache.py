@@ -35,7 +35,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .errors import ScenarioReadError, SmartMarlError, regular_file_problem
-from .model.batch import scene_road, scene_tensors
+from .model.batch import RoadSettings, scene_road, scene_tensors
 from .readers import expand_paths, read_scenarios
 from .readers.scene_cache import atomic_write
 from .tokens.motion import MotionVocabulary, tokenize_motion
@@ -119,10 +119,10 @@ def _pack(items: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
 
 
 def _tokenize_file(source: str, out_dir: str, index: int, motion_vocab: MotionVocabulary, road_vocab: RoadVocabulary,
-                   road_types: str, road_keep_radius_m: float | None, stop_signs: bool = False) -> dict[str, Any]:
+                   road_settings: RoadSettings, road_keep_radius_m: float | None) -> dict[str, Any]:
     items, ids = [], []
     for scenario in read_scenarios(source):
-        road = scene_road(scenario, road_vocab, road_types, stop_signs)
+        road = scene_road(scenario, road_vocab, road_settings)
         tokens = tokenize_motion(scenario, motion_vocab)
         items.append(scene_tensors(scenario, motion_vocab, road, road_mask_prob=0.0, motion_tokens=tokens,
                                    road_keep_radius_m=road_keep_radius_m))
@@ -140,22 +140,22 @@ def _tokenize_file(source: str, out_dir: str, index: int, motion_vocab: MotionVo
 _DEFAULTS = {"stop_signs": False}  # settings that caches made before they existed were made with
 
 
-def _settings(motion_vocab: MotionVocabulary, road_vocab: RoadVocabulary, road_types: str,
-              road_keep_radius_m: float | None, stop_signs: bool) -> dict[str, Any]:
+def _settings(motion_vocab: MotionVocabulary, road_vocab: RoadVocabulary, road: RoadSettings,
+              road_keep_radius_m: float | None) -> dict[str, Any]:
     """What a token cache's content depends on besides its scenes (kept in its manifest)."""
-    return {"motion_vocab": motion_vocab.content_hash(), "road_vocab": road_vocab.content_hash(), "road_types": road_types,
+    return {"motion_vocab": motion_vocab.content_hash(), "road_vocab": road_vocab.content_hash(), "road_types": road.types,
             "road_keep_radius_m": None if road_keep_radius_m is None else float(road_keep_radius_m),
-            "stop_signs": bool(stop_signs)}
+            "stop_signs": bool(road.stop_signs)}
 
 
 def pretokenize(sources, out_dir: str | os.PathLike, motion_vocab: MotionVocabulary, road_vocab: RoadVocabulary,
-                road_types: str = "all", road_keep_radius_m: float | None = None, workers: int = 1,
-                progress: bool = True, stop_signs: bool = False) -> dict[str, Any]:
+                road: RoadSettings = RoadSettings(), road_keep_radius_m: float | None = None, workers: int = 1,
+                progress: bool = True) -> dict[str, Any]:
     """Tokenize every scene of ``sources`` (files, folders, globs, scene caches) into a token cache
     in ``out_dir``; returns the manifest. Resumable: shards already in the folder (of an earlier run
     with the same settings) are kept. ``road_keep_radius_m`` is the training run's crop radius
-    (``TrainConfig.road_keep_radius_m`` as resolved, e.g. 30); ``stop_signs`` the model's
-    ``SmartConfig.stop_signs``."""
+    (``TrainConfig.road_keep_radius_m`` as resolved, e.g. 30); ``road`` the model's
+    :attr:`SmartConfig.road_settings <smart_marl.model.SmartConfig.road_settings>`."""
     largest = max([motion_vocab[t].size for t in range(3)] + [road_vocab.size])
     if largest > np.iinfo(np.int16).max:
         raise TokenCacheError(f"a vocabulary of {largest} tokens: token ids are stored as int16 (at most 32767 tokens)")
@@ -164,7 +164,7 @@ def pretokenize(sources, out_dir: str | os.PathLike, motion_vocab: MotionVocabul
         raise TokenCacheError(f"{sources}: no scene files found")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    settings = {"kind": KIND, "version": VERSION, **_settings(motion_vocab, road_vocab, road_types, road_keep_radius_m, stop_signs)}
+    settings = {"kind": KIND, "version": VERSION, **_settings(motion_vocab, road_vocab, road, road_keep_radius_m)}
     done: dict[str, dict] = {}
     if (out / MANIFEST).is_file():
         old = _read_manifest(out)
@@ -193,7 +193,7 @@ def pretokenize(sources, out_dir: str | os.PathLike, motion_vocab: MotionVocabul
                 write_manifest()
 
     try:
-        args = (os.fspath(out), motion_vocab, road_vocab, road_types, road_keep_radius_m, stop_signs)
+        args = (os.fspath(out), motion_vocab, road_vocab, road, road_keep_radius_m)
         if workers <= 1:
             collect(_tokenize_file(f, args[0], i, *args[1:]) for i, f in todo)
         else:
@@ -261,10 +261,11 @@ class TokenCache(Sequence):
         other.seed, other._shards = seed, self._shards
         return other
 
-    def check(self, motion_vocab: MotionVocabulary, road_vocab: RoadVocabulary, road_types: str,
-              road_keep_radius_m: float | None, stop_signs: bool = False) -> None:
-        """:class:`TokenCacheError` when this cache was made with other vocabularies or settings than a run's."""
-        want = _settings(motion_vocab, road_vocab, road_types, road_keep_radius_m, stop_signs)
+    def check(self, motion_vocab: MotionVocabulary, road_vocab: RoadVocabulary, road: RoadSettings,
+              road_keep_radius_m: float | None) -> None:
+        """:class:`TokenCacheError` when this cache was made with other vocabularies or settings than a run's
+        (``road``: the model's :attr:`SmartConfig.road_settings <smart_marl.model.SmartConfig.road_settings>`)."""
+        want = _settings(motion_vocab, road_vocab, road, road_keep_radius_m)
         got = {k: self.manifest.get(k, _DEFAULTS.get(k)) for k in want}
         differ = {k: (got[k], v) for k, v in want.items() if got[k] != v}
         if differ:

@@ -383,16 +383,14 @@ def _datasets(cfg: TrainConfig, tokens: TokenCache | None, scenes, mv: MotionVoc
     if cfg.catk_top_k < 0:
         raise TrainError(f"catk_top_k must be >= 0 (0: teacher forcing), got {cfg.catk_top_k}")
     if tokens is not None:  # pre-tokenized: the same items, without the rolling matching
-        tokens.check(mv, rv, model_cfg.road_types, keep, model_cfg.stop_signs)
+        tokens.check(mv, rv, model_cfg.road_settings, keep)
         val_scenes = val_set = TokenCache(cfg.val_data, cfg.seed + 1, cfg.road_mask_prob) if cfg.val_data else tokens.with_seed(cfg.seed + 1)
-        val_set.check(mv, rv, model_cfg.road_types, keep, model_cfg.stop_signs)
+        val_set.check(mv, rv, model_cfg.road_settings, keep)
         return tokens, val_scenes, val_set
     train_set = TokenizedScenes(scenes, mv, rv, cfg.seed, noise, cfg.road_mask_prob, keep, cache_size=cfg.cache_scenes,
-                                closed_loop=cfg.catk_top_k > 0, road_types=model_cfg.road_types,
-                                stop_signs=model_cfg.stop_signs)
+                                closed_loop=cfg.catk_top_k > 0, road=model_cfg.road_settings)
     val_scenes = open_scenes(cfg.val_data) if cfg.val_data else scenes
-    val_set = TokenizedScenes(val_scenes, mv, rv, cfg.seed + 1, 0, cfg.road_mask_prob, keep, road_types=model_cfg.road_types,
-                              stop_signs=model_cfg.stop_signs)
+    val_set = TokenizedScenes(val_scenes, mv, rv, cfg.seed + 1, 0, cfg.road_mask_prob, keep, road=model_cfg.road_settings)
     return train_set, val_scenes, val_set
 
 

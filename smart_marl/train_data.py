@@ -16,7 +16,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from .cache import SceneCache, is_cache_dir
 from .braking import braking_leaders, with_braking_leaders
 from .catk import catk_tokens, drifted
-from .model.batch import RoadArrays, SmartBatch, collate_scenes, scene_road, scene_tensors
+from .model.batch import RoadArrays, RoadSettings, SmartBatch, collate_scenes, scene_road, scene_tensors
 from .model.smart import SMART, SmartConfig
 from .readers import read_scenarios
 from .scenario import AgentType, Scenario
@@ -95,9 +95,8 @@ class TokenizedScenes(Dataset):
 
     def __init__(self, scenes: Sequence[Scenario], motion_vocab: MotionVocabulary, road_vocab: RoadVocabulary, seed: int,
                  noise_topk: int, road_mask_prob: float, road_keep_radius_m: float | None, cache_size: int = 512,
-                 closed_loop: bool = False, road_types: str = "all", stop_signs: bool = False) -> None:
-        self.scenes, self.motion_vocab, self.road_vocab, self.road_types = scenes, motion_vocab, road_vocab, road_types
-        self.stop_signs = stop_signs
+                 closed_loop: bool = False, road: RoadSettings = RoadSettings()) -> None:
+        self.scenes, self.motion_vocab, self.road_vocab, self.road_settings = scenes, motion_vocab, road_vocab, road
         self.seed, self.noise_topk, self.road_mask_prob = seed, noise_topk, road_mask_prob
         self.road_keep_radius_m, self.cache_size, self.closed_loop = road_keep_radius_m, cache_size, closed_loop
         self._roads: dict[int, RoadArrays] = {}
@@ -111,7 +110,7 @@ class TokenizedScenes(Dataset):
         scenario = self.scenes[index]
         road = self._roads.get(index)
         if road is None:
-            road = scene_road(scenario, self.road_vocab, self.road_types, self.stop_signs)
+            road = scene_road(scenario, self.road_vocab, self.road_settings)
             if len(self._roads) < self.cache_size:
                 self._roads[index] = road
         if self.closed_loop:

@@ -122,4 +122,5 @@ def _empty_road():
     from smart_marl.model.batch import RoadArrays
 
     return RoadArrays(local=np.zeros((0, 0, 2), np.float32), pose=np.zeros((0, 3), np.float32), type_id=np.zeros(0, np.int64),
-                      light=np.zeros(0, np.int64), token=np.zeros(0, np.int64), pairs=np.zeros((0, 2), np.int64))
+                      light=np.zeros(0, np.int64), token=np.zeros(0, np.int64), pairs=np.zeros((0, 2), np.int64),
+                      light_index=np.zeros(0, np.int64))

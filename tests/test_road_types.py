@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from smart_marl.model.batch import road_type_ids, scene_road
+from smart_marl.model.batch import RoadSettings, road_type_ids, scene_road
 from smart_marl.model.smart import ModelConfigError, get_config
 from smart_marl.scenario import LaneType, MapFeatureType, RoadEdgeType, RoadLineType
 from smart_marl.tokens.road import RoadVocabulary
@@ -38,7 +38,7 @@ def test_sumo_road_view_of_a_real_scene_drops_its_driveways_and_keeps_successor_
 
     scene = next(read_scenarios(shared_data / "womd_tfrecord" / "motion_data_one_scenario.tfrecord"))
     rv = RoadVocabulary(points=np.zeros((1, 11, 2), np.float32), tolerance_m=0.0, requested_size=1)
-    full, sumo = scene_road(scene, rv, "all"), scene_road(scene, rv, "sumo")
+    full, sumo = scene_road(scene, rv, RoadSettings("all")), scene_road(scene, rv, RoadSettings("sumo"))
     dropped = np.isin(full.type_id // 9, [F.SPEED_BUMP, F.DRIVEWAY])
     assert dropped.any() and len(sumo.token) == len(full.token) - dropped.sum()
     np.testing.assert_array_equal(sumo.pose, full.pose[~dropped])

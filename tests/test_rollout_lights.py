@@ -8,15 +8,17 @@ import numpy as np
 import pytest
 import torch
 
-from smart_marl.model.batch import light_codes, road_light_index
+from smart_marl.model.batch import light_codes, scene_road
 from smart_marl.rollout import RolloutState
+from smart_marl.tokens.road import RoadVocabulary
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 
 
 def test_logged_lights_follow_the_frames_of_the_steps_and_reach_the_logits(model, vocab, scenes):
     scene = scenes[0]  # 637f20cafde22ff8: lane 431's signal goes from unknown (0) to ARROW_STOP (1) at frame 20
-    index = road_light_index(scene, model.config.road_types)
+    any_vocab = RoadVocabulary(points=np.zeros((1, 11, 2), np.float32), tolerance_m=0.0, requested_size=1)  # tokens unused
+    index = scene_road(scene, any_vocab, model.config.road_settings).light_index
     assert (index >= 0).any()
     held = RolloutState.start(model, scene, num_rollouts=2, seed=0, motion_vocab=vocab)
     follow = RolloutState.start(model, scene, num_rollouts=2, seed=0, motion_vocab=vocab, lights="log")

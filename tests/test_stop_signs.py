@@ -6,13 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from smart_marl.model.batch import NO_LIGHT, STOP_SIGN_LIGHT, light_codes, road_light_index, scene_road, stop_sign_lanes
+from smart_marl.model.batch import NO_LIGHT, STOP_SIGN_LIGHT, RoadSettings, light_codes, scene_road, stop_sign_lanes
 from smart_marl.model.smart import ModelConfigError, get_config
 from smart_marl.scenario import (LaneType, LinkType, MapFeatureType, RoadMap, Scenario, SceneFrame, SignalState,
                                  TrafficLights, Tracks)
 from smart_marl.tokens.road import RoadVocabulary
 
 T = 91
+SUMO, SUMO_STOPS = RoadSettings("sumo"), RoadSettings("sumo", stop_signs=True)
 
 
 def _lane(fid: int, start, end) -> dict:
@@ -52,8 +53,8 @@ def test_the_lane_leaving_the_stop_line_is_the_one_a_stop_sign_controls(links):
 def test_stop_sign_lanes_carry_flashing_stop_only_when_asked_and_a_signal_wins():
     rv = RoadVocabulary(points=np.zeros((1, 11, 2), np.float32), tolerance_m=0.0, requested_size=1)
     scene = _scene([(9, 2, LinkType.STOP_SIGN_LANE)])
-    plain, stops = scene_road(scene, rv, "sumo"), scene_road(scene, rv, "sumo", stop_signs=True)
-    index = road_light_index(scene, "sumo", stop_signs=True)
+    plain, stops = scene_road(scene, rv, SUMO), scene_road(scene, rv, SUMO_STOPS)
+    index = stops.light_index
     on = index == STOP_SIGN_LIGHT
     assert on.sum() == 4  # lane 2 is 20 m long: four pieces of 5 m
     assert (plain.light == NO_LIGHT).all()
@@ -61,7 +62,7 @@ def test_stop_sign_lanes_carry_flashing_stop_only_when_asked_and_a_signal_wins()
     # the logged-lights path (rollouts with lights="log") gives the same codes at any frame
     np.testing.assert_array_equal(light_codes(scene.traffic_lights, index, 50), stops.light)
     signalled = _scene([(9, 2, LinkType.STOP_SIGN_LANE)], lights_on=(2,))
-    assert (scene_road(signalled, rv, "sumo", stop_signs=True).light[on] == SignalState.GO).all()
+    assert (scene_road(signalled, rv, SUMO_STOPS).light[on] == SignalState.GO).all()
 
 
 def test_stop_signs_is_a_flag_of_the_model_config():
@@ -77,7 +78,7 @@ def test_real_womd_signs_reach_lanes_and_only_their_pieces_change(shared_data):
     files = [shared_data / "womd_tfrecord" / "motion_data_one_scenario.tfrecord", shared_data / "smart_pkl" / "1d71990efc3c6c0e.pkl",
              shared_data / "gpudrive_json" / "tfrecord-00001-of-01000_307.json"]
     for scene in read_scenarios(files):  # 8 linked signs, none, 1 unlinked
-        plain, stops = scene_road(scene, rv, "sumo"), scene_road(scene, rv, "sumo", stop_signs=True)
+        plain, stops = scene_road(scene, rv, SUMO), scene_road(scene, rv, SUMO_STOPS)
         changed = plain.light != stops.light
         signs = len(scene.road_map.indices_of(MapFeatureType.STOP_SIGN))
         assert changed.any() == (signs > 0)

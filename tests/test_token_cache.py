@@ -8,14 +8,15 @@ import torch
 
 from smart_marl.cli import main as cli_main
 from smart_marl.embedded import SAMPLES_DIR
-from smart_marl.model.batch import collate_scenes
-from smart_marl.model.checkpoint import load_checkpoint
+from smart_marl.model.batch import RoadSettings, collate_scenes
+from smart_marl.model.checkpoint import load_checkpoint, save_checkpoint
 from smart_marl.model.losses import NextTokenLoss
 from smart_marl.readers import read_scenarios
 from smart_marl.token_cache import TokenCache, TokenCacheError, is_token_cache, pretokenize
 from smart_marl.train import TokenizedScenes, TrainConfigError, load_train_config, train
 
 RADIUS = 30.0
+SUMO = RoadSettings("sumo")  # the embedded prior's road types
 MM = 1e-3
 
 
@@ -31,7 +32,7 @@ def setup(tmp_path_factory):
     write_shard(files[0], scenes[:3])
     write_shard(files[1], scenes[3:])
     out = tmp / "cache"
-    manifest = pretokenize([str(f) for f in files], out, ck.motion_vocab, ck.road_vocab, "sumo", RADIUS, workers=1, progress=False)
+    manifest = pretokenize([str(f) for f in files], out, ck.motion_vocab, ck.road_vocab, SUMO, RADIUS, workers=1, progress=False)
     return ck, scenes, files, out, manifest
 
 
@@ -46,7 +47,7 @@ def _close(name: str, a: np.ndarray, b: np.ndarray) -> None:
 def test_items_are_the_on_the_fly_items_road_points_to_a_millimetre(setup):
     ck, scenes, _, out, manifest = setup
     assert is_token_cache(out) and manifest["num_scenes"] == 4 and len(manifest["shards"]) == 2
-    ref = TokenizedScenes(scenes, ck.motion_vocab, ck.road_vocab, 3, 0, 0.15, RADIUS, road_types="sumo")
+    ref = TokenizedScenes(scenes, ck.motion_vocab, ck.road_vocab, 3, 0, 0.15, RADIUS, road=SUMO)
     cache = TokenCache(out, seed=3, road_mask_prob=0.15)
     assert [cache.scenario_id(i) for i in range(4)] == [s.scenario_id for s in scenes]
     for i in range(4):
@@ -60,7 +61,7 @@ def test_items_are_the_on_the_fly_items_road_points_to_a_millimetre(setup):
 
 def test_a_batch_from_the_cache_has_the_same_loss(setup):
     ck, scenes, _, out, _ = setup
-    ref = TokenizedScenes(scenes, ck.motion_vocab, ck.road_vocab, 0, 0, 0.15, RADIUS, road_types="sumo")
+    ref = TokenizedScenes(scenes, ck.motion_vocab, ck.road_vocab, 0, 0, 0.15, RADIUS, road=SUMO)
     cache = TokenCache(out, seed=0, road_mask_prob=0.15)
     keys = [(i, 7 * i) for i in range(4)]
     loss = NextTokenLoss(ck.model.eval(), 0.1)
@@ -76,16 +77,17 @@ def test_a_rerun_skips_done_inputs_and_refuses_other_settings(setup):
     ck, _, files, out, _ = setup
     shard = out / setup[4]["shards"][0]["file"]
     before = shard.stat().st_mtime_ns
-    again = pretokenize([str(f) for f in files], out, ck.motion_vocab, ck.road_vocab, "sumo", RADIUS, progress=False)
+    again = pretokenize([str(f) for f in files], out, ck.motion_vocab, ck.road_vocab, SUMO, RADIUS, progress=False)
     assert again["num_scenes"] == 4 and shard.stat().st_mtime_ns == before
     with pytest.raises(TokenCacheError, match="road_keep_radius_m"):
-        pretokenize([str(f) for f in files], out, ck.motion_vocab, ck.road_vocab, "sumo", 20.0, progress=False)
+        pretokenize([str(f) for f in files], out, ck.motion_vocab, ck.road_vocab, SUMO, 20.0, progress=False)
 
 
 # a pretokenize run that dies without cleaning up (SIGKILL, out of memory) half-way through its inputs
 _KILLED_RUN = """
 import os, sys
 from smart_marl import token_cache
+from smart_marl.model.batch import RoadSettings
 from smart_marl.model.checkpoint import load_checkpoint
 
 token_cache.MANIFEST_EVERY = 1
@@ -98,7 +100,7 @@ def dies_at_the_second_file(path, *args):
 
 token_cache._tokenize_file = dies_at_the_second_file
 ck = load_checkpoint("embedded")
-token_cache.pretokenize(sys.argv[1:3], sys.argv[3], ck.motion_vocab, ck.road_vocab, "sumo", float(sys.argv[4]), progress=False)
+token_cache.pretokenize(sys.argv[1:3], sys.argv[3], ck.motion_vocab, ck.road_vocab, RoadSettings("sumo"), float(sys.argv[4]), progress=False)
 """
 
 
@@ -115,7 +117,7 @@ def test_a_run_killed_hard_keeps_what_its_manifest_wrote_and_a_rerun_finishes(se
     assert [s["source"] for s in cache.manifest["shards"]] == [str(files[0])] and len(cache) == 3
     first = out / cache.manifest["shards"][0]["file"]
     before = first.stat().st_mtime_ns
-    again = pretokenize([str(f) for f in files], out, ck.motion_vocab, ck.road_vocab, "sumo", RADIUS, progress=False)
+    again = pretokenize([str(f) for f in files], out, ck.motion_vocab, ck.road_vocab, SUMO, RADIUS, progress=False)
     assert first.stat().st_mtime_ns == before  # the rerun kept the first file's shard and tokenized only the second
     assert [s["scenario_ids"] for s in again["shards"]] == [s["scenario_ids"] for s in manifest["shards"]]
 
@@ -159,9 +161,9 @@ def test_a_cache_from_before_stop_signs_existed_reads_as_made_without_them(setup
     assert manifest.pop("stop_signs") is False
     (old / "token_cache.json").write_text(json.dumps(manifest))
     cache = TokenCache(old, 0, 0.0)
-    cache.check(ck.motion_vocab, ck.road_vocab, "sumo", RADIUS)
+    cache.check(ck.motion_vocab, ck.road_vocab, SUMO, RADIUS)
     with pytest.raises(TokenCacheError, match="stop_signs: cache False, run True"):
-        cache.check(ck.motion_vocab, ck.road_vocab, "sumo", RADIUS, stop_signs=True)
+        cache.check(ck.motion_vocab, ck.road_vocab, RoadSettings("sumo", stop_signs=True), RADIUS)
 
 
 def test_cli_pretokenize(setup, tmp_path, capsys):
@@ -171,10 +173,26 @@ def test_cli_pretokenize(setup, tmp_path, capsys):
     assert TokenCache(tmp_path / "c").manifest["road_types"] == "sumo"
 
 
+def test_cli_pretokenize_stop_signs_default_to_the_checkpoints_and_can_be_turned_either_way(setup, tmp_path, capsys):
+    _, _, files, _, _ = setup
+    ck = load_checkpoint("embedded")  # a copy of its own, turned into a checkpoint whose model reads stop signs
+    ck.model.config.stop_signs = True
+    with_signs = save_checkpoint(tmp_path / "signs" / "ck", ck.model, ck.motion_vocab, ck.road_vocab)
+    made = {}
+    for name, flag in (("asked", []), ("off", ["--no-stop-signs"])):
+        assert cli_main(["pretokenize", str(files[1]), "--out", str(tmp_path / name), "--vocab-from", str(with_signs),
+                         "--road-keep-radius", "30", "--quiet", *flag]) == 0
+        made[name] = TokenCache(tmp_path / name).manifest["stop_signs"]
+    assert cli_main(["pretokenize", str(files[1]), "--out", str(tmp_path / "on"), "--road-keep-radius", "30", "--quiet",
+                     "--stop-signs"]) == 0
+    made["on"] = TokenCache(tmp_path / "on").manifest["stop_signs"]
+    assert made == {"asked": True, "off": False, "on": True}
+
+
 def test_worker_processes_write_the_same_shards(setup, tmp_path):
     """Two worker processes (spawned: a forked child of a process that has run torch can hang)."""
     ck, _, files, out, manifest = setup
-    two = pretokenize([str(f) for f in files], tmp_path / "two", ck.motion_vocab, ck.road_vocab, "sumo", RADIUS, workers=2,
+    two = pretokenize([str(f) for f in files], tmp_path / "two", ck.motion_vocab, ck.road_vocab, SUMO, RADIUS, workers=2,
                       progress=False)
     assert [s["scenario_ids"] for s in two["shards"]] == [s["scenario_ids"] for s in manifest["shards"]]
     for shard in manifest["shards"]:

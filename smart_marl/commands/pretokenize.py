@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import os
 
 from ..model.checkpoint import EMBEDDED, load_checkpoint
@@ -29,9 +31,9 @@ def register(subparsers) -> None:
                    help="the run's road_keep_radius_m: road pieces farther than M metres from every agent are dropped "
                         "(default -1: the lossless radius of the checkpoint's model config)")
     p.add_argument("--workers", type=workers, default=max(1, min(4, os.cpu_count() or 1)), help="parallel processes")
-    p.add_argument("--stop-signs", action="store_true",
-                   help="the lanes a stop sign controls carry the light code FLASHING_STOP, for a run with "
-                        "model.stop_signs=true (default: as the checkpoint's model config says)")
+    p.add_argument("--stop-signs", action=argparse.BooleanOptionalAction, default=None,
+                   help="the lanes a stop sign controls carry the light code FLASHING_STOP (or not: --no-stop-signs), "
+                        "for a run whose model.stop_signs says so (default: as the checkpoint's model config says)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -39,9 +41,11 @@ def register(subparsers) -> None:
 def run(args) -> int:
     ck = load_checkpoint(args.vocab_from)
     keep = road_keep_radius(args.road_keep_radius, ck.model.config)
-    manifest = pretokenize(args.sources, args.out, ck.motion_vocab, ck.road_vocab, ck.model.config.road_types, keep,
-                           workers=args.workers, progress=not args.quiet,
-                           stop_signs=args.stop_signs or ck.model.config.stop_signs)
+    road = ck.model.config.road_settings
+    if args.stop_signs is not None:
+        road = dataclasses.replace(road, stop_signs=args.stop_signs)
+    manifest = pretokenize(args.sources, args.out, ck.motion_vocab, ck.road_vocab, road, keep, workers=args.workers,
+                           progress=not args.quiet)
     print(f"{manifest['num_scenes']} scenes in {len(manifest['shards'])} shards, road pieces within {keep} m, "
           f"{manifest['seconds']:.1f} s -> {args.out}")
     return 0

@@ -9,7 +9,7 @@ and configs; ``forward`` for training, ``encode_road`` / ``start_cache`` / ``ste
 :mod:`.losses`, :mod:`.checkpoint` (files, and :func:`~.checkpoint.load_prior`).
 """
 
-from .batch import SmartBatch, collate_scenes, scene_road, scene_tensors
+from .batch import RoadSettings, SmartBatch, collate_scenes, scene_road, scene_tensors
 from .checkpoint import (
     Checkpoint, CheckpointError, Prior, VocabularyMismatchError, load_checkpoint, load_prior, save_checkpoint,
 )
@@ -18,7 +18,7 @@ from .motionnet import MotionCache
 from .smart import NAMED_CONFIGS, SMART, ModelConfigError, SmartConfig, get_config, model_parameter_count
 
 __all__ = [
-    "Checkpoint", "CheckpointError", "ModelConfigError", "MotionCache", "NAMED_CONFIGS", "NextTokenLoss", "Prior", "SMART", "SmartBatch",
+    "Checkpoint", "CheckpointError", "ModelConfigError", "MotionCache", "NAMED_CONFIGS", "NextTokenLoss", "Prior", "RoadSettings", "SMART", "SmartBatch",
     "SmartConfig", "VocabularyMismatchError", "collate_scenes", "get_config", "load_checkpoint", "load_prior",
     "model_parameter_count", "save_checkpoint",
     "scene_road", "scene_tensors",

@@ -73,6 +73,7 @@ class RoadArrays:
     light: np.ndarray  # [R]
     token: np.ndarray  # [R]
     pairs: np.ndarray  # [E, 2]
+    light_index: np.ndarray  # [R] traffic-light lane index (-1: none; STOP_SIGN_LIGHT): ``light`` at any frame is light_codes of it
 
 
 ROAD_TYPE_SETS = ("all", "sumo")
@@ -96,6 +97,17 @@ _SUMO_SUBTYPE = {  # feature type -> {subtype: the subtype SUMO makes}
 _SUMO_LEFT_OUT = (MapFeatureType.SPEED_BUMP, MapFeatureType.DRIVEWAY)
 
 
+@dataclass(frozen=True)
+class RoadSettings:
+    """What of a scene's road the model reads, beside the pieces themselves: which road kinds its type
+    embedding tells apart (``types``, :data:`ROAD_TYPE_SETS`) and whether the lanes a stop sign controls carry
+    FLASHING_STOP (``stop_signs``, :func:`stop_sign_lanes`). A model's are :attr:`SmartConfig.road_settings
+    <smart_marl.model.SmartConfig.road_settings>`; road arrays, token caches and rollouts are made with them."""
+
+    types: str = "all"
+    stop_signs: bool = False
+
+
 def road_type_ids(feature_type: np.ndarray, subtype: np.ndarray, road_types: str = "all") -> tuple[np.ndarray, np.ndarray]:
     """The model's road-type ids (feature type * 9 + subtype) of pieces ``feature_type``, ``subtype``
     [R] under ``road_types`` (see :data:`ROAD_TYPE_SETS`), and which pieces the model sees [R] bool."""
@@ -114,7 +126,7 @@ def road_type_ids(feature_type: np.ndarray, subtype: np.ndarray, road_types: str
 
 
 STOP_SIGN_LIGHT = -2
-"""In a light index (:func:`road_light_index`): a lane that a stop sign controls and no signal does; its
+"""In a light index (:attr:`RoadArrays.light_index`): a lane that a stop sign controls and no signal does; its
 pieces carry the light code FLASHING_STOP, the signal that means what a stop sign means."""
 
 
@@ -190,24 +202,19 @@ def _piece_light_index(scenario: Scenario, pieces, stop_signs: bool) -> np.ndarr
     return np.where(on_stop_lane, STOP_SIGN_LIGHT, index)
 
 
-def road_light_index(scenario: Scenario, road_types: str = "all", stop_signs: bool = False) -> np.ndarray:
-    """[R] each road piece's traffic-light lane index (-1: none; :data:`STOP_SIGN_LIGHT` with ``stop_signs``), for
-    the pieces of :func:`scene_road` in its order (so that :func:`light_codes` gives their codes at any frame)."""
-    pieces = road_pieces(scenario.road_map, scenario.traffic_lights)
-    _, keep = road_type_ids(pieces.feature_type, pieces.feature_subtype, road_types)
-    return _piece_light_index(scenario, pieces, stop_signs)[keep]
-
-
-def scene_road(scenario: Scenario, road_vocab: RoadVocabulary, road_types: str = "all", stop_signs: bool = False) -> RoadArrays:
-    """Road pieces, their tokens, types (:func:`road_type_ids`), light states (at the current frame; with
-    ``stop_signs``, FLASHING_STOP on the lanes a stop sign controls and no signal does) and successor pairs."""
+def scene_road(scenario: Scenario, road_vocab: RoadVocabulary, road: RoadSettings = RoadSettings()) -> RoadArrays:
+    """Road pieces, their tokens, types (:func:`road_type_ids` of ``road.types``), light states (at the current
+    frame; with ``road.stop_signs``, FLASHING_STOP on the lanes a stop sign controls and no signal does) and
+    successor pairs."""
     pieces = road_pieces(scenario.road_map, scenario.traffic_lights)
     ids, _, _ = match_road_pieces(pieces.local, road_vocab) if pieces.num_pieces else (np.zeros(0, np.int64),) * 3
-    light = light_codes(scenario.traffic_lights, _piece_light_index(scenario, pieces, stop_signs), scenario.current_frame)
+    light_index = _piece_light_index(scenario, pieces, road.stop_signs)
+    light = light_codes(scenario.traffic_lights, light_index, scenario.current_frame)
     pairs, _ = road_successor_pairs(pieces, scenario.road_map)
-    type_id, keep = road_type_ids(pieces.feature_type, pieces.feature_subtype, road_types)
-    road = RoadArrays(local=pieces.local, pose=pieces.pose, type_id=type_id, light=light, token=ids, pairs=pairs)
-    return road if keep.all() else crop_road(road, keep)
+    type_id, keep = road_type_ids(pieces.feature_type, pieces.feature_subtype, road.types)
+    arrays = RoadArrays(local=pieces.local, pose=pieces.pose, type_id=type_id, light=light, token=ids, pairs=pairs,
+                        light_index=light_index)
+    return arrays if keep.all() else crop_road(arrays, keep)
 
 
 def crop_road(road: RoadArrays, keep: np.ndarray) -> RoadArrays:
@@ -215,7 +222,7 @@ def crop_road(road: RoadArrays, keep: np.ndarray) -> RoadArrays:
     new_index = np.cumsum(keep) - 1
     pk = keep[road.pairs[:, 0]] & keep[road.pairs[:, 1]] if len(road.pairs) else np.zeros(0, bool)
     return RoadArrays(local=road.local[keep], pose=road.pose[keep], type_id=road.type_id[keep], light=road.light[keep],
-                      token=road.token[keep], pairs=new_index[road.pairs[pk]].reshape(-1, 2))
+                      token=road.token[keep], pairs=new_index[road.pairs[pk]].reshape(-1, 2), light_index=road.light_index[keep])
 
 
 def scene_tensors(scenario: Scenario, motion_vocab: MotionVocabulary, road: RoadArrays, noise_topk: int = 0,

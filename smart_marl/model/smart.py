@@ -19,6 +19,7 @@ import torch.nn as nn
 
 from ..config_files import check_fields, flag, integer, number, one_of, sequence, text
 from ..errors import SmartMarlError
+from .batch import RoadSettings
 from .layers import mlp
 from .motionnet import NUM_MOTION_TYPES, MotionCache, MotionNet
 from .roadnet import RoadNet
@@ -63,6 +64,11 @@ class SmartConfig:
             raise ModelConfigError(f"model config: about {size:.3g} parameters (hidden_dim {self.hidden_dim}, "
                                    f"{self.num_road_layers} road layers, {self.num_agent_blocks} agent blocks), more than the "
                                    f"limit of {MAX_MODEL_PARAMETERS:.0e} (10x smart-101m, the largest named config)")
+
+    @property
+    def road_settings(self) -> RoadSettings:
+        """How this model reads a scene's road beside the pieces (``road_types``, ``stop_signs``)."""
+        return RoadSettings(self.road_types, self.stop_signs)
 
     def approx_parameters(self) -> float:
         """About how many parameters the model has (attention layers: 12 d^2 each, three per agent block

@@ -54,7 +54,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..model.batch import light_codes, road_light_index, scene_road
+from ..model.batch import light_codes, scene_road
 from ..model.checkpoint import load_prior
 from ..model.motionnet import NUM_MOTION_TYPES
 from ..scenario import DT_S, Scenario
@@ -224,7 +224,7 @@ class RolloutState:
         self.scene_of_group = torch.arange(len(self.scenes), device=dev).repeat_interleave(r)
         # ---- road: pieces per scene, encoded once per scene
         rv = road_vocab or _dummy_road_vocab()
-        roads = [scene_road(sc, rv, cfg.road_types, cfg.stop_signs) for sc in self.scenes]
+        roads = [scene_road(sc, rv, cfg.road_settings) for sc in self.scenes]
         rmax = max(max(len(rd.token) for rd in roads), 1)
         p = cfg.road_piece_points
         t = lambda a: torch.from_numpy(a).to(dev)  # noqa: E731
@@ -233,7 +233,7 @@ class RolloutState:
         self.road_points = t(_pad_stack([rd.local.astype(np.float32).reshape(-1, p, 2) for rd in roads], (rmax, p, 2)))
         self.road_type = t(_pad_stack([rd.type_id for rd in roads], (rmax,)))
         self.road_light = t(_pad_stack([rd.light for rd in roads], (rmax,)))
-        self._light_index = [road_light_index(sc, cfg.road_types, cfg.stop_signs) for sc in self.scenes] if lights == "log" else None
+        self._light_index = [rd.light_index for rd in roads] if lights == "log" else None
         with torch.no_grad():  # (B, R, d), once per scene
             self.road_x = model.encode_road(self)
         # ---- token poses per type (padded to Vmax) for placing tokens
