@@ -22,6 +22,13 @@ Output (stdout, one JSON object per line)::
      "argmax_ratio": ..., "top_k_mean_ratio": ..., "rows": ...}
     {"kind": "late_by_log_trend", "set": "real", "type": "vehicle", "log_trend": "speeds_up", "agents": ...,
      "now_mps": ..., "log_mps": ..., "rollout_mps": ..., "ratio": ...}
+    {"kind": "trend_by_horizon", "set": "real", "type": "vehicle", "log_trend": "speeds_up", "t_s": 2.0, "agents": ...,
+     "rollout_mps": ..., "log_mps": ..., "ratio": ...}   (the same groups at every horizon)
+    {"kind": "past_trend_by_horizon", "set": "real", "type": "vehicle", "past_trend": "accelerating", "t_s": 2.0, ...}
+     (groups by what the agent did in the second before the current frame: no regression to the mean built in)
+    {"kind": "teacher_forced_dv", "set": "real", "type": "vehicle", "bin": "slope", "slope": ..., ...}
+    {"kind": "teacher_forced_dv", "set": "real", "type": "vehicle", "bin": [0.8, 0.95], "predicted_dv_mps": ...,
+     "target_dv_mps": ..., "rows": ...}   (is the predicted speed change over a token the one that follows?)
 
 A prior with no drift has ratios near 1 at every horizon (the log itself slows down where the
 traffic does, which the rollout should follow, not exceed).
@@ -40,6 +47,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -62,6 +70,7 @@ HORIZONS_S = (0.5, 1.0, 2.0, 4.0, 6.0, 8.0)
 MOVING_MPS = {AgentType.VEHICLE: 5.0, AgentType.PEDESTRIAN: 0.5, AgentType.CYCLIST: 2.0}
 NUM_FRAMES = 80  # 16 tokens of 5 frames
 SPEED_BINS_MPS = (0.0, 1.0, 5.0, 9.0, 12.0, 15.0, 1e9)  # vehicles' teacher-forced bias by input-token speed
+DV_MOVING_MPS = 3.0  # teacher_forced_dv: vehicle tokens whose input token is faster than this
 LATE_FRAMES = 10  # the last second of the rollout (7-8 s): the frames of late_by_log_trend
 PARKED_M = 0.5  # --drop-parked: a vehicle logged on every frame that moves less than this over the log is parked
 TRENDS = ("speeds_up", "keeps", "slows")  # log's late mean speed against the speed now: above, within, below the band
@@ -72,19 +81,53 @@ def _speeds_from_positions(xy: np.ndarray, start_xy: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.diff(np.concatenate([start_xy[..., None, :], xy], -2), axis=-2), axis=-1) / 0.1
 
 
+PAST_TRENDS = ("accelerating", "steady", "decelerating")
+"""Groups by what an agent did before the current frame (its speed over the last 0.5 s against the 0.5 s before:
+more than 10% up, within 10%, more than 10% down): information the model has, unlike the log's trend after it."""
+PAST_BAND = 0.1
+
+
+class SpeedSums(NamedTuple):
+    """One motion type's speed sums over frames cf+1..cf+80 (:data:`NUM_FRAMES`) of the agents moving at the
+    current frame; a sum at frame t counts the agents logged at t and t-1. Entries of scenes add up (:meth:`plus`)."""
+
+    sim: np.ndarray  # [T] rollout mean speed, summed over the agents
+    log: np.ndarray  # [T] logged speed, summed
+    count: np.ndarray  # [T] agents logged at t
+    agents: int
+    by_trend: np.ndarray  # [3, 4] per log trend (TRENDS): sums of speed now, log and rollout speed at 7-8 s; agents
+    trend_frames: np.ndarray  # [3, 3, T] per log trend: sim, log, count at every frame (how the groups get there)
+    past_frames: np.ndarray  # [3, 3, T] the same per past trend (PAST_TRENDS)
+    past_agents: np.ndarray  # [3] agents per past trend
+
+    @classmethod
+    def zeros(cls) -> "SpeedSums":
+        t, g = NUM_FRAMES, len(TRENDS)
+        return cls(np.zeros(t), np.zeros(t), np.zeros(t), 0, np.zeros((g, 4)), np.zeros((g, 3, t)), np.zeros((g, 3, t)), np.zeros(g))
+
+    def plus(self, other: "SpeedSums") -> "SpeedSums":
+        return SpeedSums(*(a + b for a, b in zip(self, other)))
+
+
 def rollout_speeds(ck, scene, num_rollouts: int, top_k: int, temperature: float, seed: int,
                    avoid_collisions: bool = True) -> dict:
-    """Per motion type: (rollout speed sum [T], log speed sum [T], log count [T], agents, by_trend), frames
-    cf+1..cf+80, over the agents moving at the current frame; a sum at frame t counts the agents logged at t and
-    t-1. ``by_trend`` [3, 4]: per log trend (:data:`TRENDS`), the sums of speed now, log and rollout mean speed in
-    the last :data:`LATE_FRAMES` frames, and the agents (those logged on at least half of those frames)."""
+    """Per motion type, the :class:`SpeedSums` of the prior's rollouts of ``scene`` against its log."""
     res = rollout(ck, [scene], num_rollouts=num_rollouts, num_steps=NUM_FRAMES // 5, top_k=top_k,
                   temperature=temperature, seed=seed, avoid_collisions=avoid_collisions)
     return speed_sums(res, scene)
 
 
+def _half_second_speeds(tr, a: int, cf: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each of the first ``a`` tracks' mean speed over the last 0.5 s before the current frame and over the 0.5 s
+    before that, and whether both are logged."""
+    pos, valid = tr.position[:a, :, :2], tr.valid[:a]
+    now = np.linalg.norm(pos[:, cf] - pos[:, cf - 5], axis=-1) / 0.5
+    before = np.linalg.norm(pos[:, cf - 5] - pos[:, cf - 10], axis=-1) / 0.5
+    return now, before, valid[:, cf] & valid[:, cf - 5] & valid[:, cf - 10]
+
+
 def speed_sums(res, scene) -> dict:
-    """:func:`rollout_speeds`' sums from a one-scene :class:`~smart_marl.rollout.RolloutResult` of
+    """Per motion type, the :class:`SpeedSums` of a one-scene :class:`~smart_marl.rollout.RolloutResult` of
     :data:`NUM_FRAMES` frames (``res`` may come from elsewhere, e.g. ``benchmarks/reactivity.py``)."""
     num_rollouts = res.trajectory.shape[0]
     tr, cf = scene.tracks, scene.current_frame
@@ -92,6 +135,7 @@ def speed_sums(res, scene) -> dict:
     frames = np.arange(cf + 1, cf + 1 + NUM_FRAMES)
     v_now = np.linalg.norm(tr.position[:a, cf, :2] - tr.position[:a, cf - 1, :2], axis=-1) / 0.1
     v_now = np.where(tr.valid[:a, cf] & tr.valid[:a, cf - 1], v_now, 0.0)
+    recent, earlier, has_past = _half_second_speeds(tr, a, cf) if cf >= 10 else (v_now, v_now, np.zeros(a, bool))
     out = {}
     for t in MOTION_TYPES:
         moving = res.simulated[0] & (res.agent_types[0] == int(t)) & (v_now > MOVING_MPS[t])
@@ -109,20 +153,68 @@ def speed_sums(res, scene) -> dict:
         now = v_now[moving]
         trend = np.where(log_late > (1 + TREND_BAND) * now, 0, np.where(log_late < (1 - TREND_BAND) * now, 2, 1))
         counted = n_late * 2 >= LATE_FRAMES
-        by_trend = np.array([[now[m].sum(), log_late[m].sum(), sim_late[m].sum(), m.sum()]
-                             for m in (counted & (trend == c) for c in range(len(TRENDS)))])
-        out[t] = (np.where(ok, sim_mean, 0.0).sum(0), np.where(ok, log_speed, 0.0).sum(0), ok.sum(0), int(moving.sum()), by_trend)
+        groups = [counted & (trend == c) for c in range(len(TRENDS))]
+        by_trend = np.array([[now[m].sum(), log_late[m].sum(), sim_late[m].sum(), m.sum()] for m in groups])
+        up, down = recent[moving] > (1 + PAST_BAND) * earlier[moving], recent[moving] < (1 - PAST_BAND) * earlier[moving]
+        past = [has_past[moving] & g for g in (up, ~up & ~down, down)]
+        frame_sums = lambda m: [np.where(ok[m], x[m], 0.0).sum(0) for x in (sim_mean, log_speed)] + [ok[m].sum(0)]  # noqa: E731
+        out[t] = SpeedSums(np.where(ok, sim_mean, 0.0).sum(0), np.where(ok, log_speed, 0.0).sum(0), ok.sum(0), int(moving.sum()),
+                           by_trend, np.array([frame_sums(m) for m in groups]), np.array([frame_sums(m) for m in past]),
+                           np.array([m.sum() for m in past], float))
     return out
 
 
+def trend_horizon_rows(sums: SpeedSums) -> list[dict]:
+    """Rows of summed :class:`SpeedSums`: per group and horizon, the rollout and logged mean speed of the group's
+    agents logged then, and their ratio; ``kind: "trend_by_horizon"`` for the log's trends after the current
+    frame (:data:`TRENDS`, the groups of ``late_by_log_trend``), ``"past_trend_by_horizon"`` for the agents' own
+    trend before it (:data:`PAST_TRENDS`: chosen on what the model sees, so free of the regression to the mean
+    that choosing on the log's outcome builds into the first)."""
+    rows = []
+    for kind, key, names, counts, frames in (("trend_by_horizon", "log_trend", TRENDS, sums.by_trend[:, 3], sums.trend_frames),
+                                             ("past_trend_by_horizon", "past_trend", PAST_TRENDS, sums.past_agents, sums.past_frames)):
+        for name, count, (r, lg, n) in zip(names, counts, frames):
+            for h in HORIZONS_S:
+                k = int(round(h * 10)) - 1
+                if count and n[k]:
+                    rows.append({"kind": kind, key: name, "t_s": h, "rollout_mps": round(r[k] / n[k], 3), "log_mps": round(lg[k] / n[k], 3),
+                                 "ratio": round(r[k] / max(lg[k], 1e-9), 3), "agents": int(count)})
+    return rows
+
+
+DV_QUANTILES = (0.0, 0.05, 0.2, 0.4, 0.6, 0.8, 0.95, 1.0)
+"""Bins of the predicted speed change (quantiles) of the ``teacher_forced_dv`` rows."""
+
+
+def dv_calibration_rows(predicted: np.ndarray, target: np.ndarray) -> list[dict]:
+    """``kind: "teacher_forced_dv"`` rows: the model's predicted speed change over a token (the top-k mean
+    token's speed less the input token's) against the logged one (the target token's less the input's), per
+    quantile bin of the prediction (:data:`DV_QUANTILES`), and the slope of the logged change on the predicted
+    one (1: calibrated; below 1: the model predicts larger changes than follow)."""
+    if len(predicted) < 2:
+        return []
+    rows = [{"kind": "teacher_forced_dv", "bin": "slope", "slope": round(float(np.polyfit(predicted, target, 1)[0]), 3),
+             "predicted_sd": round(float(predicted.std()), 3), "target_sd": round(float(target.std()), 3), "rows": int(len(predicted))}]
+    edges = np.quantile(predicted, DV_QUANTILES)
+    for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        m = (predicted >= lo) & ((predicted < hi) if i < len(edges) - 2 else (predicted <= hi))
+        if m.any():
+            rows.append({"kind": "teacher_forced_dv", "bin": [DV_QUANTILES[i], DV_QUANTILES[i + 1]],
+                         "predicted_dv_mps": round(float(predicted[m].mean()), 3), "target_dv_mps": round(float(target[m].mean()), 3),
+                         "rows": int(m.sum())})
+    return rows
+
+
 @torch.no_grad()
-def teacher_forced_bias(ck, scene, top_k: int = 5) -> tuple[dict, np.ndarray]:
+def teacher_forced_bias(ck, scene, top_k: int = 5) -> tuple[dict, np.ndarray, np.ndarray]:
     """Teacher-forced speed bias of the model's next token on the logged history.
 
     Returns ({type: (sum of argmax-token speeds, sum of target-token speeds, rows)} over the agents
-    moving at the current frame, every step; and, for vehicles by the speed of their input token
+    moving at the current frame, every step; for vehicles by the speed of their input token
     (:data:`SPEED_BINS_MPS`), per bin [sum of argmax-token speeds, sum of the top-k renormalised
-    mean speeds, sum of target-token speeds, rows] over every step with a logged input token)."""
+    mean speeds, sum of target-token speeds, rows] over every step with a logged input token; and
+    [R, 2] the predicted and logged speed change of the vehicles' tokens from the current one on whose
+    input token is faster than 3 m/s (:func:`dv_calibration_rows`))."""
     mv = ck.motion_vocab
     mt = tokenize_motion(scene, mv)
     d = scene_tensors(scene, mv, scene_road(scene, ck.road_vocab, ck.model.config.road_settings), noise_topk=0, road_mask_prob=0.0, rng=0, motion_tokens=mt)
@@ -135,6 +227,7 @@ def teacher_forced_bias(ck, scene, top_k: int = 5) -> tuple[dict, np.ndarray]:
                      np.linalg.norm(tr.position[keep, cf, :2] - tr.position[keep, cf - 1, :2], axis=-1) / 0.1, 0.0)
     out = {}
     bins = np.zeros((len(SPEED_BINS_MPS) - 1, 4))
+    dv = np.zeros((0, 2))
     for t in MOTION_TYPES:
         token_mps = torch.from_numpy(mv[t].poses[:, -1, :2]).norm(dim=-1) / 0.5
         lg, tgt = logits[int(t)][0], b.target_tokens[0]
@@ -156,7 +249,12 @@ def teacher_forced_bias(ck, scene, top_k: int = 5) -> tuple[dict, np.ndarray]:
             sel = which == i
             bins[i, :3] += cols[sel].sum(0)
             bins[i, 3] += sel.sum()
-    return out, bins
+        future = (torch.arange(rows.shape[1]) >= cf // 5)[None] & rows  # the steps from the current token on
+        vin = token_mps[prev[rows]].numpy()
+        future = future[rows].numpy() & (vin > DV_MOVING_MPS)
+        vin = vin[future]
+        dv = np.stack([cols[future, 1] - vin, cols[future, 2] - vin], 1)
+    return out, bins, dv
 
 
 def without_parked(scene):
@@ -205,24 +303,24 @@ def main(argv=None) -> None:
             scenes = scenes[: args.max_scenes]
         if args.drop_parked:
             scenes = [without_parked(sc) for sc in scenes]
-        roll = {t: [np.zeros(NUM_FRAMES), np.zeros(NUM_FRAMES), np.zeros(NUM_FRAMES), 0, np.zeros((len(TRENDS), 4))]
-                for t in MOTION_TYPES}
+        roll = {t: SpeedSums.zeros() for t in MOTION_TYPES}
         tf = {t: np.zeros(3) for t in MOTION_TYPES}
         tf_bins = np.zeros((len(SPEED_BINS_MPS) - 1, 4))
+        dvs = []
         for scene in scenes:
             for t, sums in rollout_speeds(ck, scene, args.rollouts, args.top_k, args.temperature, args.seed,
                                           args.avoid_collisions).items():
-                for i, v in enumerate(sums):
-                    roll[t][i] += v
-            moving_bias, bins = teacher_forced_bias(ck, scene, args.top_k)
+                roll[t] = roll[t].plus(sums)
+            moving_bias, bins, dv = teacher_forced_bias(ck, scene, args.top_k)
             for t, v in moving_bias.items():
                 tf[t] += v
             tf_bins += bins
+            dvs.append(dv)
         common = {"set": set_name, "scenes": len(scenes), "rollouts": args.rollouts, "top_k": args.top_k,
                   "temperature": args.temperature, "prior": args.prior, "avoid_collisions": args.avoid_collisions,
                   "drop_parked": args.drop_parked}
         for t in MOTION_TYPES:
-            r, lg, n, m, by_trend = roll[t]
+            r, lg, n, m, by_trend = roll[t][:5]
             if m == 0:
                 continue
             for h in HORIZONS_S:
@@ -232,6 +330,8 @@ def main(argv=None) -> None:
                 print(json.dumps({"kind": "horizon", "type": t.name.lower(), "t_s": h, "rollout_mps": round(r[k] / n[k], 3),
                                   "log_mps": round(lg[k] / n[k], 3), "ratio": round(r[k] / max(lg[k], 1e-9), 3),
                                   "agents": m, "logged_at_t": int(n[k]), **common}), flush=True)
+            for row in trend_horizon_rows(roll[t]):
+                print(json.dumps({**row, "type": t.name.lower(), **common}), flush=True)
             for name, (now, log_late, sim_late, count) in zip(TRENDS, by_trend):
                 if count:
                     print(json.dumps({"kind": "late_by_log_trend", "type": t.name.lower(), "log_trend": name, "agents": int(count),
@@ -248,6 +348,9 @@ def main(argv=None) -> None:
                 print(json.dumps({"kind": "teacher_forced_by_speed", "type": "vehicle", "input_mps": [lo, hi if hi < 1e9 else None],
                                   "target_mps": round(tgt / n, 3), "argmax_ratio": round(am / max(tgt, 1e-9), 3),
                                   "top_k_mean_ratio": round(tk / max(tgt, 1e-9), 3), "rows": int(n), **common}), flush=True)
+        dv = np.concatenate(dvs) if dvs else np.zeros((0, 2))
+        for row in dv_calibration_rows(dv[:, 0], dv[:, 1]):
+            print(json.dumps({**row, "type": "vehicle", **common}), flush=True)
 
 
 if __name__ == "__main__":

@@ -9,8 +9,9 @@ sampling (``--sampling default`` collision-aware, ``plain``; both by default) an
 (a) ``slowing``: the prior's rollouts of every scene (``--rollouts``), the vehicles moving faster than
     5 m/s at the current frame: rollout / logged mean speed at 0.5-8 s (``kind: "horizon"``) and, in
     the last second (7-8 s), split by what their log does against their speed now
-    (``kind: "late_by_log_trend"``: ``speeds_up`` / ``keeps`` / ``slows`` by more than 20%;
-    :mod:`benchmarks.prior_speed_drift`'s measures on the same rollouts).
+    (``kind: "late_by_log_trend"``: ``speeds_up`` / ``keeps`` / ``slows`` by more than 20%), and each of
+    those groups at 0.5-8 s (``kind: "trend_by_horizon"``: how it gets there); :mod:`benchmarks.prior_speed_drift`'s
+    measures on the same rollouts.
 (b) ``red_light``: the share of the simulated vehicles that cross a stop line on red, in the rollouts
     (per vehicle-rollout) and in the log (per vehicle): the 2025 sim-agents rules' traffic-light
     violation (:func:`smart_marl.metrics.features.traffic_light_violation`): at a frame t the
@@ -168,7 +169,7 @@ def red_light_shares(scene, traj_source: np.ndarray | None) -> tuple[int, int] |
 def part_slowing_and_lights(model, scenes, rollouts: int, top_k: int, seed: int, avoid: bool, common: dict, parts,
                             lights: str = "current") -> list[dict]:
     rows = []
-    roll = [np.zeros(drift.NUM_FRAMES), np.zeros(drift.NUM_FRAMES), np.zeros(drift.NUM_FRAMES), 0, np.zeros((len(drift.TRENDS), 4))]
+    roll = drift.SpeedSums.zeros()
     red = {"rollout": [0, 0], "log": [0, 0], "scenes": 0}
     for scene in scenes:
         res = rollout(model, [scene], num_rollouts=rollouts, num_steps=drift.NUM_FRAMES // 5, top_k=top_k, seed=seed,
@@ -176,8 +177,7 @@ def part_slowing_and_lights(model, scenes, rollouts: int, top_k: int, seed: int,
         if "a" in parts:
             sums = drift.speed_sums(res, scene).get(AgentType.VEHICLE)
             if sums is not None:
-                for i, v in enumerate(sums):
-                    roll[i] = roll[i] + v
+                roll = roll.plus(sums)
         if "b" in parts:
             log = red_light_shares(scene, None)
             if log is not None:
@@ -186,7 +186,7 @@ def part_slowing_and_lights(model, scenes, rollouts: int, top_k: int, seed: int,
                 red["rollout"] = [a + b for a, b in zip(red["rollout"], sim)]
                 red["scenes"] += 1
     if "a" in parts:
-        r, lg, n, m, by_trend = roll
+        r, lg, n, m, by_trend = roll[:5]
         for h in drift.HORIZONS_S:
             k = int(round(h * 10)) - 1
             if n[k]:
@@ -197,6 +197,7 @@ def part_slowing_and_lights(model, scenes, rollouts: int, top_k: int, seed: int,
                 rows.append({"part": "a", "kind": "late_by_log_trend", "log_trend": name, "agents": int(count),
                              "now_mps": round(now / count, 3), "log_mps": round(log_late / count, 3),
                              "rollout_mps": round(sim_late / count, 3), "ratio": round(sim_late / max(log_late, 1e-9), 3), **common})
+        rows += [{"part": "a", **row, **common} for row in drift.trend_horizon_rows(roll)]
     if "b" in parts:
         (rc, rn), (lc, ln) = red["rollout"], red["log"]
         rows.append({"part": "b", "kind": "red_light", "scenes_with_signals": red["scenes"], "rollout_crossings": rc,

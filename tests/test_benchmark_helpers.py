@@ -37,6 +37,51 @@ def test_drop_parked_leaves_out_exactly_the_vehicles_that_stand_all_log(sample_s
     np.testing.assert_array_equal(out.tracks.position, tr.position[kept])
 
 
+def test_speed_groups_by_horizon_match_the_log_when_the_rollouts_are_the_log(sample_scenes):
+    """prior_speed_drift's trend_by_horizon rows: rollouts that replay the log at half its pace give ratio 0.5
+    for every log trend and horizon, the groups' agents add up to the late_by_log_trend counts, and the slowing
+    group's logged speed at 8 s is below its speed at 0.5 s (the rows are the groups' own speeds)."""
+    from types import SimpleNamespace
+
+    drift = _load("prior_speed_drift")
+    sums = drift.SpeedSums.zeros()
+    for scene in sample_scenes:
+        tr, cf, f = scene.tracks, scene.current_frame, drift.NUM_FRAMES
+        if scene.num_frames < cf + 1 + f:
+            continue
+        now = tr.position[:, cf, None, :2].astype(np.float64)
+        half = now + 0.5 * (tr.position[:, cf + 1:cf + 1 + f, :2] - now)  # every agent at half its logged speed
+        replay = SimpleNamespace(trajectory=half[None],
+                                 simulated=tr.valid[None, :, cf].copy(), agent_types=tr.types[None].copy())
+        entry = drift.speed_sums(replay, scene).get(AgentType.VEHICLE)
+        if entry is not None:
+            sums = sums.plus(entry)
+    rows = drift.trend_horizon_rows(sums)
+    assert {r.get("log_trend") for r in rows} >= {"keeps", "slows"} and {r.get("past_trend") for r in rows} >= {"steady"}
+    for r in rows:
+        assert r["ratio"] == 0.5
+        if r["kind"] == "trend_by_horizon":
+            assert r["agents"] == int(sums.by_trend[drift.TRENDS.index(r["log_trend"]), 3])
+    assert sum(sums.past_agents) <= sums.agents
+    slows = {r["t_s"]: r["log_mps"] for r in rows if r.get("log_trend") == "slows"}
+    assert slows[8.0] < slows[0.5]
+
+
+def test_speed_change_calibration_rows_read_the_slope_and_the_bins():
+    """prior_speed_drift's teacher_forced_dv rows: logged changes half the predicted ones give slope 0.5, and each
+    quantile bin holds its share of the rows with the means of its own rows."""
+    drift = _load("prior_speed_drift")
+    predicted = np.linspace(-2.0, 2.0, 1001)
+    rows = drift.dv_calibration_rows(predicted, 0.5 * predicted + 0.1)
+    assert rows[0]["bin"] == "slope" and rows[0]["slope"] == 0.5 and rows[0]["rows"] == 1001
+    bins = rows[1:]
+    assert [b["bin"] for b in bins] == [list(q) for q in zip(drift.DV_QUANTILES[:-1], drift.DV_QUANTILES[1:])]
+    assert sum(b["rows"] for b in bins) == 1001 and bins[0]["rows"] == 50
+    for b in bins:
+        assert abs(b["target_dv_mps"] - (0.5 * b["predicted_dv_mps"] + 0.1)) < 2e-3  # both rounded to 1e-3
+    assert drift.dv_calibration_rows(np.zeros(1), np.zeros(1)) == []
+
+
 def test_scene_pack_round_trips_the_sample_scenes_within_its_grids(tmp_path):
     """benchmarks/scene_pack.py (how scenes travel to a lent GPU): unpacked scenes are the packed ones, in
     order, with every metric array within half a grid step and everything else equal."""
