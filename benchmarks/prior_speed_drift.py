@@ -71,6 +71,7 @@ MOVING_MPS = {AgentType.VEHICLE: 5.0, AgentType.PEDESTRIAN: 0.5, AgentType.CYCLI
 NUM_FRAMES = 80  # 16 tokens of 5 frames
 SPEED_BINS_MPS = (0.0, 1.0, 5.0, 9.0, 12.0, 15.0, 1e9)  # vehicles' teacher-forced bias by input-token speed
 DV_MOVING_MPS = 3.0  # teacher_forced_dv: vehicle tokens whose input token is faster than this
+SATURATED = 0.95  # teacher_forced_dv leaves out input tokens at least this share of the fastest token's speed
 LATE_FRAMES = 10  # the last second of the rollout (7-8 s): the frames of late_by_log_trend
 PARKED_M = 0.5  # --drop-parked: a vehicle logged on every frame that moves less than this over the log is parked
 TRENDS = ("speeds_up", "keeps", "slows")  # log's late mean speed against the speed now: above, within, below the band
@@ -186,15 +187,22 @@ DV_QUANTILES = (0.0, 0.05, 0.2, 0.4, 0.6, 0.8, 0.95, 1.0)
 """Bins of the predicted speed change (quantiles) of the ``teacher_forced_dv`` rows."""
 
 
-def dv_calibration_rows(predicted: np.ndarray, target: np.ndarray) -> list[dict]:
+def dv_calibration_rows(predicted: np.ndarray, target: np.ndarray, saturated: np.ndarray | None = None) -> list[dict]:
     """``kind: "teacher_forced_dv"`` rows: the model's predicted speed change over a token (the top-k mean
     token's speed less the input token's) against the logged one (the target token's less the input's), per
     quantile bin of the prediction (:data:`DV_QUANTILES`), and the slope of the logged change on the predicted
-    one (1: calibrated; below 1: the model predicts larger changes than follow)."""
+    one (1: calibrated; below 1: the model predicts larger changes than follow). ``saturated``: rows whose input
+    token is about the vocabulary's fastest (a vehicle as fast or faster: its logged change cannot be up), left
+    out and counted."""
+    if saturated is not None:
+        predicted, target, left_out = predicted[~saturated], target[~saturated], int(saturated.sum())
+    else:
+        left_out = 0
     if len(predicted) < 2:
         return []
     rows = [{"kind": "teacher_forced_dv", "bin": "slope", "slope": round(float(np.polyfit(predicted, target, 1)[0]), 3),
-             "predicted_sd": round(float(predicted.std()), 3), "target_sd": round(float(target.std()), 3), "rows": int(len(predicted))}]
+             "predicted_sd": round(float(predicted.std()), 3), "target_sd": round(float(target.std()), 3), "rows": int(len(predicted)),
+             "saturated_rows_left_out": left_out}]
     edges = np.quantile(predicted, DV_QUANTILES)
     for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
         m = (predicted >= lo) & ((predicted < hi) if i < len(edges) - 2 else (predicted <= hi))
@@ -213,8 +221,9 @@ def teacher_forced_bias(ck, scene, top_k: int = 5) -> tuple[dict, np.ndarray, np
     moving at the current frame, every step; for vehicles by the speed of their input token
     (:data:`SPEED_BINS_MPS`), per bin [sum of argmax-token speeds, sum of the top-k renormalised
     mean speeds, sum of target-token speeds, rows] over every step with a logged input token; and
-    [R, 2] the predicted and logged speed change of the vehicles' tokens from the current one on whose
-    input token is faster than 3 m/s (:func:`dv_calibration_rows`))."""
+    [R, 3] the predicted and logged speed change of the vehicles' tokens from the current one on whose
+    input token is faster than 3 m/s, and whether the input token is within 5% of the fastest vehicle token's
+    speed (:func:`dv_calibration_rows`))."""
     mv = ck.motion_vocab
     mt = tokenize_motion(scene, mv)
     d = scene_tensors(scene, mv, scene_road(scene, ck.road_vocab, ck.model.config.road_settings), noise_topk=0, road_mask_prob=0.0, rng=0, motion_tokens=mt)
@@ -227,7 +236,7 @@ def teacher_forced_bias(ck, scene, top_k: int = 5) -> tuple[dict, np.ndarray, np
                      np.linalg.norm(tr.position[keep, cf, :2] - tr.position[keep, cf - 1, :2], axis=-1) / 0.1, 0.0)
     out = {}
     bins = np.zeros((len(SPEED_BINS_MPS) - 1, 4))
-    dv = np.zeros((0, 2))
+    dv = np.zeros((0, 3))
     for t in MOTION_TYPES:
         token_mps = torch.from_numpy(mv[t].poses[:, -1, :2]).norm(dim=-1) / 0.5
         lg, tgt = logits[int(t)][0], b.target_tokens[0]
@@ -253,7 +262,7 @@ def teacher_forced_bias(ck, scene, top_k: int = 5) -> tuple[dict, np.ndarray, np
         vin = token_mps[prev[rows]].numpy()
         future = future[rows].numpy() & (vin > DV_MOVING_MPS)
         vin = vin[future]
-        dv = np.stack([cols[future, 1] - vin, cols[future, 2] - vin], 1)
+        dv = np.stack([cols[future, 1] - vin, cols[future, 2] - vin, vin >= SATURATED * float(token_mps.max())], 1)
     return out, bins, dv
 
 
@@ -348,8 +357,8 @@ def main(argv=None) -> None:
                 print(json.dumps({"kind": "teacher_forced_by_speed", "type": "vehicle", "input_mps": [lo, hi if hi < 1e9 else None],
                                   "target_mps": round(tgt / n, 3), "argmax_ratio": round(am / max(tgt, 1e-9), 3),
                                   "top_k_mean_ratio": round(tk / max(tgt, 1e-9), 3), "rows": int(n), **common}), flush=True)
-        dv = np.concatenate(dvs) if dvs else np.zeros((0, 2))
-        for row in dv_calibration_rows(dv[:, 0], dv[:, 1]):
+        dv = np.concatenate(dvs) if dvs else np.zeros((0, 3))
+        for row in dv_calibration_rows(dv[:, 0], dv[:, 1], dv[:, 2] > 0):
             print(json.dumps({**row, "type": "vehicle", **common}), flush=True)
 
 

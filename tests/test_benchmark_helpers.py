@@ -80,6 +80,9 @@ def test_speed_change_calibration_rows_read_the_slope_and_the_bins():
     for b in bins:
         assert abs(b["target_dv_mps"] - (0.5 * b["predicted_dv_mps"] + 0.1)) < 2e-3  # both rounded to 1e-3
     assert drift.dv_calibration_rows(np.zeros(1), np.zeros(1)) == []
+    fast = np.arange(1001) >= 900  # saturated rows with a flat logged change are left out, counted
+    mixed = drift.dv_calibration_rows(predicted, np.where(fast, 0.0, 0.5 * predicted + 0.1), fast)
+    assert mixed[0]["slope"] == 0.5 and mixed[0]["rows"] == 900 and mixed[0]["saturated_rows_left_out"] == 101
 
 
 def test_scene_pack_round_trips_the_sample_scenes_within_its_grids(tmp_path):
