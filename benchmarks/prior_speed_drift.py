@@ -29,6 +29,9 @@ Output (stdout, one JSON object per line)::
     {"kind": "teacher_forced_dv", "set": "real", "type": "vehicle", "bin": "slope", "slope": ..., ...}
     {"kind": "teacher_forced_dv", "set": "real", "type": "vehicle", "bin": [0.8, 0.95], "predicted_dv_mps": ...,
      "target_dv_mps": ..., "rows": ...}   (is the predicted speed change over a token the one that follows?)
+    {"kind": "teacher_forced_first_by_past", "set": "real", "type": "vehicle", "past_trend": "accelerating",
+     "vehicles": ..., "change_last_0_5s_mps": ..., "predicted_dv_mps": ..., "logged_dv_mps": ...}
+     (the first token after the current frame: does the model go on with the change it sees?)
 
 A prior with no drift has ratios near 1 at every horizon (the log itself slows down where the
 traffic does, which the rollout should follow, not exceed).
@@ -213,17 +216,26 @@ def dv_calibration_rows(predicted: np.ndarray, target: np.ndarray, saturated: np
     return rows
 
 
-@torch.no_grad()
-def teacher_forced_bias(ck, scene, top_k: int = 5) -> tuple[dict, np.ndarray, np.ndarray]:
-    """Teacher-forced speed bias of the model's next token on the logged history.
+class TeacherForced(NamedTuple):
+    """:func:`teacher_forced_bias`'s sums of one scene (they add up over scenes)."""
 
-    Returns ({type: (sum of argmax-token speeds, sum of target-token speeds, rows)} over the agents
-    moving at the current frame, every step; for vehicles by the speed of their input token
-    (:data:`SPEED_BINS_MPS`), per bin [sum of argmax-token speeds, sum of the top-k renormalised
-    mean speeds, sum of target-token speeds, rows] over every step with a logged input token; and
-    [R, 3] the predicted and logged speed change of the vehicles' tokens from the current one on whose
-    input token is faster than 3 m/s, and whether the input token is within 5% of the fastest vehicle token's
-    speed (:func:`dv_calibration_rows`))."""
+    moving: dict  # {type: [sum of argmax-token speeds, sum of target-token speeds, rows]}, the agents moving now, every step
+    by_speed: np.ndarray  # [bins, 4] vehicles by input-token speed (SPEED_BINS_MPS): argmax, top-k mean, target speed sums; rows
+    dv: np.ndarray  # [R, 3] predicted and logged speed change of the vehicles' future tokens; input token saturated (0 / 1)
+    first_by_past: np.ndarray  # [3, 6] per past trend: vehicles, sums of input speed, speed change over the last 0.5 s,
+    #                           predicted change of the first future token (top-k mean, full softmax), its logged change
+
+
+@torch.no_grad()
+def teacher_forced_bias(ck, scene, top_k: int = 5) -> TeacherForced:
+    """Teacher-forced speed bias of the model's next token on the logged history (:class:`TeacherForced`).
+
+    ``moving`` over the agents moving at the current frame, every step; ``by_speed`` for vehicles by the speed of
+    their input token over every step with a logged input token; ``dv`` the vehicles' tokens from the first after
+    the current frame on whose input token is faster than 3 m/s (:func:`dv_calibration_rows`), with whether the
+    input token is within 5% of the fastest vehicle token's speed; ``first_by_past`` the first token after the
+    current frame of the vehicles moving faster than 5 m/s, grouped by their speed change over the second before
+    (:data:`PAST_TRENDS`): does the model go on with a change it sees?"""
     mv = ck.motion_vocab
     mt = tokenize_motion(scene, mv)
     d = scene_tensors(scene, mv, scene_road(scene, ck.road_vocab, ck.model.config.road_settings), noise_topk=0, road_mask_prob=0.0, rng=0, motion_tokens=mt)
@@ -236,7 +248,8 @@ def teacher_forced_bias(ck, scene, top_k: int = 5) -> tuple[dict, np.ndarray, np
                      np.linalg.norm(tr.position[keep, cf, :2] - tr.position[keep, cf - 1, :2], axis=-1) / 0.1, 0.0)
     out = {}
     bins = np.zeros((len(SPEED_BINS_MPS) - 1, 4))
-    dv = np.zeros((0, 3))
+    dv, first = np.zeros((0, 3)), np.zeros((len(PAST_TRENDS), 6))
+    first_step = cf // 5 - 1  # target_tokens[s] is the motion over frames 5(s+1)..5(s+2): this one starts at the current frame
     for t in MOTION_TYPES:
         token_mps = torch.from_numpy(mv[t].poses[:, -1, :2]).norm(dim=-1) / 0.5
         lg, tgt = logits[int(t)][0], b.target_tokens[0]
@@ -252,18 +265,38 @@ def teacher_forced_bias(ck, scene, top_k: int = 5) -> tuple[dict, np.ndarray, np
         lr = lg[rows]
         top, idx = lr.topk(min(top_k or lr.shape[-1], lr.shape[-1]), -1)  # 0 / None: the full softmax
         cols = np.stack([token_mps[lr.argmax(-1)].numpy(), (torch.softmax(top, -1) * token_mps[idx]).sum(-1).numpy(),
-                         token_mps[tgt[rows]].numpy()], 1)
-        which = np.digitize(token_mps[prev[rows]].numpy(), SPEED_BINS_MPS[1:-1])
+                         token_mps[tgt[rows]].numpy(), (torch.softmax(lr, -1) * token_mps).sum(-1).numpy()], 1)
+        vin = token_mps[prev[rows]].numpy()
+        which = np.digitize(vin, SPEED_BINS_MPS[1:-1])
         for i in range(len(bins)):
             sel = which == i
-            bins[i, :3] += cols[sel].sum(0)
+            bins[i, :3] += cols[sel, :3].sum(0)
             bins[i, 3] += sel.sum()
-        future = (torch.arange(rows.shape[1]) >= cf // 5)[None] & rows  # the steps from the current token on
-        vin = token_mps[prev[rows]].numpy()
-        future = future[rows].numpy() & (vin > DV_MOVING_MPS)
-        vin = vin[future]
-        dv = np.stack([cols[future, 1] - vin, cols[future, 2] - vin, vin >= SATURATED * float(token_mps.max())], 1)
-    return out, bins, dv
+        step = torch.arange(rows.shape[1])[None].expand_as(rows)[rows].numpy()
+        saturated = vin >= SATURATED * float(token_mps.max())
+        future = (step >= first_step) & (vin > DV_MOVING_MPS)
+        dv = np.stack([cols[future, 1] - vin[future], cols[future, 2] - vin[future], saturated[future]], 1)
+        if cf >= 10:  # the first future token by past trend
+            recent, earlier, has_past = (x[keep] for x in _half_second_speeds(tr, tr.num_tracks, cf))
+            trend = np.where(recent > (1 + PAST_BAND) * earlier, 0, np.where(recent < (1 - PAST_BAND) * earlier, 2, 1))
+            agent = np.nonzero(rows.numpy())[0]
+            at = (step == first_step) & ~saturated & has_past[agent] & (recent[agent] > MOVING_MPS[t])
+            for g in range(len(PAST_TRENDS)):
+                m = at & (trend[agent] == g)
+                first[g] += [m.sum(), vin[m].sum(), (recent - earlier)[agent][m].sum(), (cols[m, 1] - vin[m]).sum(),
+                             (cols[m, 3] - vin[m]).sum(), (cols[m, 2] - vin[m]).sum()]
+    return TeacherForced(out, bins, dv, first)
+
+
+def first_token_rows(first: np.ndarray) -> list[dict]:
+    """``kind: "teacher_forced_first_by_past"`` rows of summed :attr:`TeacherForced.first_by_past`."""
+    rows = []
+    for name, (n, vin, before, pred, full, logged) in zip(PAST_TRENDS, first):
+        if n:
+            rows.append({"kind": "teacher_forced_first_by_past", "past_trend": name, "vehicles": int(n), "input_mps": round(vin / n, 3),
+                         "change_last_0_5s_mps": round(before / n, 3), "predicted_dv_mps": round(pred / n, 3),
+                         "full_softmax_dv_mps": round(full / n, 3), "logged_dv_mps": round(logged / n, 3)})
+    return rows
 
 
 def without_parked(scene):
@@ -315,16 +348,17 @@ def main(argv=None) -> None:
         roll = {t: SpeedSums.zeros() for t in MOTION_TYPES}
         tf = {t: np.zeros(3) for t in MOTION_TYPES}
         tf_bins = np.zeros((len(SPEED_BINS_MPS) - 1, 4))
-        dvs = []
+        dvs, first = [], np.zeros((len(PAST_TRENDS), 6))
         for scene in scenes:
             for t, sums in rollout_speeds(ck, scene, args.rollouts, args.top_k, args.temperature, args.seed,
                                           args.avoid_collisions).items():
                 roll[t] = roll[t].plus(sums)
-            moving_bias, bins, dv = teacher_forced_bias(ck, scene, args.top_k)
-            for t, v in moving_bias.items():
+            forced = teacher_forced_bias(ck, scene, args.top_k)
+            for t, v in forced.moving.items():
                 tf[t] += v
-            tf_bins += bins
-            dvs.append(dv)
+            tf_bins += forced.by_speed
+            dvs.append(forced.dv)
+            first += forced.first_by_past
         common = {"set": set_name, "scenes": len(scenes), "rollouts": args.rollouts, "top_k": args.top_k,
                   "temperature": args.temperature, "prior": args.prior, "avoid_collisions": args.avoid_collisions,
                   "drop_parked": args.drop_parked}
@@ -358,7 +392,7 @@ def main(argv=None) -> None:
                                   "target_mps": round(tgt / n, 3), "argmax_ratio": round(am / max(tgt, 1e-9), 3),
                                   "top_k_mean_ratio": round(tk / max(tgt, 1e-9), 3), "rows": int(n), **common}), flush=True)
         dv = np.concatenate(dvs) if dvs else np.zeros((0, 3))
-        for row in dv_calibration_rows(dv[:, 0], dv[:, 1], dv[:, 2] > 0):
+        for row in dv_calibration_rows(dv[:, 0], dv[:, 1], dv[:, 2] > 0) + first_token_rows(first):
             print(json.dumps({**row, "type": "vehicle", **common}), flush=True)
 
 
