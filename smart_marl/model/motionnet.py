@@ -3,7 +3,9 @@ features, from which the heads give next-motion-token logits (SMART sec. 3.2).
 
 Input per agent a and token step s: the token it took (its contour, embedded by a per-type MLP),
 its motion features (speed and the angle between heading and motion, Fourier-embedded) with type
-and shape embeddings, and the pose it reached at the end of token s. Each block applies, in turn:
+and shape embeddings, and the pose it reached at the end of token s; with ``speed_change_input``, also
+its speed change against token s - 1 (an MLP whose last layer starts at zero, so that a trained model
+given the input answers as before until the input is trained). Each block applies, in turn:
 
 1. temporal attention over the agent's own tokens s - w .. s (w = ``temporal_window_tokens``),
 2. map-to-agent attention to the K nearest road tokens within ``map_radius_m``,
@@ -33,10 +35,22 @@ from .layers import (FourierEmbedding, NeighbourAttention, knn_grouped, knn_with
                      relative_pose_features, trim_neighbours, valid_rows)
 
 NUM_MOTION_TYPES = 3  # vehicle, pedestrian, cyclist (AgentType 0..2)
+SPEED_CHANGE_SCALE_MPS = 2.0  # speed_change_input: the change is divided by this before its embedding
 STILL_SPEED_MPS = 0.1  # below this speed over a token the heading-vs-motion angle is set to 0
 # RPE inputs whose values repeat (FourierEmbedding's repeated_dims): of (distance, bearing, heading difference[, time gap])
 PAIR_REPEATS = (0, 2)  # a pair and its reverse share the distance; agents on one lane share a heading difference
 TEMPORAL_REPEATS = (0, 2, 3)  # the step itself (distance 0, heading difference 0) and the 7 time gaps
+
+
+def token_speed(start_pose: torch.Tensor, end_pose: torch.Tensor) -> torch.Tensor:
+    """[...] the speed over a token (m/s) from where it starts to the pose it reaches, [..., 3] each."""
+    return (end_pose[..., :2] - start_pose[..., :2]).norm(dim=-1) / TOKEN_S
+
+
+def speed_change(start_pose: torch.Tensor, end_pose: torch.Tensor, speed_before: torch.Tensor, had: torch.Tensor) -> torch.Tensor:
+    """[Q] a token's speed change (m/s): its speed (:func:`token_speed` of ``start_pose``, ``end_pose`` [Q, 3])
+    less the token before's, ``speed_before`` [Q]; 0 where ``had`` [Q] is false (no token before)."""
+    return torch.where(had, token_speed(start_pose, end_pose) - speed_before, torch.zeros_like(speed_before))
 
 
 class MotionNet(nn.Module):
@@ -49,6 +63,10 @@ class MotionNet(nn.Module):
         self.shape_mlp = mlp(3, d, d)  # length, width, height
         self.motion_feat = FourierEmbedding(2, d, cfg.num_freq_bands)  # speed, heading-vs-motion angle
         self.fusion = mlp(2 * d, d, d)
+        if cfg.speed_change_input:  # added to the fused input; its last layer starts at zero (a model without it at first)
+            self.speed_change = mlp(1, d, d)
+            nn.init.zeros_(self.speed_change[-1].weight)
+            nn.init.zeros_(self.speed_change[-1].bias)
         self.rpe_temporal = FourierEmbedding(4, d, cfg.num_freq_bands)
         self.rpe_map = FourierEmbedding(3, d, cfg.num_freq_bands)
         self.rpe_agent = FourierEmbedding(3, d, cfg.num_freq_bands)
@@ -70,25 +88,37 @@ class MotionNet(nn.Module):
         return self.type_emb(agent_type) + self.shape_mlp(agent_shape)
 
     def fuse(self, token_emb: torch.Tensor, start_pose: torch.Tensor, end_pose: torch.Tensor,
-             categorical: torch.Tensor) -> torch.Tensor:
+             categorical: torch.Tensor, speed_change: torch.Tensor | None = None) -> torch.Tensor:
         """The fused input of (agent, step) rows: the token embedding [..., d] with the motion features
         (speed and the angle between heading and motion over the token, from start_pose and
-        end_pose [..., 3], Fourier-embedded with ``categorical`` [..., d]) -> [..., d]."""
+        end_pose [..., 3], Fourier-embedded with ``categorical`` [..., d]) -> [..., d]; with
+        ``speed_change_input``, plus the embedding of ``speed_change`` [...] (:func:`speed_change`)."""
         motion = end_pose[..., :2] - start_pose[..., :2]  # (..., 2)
-        speed = motion.norm(dim=-1) / TOKEN_S
+        speed = token_speed(start_pose, end_pose)
         angle = wrap_angle(torch.atan2(motion[..., 1], motion[..., 0]) - end_pose[..., 2])
         angle = torch.where(speed > STILL_SPEED_MPS, angle, torch.zeros_like(angle))  # undefined when (nearly) still
         feat = self.motion_feat(torch.stack([speed, angle], -1), categorical=categorical)  # (..., d)
-        return self.fusion(torch.cat([token_emb, feat], -1))
+        out = self.fusion(torch.cat([token_emb, feat], -1))
+        if self.cfg.speed_change_input:
+            out = out + self.speed_change(speed_change[..., None] / SPEED_CHANGE_SCALE_MPS)
+        return out
 
-    def embed_agents(self, tokens, agent_type, agent_shape, start_pose, end_pose, contours, rows: torch.Tensor) -> torch.Tensor:
+    def embed_agents(self, tokens, agent_type, agent_shape, start_pose, end_pose, contours, rows: torch.Tensor,
+                     valid: torch.Tensor | None = None) -> torch.Tensor:
         """The fused input features [Q, d] of the (agent, step) rows ``rows`` [Q] (full rows
-        ((b * N + n) * S + s) of tokens [B, N, S], as :meth:`neighbourhoods` gives them)."""
+        ((b * N + n) * S + s) of tokens [B, N, S], as :meth:`neighbourhoods` gives them); ``valid`` [B, N, S]
+        the rows that exist (read with ``speed_change_input``)."""
         s = tokens.shape[2]
         agent = rows // s  # (Q,) rows of the B*N agent table
         cat = self.agent_categorical(agent_type, agent_shape).reshape(-1, self.cfg.hidden_dim)[agent]  # (Q, d)
         token_emb = self.token_table(contours)[agent_type.reshape(-1)[agent], tokens.reshape(-1)[rows]]  # (Q, d)
-        return self.fuse(token_emb, start_pose.reshape(-1, 3)[rows], end_pose.reshape(-1, 3)[rows], cat)
+        start_flat, end_flat = start_pose.reshape(-1, 3), end_pose.reshape(-1, 3)
+        change = None
+        if self.cfg.speed_change_input:
+            back = (rows - 1).clamp(min=0)
+            had = ((rows % s) >= 1) & valid.reshape(-1)[back]
+            change = speed_change(start_flat[rows], end_flat[rows], token_speed(start_flat[back], end_flat[back]), had)
+        return self.fuse(token_emb, start_flat[rows], end_flat[rows], cat, change)
 
     # ----------------------------------------------------------------------- neighbourhoods
     def neighbourhoods(self, pose: torch.Tensor, valid: torch.Tensor, road_pose: torch.Tensor, road_valid: torch.Tensor):
@@ -180,6 +210,7 @@ class MotionNet(nn.Module):
             road_rows=road_x.new_zeros(0),
             src=[torch.zeros(g * n, w, cfg.hidden_dim, device=dev) for _ in range(cfg.num_agent_blocks)],
             pose=torch.zeros(g * n, w, 3, device=dev), valid=torch.zeros(g * n, w, dtype=torch.bool, device=dev),
+            speed=torch.zeros(g * n, device=dev),
         )
         self.cache_road(cache, road_x)
         return cache
@@ -218,7 +249,10 @@ class MotionNet(nn.Module):
         end_flat = end_pose.reshape(-1, 3).to(dev, torch.float32)
         q_pose = end_flat[rows]  # (Q, 3)
         token_emb = cache.token_table[cache.agent_type[rows], tokens_flat[rows]]  # (Q, d)
-        h = self.fuse(token_emb, start_flat[rows], q_pose, cache.agent_categorical[rows])  # (Q, d)
+        change = None
+        if cfg.speed_change_input:  # the speed of the agent's token before, from the cache
+            change = speed_change(start_flat[rows], q_pose, cache.speed[rows], cache.valid[rows, 0])
+        h = self.fuse(token_emb, start_flat[rows], q_pose, cache.agent_categorical[rows], change)  # (Q, d)
 
         # 1. temporal neighbours: the step itself (dt = 0) then the cached steps dt = 1 .. w
         key_pose = torch.cat([q_pose[:, None], cache.pose[rows]], 1)  # (Q, W+1, 3)
@@ -260,6 +294,7 @@ class MotionNet(nn.Module):
             cache.src[blk] = torch.cat([src_new, cache.src[blk][:, : w - 1]], 1)
         cache.pose = torch.cat([end_flat[:, None], cache.pose[:, : w - 1]], 1)
         cache.valid = torch.cat([valid_flat[:, None], cache.valid[:, : w - 1]], 1)
+        cache.speed = torch.where(valid_flat, token_speed(start_flat, end_flat), torch.zeros_like(cache.speed))
         cache.steps_done += 1
         return rows, h
 
@@ -273,7 +308,8 @@ class MotionCache:
     The cache (newest step first, the oldest falls out of the window of ``W`` =
     ``temporal_window_tokens`` steps): per block the rows of the block's temporal input as its
     attention reads them (through :func:`~.layers.normalise`), ``src`` [G * N, W, d], and the
-    pose each cached step ended at and its validity, ``pose`` [G * N, W, 3], ``valid`` [G * N, W].
+    pose each cached step ended at and its validity, ``pose`` [G * N, W, 3], ``valid`` [G * N, W]; and the speed
+    over the newest step's token, ``speed`` [G * N] (0 where it was not valid; ``speed_change_input`` reads it).
     A step replaces these tensors (it never writes into them), so :meth:`fork` shares them until
     either copy steps.
     """
@@ -291,6 +327,7 @@ class MotionCache:
     src: list  # per block [G * N, W, d]: the block's temporal input through normalise at the last W steps
     pose: torch.Tensor  # [G * N, W, 3]
     valid: torch.Tensor  # [G * N, W] bool
+    speed: torch.Tensor  # [G * N] the speed over the newest step's token
     steps_done: int = 0
 
     def fork(self) -> "MotionCache":
@@ -329,7 +366,7 @@ class MotionCache:
             road_rows=cat([scene_rows(c, c.road_rows) for c in caches]),
             src=[cat([slots(c, c.src[k]) for c in caches]) for k in range(len(first.src))],
             pose=cat([slots(c, c.pose) for c in caches]), valid=cat([slots(c, c.valid, False) for c in caches]),
-            steps_done=first.steps_done)
+            speed=cat([slots(c, c.speed) for c in caches]), steps_done=first.steps_done)
 
     def take(self, groups: torch.Tensor, scenes: torch.Tensor, num_slots: int, num_pieces: int) -> "MotionCache":
         """A cache of groups ``groups`` of this one (whose scenes are ``scenes``, in the order of the
@@ -344,7 +381,7 @@ class MotionCache:
             agent_type=slots(self.agent_type), agent_categorical=slots(self.agent_categorical), token_table=self.token_table,
             road_pose=self.road_pose[groups, :num_pieces], road_valid=self.road_valid[groups, :num_pieces],
             road_pose_flat=pieces(self.road_pose_flat), road_rows=pieces(self.road_rows), src=[slots(t) for t in self.src],
-            pose=slots(self.pose), valid=slots(self.valid), steps_done=self.steps_done)
+            pose=slots(self.pose), valid=slots(self.valid), speed=slots(self.speed), steps_done=self.steps_done)
 
     @property
     def num_road_pieces(self) -> int:
@@ -363,7 +400,7 @@ class MotionCache:
             per_slot = lambda t, fill=0: grow(t.view(g, self.num_slots, *t.shape[1:]), {1: n}, fill).reshape(g * n, *t.shape[1:])  # noqa: E731
             self.agent_type, self.agent_categorical = per_slot(self.agent_type), per_slot(self.agent_categorical)
             self.src = [per_slot(t) for t in self.src]
-            self.pose, self.valid = per_slot(self.pose), per_slot(self.valid, False)
+            self.pose, self.valid, self.speed = per_slot(self.pose), per_slot(self.valid, False), per_slot(self.speed)
             self.num_slots = n
         if r > self.num_road_pieces:
             self.road_pose_flat = grow(self.road_pose_flat.view(b, -1, 3), {1: r}).reshape(b * r, 3)
@@ -377,6 +414,7 @@ class MotionCache:
             put_rows(slot(mine), groups, theirs.view(go, no, *theirs.shape[1:]))
         put_rows(slot(self.pose), groups, other.pose.view(go, no, *other.pose.shape[1:]))
         put_rows(slot(self.valid), groups, other.valid.view(go, no, -1), False)
+        put_rows(slot(self.speed), groups, other.speed.view(go, no))
         put_rows(self.road_pose, groups, other.road_pose)
         put_rows(self.road_valid, groups, other.road_valid, False)
         bo, ro = other.road_pose_flat.shape[0] // max(other.num_road_pieces, 1), other.num_road_pieces

@@ -53,6 +53,7 @@ class SmartConfig:
     dropout: float = 0.1
     road_types: str = "all"  # the road kinds the type embedding tells apart (batch.ROAD_TYPE_SETS): "all" or "sumo"
     stop_signs: bool = False  # lanes a stop sign controls carry the light code FLASHING_STOP (batch.scene_road)
+    speed_change_input: bool = False  # each token's speed change against the one before, an input (MotionNet.speed_change)
 
     def __post_init__(self) -> None:
         check_fields(self, MODEL_RULES, "model", ModelConfigError)
@@ -97,7 +98,7 @@ MODEL_RULES = {
     "map_radius_m": _RADIUS, "road_radius_m": _RADIUS, "temporal_window_tokens": integer(1, 64, "32 s of history"),
     "agent_neighbours": integer(1, 1024), "map_neighbours": integer(1, 1024), "road_neighbours": integer(1, 1024),
     "road_piece_points": integer(2, 64), "num_freq_bands": integer(1, 1024), "dropout": number(0.0, 1.0, high_open=True),
-    "road_types": one_of("all", "sumo"), "stop_signs": flag,
+    "road_types": one_of("all", "sumo"), "stop_signs": flag, "speed_change_input": flag,
 }
 """What each SmartConfig field takes (:mod:`smart_marl.config_files` rules), checked whenever a config is made:
 from a name, a training config's overrides or a checkpoint's ``model_config``."""
@@ -185,7 +186,7 @@ class SMART(nn.Module):
         of ``end_pose`` and ``valid`` when the caller has them (:meth:`MotionNet.neighbourhoods`)."""
         if nbrs is None:
             nbrs = self.motion_net.neighbourhoods(end_pose, valid, road_pose, road_valid)
-        x = self.motion_net.embed_agents(tokens, agent_type, agent_shape, start_pose, end_pose, self.motion_contours, nbrs[0])
+        x = self.motion_net.embed_agents(tokens, agent_type, agent_shape, start_pose, end_pose, self.motion_contours, nbrs[0], valid)
         return self.motion_net(x, road_x, nbrs, tuple(tokens.shape))
 
     def forward(self, batch, road_masked: torch.Tensor | None = None, agent_valid: torch.Tensor | None = None,
