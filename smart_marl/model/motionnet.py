@@ -294,7 +294,8 @@ class MotionNet(nn.Module):
             cache.src[blk] = torch.cat([src_new, cache.src[blk][:, : w - 1]], 1)
         cache.pose = torch.cat([end_flat[:, None], cache.pose[:, : w - 1]], 1)
         cache.valid = torch.cat([valid_flat[:, None], cache.valid[:, : w - 1]], 1)
-        cache.speed = torch.where(valid_flat, token_speed(start_flat, end_flat), torch.zeros_like(cache.speed))
+        if cfg.speed_change_input:
+            cache.speed = torch.where(valid_flat, token_speed(start_flat, end_flat), torch.zeros_like(cache.speed))
         cache.steps_done += 1
         return rows, h
 
@@ -309,7 +310,8 @@ class MotionCache:
     ``temporal_window_tokens`` steps): per block the rows of the block's temporal input as its
     attention reads them (through :func:`~.layers.normalise`), ``src`` [G * N, W, d], and the
     pose each cached step ended at and its validity, ``pose`` [G * N, W, 3], ``valid`` [G * N, W]; and the speed
-    over the newest step's token, ``speed`` [G * N] (0 where it was not valid; ``speed_change_input`` reads it).
+    over the newest step's token, ``speed`` [G * N] (kept with ``speed_change_input``, which reads it; 0 where the
+    step was not valid, and always without it).
     A step replaces these tensors (it never writes into them), so :meth:`fork` shares them until
     either copy steps.
     """
