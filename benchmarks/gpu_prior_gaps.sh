@@ -8,7 +8,9 @@
 #   gpu_scenes_ft/train.npz.xz  2,000 generated scenes (data/rl_train, seed 7001), benchmarks/scene_pack.py
 #   gpu_scenes_ft/es.npz.xz     216 generated scenes with emergency stops (seed 2033, 0.6 per vehicle-minute)
 #   gpu_real7                   the 7 scoreable shared real scenes (never trained on), copied (not linked) from ../shared
-# Knobs: VARIANTS, TRAIN_S (time limit of each run), STEPS (its schedule), BATCH, LR, EVAL_ROLLOUTS, EVAL_S, DEVICE.
+# Knobs: VARIANTS, TRAIN_S (time limit of each run), STEPS (its schedule), BATCH, LR, EVAL_ROLLOUTS, EVAL_S, DEVICE,
+# INIT (the checkpoint every variant starts from; default the embedded prior). A variant's key=value pairs come
+# last on the train command line, so they override the fixed ones (e.g. catk_top_k=0 for teacher forcing).
 set -u
 OUT=${OUT:-runs/gpu33}
 TRAIN_S=${TRAIN_S:-290}
@@ -32,7 +34,7 @@ python3 benchmarks/scene_pack.py unpack gpu_scenes_ft/train.npz.xz /tmp/train >>
 python3 benchmarks/scene_pack.py unpack gpu_scenes_ft/es.npz.xz /tmp/es >> "$W/setup.log" 2>&1
 echo "setup $(( $(date +%s) - t0 )) s" >> "$W/setup.log"
 
-init=smart_marl/checkpoints/embedded/smart-1m-sumo.json
+init=${INIT:-smart_marl/checkpoints/embedded/smart-1m-sumo.json}  # e.g. a checkpoint with speed_change_input's weights added
 for v in $VARIANTS; do
     name=${v%%:*}
     extra=$(echo "${v#*:}" | tr ',' ' ')
