@@ -91,6 +91,12 @@ more than 10% up, within 10%, more than 10% down): information the model has, un
 PAST_BAND = 0.1
 
 
+def past_trend(recent: np.ndarray, earlier: np.ndarray) -> np.ndarray:
+    """[...] the index in :data:`PAST_TRENDS` of speeds ``recent`` against ``earlier`` (m/s, the last 0.5 s and the
+    0.5 s before: :func:`_half_second_speeds`)."""
+    return np.where(recent > (1 + PAST_BAND) * earlier, 0, np.where(recent < (1 - PAST_BAND) * earlier, 2, 1))
+
+
 class SpeedSums(NamedTuple):
     """One motion type's speed sums over frames cf+1..cf+80 (:data:`NUM_FRAMES`) of the agents moving at the
     current frame; a sum at frame t counts the agents logged at t and t-1. Entries of scenes add up (:meth:`plus`)."""
@@ -159,8 +165,8 @@ def speed_sums(res, scene) -> dict:
         counted = n_late * 2 >= LATE_FRAMES
         groups = [counted & (trend == c) for c in range(len(TRENDS))]
         by_trend = np.array([[now[m].sum(), log_late[m].sum(), sim_late[m].sum(), m.sum()] for m in groups])
-        up, down = recent[moving] > (1 + PAST_BAND) * earlier[moving], recent[moving] < (1 - PAST_BAND) * earlier[moving]
-        past = [has_past[moving] & g for g in (up, ~up & ~down, down)]
+        trend_before = past_trend(recent[moving], earlier[moving])
+        past = [has_past[moving] & (trend_before == g) for g in range(len(PAST_TRENDS))]
         frame_sums = lambda m: [np.where(ok[m], x[m], 0.0).sum(0) for x in (sim_mean, log_speed)] + [ok[m].sum(0)]  # noqa: E731
         out[t] = SpeedSums(np.where(ok, sim_mean, 0.0).sum(0), np.where(ok, log_speed, 0.0).sum(0), ok.sum(0), int(moving.sum()),
                            by_trend, np.array([frame_sums(m) for m in groups]), np.array([frame_sums(m) for m in past]),
@@ -278,7 +284,7 @@ def teacher_forced_bias(ck, scene, top_k: int = 5) -> TeacherForced:
         dv = np.stack([cols[future, 1] - vin[future], cols[future, 2] - vin[future], saturated[future]], 1)
         if cf >= 10:  # the first future token by past trend
             recent, earlier, has_past = (x[keep] for x in _half_second_speeds(tr, tr.num_tracks, cf))
-            trend = np.where(recent > (1 + PAST_BAND) * earlier, 0, np.where(recent < (1 - PAST_BAND) * earlier, 2, 1))
+            trend = past_trend(recent, earlier)
             agent = np.nonzero(rows.numpy())[0]
             at = (step == first_step) & ~saturated & has_past[agent] & (recent[agent] > MOVING_MPS[t])
             for g in range(len(PAST_TRENDS)):
@@ -363,7 +369,8 @@ def main(argv=None) -> None:
                   "temperature": args.temperature, "prior": args.prior, "avoid_collisions": args.avoid_collisions,
                   "drop_parked": args.drop_parked}
         for t in MOTION_TYPES:
-            r, lg, n, m, by_trend = roll[t][:5]
+            s = roll[t]
+            r, lg, n, m, by_trend = s.sim, s.log, s.count, s.agents, s.by_trend
             if m == 0:
                 continue
             for h in HORIZONS_S:

@@ -186,7 +186,7 @@ def part_slowing_and_lights(model, scenes, rollouts: int, top_k: int, seed: int,
                 red["rollout"] = [a + b for a, b in zip(red["rollout"], sim)]
                 red["scenes"] += 1
     if "a" in parts:
-        r, lg, n, m, by_trend = roll[:5]
+        r, lg, n, m, by_trend = roll.sim, roll.log, roll.count, roll.agents, roll.by_trend
         for h in drift.HORIZONS_S:
             k = int(round(h * 10)) - 1
             if n[k]:

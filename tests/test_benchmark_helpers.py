@@ -67,6 +67,15 @@ def test_speed_groups_by_horizon_match_the_log_when_the_rollouts_are_the_log(sam
     assert slows[8.0] < slows[0.5]
 
 
+def test_past_trend_groups_by_the_speed_change_before_the_current_frame():
+    """prior_speed_drift's past groups: more than 10% up, within 10%, more than 10% down (PAST_TRENDS order)."""
+    drift = _load("prior_speed_drift")
+    earlier = np.array([10.0, 10.0, 10.0, 10.0, 10.0])
+    recent = np.array([11.5, 10.9, 10.0, 9.2, 8.5])
+    assert [drift.PAST_TRENDS[g] for g in drift.past_trend(recent, earlier)] == [
+        "accelerating", "steady", "steady", "steady", "decelerating"]
+
+
 def test_speed_change_calibration_rows_read_the_slope_and_the_bins():
     """prior_speed_drift's teacher_forced_dv rows: logged changes half the predicted ones give slope 0.5, and each
     quantile bin holds its share of the rows with the means of its own rows."""

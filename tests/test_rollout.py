@@ -371,9 +371,26 @@ def test_speed_change_input_starts_as_the_model_without_it_and_stays_exact_in_th
     cached = _start(changed, vocab, two, seed=3)
     full = _start(changed, vocab, two, mode="full", seed=3)
     finite = torch.isfinite(plain.logits())
-    assert float((cached.logits()[finite] - plain.logits()[finite]).abs().max()) > 1e-3  # the input is read
+    assert float((cached.logits()[finite] - plain.logits()[finite]).abs().max()) > 1e-3
+    from smart_marl.model import motionnet  # the change itself is read, not only the MLP's constant at change 0
+    real_change, zero_change = motionnet.speed_change, (lambda start, end, before, had: torch.zeros_like(before))
+    motionnet.speed_change = zero_change
+    try:
+        blind = _start(changed, vocab, two, seed=3)  # the same model, blind to the change
+    finally:
+        motionnet.speed_change = real_change
+    seen = 0.0
     for _ in range(6):
         a = cached.step()
         b = full.step(a.tokens)
         finite = torch.isfinite(a.logits)
         assert float((a.logits[finite] - b.logits[finite]).abs().max()) < 1e-4
+        motionnet.speed_change = zero_change
+        try:
+            blind.step(a.tokens)  # the same tokens: the histories differ in what the model makes of them only
+            blind_logits = blind.logits()
+        finally:
+            motionnet.speed_change = real_change
+        now = torch.isfinite(cached.logits())
+        seen = max(seen, float((cached.logits()[now] - blind_logits[now]).abs().max()))
+    assert seen > 1e-3  # sampled tokens change speed: the model sees it
