@@ -25,6 +25,7 @@ from smart_marl.rollout.frames import hermite_frames
 from smart_marl.tokens import token_poses_from_contours
 from smart_marl.scenario import AgentType, SignalState
 from smart_marl.tokens import collect_snippets, compose_poses, uniform_grid_vocabulary
+from model_variants import with_speed_change
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 
@@ -344,30 +345,15 @@ def test_set_road_light_re_encodes_the_road_and_reaches_the_next_logits(model, v
         cached.set_road_light(light[:, :-1])
 
 
-def _with_speed_change(model, last_layer_scale: float):
-    """``model`` with ``speed_change_input`` on: its weights, the new input's last layer at ``last_layer_scale``
-    times random values (0: as it starts)."""
-    cfg = dataclasses.replace(model.config, speed_change_input=True)
-    out = SMART(cfg, model.motion_contours).eval()
-    missing, unexpected = out.load_state_dict(model.state_dict(), strict=False)
-    assert not unexpected and missing and all(k.startswith("motion_net.speed_change.") for k in missing)
-    if last_layer_scale:
-        torch.manual_seed(1)
-        last = out.motion_net.speed_change[-1]
-        with torch.no_grad():
-            last.weight.copy_(last_layer_scale * torch.randn_like(last.weight))
-    return out
-
-
 def test_speed_change_input_starts_as_the_model_without_it_and_stays_exact_in_the_cached_step(model, vocab, scenes):
     """SmartConfig.speed_change_input: zero at first (the same logits as without it); once its weights are not,
     the logits change, and the cached step still equals the full recomputation (both read the ends of the
     agent's last tokens)."""
     two = [scenes[0], scenes[2]]
     plain = _start(model, vocab, two, seed=3)
-    same = _start(_with_speed_change(model, 0.0), vocab, two, seed=3)
+    same = _start(with_speed_change(model, 0.0), vocab, two, seed=3)
     torch.testing.assert_close(same.logits(), plain.logits(), rtol=0, atol=0)
-    changed = _with_speed_change(model, 0.5)
+    changed = with_speed_change(model, 0.5)
     cached = _start(changed, vocab, two, seed=3)
     full = _start(changed, vocab, two, mode="full", seed=3)
     finite = torch.isfinite(plain.logits())

@@ -4,20 +4,29 @@ references are states started on the scenes directly, stepped with the same forc
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
 from smart_marl.embedded import sample_scenarios
 from smart_marl.model.checkpoint import load_prior
+from smart_marl.model.motionnet import MotionCache
 from smart_marl.rollout import RolloutState
 from smart_marl.rollout.refill import replace_scenes, split_state, stack_states
+
+from model_variants import with_speed_change
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 
 
-@pytest.fixture(scope="module")
-def prior_and_scenes():
+@pytest.fixture(scope="module", params=["embedded", "speed_change"])
+def prior_and_scenes(request):
+    """The embedded prior, and the same with the speed-change input on and not zero: its cache keeps the
+    speed of each slot's last token (``MotionCache.speed``), which splitting, stacking and replacing carry."""
     model, vocab = load_prior("embedded", "cpu")
+    if request.param == "speed_change":
+        model = with_speed_change(model, 0.5)
     return model, vocab, sample_scenarios()
 
 
@@ -88,3 +97,16 @@ def test_replace_refuses_states_it_cannot_combine(prior_and_scenes):
         replace_scenes(batch, [5], RolloutState.start(model, scenes[2], seed=0))
     with pytest.raises(ValueError, match="cached"):
         replace_scenes(batch, [0], RolloutState.start(model, scenes[2], seed=0, mode="full"))
+
+
+def test_the_cache_names_every_tensor_it_keeps_per_slot(prior_and_scenes):
+    """Splitting, stacking and replacing carry ``MotionCache.PER_SLOT`` (and ``src``): a per-slot tensor the
+    cache gains must be named there."""
+    model, vocab, scenes = prior_and_scenes
+    cache = RolloutState.start(model, scenes[:2], seed=0).cache
+    flat = cache.num_groups * cache.num_slots
+    assert cache.road_pose_flat.shape[0] != flat  # no per-scene tensor of the same length to mistake
+    per_slot = {f.name for f in dataclasses.fields(cache)
+                if isinstance(getattr(cache, f.name), torch.Tensor) and getattr(cache, f.name).shape[0] == flat}
+    assert per_slot == set(MotionCache.PER_SLOT)
+    assert all(t.shape[0] == flat for t in cache.src)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 import torch.nn as nn
@@ -313,8 +314,12 @@ class MotionCache:
     over the newest step's token, ``speed`` [G * N] (kept with ``speed_change_input``, which reads it; 0 where the
     step was not valid, and always without it).
     A step replaces these tensors (it never writes into them), so :meth:`fork` shares them until
-    either copy steps.
+    either copy steps. The per-slot tensors are named in :data:`PER_SLOT` (with ``src``): stacking,
+    taking and replacing groups carry each of them, so a new one is added there once.
     """
+
+    PER_SLOT: ClassVar[dict[str, object]] = {"agent_type": 0, "agent_categorical": 0, "pose": 0, "valid": False, "speed": 0}
+    """The flat ``[G * N, ...]`` tensors kept per agent slot besides ``src``, and the fill of a padded slot."""
 
     num_groups: int
     num_slots: int
@@ -359,16 +364,13 @@ class MotionCache:
             offsets.append(offsets[-1] + c.road_pose_flat.shape[0] // max(c.num_road_pieces, 1))
         return cls(
             num_groups=sum(c.num_groups for c in caches), num_slots=n,
-            scene_of_group=torch.cat([c.scene_of_group + o for c, o in zip(caches, offsets)]),
-            agent_type=cat([slots(c, c.agent_type) for c in caches]),
-            agent_categorical=cat([slots(c, c.agent_categorical) for c in caches]), token_table=first.token_table,
+            scene_of_group=torch.cat([c.scene_of_group + o for c, o in zip(caches, offsets)]), token_table=first.token_table,
             road_pose=torch.cat([grow(c.road_pose, {1: r}) for c in caches]),
             road_valid=torch.cat([grow(c.road_valid, {1: r}, False) for c in caches]),
             road_pose_flat=cat([scene_rows(c, c.road_pose_flat) for c in caches]),
             road_rows=cat([scene_rows(c, c.road_rows) for c in caches]),
-            src=[cat([slots(c, c.src[k]) for c in caches]) for k in range(len(first.src))],
-            pose=cat([slots(c, c.pose) for c in caches]), valid=cat([slots(c, c.valid, False) for c in caches]),
-            speed=cat([slots(c, c.speed) for c in caches]), steps_done=first.steps_done)
+            src=[cat([slots(c, c.src[k]) for c in caches]) for k in range(len(first.src))], steps_done=first.steps_done,
+            **{name: cat([slots(c, getattr(c, name), fill) for c in caches]) for name, fill in cls.PER_SLOT.items()})
 
     def take(self, groups: torch.Tensor, scenes: torch.Tensor, num_slots: int, num_pieces: int) -> "MotionCache":
         """A cache of groups ``groups`` of this one (whose scenes are ``scenes``, in the order of the
@@ -379,11 +381,10 @@ class MotionCache:
         local = torch.full((b,), -1, dtype=torch.long, device=scenes.device)
         local[scenes] = torch.arange(len(scenes), device=scenes.device)
         return MotionCache(
-            num_groups=len(groups), num_slots=num_slots, scene_of_group=local[self.scene_of_group[groups]],
-            agent_type=slots(self.agent_type), agent_categorical=slots(self.agent_categorical), token_table=self.token_table,
+            num_groups=len(groups), num_slots=num_slots, scene_of_group=local[self.scene_of_group[groups]], token_table=self.token_table,
             road_pose=self.road_pose[groups, :num_pieces], road_valid=self.road_valid[groups, :num_pieces],
             road_pose_flat=pieces(self.road_pose_flat), road_rows=pieces(self.road_rows), src=[slots(t) for t in self.src],
-            pose=slots(self.pose), valid=slots(self.valid), speed=slots(self.speed), steps_done=self.steps_done)
+            steps_done=self.steps_done, **{name: slots(getattr(self, name)) for name in self.PER_SLOT})
 
     @property
     def num_road_pieces(self) -> int:
@@ -400,9 +401,9 @@ class MotionCache:
         g, b = self.num_groups, self.road_pose_flat.shape[0] // max(self.num_road_pieces, 1)
         if n > self.num_slots:  # per-slot tensors are flat [G * N, ...]: grow as [G, N, ...]
             per_slot = lambda t, fill=0: grow(t.view(g, self.num_slots, *t.shape[1:]), {1: n}, fill).reshape(g * n, *t.shape[1:])  # noqa: E731
-            self.agent_type, self.agent_categorical = per_slot(self.agent_type), per_slot(self.agent_categorical)
+            for name, fill in self.PER_SLOT.items():
+                setattr(self, name, per_slot(getattr(self, name), fill))
             self.src = [per_slot(t) for t in self.src]
-            self.pose, self.valid, self.speed = per_slot(self.pose), per_slot(self.valid, False), per_slot(self.speed)
             self.num_slots = n
         if r > self.num_road_pieces:
             self.road_pose_flat = grow(self.road_pose_flat.view(b, -1, 3), {1: r}).reshape(b * r, 3)
@@ -410,13 +411,11 @@ class MotionCache:
             self.road_pose, self.road_valid = grow(self.road_pose, {1: r}), grow(self.road_valid, {1: r}, False)
         go, no = other.num_groups, other.num_slots
         slot = lambda t: t.view(g, n, *t.shape[1:])  # noqa: E731
-        put_rows(slot(self.agent_type), groups, other.agent_type.view(go, no))
-        put_rows(slot(self.agent_categorical), groups, other.agent_categorical.view(go, no, -1))
-        for mine, theirs in zip(self.src, other.src):
-            put_rows(slot(mine), groups, theirs.view(go, no, *theirs.shape[1:]))
-        put_rows(slot(self.pose), groups, other.pose.view(go, no, *other.pose.shape[1:]))
-        put_rows(slot(self.valid), groups, other.valid.view(go, no, -1), False)
-        put_rows(slot(self.speed), groups, other.speed.view(go, no))
+        theirs = lambda t: t.view(go, no, *t.shape[1:])  # noqa: E731
+        for name, fill in self.PER_SLOT.items():
+            put_rows(slot(getattr(self, name)), groups, theirs(getattr(other, name)), fill)
+        for mine, their_src in zip(self.src, other.src):
+            put_rows(slot(mine), groups, theirs(their_src))
         put_rows(self.road_pose, groups, other.road_pose)
         put_rows(self.road_valid, groups, other.road_valid, False)
         bo, ro = other.road_pose_flat.shape[0] // max(other.num_road_pieces, 1), other.num_road_pieces
