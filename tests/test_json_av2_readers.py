@@ -218,6 +218,23 @@ def test_json_nan_on_a_valid_frame_is_an_error_naming_the_object(shared_data, tm
     assert _read_one(_write(tmp_path, raw, "ok.json")).num_tracks == 124
 
 
+def test_json_empty_boxes_get_their_types_default_and_are_listed(shared_data, tmp_path):
+    raw = _raw(shared_data / NOCTURNE_FILE)
+    kinds = {o["type"]: i for i, o in enumerate(raw["objects"]) if any(o["valid"])}  # one object of each type
+    for i in kinds.values():
+        raw["objects"][i]["length"], raw["objects"][i]["width"] = 0.0, 0.0
+    raw["objects"][kinds["vehicle"]]["width"] = 1.9  # one side empty is enough
+    scene = _read_one(_write(tmp_path, raw))
+    for name, i in kinds.items():
+        t = AgentType[name.upper()]
+        np.testing.assert_allclose(scene.tracks.size[i, :, :2], np.broadcast_to(gpudrive_json.DEFAULT_BOX_M[t], (scene.num_frames, 2)))
+    assert scene.metadata["default_box_ids"] == sorted(kinds.values())  # ids are the indices in this file
+    # the shared files: every object with a valid frame has a box
+    for path in sorted((shared_data / "nocturne_json").glob("*.json")) + sorted((shared_data / "gpudrive_json").glob("*.json")):
+        sc = _read_one(path)
+        assert (sc.tracks.size[sc.tracks.valid][:, :2] > 0).all(), path.name
+
+
 def test_json_unknown_road_type_and_bad_sdc_index_are_errors(shared_data, tmp_path):
     raw = _raw(shared_data / GPUDRIVE_FILE)
     raw["roads"][2]["type"] = "tram_track"
