@@ -20,7 +20,7 @@ newer GPUDrive files, ``scenario_id`` and ``metadata``. What this reader decides
 * **Types.** ``vehicle``/``pedestrian``/``cyclist``; anything else (``other``, ``unset``) is OTHER.
 * **Sizes.** ``length``, ``width`` (and ``height``) are one box per object (the converter takes the
   last valid state), repeated on every frame. Without ``height``, :data:`DEFAULT_HEIGHT_M` per type.
-  A length or width of 0 or less on an object with a valid frame is missing (Nocturne files carry
+  A length or width of 0 on an object with a valid frame is missing (Nocturne files carry
   zero boxes, e.g. 23 of the 80 objects of one shared file, most of them pedestrians): the object gets
   :data:`DEFAULT_BOX_M` of its type, and ``metadata["default_box_ids"]`` lists their track ids.
   Without ``z``, z = 0 (tracks and map alike).
@@ -335,7 +335,7 @@ def _read_objects(objects: list, path: str) -> dict[str, Any]:
     heading_rad = heading if radians else np.radians(heading)
     with np.errstate(invalid="ignore"):  # invalid frames may hold anything (checked finite on valid ones above)
         heading_rad = np.where(valid, wrap_angle(heading_rad), 0.0)
-    empty = ((length <= 0) | (width <= 0)) & valid.any(axis=1)
+    empty = ((length == 0) | (width == 0)) & valid.any(axis=1)  # negative ones are refused (Tracks)
     default = np.array([DEFAULT_BOX_M[AgentType(int(t))] for t in types], np.float64).reshape(n, 2)
     length, width = np.where(empty, default[:, 0], length), np.where(empty, default[:, 1], width)
     size = np.repeat(np.stack([length, width, height], axis=-1)[:, None, :], num_frames, axis=1)
