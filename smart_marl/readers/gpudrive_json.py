@@ -21,7 +21,7 @@ newer GPUDrive files, ``scenario_id`` and ``metadata``. What this reader decides
 * **Sizes.** ``length``, ``width`` (and ``height``) are one box per object (the converter takes the
   last valid state), repeated on every frame. Without ``height``, :data:`DEFAULT_HEIGHT_M` per type.
   A length or width of 0 on an object with a valid frame is missing (Nocturne files carry
-  zero boxes, e.g. 23 of the 80 objects of one shared file, most of them pedestrians): the object gets
+  zero boxes: 23 of the 80 objects of one shared file, 14 vehicles and 9 pedestrians): the object gets
   :data:`DEFAULT_BOX_M` of its type, and ``metadata["default_box_ids"]`` lists their track ids.
   Without ``z``, z = 0 (tracks and map alike).
 * **Map subtypes.** From ``map_element_id`` when present (GPUDrive's Waymax-style codes: lanes 0-3,
