@@ -61,6 +61,7 @@ class TrainConfig:
     speed_trend_weights: tuple | None = None  # (speeds up, keeps, slows): loss weights of vehicles by their 8 s speed trend (model.losses.speed_trend_weights); None: off
     token_noise_topk: int = 5  # top-k noisy rolling matching; 0 or 1: off
     train_only: tuple | None = None  # parameter-name prefixes that train, the rest frozen (e.g. ["motion_heads.1"]: the pedestrian head); None: all
+    lr_scale: dict | None = None  # parameter-name prefix -> multiplier of lr (e.g. {"motion_net.speed_change": 10}: a new module learns faster); None: one rate
     catk_top_k: int = 0  # > 0: closed-loop targets (CAT-K, smart_marl.catk) from the model's top-K tokens; 0: teacher forcing
     catk_max_drift_m: float | None = None  # CAT-K: tokens starting farther than this from the log are no targets (smart_marl.catk.drifted); None: all are
     catk_avoid: bool = False  # CAT-K keeps gaps: candidates and targets that would run into a neighbour are taken out (needs catk_top_k)
@@ -121,6 +122,15 @@ def _prefixes(value) -> str | None:
     return None
 
 
+def _lr_scale(value) -> str | None:
+    if value is None:
+        return None
+    if not (isinstance(value, dict) and value and all(isinstance(k, str) and k for k in value)) or any(
+            number(0.0, 1000.0, low_open=True)(v) for v in value.values()):
+        return f"must be a non-empty mapping of parameter-name prefixes to multipliers in (0, 1000] or null, got {value!r}"
+    return None
+
+
 def _betas(value) -> str | None:
     if not (isinstance(value, (list, tuple)) and len(value) == 2) or any(number(0.0, 1.0, high_open=True)(b) for b in value):
         return f"must be two numbers in [0, 1), got {value!r}"
@@ -149,7 +159,7 @@ _TRAIN_RULES = {
     "time_limit_s": optional(number(0.0, low_open=True)), "lr": number(0.0, 1.0, low_open=True, why="larger diverges at once"),
     "weight_decay": number(0.0, 10.0), "betas": _betas, "warmup_steps": integer(0, MAX_STEPS), "grad_clip": number(0.0),
     "dropout": number(0.0, 1.0, high_open=True), "label_smoothing": number(0.0, 1.0, high_open=True),
-    "speed_trend_weights": _trend_weights, "train_only": _prefixes,
+    "speed_trend_weights": _trend_weights, "train_only": _prefixes, "lr_scale": _lr_scale,
     "token_noise_topk": integer(0), "catk_top_k": integer(0), "catk_avoid": flag, "brake_leaders": number(0.0, 1.0),
     "catk_max_drift_m": optional(number(0.0, low_open=True)),
     "cache_scenes": integer(0), "road_mask_prob": number(0.0, 1.0),

@@ -342,6 +342,33 @@ def test_train_only_names_a_prefix_that_matches_nothing():
         load_train_config({"train_only": "motion_heads.1"})
 
 
+def test_lr_scale_gives_the_named_parameters_their_own_rate_on_the_same_schedule():
+    from smart_marl.train import TrainConfigError, make_optimizer, make_scheduler
+
+    model = SMART(tiny_config(), [torch.zeros(8, 6, 4, 2)] * 3)
+    cfg = load_train_config({"lr": 1e-3, "warmup_steps": 2, "max_steps": 10, "lr_scale": {"motion_heads.1": 10}})
+    opt = make_optimizer(model, cfg)
+    fast = {id(p) for p in model.motion_heads[1].parameters()}
+    assert sum(len(g["params"]) for g in opt.param_groups) == len(list(model.parameters()))
+    for g in opt.param_groups:  # a group is all fast or all not, matrices alone decayed
+        kinds = {id(p) in fast for p in g["params"]}
+        assert len(kinds) <= 1 and g["lr"] == pytest.approx(1e-2 if kinds == {True} else 1e-3)
+        assert g["weight_decay"] == (cfg.weight_decay if all(p.dim() >= 2 for p in g["params"]) else 0.0) or not g["params"]
+    sched = make_scheduler(opt, cfg)
+    for _ in range(5):
+        opt.step()
+        sched.step()
+    fractions = [g["lr"] / g["initial_lr"] for g in opt.param_groups]
+    assert max(fractions) - min(fractions) < 1e-9 and fractions[0] < 1  # one schedule: each group at the same share of its rate
+    plain = make_optimizer(model, load_train_config({"lr": 1e-3}))
+    assert [len(g["params"]) for g in plain.param_groups] == [sum(p.dim() >= 2 for p in model.parameters()),
+                                                              sum(p.dim() < 2 for p in model.parameters())]
+    with pytest.raises(TrainConfigError, match=r"lr_scale: no trained parameter starts with \['motion_head.1'\]"):
+        make_optimizer(model, load_train_config({"lr_scale": {"motion_head.1": 10}}))
+    with pytest.raises(TrainConfigError, match="lr_scale"):
+        load_train_config({"lr_scale": {"motion_heads.1": 0}})
+
+
 def test_a_cuda_device_without_an_index_is_this_processs(monkeypatch):
     """torch.cuda.set_device refuses a bare "cuda" (the --device cuda of a lent GPU machine failed so)."""
     from smart_marl.train import resolve_device
