@@ -67,11 +67,16 @@ from .train_data import (  # noqa: F401  (re-exported: the data's names are impo
 
 
 # ------------------------------------------------------------------------------------ model
+def _unmatched(prefixes, names: list[str]) -> list:
+    """The prefixes of ``prefixes`` that no name of ``names`` starts with."""
+    return [p for p in prefixes if not any(n.startswith(p) for n in names)]
+
+
 def freeze_except(model: torch.nn.Module, prefixes) -> int:
     """Freeze every parameter of ``model`` whose name starts with none of ``prefixes``; returns how many
     parameters (elements) still train. A prefix that names no parameter is an error."""
     names = [n for n, _ in model.named_parameters()]
-    unknown = [p for p in prefixes if not any(n.startswith(p) for n in names)]
+    unknown = _unmatched(prefixes, names)
     if unknown:
         raise TrainConfigError(f"train_only: no model parameter starts with {unknown} (e.g. {names[:3]}, ..., {names[-1]})")
     trained = 0
@@ -140,17 +145,17 @@ def make_optimizer(model: torch.nn.Module, cfg: TrainConfig) -> torch.optim.Opti
     their own, scheduled as the rest)."""
     scales = dict(cfg.lr_scale or {})
     named = [(n, p) for n, p in model.named_parameters() if p.requires_grad]
-    unknown = [k for k in scales if not any(n.startswith(k) for n, _ in named)]
+    unknown = _unmatched(scales, [n for n, _ in named])
     if unknown:
         raise TrainConfigError(f"lr_scale: no trained parameter starts with {unknown}")
-    groups: dict[tuple[float, bool], list] = {(1.0, True): [], (1.0, False): []}  # these two always (a resumed run's optimizer has them)
+    # (scale, decayed) -> parameters; the two groups at the base rate first and always (a resumed run's optimizer has them)
+    groups: dict[tuple[float, bool], list] = {(1.0, True): [], (1.0, False): []}
     for name, param in named:
         scale = next((float(v) for k, v in scales.items() if name.startswith(k)), 1.0)
         groups.setdefault((scale, param.dim() >= 2), []).append(param)
     fused = all(p.device.type in ("cpu", "cuda") for _, p in named) or None
     return torch.optim.AdamW([{"params": ps, "weight_decay": cfg.weight_decay if decay else 0.0, "lr": cfg.lr * scale}
-                              for (scale, decay), ps in sorted(groups.items(), key=lambda kv: (kv[0][0] != 1.0, not kv[0][1]))],
-                             lr=cfg.lr, betas=tuple(cfg.betas), fused=fused)
+                              for (scale, decay), ps in groups.items()], lr=cfg.lr, betas=tuple(cfg.betas), fused=fused)
 
 
 def make_scheduler(optimizer: torch.optim.Optimizer, cfg: TrainConfig) -> torch.optim.lr_scheduler.LambdaLR:

@@ -10,6 +10,7 @@ current frame.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 
@@ -345,7 +346,7 @@ def test_set_road_light_re_encodes_the_road_and_reaches_the_next_logits(model, v
         cached.set_road_light(light[:, :-1])
 
 
-def test_speed_change_input_starts_as_the_model_without_it_and_stays_exact_in_the_cached_step(model, vocab, scenes):
+def test_speed_change_input_starts_as_the_model_without_it_and_stays_exact_in_the_cached_step(model, vocab, scenes, monkeypatch):
     """SmartConfig.speed_change_input: zero at first (the same logits as without it); once its weights are not,
     the logits change, and the cached step still equals the full recomputation (both read the ends of the
     agent's last tokens)."""
@@ -359,24 +360,24 @@ def test_speed_change_input_starts_as_the_model_without_it_and_stays_exact_in_th
     finite = torch.isfinite(plain.logits())
     assert float((cached.logits()[finite] - plain.logits()[finite]).abs().max()) > 1e-3
     from smart_marl.model import motionnet  # the change itself is read, not only the MLP's constant at change 0
-    real_change, zero_change = motionnet.speed_change, (lambda start, end, before, had: torch.zeros_like(before))
-    motionnet.speed_change = zero_change
-    try:
-        blind = _start(changed, vocab, two, seed=3)  # the same model, blind to the change
-    finally:
-        motionnet.speed_change = real_change
+    @contextlib.contextmanager
+    def blind_to_the_change():
+        """While it lasts, every token's speed change reads as 0 (the same model, blind to the change)."""
+        with monkeypatch.context() as m:
+            m.setattr(motionnet, "speed_change", lambda start, end, before, had: torch.zeros_like(before))
+            yield
+
+    with blind_to_the_change():
+        blind = _start(changed, vocab, two, seed=3)
     seen = 0.0
     for _ in range(6):
         a = cached.step()
         b = full.step(a.tokens)
         finite = torch.isfinite(a.logits)
         assert float((a.logits[finite] - b.logits[finite]).abs().max()) < 1e-4
-        motionnet.speed_change = zero_change
-        try:
+        with blind_to_the_change():
             blind.step(a.tokens)  # the same tokens: the histories differ in what the model makes of them only
             blind_logits = blind.logits()
-        finally:
-            motionnet.speed_change = real_change
         now = torch.isfinite(cached.logits())
         seen = max(seen, float((cached.logits()[now] - blind_logits[now]).abs().max()))
     assert seen > 1e-3  # sampled tokens change speed: the model sees it
