@@ -18,7 +18,7 @@ from smart_marl.errors import ScenarioReadError
 from smart_marl.readers import detect_format, read_scenarios
 from smart_marl.readers import av2 as av2_reader
 from smart_marl.readers import gpudrive_json
-from smart_marl.scenario import AgentType, LaneType, LinkType, MapFeatureType, RoadEdgeType, SignalState
+from smart_marl.scenario import TYPICAL_BOX_M, AgentType, LaneType, LinkType, MapFeatureType, RoadEdgeType, SignalState
 
 GPUDRIVE_FILE = "gpudrive_json/tfrecord-00000-of-01000_222.json"
 NOCTURNE_FILE = "nocturne_json/intersection_scenario.json"
@@ -124,7 +124,7 @@ def test_nocturne_file_reads_with_degrees_no_ids_and_default_heights(shared_data
     expected = math.remainder(math.radians(o["heading"][f]), 2 * math.pi)
     assert abs(math.remainder(float(scene.tracks.heading[0, f]) - expected, 2 * math.pi)) < 1e-5
     heights = {AgentType(int(t)): float(h) for t, h in zip(scene.tracks.types, scene.tracks.size[:, 0, 2])}
-    assert heights == {t: pytest.approx(gpudrive_json.DEFAULT_HEIGHT_M[t]) for t in heights}
+    assert heights == {t: pytest.approx(TYPICAL_BOX_M[t][2]) for t in heights}
 
 
 def test_every_json_scene_reads_and_headings_follow_the_direction_of_motion(shared_data):
@@ -227,7 +227,7 @@ def test_json_empty_boxes_get_their_types_default_and_are_listed(shared_data, tm
     scene = _read_one(_write(tmp_path, raw))
     for name, i in kinds.items():
         t = AgentType[name.upper()]
-        np.testing.assert_allclose(scene.tracks.size[i, :, :2], np.broadcast_to(gpudrive_json.DEFAULT_BOX_M[t], (scene.num_frames, 2)))
+        np.testing.assert_allclose(scene.tracks.size[i, :, :2], np.broadcast_to(TYPICAL_BOX_M[t][:2], (scene.num_frames, 2)))
     assert scene.metadata["default_box_ids"] == sorted(kinds.values())  # ids are the indices in this file
     # the shared files: every object with a valid frame has a box
     for path in sorted((shared_data / "nocturne_json").glob("*.json")) + sorted((shared_data / "gpudrive_json").glob("*.json")):
@@ -311,7 +311,7 @@ def test_av2_tracks_match_the_parquet(shared_data, av2_scene):
     assert scene.metadata["city"] == "austin"
     assert scene.traffic_lights.lane_ids.size == 0 and scene.traffic_lights.num_frames == 110
     vehicle_box = scene.tracks.size[scene.sdc_index, 49]
-    assert vehicle_box.tolist() == pytest.approx(av2_reader.DEFAULT_SIZE_M["vehicle"])
+    assert vehicle_box.tolist() == pytest.approx(TYPICAL_BOX_M[AgentType.VEHICLE])
 
 
 def test_av2_map_matches_the_archive(shared_data, av2_scene):

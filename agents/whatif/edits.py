@@ -59,7 +59,8 @@ class Insert(Placement):
     ``trajectory`` [[x, y(, heading)], ...] at 10 Hz from the current frame; ``path`` waypoints
     [[x, y], ...] at ``speed_mps`` after waiting ``wait_s``; or ``tokens`` (ids of its type's
     vocabulary, forced one per 0.5 s step) from ``pose`` [x, y, heading] with history speed
-    ``speed_mps``. ``then``: "release" (the prior drives it once the script ends) or "hold"."""
+    ``speed_mps``. ``then``: "release" (the prior drives it once the script ends) or "hold". ``size_m``
+    [length, width, height]; without it, its type's :data:`~smart_marl.scenario.TYPICAL_BOX_M`."""
 
     type: str = "vehicle"
     trajectory: Any = None
@@ -117,7 +118,8 @@ class Follow(Placement):
 @dataclass
 class StalledVehicle(Placement):
     """A vehicle that does not move: an existing ``agent`` held where it is for the whole rollout,
-    or a new vehicle standing at ``pose`` [x, y, heading] (its history: standing there)."""
+    or a new vehicle standing at ``pose`` [x, y, heading] (its history: standing there), of ``size_m``
+    [length, width, height] (default a vehicle's :data:`~smart_marl.scenario.TYPICAL_BOX_M`)."""
 
     agent: AgentRef | None = None
     pose: Sequence[float] | None = None

@@ -16,13 +16,14 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from smart_marl.scenario import DT_S, AgentType, Scenario, SignalState, TrafficLights, Tracks, wrap_angle
+from smart_marl.scenario import DT_S, TYPICAL_BOX_M, AgentType, Scenario, SignalState, TrafficLights, Tracks, wrap_angle
 from smart_marl.tokens import FRAMES_PER_TOKEN, TOKEN_S, compose_poses
 
 from .. import scripted
 from .edits import KIND_OF, AgentRef, Placement, WhatIf, WhatIfError, check_edit
 
-DEFAULT_SIZE_M = {"vehicle": (4.6, 2.0, 1.6), "pedestrian": (0.8, 0.8, 1.8), "cyclist": (1.8, 0.7, 1.7)}
+_ADDABLE = (AgentType.VEHICLE, AgentType.PEDESTRIAN, AgentType.CYCLIST)
+"""The types an edit may add; without ``size_m`` one gets its type's :data:`~smart_marl.scenario.TYPICAL_BOX_M`."""
 FOLLOWER_REACH_M = 60.0
 """Vehicles up to this far behind a braking, stopping or stalled vehicle, in its lane (|lateral| <
 2 m, heading within 30 degrees), count as its followers."""
@@ -114,10 +115,10 @@ def _to_local(scene: Scenario, edit: Placement, points, path, i) -> np.ndarray:
 
 
 def _agent_type(name: str, path, i) -> AgentType:
-    key = str(name).lower()
-    if key not in DEFAULT_SIZE_M:
+    found = [t for t in _ADDABLE if t.name.lower() == str(name).lower()]
+    if not found:
         raise WhatIfError(path, f"type must be vehicle, pedestrian or cyclist, got {name!r}", i)
-    return AgentType[key.upper()]
+    return found[0]
 
 
 def _add_track(scene: Scenario, track_id: int, agent_type: AgentType, future: np.ndarray, size_m, history_speed_mps: float) -> Scenario:
@@ -167,17 +168,17 @@ def _new_agent(scene: Scenario, e, kind: str, horizon: int, motion_vocab, path, 
         atype, then = AgentType.PEDESTRIAN, "release"
         wp = _to_local(scene, e, [e.start, e.end], path, i)[:, :2]
         future = scripted.polyline_path(wp, float(e.speed_mps), horizon, wait_s=float(e.wait_s))
-        hist_speed, size, tokens = 0.0, DEFAULT_SIZE_M["pedestrian"], None
+        hist_speed, size, tokens = 0.0, TYPICAL_BOX_M[AgentType.PEDESTRIAN], None
     elif kind == "stalled_vehicle":
         if e.pose is None:
             raise WhatIfError(path, "stalled_vehicle needs 'agent' (an existing vehicle) or 'pose' [x, y, heading]", i)
         atype, then = AgentType.VEHICLE, "hold"
         future = _to_local(scene, e, [list(e.pose)], path, i)[:1]
-        hist_speed, size, tokens = 0.0, e.size_m or DEFAULT_SIZE_M["vehicle"], None
+        hist_speed, size, tokens = 0.0, e.size_m or TYPICAL_BOX_M[AgentType.VEHICLE], None
     else:
         atype = _agent_type(e.type, path, i)
         then = _then(e.then, path, i)
-        size = e.size_m or DEFAULT_SIZE_M[atype.name.lower()]
+        size = e.size_m or TYPICAL_BOX_M[atype]
         given = [x is not None for x in (e.trajectory, e.path, e.tokens)]
         if sum(given) != 1:
             raise WhatIfError(path, "insert needs exactly one of 'trajectory', 'path' or 'tokens'", i)

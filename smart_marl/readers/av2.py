@@ -43,7 +43,7 @@ import numpy as np
 
 from ..errors import ScenarioReadError, check_regular_file
 from ..scenario import (
-    DT_S, AgentType, LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadLineType, RoadMap, Scenario,
+    DT_S, TYPICAL_BOX_M, AgentType, LaneType, LinkType, MapFeatureType, RoadEdgeType, RoadLineType, RoadMap, Scenario,
     TrafficLights, Tracks, wrap_angle,
 )
 from ..values import as_floats, as_int, as_integers
@@ -65,16 +65,17 @@ AGENT_TYPES = {
 """AV2 object types with an agent type of their own; every other type is OTHER."""
 
 DEFAULT_SIZE_M = {
-    "vehicle": (4.5, 2.0, 1.6),
+    "vehicle": TYPICAL_BOX_M[AgentType.VEHICLE],
     "bus": (12.0, 2.6, 3.2),
-    "pedestrian": (0.7, 0.7, 1.8),
-    "cyclist": (2.0, 0.7, 1.7),
+    "pedestrian": TYPICAL_BOX_M[AgentType.PEDESTRIAN],
+    "cyclist": TYPICAL_BOX_M[AgentType.CYCLIST],
     "motorcyclist": (2.2, 0.8, 1.6),
     "riderless_bicycle": (1.8, 0.6, 1.1),
 }
-"""(length, width, height) per AV2 object type; AV2 gives no boxes. Others: :data:`OTHER_SIZE_M`."""
+"""(length, width, height) per AV2 object type; AV2 gives no boxes. The types that are agent types of their own
+take :data:`~smart_marl.scenario.TYPICAL_BOX_M`'s; others: :data:`OTHER_SIZE_M`."""
 
-OTHER_SIZE_M = (1.0, 1.0, 1.0)
+OTHER_SIZE_M = TYPICAL_BOX_M[AgentType.OTHER]
 
 ROAD_LINE_TYPES = {
     "DASHED_WHITE": RoadLineType.BROKEN_SINGLE_WHITE,

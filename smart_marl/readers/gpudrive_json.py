@@ -19,10 +19,12 @@ newer GPUDrive files, ``scenario_id`` and ``metadata``. What this reader decides
   roads' ``id`` when given, else their index.
 * **Types.** ``vehicle``/``pedestrian``/``cyclist``; anything else (``other``, ``unset``) is OTHER.
 * **Sizes.** ``length``, ``width`` (and ``height``) are one box per object (the converter takes the
-  last valid state), repeated on every frame. Without ``height``, :data:`DEFAULT_HEIGHT_M` per type.
+  last valid state), repeated on every frame. Without ``height``, its type's
+  :data:`~smart_marl.scenario.TYPICAL_BOX_M` height.
   A length or width of 0 on an object with a valid frame is missing (Nocturne files carry
   zero boxes: 23 of the 80 objects of one shared file, 14 vehicles and 9 pedestrians): the object gets
-  :data:`DEFAULT_BOX_M` of its type, and ``metadata["default_box_ids"]`` lists their track ids.
+  the typical box of its type (:data:`~smart_marl.scenario.TYPICAL_BOX_M`), and ``metadata["default_box_ids"]``
+  lists their track ids.
   Without ``z``, z = 0 (tracks and map alike).
 * **Map subtypes.** From ``map_element_id`` when present (GPUDrive's Waymax-style codes: lanes 0-3,
   road lines 5-13, road edges 14-16, i.e. the WOMD codes shifted); otherwise UNDEFINED / UNKNOWN.
@@ -56,29 +58,13 @@ import numpy as np
 
 from ..errors import ScenarioReadError
 from ..scenario import (
-    CURRENT_FRAME, DT_S, AgentType, MapFeatureType, RoadMap, Scenario, SignalState, TrafficLights, Tracks, wrap_angle,
+    CURRENT_FRAME, DT_S, TYPICAL_BOX_M, AgentType, MapFeatureType, RoadMap, Scenario, SignalState, TrafficLights, Tracks,
+    wrap_angle,
 )
 from ..values import as_int, as_integers
 from .common import choose_frame, is_json_number, json_point, load_json_object, read_errors
 
 NAME = "gpudrive_json"
-
-DEFAULT_HEIGHT_M = {
-    AgentType.VEHICLE: 1.6,
-    AgentType.PEDESTRIAN: 1.8,
-    AgentType.CYCLIST: 1.7,
-    AgentType.OTHER: 1.0,
-}
-"""Box height used when the file gives none (Nocturne files): typical WOMD heights per type."""
-
-DEFAULT_BOX_M = {
-    AgentType.VEHICLE: (4.6, 2.1),
-    AgentType.PEDESTRIAN: (0.9, 0.8),
-    AgentType.CYCLIST: (1.8, 0.8),
-    AgentType.OTHER: (1.0, 1.0),
-}
-"""(length, width) used where the file's box is empty: the medians of the shared real WOMD scenes' boxes per
-type, rounded (1,214 vehicles 4.62 x 2.06, 160 pedestrians 0.86 x 0.83, 14 cyclists 1.84 x 0.84)."""
 
 _AGENT_TYPES = {"vehicle": AgentType.VEHICLE, "pedestrian": AgentType.PEDESTRIAN, "cyclist": AgentType.CYCLIST}
 
@@ -307,7 +293,7 @@ def _read_objects(objects: list, path: str) -> dict[str, Any]:
     try:
         length = _numbers([o["length"] for o in objects])
         width = _numbers([o["width"] for o in objects])
-        height = _numbers([o.get("height", DEFAULT_HEIGHT_M[AgentType(int(t))]) for o, t in zip(objects, types)])
+        height = _numbers([o.get("height", TYPICAL_BOX_M[AgentType(int(t))][2]) for o, t in zip(objects, types)])
         if length.shape != (n,) or width.shape != (n,) or height.shape != (n,):
             raise ValueError("one number per object expected")
     except (TypeError, ValueError) as exc:
@@ -336,7 +322,7 @@ def _read_objects(objects: list, path: str) -> dict[str, Any]:
     with np.errstate(invalid="ignore"):  # invalid frames may hold anything (checked finite on valid ones above)
         heading_rad = np.where(valid, wrap_angle(heading_rad), 0.0)
     empty = ((length == 0) | (width == 0)) & valid.any(axis=1)  # negative ones are refused (Tracks)
-    default = np.array([DEFAULT_BOX_M[AgentType(int(t))] for t in types], np.float64).reshape(n, 2)
+    default = np.array([TYPICAL_BOX_M[AgentType(int(t))][:2] for t in types], np.float64).reshape(n, 2)
     length, width = np.where(empty, default[:, 0], length), np.where(empty, default[:, 1], width)
     size = np.repeat(np.stack([length, width, height], axis=-1)[:, None, :], num_frames, axis=1)
     experts = [int(i) for i, o in zip(ids, objects) if o.get("mark_as_expert")] if any(
