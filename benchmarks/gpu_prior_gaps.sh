@@ -34,7 +34,7 @@ python3 benchmarks/scene_pack.py unpack gpu_scenes_ft/train.npz.xz /tmp/train >>
 python3 benchmarks/scene_pack.py unpack gpu_scenes_ft/es.npz.xz /tmp/es >> "$W/setup.log" 2>&1
 echo "setup $(( $(date +%s) - t0 )) s" >> "$W/setup.log"
 
-init=${INIT:-smart_marl/checkpoints/embedded/smart-1m-sumo.json}  # e.g. a checkpoint with speed_change_input's weights added
+init=${INIT:-smart_marl/checkpoints/embedded/smart-1m-sumo.json}  # a variant may add an input it lacks (speed_change_input)
 for v in $VARIANTS; do
     name=${v%%:*}
     extra=$(echo "${v#*:}" | tr ',' ' ')

@@ -45,7 +45,7 @@ from tqdm import tqdm
 
 from .cpu_memory import keep_freed_memory
 from .model.batch import SmartBatch, collate_scenes
-from .model.checkpoint import (VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
+from .model.checkpoint import (CheckpointError, VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
                                save_checkpoint)
 from .model.losses import NextTokenLoss, summarise
 from .model.smart import SMART, SmartConfig, get_config
@@ -351,16 +351,43 @@ def _build_model(cfg: TrainConfig, model_cfg: SmartConfig, mv: MotionVocabulary,
                 ck.meta["vocabularies"]["road"]["content_hash"] != rv.content_hash():
             raise VocabularyMismatchError(cfg.init, "its vocabularies are not this run's (pass the checkpoint's vocabulary files "
                                                     "as motion_vocab=/road_vocab=, or train from scratch)")
-        model.load_state_dict(ck.model.state_dict())
         differ = {k: (v, model_cfg.to_dict().get(k)) for k, v in ck.model.config.to_dict().items()
                   if k != "dropout" and model_cfg.to_dict().get(k) != v}
-        if differ:  # same weight shapes, other behaviour (e.g. road_types): say so, the run's config wins
+        fresh = _load_init_weights(model, ck.model.state_dict(), cfg.init, bool(differ))
+        if differ:  # other behaviour (e.g. road_types), or an input the checkpoint lacks: say so, the run's config wins
+            added = f"; parameters it lacks start as a fresh model's: {fresh}" if fresh else ""
             warnings.warn(f"{cfg.init}: the run's model config differs from the checkpoint's in {sorted(differ)} "
-                          f"(checkpoint, run: {differ}); pass model.KEY=VALUE to keep the checkpoint's", stacklevel=3)
+                          f"(checkpoint, run: {differ}){added}; pass model.KEY=VALUE to keep the checkpoint's", stacklevel=3)
     model.to(device)
     if cfg.train_only:
         freeze_except(model, cfg.train_only)
     return model
+
+
+def _load_init_weights(model: SMART, weights: dict[str, torch.Tensor], path: str, configs_differ: bool) -> list[str]:
+    """Load an ``init`` checkpoint's ``weights`` into the run's ``model``; the modules of the model the
+    checkpoint has no weights for (an input the run's config switches on, e.g. ``speed_change_input``) keep
+    their fresh initialisation, which is allowed only where the configs differ. Weights the model has no
+    place for, or of another shape, are an error naming the checkpoint. Returns the fresh modules' names."""
+    missing, unexpected = model.load_state_dict(weights, strict=False)
+    if unexpected or (missing and not configs_differ):
+        raise CheckpointError(path, f"its weights do not fit the run's model (the model's modules it has no weights for: "
+                                    f"{_modules(missing)}; its modules the model lacks: {_modules(unexpected)}): pass the "
+                                    f"checkpoint's model.KEY=VALUE settings")
+    return _modules(missing)
+
+
+def _modules(parameters: Sequence[str]) -> list[str]:
+    return sorted({_module_of(k) for k in parameters})
+
+
+def _module_of(parameter: str) -> str:
+    """The module a parameter name belongs to, without the index of a layer in a sequence:
+    ``motion_net.speed_change.0.weight`` -> ``motion_net.speed_change``."""
+    parts = parameter.split(".")[:-1]
+    while parts and parts[-1].isdigit():
+        parts.pop()
+    return ".".join(parts) or parameter
 
 
 def _resume(cfg: TrainConfig, last: Path, model: SMART, optimizer: torch.optim.Optimizer, scheduler, mv: MotionVocabulary,

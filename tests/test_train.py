@@ -19,7 +19,7 @@ import torch
 
 from smart_marl.cli import main as cli_main
 from smart_marl.model.batch import SmartBatch, collate_scenes
-from smart_marl.model.checkpoint import load_checkpoint
+from smart_marl.model.checkpoint import CheckpointError, load_checkpoint
 from smart_marl.model.losses import NextTokenLoss
 from smart_marl.model.smart import SMART, get_config, model_parameter_count
 from smart_marl.train import (DistInfo, MixedScenes, TokenizedScenes, TrainError, build_vocabularies, evaluate, load_train_config, open_scenes,
@@ -256,6 +256,29 @@ def test_fine_tuning_warns_when_the_run_config_differs_from_the_checkpoints(samp
         warnings.simplefilter("error")  # the same config: no warning
         train(load_train_config({**base, "model_overrides": {**small, "road_types": "sumo"}, "init": init,
                                  "out_dir": str(tmp_path / "c")}))
+
+
+
+def test_fine_tuning_with_an_input_the_checkpoint_lacks(sample_data, small_vocab, tmp_path):
+    """init= a checkpoint without an input the run switches on (speed_change_input): the checkpoint's weights
+    load, the new input starts as a fresh model's (its last layer at zero: the model starts as the
+    checkpoint's) and the warning names it; the other way round (weights the run's model has no place for)
+    is an error naming the checkpoint."""
+    small = {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
+             "map_neighbours": 4, "road_neighbours": 4, "agent_neighbours": 4}
+    base = {"data": str(sample_data / "scene_0.smsc"), **small_vocab, "batch_size": 1, "num_workers": 0, "max_steps": 1,
+            "log_every": 1, "val_every": 0, "ckpt_every": 0, "tensorboard": False, "progress": False}
+    first = train(load_train_config({**base, "model_overrides": small, "out_dir": str(tmp_path / "a")}))
+    with_input = {**small, "speed_change_input": True}
+    with pytest.warns(UserWarning, match=r"in \['speed_change_input'\].*fresh model's: \['motion_net.speed_change'\]"):
+        second = train(load_train_config({**base, "model_overrides": with_input, "init": str(first.checkpoint),
+                                          "train_only": ["motion_net.speed_change"], "out_dir": str(tmp_path / "b")}))
+    before, after = load_checkpoint(first.checkpoint).model.state_dict(), load_checkpoint(second.checkpoint).model.state_dict()
+    assert set(after) - set(before) == {k for k in after if k.startswith("motion_net.speed_change.")} != set()
+    for k, v in before.items():  # all but the new input frozen: the run keeps what it loaded
+        torch.testing.assert_close(after[k], v, rtol=0, atol=0, msg=k)
+    with pytest.raises(CheckpointError, match=r"checkpoints/\w+\.json: its weights do not fit .*modules the model lacks: \['motion_net\.speed_change'\]"):
+        train(load_train_config({**base, "model_overrides": small, "init": str(second.checkpoint), "out_dir": str(tmp_path / "c")}))
 
 
 def _trend_batch() -> SmartBatch:
