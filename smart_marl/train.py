@@ -369,7 +369,10 @@ def _load_init_weights(model: SMART, weights: dict[str, torch.Tensor], path: str
     checkpoint has no weights for (an input the run's config switches on, e.g. ``speed_change_input``) keep
     their fresh initialisation, which is allowed only where the configs differ. Weights the model has no
     place for, or of another shape, are an error naming the checkpoint. Returns the fresh modules' names."""
-    missing, unexpected = model.load_state_dict(weights, strict=False)
+    try:
+        missing, unexpected = model.load_state_dict(weights, strict=False)
+    except RuntimeError as exc:  # weights of another shape
+        raise CheckpointError(path, f"its weights do not fit the run's model: {exc}") from exc
     if unexpected or (missing and not configs_differ):
         raise CheckpointError(path, f"its weights do not fit the run's model (the model's modules it has no weights for: "
                                     f"{_modules(missing)}; its modules the model lacks: {_modules(unexpected)}): pass the "
