@@ -8,6 +8,10 @@ import torch
 
 from smart_marl.model.smart import SMART
 
+TINY_TRAIN_MODEL = {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
+                    "map_neighbours": 4, "road_neighbours": 4, "agent_neighbours": 4}
+"""``model_overrides`` of a training config that make a model small enough for a test run of a few steps."""
+
 
 def with_speed_change(model: SMART, last_layer_scale: float) -> SMART:
     """``model`` with ``speed_change_input`` on: its weights, the new input's last layer at ``last_layer_scale``

@@ -12,6 +12,8 @@ from smart_marl.model.batch import collate_scenes, scene_road, scene_tensors
 from smart_marl.tokens import box_contour, compose_poses, tokenize_motion
 from smart_marl.tokens.road import RoadVocabulary, road_pieces
 
+from model_variants import TINY_TRAIN_MODEL
+
 
 @pytest.fixture(scope="module")
 def road_vocab(sample_scenes):
@@ -100,8 +102,7 @@ def test_catk_training_mode_trains_on_its_rollouts_and_resumes_exactly(sample_sc
     base = {"motion_vocab": str(tmp_path / "mv"), "road_vocab": str(tmp_path / "rv"), "batch_size": 1, "num_workers": 0,
             "max_steps": 4, "lr": 1e-3, "log_every": 1, "val_every": 0, "ckpt_every": 2, "tensorboard": False, "progress": False,
             "catk_top_k": 3, "dropout": 0.1, "road_keep_radius_m": 20.0,
-            "model_overrides": {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
-                                "map_neighbours": 4, "road_neighbours": 4, "agent_neighbours": 4}}
+            "model_overrides": TINY_TRAIN_MODEL}
     full = train(load_train_config(base, {"out_dir": str(tmp_path / "full")}), scenes=scenes)
     assert full.step == 4 and np.isfinite(full.last_train["loss"])
     forced = train(load_train_config(base, {"out_dir": str(tmp_path / "forced"), "catk_top_k": 0, "token_noise_topk": 0,

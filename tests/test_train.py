@@ -26,6 +26,7 @@ from smart_marl.train import (DistInfo, MixedScenes, TokenizedScenes, TrainError
                               train, train_step)
 from smart_marl.tokens.vocab_io import save_motion_vocabulary, save_road_vocabulary
 
+from model_variants import TINY_TRAIN_MODEL
 from test_model import random_batch, tiny_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -159,8 +160,7 @@ def test_run_killed_and_resumed_matches_an_uninterrupted_run(sample_data, small_
     base = {"data": str(sample_data / "scene_0.smsc"), **vocab, "batch_size": 1, "num_workers": 0, "max_steps": 6,
             "lr": 1e-3, "log_every": 1, "val_every": 3, "val_scenes": 1, "ckpt_every": 2, "tensorboard": False, "progress": False,
             "token_noise_topk": 3, "dropout": 0.1, "road_keep_radius_m": 20.0,
-            "model_overrides": {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
-                                "map_neighbours": 4, "road_neighbours": 4, "agent_neighbours": 4}}
+            "model_overrides": TINY_TRAIN_MODEL}
     full = train(load_train_config(base, {"out_dir": str(tmp_path / "full")}))
     assert full.step == 6
     cfg_file = tmp_path / "killed.json"
@@ -206,8 +206,7 @@ def test_a_run_records_the_mixed_in_data_and_rejects_a_bad_share(sample_data, sm
     cfg = {"data": str(sample_data / "scene_0.smsc"), "extra_data": str(sample_data / "scene_1.smsc"),
            "extra_data_share": 0.5, **vocab, "batch_size": 1, "num_workers": 0, "max_steps": 1, "log_every": 1, "val_every": 0,
            "ckpt_every": 0, "tensorboard": False, "progress": False, "out_dir": str(tmp_path / "run"),
-           "model_overrides": {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
-                               "map_neighbours": 4, "road_neighbours": 4, "agent_neighbours": 4}}
+           "model_overrides": TINY_TRAIN_MODEL}
     result = train(load_train_config(cfg))
     data = json.loads(Path(result.checkpoint).read_text())["data"]
     assert data["num_scenes"] == 2 and data["extra_scenes"] == 1 and data["extra_share"] == 0.5
@@ -240,23 +239,24 @@ def test_models_command_prints_every_named_config_with_its_parameter_count(capsy
         assert abs(r["parameters"] / r["paper_parameters"] - 1) < 0.1
 
 
+def _one_step_run(sample_data: Path, vocab: dict[str, str]) -> dict:
+    """A training config (without model or output folder) of one step on one sample scene."""
+    return {"data": str(sample_data / "scene_0.smsc"), **vocab, "batch_size": 1, "num_workers": 0, "max_steps": 1,
+            "log_every": 1, "val_every": 0, "ckpt_every": 0, "tensorboard": False, "progress": False}
+
+
 def test_fine_tuning_warns_when_the_run_config_differs_from_the_checkpoints(sample_data, small_vocab, tmp_path):
     """With init=, the run's model config wins; a field that changes behaviour but not the weights'
     shapes (road_types here) must not change silently."""
-    vocab = small_vocab
-    small = {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
-             "map_neighbours": 4, "road_neighbours": 4, "agent_neighbours": 4}
-    base = {"data": str(sample_data / "scene_0.smsc"), **vocab, "batch_size": 1, "num_workers": 0, "max_steps": 1,
-            "log_every": 1, "val_every": 0, "ckpt_every": 0, "tensorboard": False, "progress": False}
-    first = train(load_train_config({**base, "model_overrides": {**small, "road_types": "sumo"}, "out_dir": str(tmp_path / "a")}))
+    base = _one_step_run(sample_data, small_vocab)
+    first = train(load_train_config({**base, "model_overrides": {**TINY_TRAIN_MODEL, "road_types": "sumo"}, "out_dir": str(tmp_path / "a")}))
     init = str(first.checkpoint)
     with pytest.warns(UserWarning, match=r"differs from the checkpoint's in \['road_types'\]"):
-        train(load_train_config({**base, "model_overrides": small, "init": init, "out_dir": str(tmp_path / "b")}))
+        train(load_train_config({**base, "model_overrides": TINY_TRAIN_MODEL, "init": init, "out_dir": str(tmp_path / "b")}))
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the same config: no warning
-        train(load_train_config({**base, "model_overrides": {**small, "road_types": "sumo"}, "init": init,
+        train(load_train_config({**base, "model_overrides": {**TINY_TRAIN_MODEL, "road_types": "sumo"}, "init": init,
                                  "out_dir": str(tmp_path / "c")}))
-
 
 
 def test_fine_tuning_with_an_input_the_checkpoint_lacks(sample_data, small_vocab, tmp_path):
@@ -264,12 +264,9 @@ def test_fine_tuning_with_an_input_the_checkpoint_lacks(sample_data, small_vocab
     load, the new input starts as a fresh model's (its last layer at zero: the model starts as the
     checkpoint's) and the warning names it; the other way round (weights the run's model has no place for)
     is an error naming the checkpoint."""
-    small = {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
-             "map_neighbours": 4, "road_neighbours": 4, "agent_neighbours": 4}
-    base = {"data": str(sample_data / "scene_0.smsc"), **small_vocab, "batch_size": 1, "num_workers": 0, "max_steps": 1,
-            "log_every": 1, "val_every": 0, "ckpt_every": 0, "tensorboard": False, "progress": False}
-    first = train(load_train_config({**base, "model_overrides": small, "out_dir": str(tmp_path / "a")}))
-    with_input = {**small, "speed_change_input": True}
+    base = _one_step_run(sample_data, small_vocab)
+    first = train(load_train_config({**base, "model_overrides": TINY_TRAIN_MODEL, "out_dir": str(tmp_path / "a")}))
+    with_input = {**TINY_TRAIN_MODEL, "speed_change_input": True}
     with pytest.warns(UserWarning, match=r"in \['speed_change_input'\].*fresh model's: \['motion_net.speed_change'\]"):
         second = train(load_train_config({**base, "model_overrides": with_input, "init": str(first.checkpoint),
                                           "train_only": ["motion_net.speed_change"], "out_dir": str(tmp_path / "b")}))
@@ -278,7 +275,7 @@ def test_fine_tuning_with_an_input_the_checkpoint_lacks(sample_data, small_vocab
     for k, v in before.items():  # all but the new input frozen: the run keeps what it loaded
         torch.testing.assert_close(after[k], v, rtol=0, atol=0, msg=k)
     with pytest.raises(CheckpointError, match=r"checkpoints/\w+\.json: its weights do not fit .*modules the model lacks: \['motion_net\.speed_change'\]"):
-        train(load_train_config({**base, "model_overrides": small, "init": str(second.checkpoint), "out_dir": str(tmp_path / "c")}))
+        train(load_train_config({**base, "model_overrides": TINY_TRAIN_MODEL, "init": str(second.checkpoint), "out_dir": str(tmp_path / "c")}))
 
 
 def _trend_batch() -> SmartBatch:
@@ -338,9 +335,7 @@ def test_speed_trend_weights_config_is_checked():
 def test_train_only_trains_the_named_parameters_and_freezes_the_rest(sample_data, small_vocab, tmp_path):
     """train_only=["motion_heads.1"]: a step from a checkpoint moves the pedestrian head and nothing else."""
     vocab = small_vocab
-    small = {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
-             "map_neighbours": 4, "road_neighbours": 4, "agent_neighbours": 4}
-    base = {"data": str(sample_data), **vocab, "model_overrides": small, "batch_size": 4, "num_workers": 0,
+    base = {"data": str(sample_data), **vocab, "model_overrides": TINY_TRAIN_MODEL, "batch_size": 4, "num_workers": 0,
             "max_steps": 2, "lr": 1e-2, "log_every": 1, "val_every": 0, "ckpt_every": 0, "tensorboard": False, "progress": False}
     first = train(load_train_config({**base, "out_dir": str(tmp_path / "a")}))
     timed = train(load_train_config({**base, "out_dir": str(tmp_path / "timed"), "max_steps": 50, "time_limit_s": 1e-6}))

@@ -15,6 +15,8 @@ import torch
 from smart_marl.model.checkpoint import CheckpointError, checkpoint_paths, load_checkpoint, load_train_state
 from smart_marl.train import NonFiniteLossError, load_train_config, train
 
+from model_variants import TINY_TRAIN_MODEL
+
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -23,8 +25,7 @@ CONFIG = {"data": str(ROOT / "smart_marl" / "samples" / "sumo_samples.smsc"), "m
           "road_vocab": f"{EMBEDDED}.road_vocab", "batch_size": 1, "num_workers": 0, "max_steps": 2, "lr": 1e-3,
           "log_every": 1, "val_every": 0, "ckpt_every": 1, "tensorboard": False, "progress": False, "token_noise_topk": 0,
           "road_keep_radius_m": 20.0, "model": {"name": "smart-1m", "road_types": "sumo"},
-          "model_overrides": {"hidden_dim": 16, "num_heads": 2, "head_dim": 8, "num_agent_blocks": 1, "num_freq_bands": 4,
-                              "map_neighbours": 4, "road_neighbours": 4, "agent_neighbours": 4}}
+          "model_overrides": TINY_TRAIN_MODEL}
 
 
 def _rows(run: Path) -> list[dict]:
