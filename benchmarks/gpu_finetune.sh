@@ -21,11 +21,12 @@ RUN=${RUN:-/tmp/gen}
 DEV=${DEV:-cuda}
 mkdir -p "$OUT" "$RUN"
 left() { local t=$((DEADLINE - SECONDS)); echo $((t > 1 ? t : 1)); }  # (timeout 0 would mean no limit)
-python3 -m pip install -q --no-deps --target /tmp/pk gpu_wheels/*.whl > "$OUT/setup.log" 2>&1
+. benchmarks/gpu_common.sh
+gpu_packages gpu_wheels "$OUT/setup.log"
 export PYTHONPATH=/tmp/pk:$PWD PYTHONUNBUFFERED=1
 { nvidia-smi --query-gpu=name,memory.total --format=csv,noheader; nproc; } >> "$OUT/setup.log" 2>&1
-python3 benchmarks/scene_pack.py unpack gpu_scenes_ft/train.npz.xz /tmp/train >> "$OUT/setup.log" 2>&1
-python3 benchmarks/scene_pack.py unpack gpu_scenes_ft/heldout.npz.xz /tmp/heldout >> "$OUT/setup.log" 2>&1
+gpu_unpack gpu_scenes_ft/train.npz.xz /tmp/train "$OUT/setup.log"
+gpu_unpack gpu_scenes_ft/heldout.npz.xz /tmp/heldout "$OUT/setup.log"
 read -r -a EXTRA_OVER <<< "${EXTRA:-}"
 if [ -n "${CORE_BENCH:-}" ]; then
   for flag in "" --shield; do
@@ -42,7 +43,7 @@ timeout "$(left)" python3 benchmarks/finetune_generalisation.py "${COMMON[@]}" -
 echo "train rc=$? at ${SECONDS}s" >> "$OUT/train.err"
 tar czf "$OUT/policy.tgz" -C "$RUN" "train_$N/checkpoints/policy_last.json" "train_$N/checkpoints/policy_last.safetensors" \
     "train_$N/run.json" "train_$N/config.json" 2>> "$OUT/train.err"
-python3 benchmarks/scene_pack.py unpack gpu_scenes_ft/real.npz.xz /tmp/real >> "$OUT/setup.log" 2>&1
+gpu_unpack gpu_scenes_ft/real.npz.xz /tmp/real "$OUT/setup.log"
 # the fine-tuned policy and the reference on both held-out sets first (the real one first: it is quicker), then the expert
 # and the full softmax
 EVAL=(device="$DEV" num_envs="${EVAL_ENVS:-800}" frames_per_batch=8192 "${EXTRA_OVER[@]}")

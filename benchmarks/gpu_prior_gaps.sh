@@ -8,7 +8,7 @@
 #   gpu_scenes_ft/train.npz.xz  2,000 generated scenes (data/rl_train, seed 7001), benchmarks/scene_pack.py
 #   gpu_scenes_ft/es.npz.xz     216 generated scenes with emergency stops (seed 2033, 0.6 per vehicle-minute)
 #   gpu_real7                   the 7 scoreable shared real scenes (never trained on), copied (not linked) from ../shared
-# Knobs: VARIANTS, TRAIN_S (time limit of each run), STEPS (its schedule), BATCH, LR, EVAL_ROLLOUTS, EVAL_S, DEVICE,
+# Knobs: VARIANTS, TRAIN_DATA, TRAIN_S (time limit of each run), STEPS (its schedule), BATCH, LR, EVAL_ROLLOUTS, EVAL_S, DEVICE,
 # INIT (the checkpoint every variant starts from; default the embedded prior). A variant's key=value pairs come
 # last on the train command line, so they override the fixed ones (e.g. catk_top_k=0 for teacher forcing).
 set -u
@@ -21,17 +21,19 @@ EVAL_ROLLOUTS=${EVAL_ROLLOUTS:-32}
 EVAL_S=${EVAL_S:-200}
 REAL=${REAL:-gpu_real7}
 DEVICE=${DEVICE:-cuda}
+TRAIN_DATA=${TRAIN_DATA:-"data=/tmp/train extra_data=/tmp/es extra_data_share=0.15"}  # or a token cache: data=DIR
 VARIANTS=${VARIANTS:-"gaps_brake03:catk_avoid=true,brake_leaders=0.3 gaps:catk_avoid=true gaps_brake06:catk_avoid=true,brake_leaders=0.6 catk:catk_avoid=false"}
 W=${WORK:-/tmp/work}  # logs, runs, checkpoints; $OUT gets a tar of the logs and one of each checkpoint (at most 8 files come back)
 rm -rf "$W" && mkdir -p "$OUT" "$W/ckpt"
 t0=$(date +%s)
 WHEELS=${WHEELS-gpu_wheels}  # empty: the machine has the packages (a dry run on a CPU machine)
-[ -n "$WHEELS" ] && python3 -m pip install -q --no-deps --target /tmp/pk "$WHEELS"/*.whl > "$W/setup.log" 2>&1
+. benchmarks/gpu_common.sh
+[ -n "$WHEELS" ] && gpu_packages "$WHEELS" "$W/setup.log"
 export PYTHONPATH=/tmp/pk:$PWD
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader > "$W/gpu.txt" 2>&1
 nproc >> "$W/gpu.txt"
-python3 benchmarks/scene_pack.py unpack gpu_scenes_ft/train.npz.xz /tmp/train >> "$W/setup.log" 2>&1
-python3 benchmarks/scene_pack.py unpack gpu_scenes_ft/es.npz.xz /tmp/es >> "$W/setup.log" 2>&1
+gpu_unpack gpu_scenes_ft/train.npz.xz /tmp/train "$W/setup.log"
+gpu_unpack gpu_scenes_ft/es.npz.xz /tmp/es "$W/setup.log"
 echo "setup $(( $(date +%s) - t0 )) s" >> "$W/setup.log"
 
 init=${INIT:-smart_marl/checkpoints/embedded/smart-1m-sumo.json}  # a variant may add an input it lacks (speed_change_input)
@@ -40,7 +42,7 @@ for v in $VARIANTS; do
     extra=$(echo "${v#*:}" | tr ',' ' ')
     # shellcheck disable=SC2086
     OMP_NUM_THREADS=3 timeout $((TRAIN_S + 120)) python3 -m smart_marl.cli train --config smart-1m model.road_types=sumo \
-        data=/tmp/train extra_data=/tmp/es extra_data_share=0.15 road_keep_radius_m=30 token_noise_topk=0 label_smoothing=0.1 \
+        $TRAIN_DATA road_keep_radius_m=30 token_noise_topk=0 label_smoothing=0.1 \
         batch_size="$BATCH" lr="$LR" warmup_steps=10 max_steps="$STEPS" time_limit_s="$TRAIN_S" num_workers=1 val_every=0 \
         ckpt_every=25 log_every=5 'speed_trend_weights=[3.5,0.9,0.4]' catk_top_k=32 $extra progress=false tensorboard=false \
         --init "$init" --device "$DEVICE" --out "$W/runs/$name" > "$W/train_$name.log" 2>&1 &

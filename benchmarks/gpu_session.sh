@@ -11,7 +11,8 @@ set -u
 OUT=${OUT:-runs/gpu}
 SCENES=${SCENES:-gpu_scenes}
 mkdir -p "$OUT"
-python3 -m pip install -q --no-deps --target /tmp/pk gpu_wheels/*.whl > "$OUT/pip.log" 2>&1
+. benchmarks/gpu_common.sh
+gpu_packages gpu_wheels "$OUT/pip.log"
 export PYTHONPATH=/tmp/pk:$PWD
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader > "$OUT/gpu.txt" 2>&1
 timeout "${T_TESTS:-90}" python3 -m pytest -q -p no:cacheprovider tests/test_env_device.py > "$OUT/test_env_device.txt" 2>&1
