@@ -5,6 +5,8 @@
 # trains the prior teacher-forced on a token cache (no tokenizing on the machine), with and without the speed-change
 # input, and screens both next to the embedded prior on the 7 scoreable real scenes. They share the GPU and its 16
 # cores; the wheels and scene sets are installed and unpacked once first (gpu_common.sh).
+# Measured cost of sharing (2026-11-27, H200): the policy run's iterations took 50-56 s while the prior runs trained,
+# 5-6 s after (alone: ~6 s); the prior runs made 25-31 scenes/s each. Give an environment run the machine to itself.
 # Carry: ["gpu_wheels", "gpu_scenes_ft", "gpu_real7", "gpu_tok"] (gpu_tok/tok_stop_plain: the first 896 scenes of
 # data/tok_stop_plain, token_cache.json cut to its first 112 shards).
 # DRY=1 shrinks everything for a run on a CPU machine (with PATH holding the project's python3).

@@ -113,3 +113,29 @@ def test_scene_pack_round_trips_the_sample_scenes_within_its_grids(tmp_path):
                 np.testing.assert_allclose(b[name], a[name], rtol=0, atol=step * 0.51 + 1e-4, err_msg=name)
             else:
                 np.testing.assert_array_equal(b[name], a[name], err_msg=name)
+
+
+def test_gpu_scripts_unpack_a_scene_set_once_and_leave_no_marker_on_failure(tmp_path):
+    """benchmarks/gpu_common.sh (sourced by the GPU scripts, two of which may share a machine): gpu_unpack
+    makes the scene cache and its marker; called again it leaves the folder alone; an unpack that fails
+    (a missing pack) leaves no marker, so the next call tries again."""
+    import os
+    import subprocess
+    import sys
+
+    pack = _load("scene_pack")
+    pack.pack(["embedded"], str(tmp_path / "s.npz.xz"), count=2)
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+
+    def unpack(packed: str, out: Path) -> None:
+        script = f'. benchmarks/gpu_common.sh && gpu_unpack "{packed}" "{out}" "{tmp_path / "log"}"'
+        subprocess.run(["bash", "-c", script], cwd=BENCHMARKS.parent, env=env, check=False, timeout=120)
+
+    cache = tmp_path / "cache"
+    unpack(str(tmp_path / "s.npz.xz"), cache)
+    assert (tmp_path / "cache.done").exists() and (cache / "manifest.json").exists()
+    (cache / "manifest.json").unlink()  # a second unpack would write it again
+    unpack(str(tmp_path / "s.npz.xz"), cache)
+    assert not (cache / "manifest.json").exists()
+    unpack(str(tmp_path / "missing.npz.xz"), tmp_path / "other")
+    assert not (tmp_path / "other.done").exists()
