@@ -105,8 +105,8 @@ def test_catk_training_mode_trains_on_its_rollouts_and_resumes_exactly(sample_sc
             "model_overrides": TINY_TRAIN_MODEL}
     full = train(load_train_config(base, {"out_dir": str(tmp_path / "full")}), scenes=scenes)
     assert full.step == 4 and np.isfinite(full.last_train["loss"])
-    forced = train(load_train_config(base, {"out_dir": str(tmp_path / "forced"), "catk_top_k": 0, "token_noise_topk": 0,
-                                            "max_steps": 1}), scenes=scenes)
+    train(load_train_config(base, {"out_dir": str(tmp_path / "forced"), "catk_top_k": 0, "token_noise_topk": 0,
+                                   "max_steps": 1}), scenes=scenes)
     first = lambda run: (tmp_path / run / "train.csv").read_text().splitlines()[1].split(",")[1]  # noqa: E731  step 1's loss
     assert first("full") != first("forced")  # same weights at step 1: only the token sequences differ
     train(load_train_config(base, {"out_dir": str(tmp_path / "kept"), "catk_avoid": True, "brake_leaders": 1.0,
