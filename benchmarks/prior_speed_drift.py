@@ -39,6 +39,9 @@ traffic does, which the rollout should follow, not exceed).
     .venv/bin/python benchmarks/prior_speed_drift.py [--prior PATH] [--set real=GLOB ...] [--rollouts 8] [--top-k 5]
         [--drop-parked]
 
+``--log-steps S``: every agent follows its log for the first S token steps (S x 0.5 s), then the prior drives:
+do vehicles whose log has started to slow by then go on slowing (what the prior misses is the start), or not?
+
 ``--drop-parked`` leaves every scene's parked vehicles out (logged on every frame, moving less than 0.5 m):
 the difference to a run without it is how much the parked cars slow the prior's moving traffic.
 
@@ -60,7 +63,7 @@ from smart_marl.model.batch import collate_scenes, scene_road, scene_tensors
 from smart_marl.model.checkpoint import load_checkpoint
 from smart_marl.model.losses import TREND_BAND  # "keeps": within this share of the speed now (the training weights' band)
 from smart_marl.readers import read_scenarios
-from smart_marl.rollout import DEFAULT_TOP_K, rollout
+from smart_marl.rollout import DEFAULT_TOP_K, RolloutState, collect_result
 from smart_marl.scenario import AgentType
 from smart_marl.tokens.motion import MOTION_TYPES, tokenize_motion
 
@@ -120,11 +123,29 @@ class SpeedSums(NamedTuple):
 
 
 def rollout_speeds(ck, scene, num_rollouts: int, top_k: int, temperature: float, seed: int,
-                   avoid_collisions: bool = True) -> dict:
-    """Per motion type, the :class:`SpeedSums` of the prior's rollouts of ``scene`` against its log."""
-    res = rollout(ck, [scene], num_rollouts=num_rollouts, num_steps=NUM_FRAMES // 5, top_k=top_k,
-                  temperature=temperature, seed=seed, avoid_collisions=avoid_collisions)
-    return speed_sums(res, scene)
+                   avoid_collisions: bool = True, log_steps: int = 0) -> dict:
+    """Per motion type, the :class:`SpeedSums` of the prior's rollouts of ``scene`` against its log (the
+    :func:`~smart_marl.rollout.rollout` loop); the first ``log_steps`` token steps of every agent follow its log
+    (:func:`logged_tokens`), the rest are the prior's."""
+    state = RolloutState.start(ck, [scene], num_rollouts=num_rollouts, seed=seed, top_k=top_k, temperature=temperature,
+                               avoid_collisions=avoid_collisions)
+    logged = logged_tokens(state, scene, ck.motion_vocab, log_steps) if log_steps else None
+    forced = (lambda st, k, last: logged[k] if k < len(logged) else None) if log_steps else None  # noqa: E731
+    return speed_sums(collect_result(state, state.run(NUM_FRAMES // 5, before_step=forced)), scene)
+
+
+def logged_tokens(state: RolloutState, scene, vocab, steps: int) -> torch.Tensor:
+    """[steps, G, N] the logged token (rolling matching over the whole log, as training's targets) of each of
+    ``state``'s slots for the first ``steps`` token steps after the current frame, ``-1`` (drawn) where the
+    log has none: forced, they replay the tokenized log."""
+    mt = tokenize_motion(scene, vocab)
+    i0 = int(np.flatnonzero(mt.boundaries == scene.current_frame)[0])
+    track = state.track_index.cpu().numpy()
+    has = track >= 0
+    out = np.full((steps, *track.shape), -1, np.int64)
+    for k in range(min(steps, mt.num_steps - i0)):
+        out[k][has] = np.where(mt.valid[track[has], i0 + k], mt.ids[track[has], i0 + k], -1)
+    return torch.from_numpy(out)
 
 
 def _half_second_speeds(tr, a: int, cf: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -341,6 +362,8 @@ def main(argv=None) -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--drop-parked", action="store_true",
                     help="leave the parked vehicles (logged on every frame, moving less than 0.5 m) out of every scene")
+    ap.add_argument("--log-steps", type=int, default=0,
+                    help="the first this many token steps (0.5 s each) of every agent follow its log, then the prior drives")
     collision_avoidance_flag(ap)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -357,7 +380,7 @@ def main(argv=None) -> None:
         dvs, first = [], np.zeros((len(PAST_TRENDS), 6))
         for scene in scenes:
             for t, sums in rollout_speeds(ck, scene, args.rollouts, args.top_k, args.temperature, args.seed,
-                                          args.avoid_collisions).items():
+                                          args.avoid_collisions, args.log_steps).items():
                 roll[t] = roll[t].plus(sums)
             forced = teacher_forced_bias(ck, scene, args.top_k)
             for t, v in forced.moving.items():
@@ -367,7 +390,7 @@ def main(argv=None) -> None:
             first += forced.first_by_past
         common = {"set": set_name, "scenes": len(scenes), "rollouts": args.rollouts, "top_k": args.top_k,
                   "temperature": args.temperature, "prior": args.prior, "avoid_collisions": args.avoid_collisions,
-                  "drop_parked": args.drop_parked}
+                  "drop_parked": args.drop_parked, "log_steps": args.log_steps}
         for t in MOTION_TYPES:
             s = roll[t]
             r, lg, n, m, by_trend = s.sim, s.log, s.count, s.agents, s.by_trend

@@ -6,6 +6,7 @@ import importlib.util
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from smart_marl.scenario import AgentType
 
@@ -139,3 +140,29 @@ def test_gpu_scripts_unpack_a_scene_set_once_and_leave_no_marker_on_failure(tmp_
     assert not (cache / "manifest.json").exists()
     unpack(str(tmp_path / "missing.npz.xz"), tmp_path / "other")
     assert not (tmp_path / "other.done").exists()
+
+
+def test_log_steps_replays_the_tokenized_log_before_the_prior_drives(sample_scenes):
+    """prior_speed_drift --log-steps: forced for all 16 steps, every rollout is the tokenized log (the same in
+    each rollout, and its speeds within tokenization error of the logged ones); forced for 0, the prior's own draws."""
+    from smart_marl.model.checkpoint import load_checkpoint
+
+    drift = _load("prior_speed_drift")
+    ck = load_checkpoint("embedded")
+    scene = sample_scenes[2]  # 14 moving vehicles
+    full = drift.rollout_speeds(ck, scene, 2, 6, 1.0, 0, log_steps=16)[AgentType.VEHICLE]
+    free = drift.rollout_speeds(ck, scene, 2, 6, 1.0, 0, log_steps=0)[AgentType.VEHICLE]
+    # speeds summed over each token's 0.5 s after the first (the first frame's speed mixes the log's frame with the rollout's)
+    window = lambda x: x[5:].reshape(-1, 5).sum(1)  # noqa: E731
+    replayed, drawn = (np.abs(window(r.sim) - window(r.log)).sum() for r in (full, free))
+    assert replayed < 0.02 * window(full.log).sum()  # the tokenized log: within its tokens' error (0.8% here)
+    assert drawn > 10 * replayed  # the prior does not replay the log by itself
+    from smart_marl.rollout import RolloutState
+
+    state = RolloutState.start(ck, [scene], num_rollouts=2, seed=0)
+    tokens = drift.logged_tokens(state, scene, ck.motion_vocab, 4)
+    outs = state.run(4, before_step=lambda st, k, last: tokens[k])
+    forced = tokens >= 0
+    assert forced.any()
+    for k, out in enumerate(outs):
+        assert torch.equal(out.tokens[forced[k]], tokens[k][forced[k]])  # the slots with a log take its token
