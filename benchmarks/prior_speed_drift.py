@@ -124,21 +124,27 @@ class SpeedSums(NamedTuple):
 
 def rollout_speeds(ck, scene, num_rollouts: int, top_k: int, temperature: float, seed: int,
                    avoid_collisions: bool = True, log_steps: int = 0) -> dict:
-    """Per motion type, the :class:`SpeedSums` of the prior's rollouts of ``scene`` against its log (the
-    :func:`~smart_marl.rollout.rollout` loop); the first ``log_steps`` token steps of every agent follow its log
-    (:func:`logged_tokens`), the rest are the prior's."""
-    state = RolloutState.start(ck, [scene], num_rollouts=num_rollouts, seed=seed, top_k=top_k, temperature=temperature,
-                               avoid_collisions=avoid_collisions)
-    logged = logged_tokens(state, scene, ck.motion_vocab, log_steps) if log_steps else None
+    """Per motion type, the :class:`SpeedSums` of the prior's rollouts of ``scene`` against its log, the first
+    ``log_steps`` token steps of every agent its log's (:func:`rollout_from_log`)."""
+    return speed_sums(rollout_from_log(ck, scene, log_steps, num_rollouts=num_rollouts, seed=seed, top_k=top_k,
+                                       temperature=temperature, avoid_collisions=avoid_collisions), scene)
+
+
+def rollout_from_log(model_or_checkpoint, scene, log_steps: int = 0, num_steps: int = NUM_FRAMES // 5, **kwargs):
+    """:func:`~smart_marl.rollout.rollout` of one scene (its loop: ``kwargs`` go to
+    :meth:`RolloutState.start <smart_marl.rollout.RolloutState.start>`) in which every agent follows its tokenized
+    log for the first ``log_steps`` token steps (:func:`logged_tokens`) and the prior drives the rest."""
+    state = RolloutState.start(model_or_checkpoint, [scene], **kwargs)
+    logged = logged_tokens(state, scene, log_steps) if log_steps else None
     forced = (lambda st, k, last: logged[k] if k < len(logged) else None) if log_steps else None  # noqa: E731
-    return speed_sums(collect_result(state, state.run(NUM_FRAMES // 5, before_step=forced)), scene)
+    return collect_result(state, state.run(num_steps, before_step=forced))
 
 
-def logged_tokens(state: RolloutState, scene, vocab, steps: int) -> torch.Tensor:
-    """[steps, G, N] the logged token (rolling matching over the whole log, as training's targets) of each of
-    ``state``'s slots for the first ``steps`` token steps after the current frame, ``-1`` (drawn) where the
-    log has none: forced, they replay the tokenized log."""
-    mt = tokenize_motion(scene, vocab)
+def logged_tokens(state: RolloutState, scene, steps: int) -> torch.Tensor:
+    """[steps, G, N] the logged token (rolling matching over the whole log with ``state``'s vocabulary, as
+    training's targets) of each of ``state``'s slots for the first ``steps`` token steps after the current frame,
+    ``-1`` (drawn) where the log has none: forced, they replay the tokenized log."""
+    mt = tokenize_motion(scene, state.vocab)
     i0 = int(np.flatnonzero(mt.boundaries == scene.current_frame)[0])
     track = state.track_index.cpu().numpy()
     has = track >= 0

@@ -49,7 +49,7 @@ from smart_marl.braking import LANE_HALF_M, SAME_DIRECTION_RAD  # noqa: E402
 from smart_marl.model.checkpoint import load_prior  # noqa: E402
 from smart_marl.model.losses import TREND_BAND  # noqa: E402
 from smart_marl.road_map import MapFeatureType  # noqa: E402
-from smart_marl.rollout import DEFAULT_TOP_K, rollout  # noqa: E402
+from smart_marl.rollout import DEFAULT_TOP_K  # noqa: E402
 from smart_marl.scenario import AgentType, SignalState, wrap_angle  # noqa: E402
 
 CAUSES = ("red_light", "red_light_later", "stop_sign", "queue", "crossing", "turn", "none")
@@ -205,6 +205,8 @@ def main(argv=None) -> None:
     ap.add_argument("--lights", default="current", choices=("current", "log"),
                     help="the light states the prior sees: the current frame's, held, or the log's at every step")
     ap.add_argument("--max-scenes", type=int, default=0, help="the first N scenes of each set (0: all)")
+    ap.add_argument("--log-steps", type=int, default=0,
+                    help="the first this many token steps (0.5 s each) of every agent follow its log, then the prior drives")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     model, _ = load_prior(args.prior)
@@ -213,11 +215,12 @@ def main(argv=None) -> None:
         scenes = scenes[: args.max_scenes] if args.max_scenes else scenes
         records = []
         for scene in scenes:
-            res = rollout(model, [scene], num_rollouts=args.rollouts, num_steps=FRAMES // 5, top_k=args.top_k, seed=args.seed,
-                          avoid_collisions=args.sampling == "default", lights=args.lights)
+            res = drift.rollout_from_log(model, scene, args.log_steps, num_steps=FRAMES // 5, num_rollouts=args.rollouts,
+                                         top_k=args.top_k, seed=args.seed, avoid_collisions=args.sampling == "default",
+                                         lights=args.lights)
             records += scene_records(res, scene)
         common = {"benchmark": "slowing_causes", "set": name, "scenes": len(scenes), "prior": args.prior, "sampling": args.sampling,
-                  "seed": args.seed, "rollouts": args.rollouts, "lights": args.lights}
+                  "seed": args.seed, "rollouts": args.rollouts, "lights": args.lights, "log_steps": args.log_steps}
         for row in summarise(records, common):
             print(json.dumps(row), flush=True)
 

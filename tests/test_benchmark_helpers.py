@@ -160,7 +160,7 @@ def test_log_steps_replays_the_tokenized_log_before_the_prior_drives(sample_scen
     from smart_marl.rollout import RolloutState
 
     state = RolloutState.start(ck, [scene], num_rollouts=2, seed=0)
-    tokens = drift.logged_tokens(state, scene, ck.motion_vocab, 4)
+    tokens = drift.logged_tokens(state, scene, 4)
     outs = state.run(4, before_step=lambda st, k, last: tokens[k])
     forced = tokens >= 0
     assert forced.any()
