@@ -166,3 +166,22 @@ def test_log_steps_replays_the_tokenized_log_before_the_prior_drives(sample_scen
     assert forced.any()
     for k, out in enumerate(outs):
         assert torch.equal(out.tokens[forced[k]], tokens[k][forced[k]])  # the slots with a log take its token
+
+
+def test_map_view_measures_the_nearest_pieces_the_model_takes(sample_scenes):
+    """benchmarks/map_view.py: on a straight road of pieces every 2 m along a moving vehicle's heading, taking its 8
+    nearest within 30 m it sees 7 m around it and 7 m ahead; taking 100, the radius binds (29 m, the last piece)."""
+    view = _load("map_view")
+    scene = sample_scenes[0]
+    tr, cf = scene.tracks, scene.current_frame
+    moving = view.vehicle_views(scene, np.zeros((0, 3)), 8, 30.0)
+    assert len(moving) >= 1 and (moving == 0).all()  # no road: nothing within, nothing seen
+    i = int(np.flatnonzero((tr.types == int(AgentType.VEHICLE)) & tr.valid[:, cf] & tr.valid[:, cf - 1]
+                           & (np.linalg.norm(tr.position[:, cf, :2] - tr.position[:, cf - 1, :2], axis=-1) > 0.5))[0])
+    h = tr.heading[i, cf]
+    along = np.arange(-59, 60, 2.0)  # pieces at +-1, +-3, ... (none on the 30 m boundary)
+    road = np.stack([tr.position[i, cf, 0] + along * np.cos(h), tr.position[i, cf, 1] + along * np.sin(h), np.full_like(along, h)], 1)
+    row = view.vehicle_views(scene, road, 8, 30.0)[0]  # the first moving vehicle is i
+    assert row[0] == 30 and abs(row[1] - 7.0) < 1e-6 and abs(row[2] - 7.0) < 1e-6  # 30 within 30 m; the 8 nearest reach 7 m
+    wide = view.vehicle_views(scene, road, 100, 30.0)[0]
+    assert abs(wide[1] - 29.0) < 1e-6 and abs(wide[2] - 29.0) < 1e-6  # every piece within 30 m taken
