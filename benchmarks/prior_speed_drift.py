@@ -140,6 +140,12 @@ def rollout_from_log(model_or_checkpoint, scene, log_steps: int = 0, num_steps: 
     return collect_result(state, state.run(num_steps, before_step=forced))
 
 
+def log_steps_flag(ap: argparse.ArgumentParser) -> None:
+    """``--log-steps S`` (:func:`rollout_from_log`), for the benchmarks that roll scenes out."""
+    ap.add_argument("--log-steps", type=int, default=0,
+                    help="the first this many token steps (0.5 s each) of every agent follow its log, then the prior drives")
+
+
 def logged_tokens(state: RolloutState, scene, steps: int) -> torch.Tensor:
     """[steps, G, N] the logged token (rolling matching over the whole log with ``state``'s vocabulary, as
     training's targets) of each of ``state``'s slots for the first ``steps`` token steps after the current frame,
@@ -368,8 +374,7 @@ def main(argv=None) -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--drop-parked", action="store_true",
                     help="leave the parked vehicles (logged on every frame, moving less than 0.5 m) out of every scene")
-    ap.add_argument("--log-steps", type=int, default=0,
-                    help="the first this many token steps (0.5 s each) of every agent follow its log, then the prior drives")
+    log_steps_flag(ap)
     collision_avoidance_flag(ap)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)

@@ -205,8 +205,7 @@ def main(argv=None) -> None:
     ap.add_argument("--lights", default="current", choices=("current", "log"),
                     help="the light states the prior sees: the current frame's, held, or the log's at every step")
     ap.add_argument("--max-scenes", type=int, default=0, help="the first N scenes of each set (0: all)")
-    ap.add_argument("--log-steps", type=int, default=0,
-                    help="the first this many token steps (0.5 s each) of every agent follow its log, then the prior drives")
+    drift.log_steps_flag(ap)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     model, _ = load_prior(args.prior)
