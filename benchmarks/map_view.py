@@ -21,34 +21,39 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import prior_speed_drift as drift  # noqa: E402  (benchmarks/ is not a package)
 
 from smart_marl.model.batch import scene_road  # noqa: E402
 from smart_marl.model.checkpoint import load_checkpoint  # noqa: E402
+from smart_marl.model.layers import knn_within  # noqa: E402
 from smart_marl.scenario import AgentType  # noqa: E402
 
-MOVING_MPS = 5.0
-
-
 def vehicle_views(scene, road_pose: np.ndarray, neighbours: int, radius_m: float) -> np.ndarray:
-    """[M, 3] for each vehicle of ``scene`` moving faster than 5 m/s at the current frame: the road pieces (poses
-    ``road_pose`` [R, 3]) within ``radius_m``, the distance of the farthest of the ``neighbours`` nearest of them, and
-    how far ahead along its heading the farthest of those lies (0 where it takes none)."""
+    """[M, 3] for each vehicle of ``scene`` moving at the current frame (``prior_speed_drift.MOVING_MPS``): the road
+    pieces (poses ``road_pose`` [R, 3]) within ``radius_m``, the distance of the farthest piece the model's own
+    neighbour search takes (:func:`~smart_marl.model.layers.knn_within`, the ``neighbours`` nearest within the radius),
+    and how far ahead along the vehicle's heading the farthest of those lies (0 where it takes none)."""
     tr, cf = scene.tracks, scene.current_frame
     v = np.linalg.norm(tr.position[:, cf, :2] - tr.position[:, cf - 1, :2], axis=-1) / 0.1
-    moving = (tr.types == int(AgentType.VEHICLE)) & tr.valid[:, cf] & tr.valid[:, cf - 1] & (v > MOVING_MPS)
-    rows = []
-    for i in np.flatnonzero(moving):
-        rel = road_pose[:, :2] - tr.position[i, cf, :2]
-        d = np.linalg.norm(rel, axis=-1)
-        taken = np.argsort(d, kind="stable")[:neighbours]
-        taken = taken[d[taken] < radius_m]
-        h = tr.heading[i, cf]
-        ahead = rel[taken] @ np.array([np.cos(h), np.sin(h)])
-        rows.append([(d < radius_m).sum(), d[taken].max() if len(taken) else 0.0, max(ahead.max(), 0.0) if len(taken) else 0.0])
-    return np.array(rows, float).reshape(-1, 3)
+    moving = np.flatnonzero((tr.types == int(AgentType.VEHICLE)) & tr.valid[:, cf] & tr.valid[:, cf - 1]
+                            & (v > drift.MOVING_MPS[AgentType.VEHICLE]))
+    if not len(moving) or not len(road_pose):
+        return np.zeros((len(moving), 3))
+    xy = tr.position[moving, cf, :2]
+    rel = road_pose[None, :, :2] - xy[:, None]  # [M, R, 2]
+    d = np.linalg.norm(rel, axis=-1)
+    index, mask = knn_within(torch.from_numpy(xy)[None].float(), torch.from_numpy(road_pose[:, :2])[None].float(), radius_m,
+                             neighbours, torch.ones(1, len(moving), dtype=torch.bool), torch.ones(1, len(road_pose), dtype=torch.bool))
+    index, mask = index[0].numpy(), mask[0].numpy()  # [M, K]
+    heading = tr.heading[moving, cf]
+    ahead = np.einsum("mrk,mk->mr", rel, np.stack([np.cos(heading), np.sin(heading)], -1))  # [M, R]
+    rows = np.arange(len(moving))[:, None]
+    seen = np.where(mask, d[rows, index], 0.0).max(1)
+    seen_ahead = np.where(mask, ahead[rows, index], 0.0).max(1).clip(min=0.0)
+    return np.stack([(d < radius_m).sum(1), seen, seen_ahead], 1).astype(float)
 
 
 def main(argv=None) -> None:
