@@ -88,6 +88,12 @@ def _speeds_from_positions(xy: np.ndarray, start_xy: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.diff(np.concatenate([start_xy[..., None, :], xy], -2), axis=-2), axis=-1) / 0.1
 
 
+def rollout_xy(res, scene, agents) -> np.ndarray:
+    """[R, A', T, 2] the rollouts' positions of tracks ``agents`` in the scene's frame (the frame of its tracks:
+    a :class:`~smart_marl.rollout.RolloutResult` is in the source frame), float64."""
+    return scene.frame.from_source(res.trajectory[:, agents, :, :2].astype(np.float64))
+
+
 PAST_TRENDS = ("accelerating", "steady", "decelerating")
 """Groups by what an agent did before the current frame (its speed over the last 0.5 s against the 0.5 s before:
 more than 10% up, within 10%, more than 10% down): information the model has, unlike the log's trend after it."""
@@ -186,7 +192,7 @@ def speed_sums(res, scene) -> dict:
             continue
         ok = tr.valid[:a][moving][:, frames] & tr.valid[:a][moving][:, frames - 1]  # [M, T] logged at t and t - 1
         log_speed = _speeds_from_positions(tr.position[:a][moving][:, frames, :2], tr.position[:a][moving][:, cf, :2])
-        sim = _speeds_from_positions(res.trajectory[:, moving, :, :2], np.broadcast_to(tr.position[:a][moving][:, cf, :2],
+        sim = _speeds_from_positions(rollout_xy(res, scene, moving), np.broadcast_to(tr.position[:a][moving][:, cf, :2],
                                                                                       (num_rollouts, int(moving.sum()), 2)))
         sim_mean = sim.mean(0)  # [M, T] over the rollouts
         late = ok & (np.arange(NUM_FRAMES) >= NUM_FRAMES - LATE_FRAMES)

@@ -43,7 +43,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import prior_speed_drift as drift  # noqa: E402  (benchmarks/ is not a package)
-from prior_speed_drift import _speeds_from_positions  # noqa: E402
+from prior_speed_drift import _speeds_from_positions, rollout_xy  # noqa: E402
 
 from smart_marl.braking import LANE_HALF_M, SAME_DIRECTION_RAD  # noqa: E402
 from smart_marl.model.checkpoint import load_prior  # noqa: E402
@@ -144,7 +144,7 @@ def scene_records(res, scene) -> list[dict]:
     frames = np.arange(cf + 1, cf + 1 + FRAMES)
 
     def rollout_late(j: int, on: np.ndarray) -> float:
-        sim = _speeds_from_positions(res.trajectory[:, j, :, :2].astype(np.float64), np.broadcast_to(tr.position[j, cf, :2], (res.trajectory.shape[0], 2)))
+        sim = _speeds_from_positions(rollout_xy(res, scene, [j])[:, 0], np.broadcast_to(tr.position[j, cf, :2], (res.trajectory.shape[0], 2)))
         return float(sim.mean(0)[on].mean())
 
     out = []
