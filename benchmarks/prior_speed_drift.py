@@ -136,12 +136,15 @@ def rollout_speeds(ck, scene, num_rollouts: int, top_k: int, temperature: float,
                                        temperature=temperature, avoid_collisions=avoid_collisions), scene)
 
 
-def rollout_from_log(model_or_checkpoint, scene, log_steps: int = 0, num_steps: int = NUM_FRAMES // 5, **kwargs):
+def rollout_from_log(model_or_checkpoint, scene, log_steps: int = 0, num_steps: int = NUM_FRAMES // 5, tracks=None, **kwargs):
     """:func:`~smart_marl.rollout.rollout` of one scene (its loop: ``kwargs`` go to
-    :meth:`RolloutState.start <smart_marl.rollout.RolloutState.start>`) in which every agent follows its tokenized
-    log for the first ``log_steps`` token steps (:func:`logged_tokens`) and the prior drives the rest."""
+    :meth:`RolloutState.start <smart_marl.rollout.RolloutState.start>`) in which every agent (or the track indices
+    ``tracks`` alone) follows its tokenized log for the first ``log_steps`` token steps (:func:`logged_tokens`) and
+    the prior drives the rest."""
     state = RolloutState.start(model_or_checkpoint, [scene], **kwargs)
     logged = logged_tokens(state, scene, log_steps) if log_steps else None
+    if logged is not None and tracks is not None:
+        logged[:, ~torch.from_numpy(np.isin(state.track_index.cpu().numpy(), np.asarray(tracks, np.int64)))] = -1
     forced = (lambda st, k, last: logged[k] if k < len(logged) else None) if log_steps else None  # noqa: E731
     return collect_result(state, state.run(num_steps, before_step=forced))
 

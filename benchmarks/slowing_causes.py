@@ -24,9 +24,12 @@ A vehicle counts once, under the first of these that it meets (``cause``), and u
 the ratio (rollout / log, the issue's measure). For the queued ones, the leader (nearest in the last
 second) too: its logged and rollout speed at 7-8 s where the prior drives it, i.e. whether the prior's leader
 slowed in the rollouts, and the follower's mean centre gap to it at 7-8 s, logged and in the rollouts.
+``--leaders-from-log``: those leaders follow their tokenized log for all 8 s (and are left out of the records), so
+that the rows say whether the prior's followers answer a leader that slows as logged.
 
     .venv/bin/python benchmarks/slowing_causes.py [--prior PATH] [--set NAME=PATH] [--rollouts 4] [--seed 0]
-        [--sampling default|plain] [--lights current|log] [--max-scenes N] [--threads 2]
+        [--sampling default|plain] [--lights current|log] [--max-scenes N] [--threads 2] [--log-steps S]
+        [--leaders-from-log]
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ from smart_marl.model.losses import TREND_BAND  # noqa: E402
 from smart_marl.road_map import MapFeatureType  # noqa: E402
 from smart_marl.rollout import DEFAULT_TOP_K  # noqa: E402
 from smart_marl.scenario import AgentType, SignalState, wrap_angle  # noqa: E402
+from smart_marl.tokens.motion import MOTION_TYPES  # noqa: E402
 
 CAUSES = ("red_light", "red_light_later", "stop_sign", "queue", "crossing", "turn", "none")
 RED = (SignalState.STOP, SignalState.ARROW_STOP, SignalState.FLASHING_STOP)
@@ -136,9 +140,21 @@ def what_it_meets(scene, i: int) -> tuple[list[str], int | None]:
     return found, leader
 
 
-def scene_records(res, scene) -> list[dict]:
+def simulated_tracks(scene) -> np.ndarray:
+    """[A] bool: the tracks the rollouts simulate (vehicles, pedestrians and cyclists valid at the current frame)."""
+    return scene.tracks.valid[:, scene.current_frame] & np.isin(scene.tracks.types, [int(t) for t in MOTION_TYPES])
+
+
+def queue_leaders(scene) -> np.ndarray:
+    """The track indices of the leaders (:func:`what_it_meets`) of a scene's slowing vehicles, simulated ones only."""
+    sim = simulated_tracks(scene)
+    found = {what_it_meets(scene, i)[1] for i, *_ in slowing_vehicles(scene, sim)}
+    return np.array(sorted(j for j in found if j is not None and j < len(sim) and sim[j]), np.int64)
+
+
+def scene_records(res, scene, skip=None) -> list[dict]:
     """One record per slowing vehicle of a scene and its rollouts ``res`` (a one-scene
-    :class:`~smart_marl.rollout.RolloutResult` of :data:`FRAMES` frames)."""
+    :class:`~smart_marl.rollout.RolloutResult` of :data:`FRAMES` frames), but those of track indices ``skip``."""
     tr, cf = scene.tracks, scene.current_frame
     simulated = res.simulated[0]
     frames = np.arange(cf + 1, cf + 1 + FRAMES)
@@ -149,6 +165,8 @@ def scene_records(res, scene) -> list[dict]:
 
     out = []
     for i, now, log_late, late in slowing_vehicles(scene, simulated):
+        if skip is not None and i in skip:
+            continue
         causes, leader = what_it_meets(scene, i)
         rec = {"now": now, "log": log_late, "rollout": rollout_late(i, late), "causes": causes,
                "cause": causes[0] if causes else "none"}
@@ -206,6 +224,9 @@ def main(argv=None) -> None:
                     help="the light states the prior sees: the current frame's, held, or the log's at every step")
     ap.add_argument("--max-scenes", type=int, default=0, help="the first N scenes of each set (0: all)")
     drift.log_steps_flag(ap)
+    ap.add_argument("--leaders-from-log", action="store_true",
+                    help="the leaders of the queued slowing vehicles follow their tokenized log for all 8 s (the followers "
+                         "and everyone else the prior); the leaders' own records are left out")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     model, _ = load_prior(args.prior)
@@ -214,12 +235,14 @@ def main(argv=None) -> None:
         scenes = scenes[: args.max_scenes] if args.max_scenes else scenes
         records = []
         for scene in scenes:
-            res = drift.rollout_from_log(model, scene, args.log_steps, num_steps=FRAMES // 5, num_rollouts=args.rollouts,
-                                         top_k=args.top_k, seed=args.seed, avoid_collisions=args.sampling == "default",
-                                         lights=args.lights)
-            records += scene_records(res, scene)
+            leaders = queue_leaders(scene) if args.leaders_from_log else None
+            res = drift.rollout_from_log(model, scene, FRAMES // 5 if leaders is not None else args.log_steps,
+                                         num_steps=FRAMES // 5, tracks=leaders, num_rollouts=args.rollouts, top_k=args.top_k,
+                                         seed=args.seed, avoid_collisions=args.sampling == "default", lights=args.lights)
+            records += scene_records(res, scene, skip=leaders)
         common = {"benchmark": "slowing_causes", "set": name, "scenes": len(scenes), "prior": args.prior, "sampling": args.sampling,
-                  "seed": args.seed, "rollouts": args.rollouts, "lights": args.lights, "log_steps": args.log_steps}
+                  "seed": args.seed, "rollouts": args.rollouts, "lights": args.lights, "log_steps": args.log_steps,
+                  "leaders_from_log": args.leaders_from_log}
         for row in summarise(records, common):
             print(json.dumps(row), flush=True)
 

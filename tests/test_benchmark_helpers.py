@@ -167,6 +167,26 @@ def test_log_steps_replays_the_tokenized_log_before_the_prior_drives(sample_scen
         assert torch.equal(out.tokens[forced[k]], tokens[k][forced[k]])  # the slots with a log take its token
 
 
+
+def test_log_steps_for_some_tracks_only(sample_scenes):
+    """rollout_from_log(tracks=...): the tracks named follow their tokenized log (their tokens those of a rollout in
+    which everyone does), the others are drawn; slowing_causes.queue_leaders names simulated leaders only."""
+    from smart_marl.model.checkpoint import load_checkpoint
+
+    drift, causes = _load("prior_speed_drift"), _load("slowing_causes")
+    ck = load_checkpoint("embedded")
+    scene = sample_scenes[2]
+    cf = scene.current_frame
+    logged_throughout = np.flatnonzero(scene.tracks.valid[:, cf:cf + 81].all(1) & causes.simulated_tracks(scene))
+    j = int(logged_throughout[0])
+    everyone = drift.rollout_from_log(ck, scene, 16, num_rollouts=2, seed=0)
+    one = drift.rollout_from_log(ck, scene, 16, tracks=[j], num_rollouts=2, seed=0)
+    assert np.array_equal(one.tokens[:, j], everyone.tokens[:, j])
+    others = np.setdiff1d(np.flatnonzero(one.simulated[0]), [j])
+    assert not np.array_equal(one.tokens[:, others], everyone.tokens[:, others])
+    leaders = causes.queue_leaders(scene)
+    assert causes.simulated_tracks(scene)[leaders].all()
+
 def test_map_view_measures_the_nearest_pieces_the_model_takes(sample_scenes):
     """benchmarks/map_view.py: on a straight road of pieces every 2 m along a moving vehicle's heading, taking its 8
     nearest within 30 m it sees 7 m around it and 7 m ahead; taking 100, the radius binds (29 m, the last piece)."""
