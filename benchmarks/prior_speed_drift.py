@@ -58,7 +58,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from smart_marl.commands.arguments import collision_avoidance_flag
+from smart_marl.commands.arguments import collision_avoidance_flag, stop_lines_flag
 from smart_marl.model.batch import collate_scenes, scene_road, scene_tensors
 from smart_marl.model.checkpoint import load_checkpoint
 from smart_marl.model.losses import TREND_BAND  # "keeps": within this share of the speed now (the training weights' band)
@@ -129,11 +129,11 @@ class SpeedSums(NamedTuple):
 
 
 def rollout_speeds(ck, scene, num_rollouts: int, top_k: int, temperature: float, seed: int,
-                   avoid_collisions: bool = True, log_steps: int = 0) -> dict:
+                   avoid_collisions: bool = True, log_steps: int = 0, stop_lines: bool = False) -> dict:
     """Per motion type, the :class:`SpeedSums` of the prior's rollouts of ``scene`` against its log, the first
     ``log_steps`` token steps of every agent its log's (:func:`rollout_from_log`)."""
     return speed_sums(rollout_from_log(ck, scene, log_steps, num_rollouts=num_rollouts, seed=seed, top_k=top_k,
-                                       temperature=temperature, avoid_collisions=avoid_collisions), scene)
+                                       temperature=temperature, avoid_collisions=avoid_collisions, stop_lines=stop_lines), scene)
 
 
 def rollout_from_log(model_or_checkpoint, scene, log_steps: int = 0, num_steps: int = NUM_FRAMES // 5, tracks=None, **kwargs):
@@ -385,6 +385,7 @@ def main(argv=None) -> None:
                     help="leave the parked vehicles (logged on every frame, moving less than 0.5 m) out of every scene")
     log_steps_flag(ap)
     collision_avoidance_flag(ap)
+    stop_lines_flag(ap)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     ck = load_checkpoint(args.prior)  # a path or "embedded"
@@ -400,7 +401,7 @@ def main(argv=None) -> None:
         dvs, first = [], np.zeros((len(PAST_TRENDS), 6))
         for scene in scenes:
             for t, sums in rollout_speeds(ck, scene, args.rollouts, args.top_k, args.temperature, args.seed,
-                                          args.avoid_collisions, args.log_steps).items():
+                                          args.avoid_collisions, args.log_steps, args.stop_lines).items():
                 roll[t] = roll[t].plus(sums)
             forced = teacher_forced_bias(ck, scene, args.top_k)
             for t, v in forced.moving.items():
@@ -409,7 +410,7 @@ def main(argv=None) -> None:
             dvs.append(forced.dv)
             first += forced.first_by_past
         common = {"set": set_name, "scenes": len(scenes), "rollouts": args.rollouts, "top_k": args.top_k,
-                  "temperature": args.temperature, "prior": args.prior, "avoid_collisions": args.avoid_collisions,
+                  "temperature": args.temperature, "prior": args.prior, "avoid_collisions": args.avoid_collisions, "stop_lines": args.stop_lines,
                   "drop_parked": args.drop_parked, "log_steps": args.log_steps}
         for t in MOTION_TYPES:
             s = roll[t]

@@ -49,6 +49,7 @@ import prior_speed_drift as drift  # noqa: E402  (benchmarks/ is not a package)
 from prior_speed_drift import _speeds_from_positions, rollout_xy  # noqa: E402
 
 from smart_marl.braking import LANE_HALF_M, SAME_DIRECTION_RAD  # noqa: E402
+from smart_marl.commands.arguments import stop_lines_flag  # noqa: E402
 from smart_marl.model.checkpoint import load_prior  # noqa: E402
 from smart_marl.model.losses import TREND_BAND  # noqa: E402
 from smart_marl.road_map import MapFeatureType  # noqa: E402
@@ -224,6 +225,7 @@ def main(argv=None) -> None:
                     help="the light states the prior sees: the current frame's, held, or the log's at every step")
     ap.add_argument("--max-scenes", type=int, default=0, help="the first N scenes of each set (0: all)")
     drift.log_steps_flag(ap)
+    stop_lines_flag(ap)
     ap.add_argument("--leaders-from-log", action="store_true",
                     help="the leaders of the queued slowing vehicles follow their tokenized log for all 8 s (the followers "
                          "and everyone else the prior); the leaders' own records are left out")
@@ -238,11 +240,12 @@ def main(argv=None) -> None:
             leaders = queue_leaders(scene) if args.leaders_from_log else None
             res = drift.rollout_from_log(model, scene, FRAMES // 5 if leaders is not None else args.log_steps,
                                          num_steps=FRAMES // 5, tracks=leaders, num_rollouts=args.rollouts, top_k=args.top_k,
-                                         seed=args.seed, avoid_collisions=args.sampling == "default", lights=args.lights)
+                                         seed=args.seed, avoid_collisions=args.sampling == "default", lights=args.lights,
+                                         stop_lines=args.stop_lines)
             records += scene_records(res, scene, skip=leaders)
         common = {"benchmark": "slowing_causes", "set": name, "scenes": len(scenes), "prior": args.prior, "sampling": args.sampling,
                   "seed": args.seed, "rollouts": args.rollouts, "lights": args.lights, "log_steps": args.log_steps,
-                  "leaders_from_log": args.leaders_from_log}
+                  "leaders_from_log": args.leaders_from_log, "stop_lines": args.stop_lines}
         for row in summarise(records, common):
             print(json.dumps(row), flush=True)
 

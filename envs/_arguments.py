@@ -21,7 +21,7 @@ What each argument takes (the documented meanings):
 * ``observation``: "vector", "dict" or an ObservationConfig with sizes in range;
 * ``render_size_px``: an integer in 16..:data:`MAX_RENDER_SIZE_PX`; ``render_radius_m`` a finite number in
   (0, :data:`MAX_RENDER_RADIUS_M`];
-* ``avoid_collisions``: True or False (not the string "false");
+* ``avoid_collisions``, ``stop_lines``: True or False (not the string "false");
 * ``shield``: True (every check of :data:`envs._shield.SHIELD_CHECKS`), False / None / an empty list (none),
   or a list of check names (a bare string is one name), normalised to a tuple in ``SHIELD_CHECKS`` order;
 * ``controlled``: "sdc", "predict", "vehicles", "all", "moving_vehicles", a callable, or a list of track
@@ -120,7 +120,7 @@ def _controlled(value: Any) -> Any:
 def check_env_arguments(*, background: Any, horizon_steps: Any, scene_order: Any, terminate_on: Any, render_mode: Any,
                         render_modes: Iterable[str], max_agents: Any, top_k: Any, temperature: Any, reference_top_k: Any,
                         render_size_px: Any, render_radius_m: Any, avoid_collisions: Any, reward: Any, observation: Any,
-                        controlled: Any, device: Any = "cpu", shield: Any = ()) -> dict[str, Any]:
+                        controlled: Any, device: Any = "cpu", shield: Any = (), stop_lines: Any = False) -> dict[str, Any]:
     """The constructor's arguments checked and normalised (see the module docstring), as a dict of
     the same names; :class:`~envs.errors.EnvConfigError` naming the first one that is refused."""
     return {
@@ -137,6 +137,7 @@ def check_env_arguments(*, background: Any, horizon_steps: Any, scene_order: Any
         "render_radius_m": float(_check("render_radius_m", render_radius_m,
                                         number(0.0, MAX_RENDER_RADIUS_M, low_open=True, why="wider than any scene"))),
         "avoid_collisions": bool(_check("avoid_collisions", avoid_collisions, flag, bool)),
+        "stop_lines": bool(_check("stop_lines", stop_lines, flag, bool)),
         "reward": _reward(reward),
         "observation": _observation(observation),
         "controlled": _controlled(controlled),

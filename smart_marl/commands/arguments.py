@@ -115,6 +115,14 @@ def collision_avoidance_flag(parser: argparse.ArgumentParser, who: str = "the pr
                              "(default: collision-aware sampling, smart_marl.rollout.avoidance)")
 
 
+def stop_lines_flag(parser: argparse.ArgumentParser, who: str = "the prior") -> None:
+    """``--stop-lines`` (``args.stop_lines``, default False): the prior's vehicles stop at red lights and stop signs
+    (:mod:`smart_marl.rollout.stop_lines`)."""
+    parser.add_argument("--stop-lines", action="store_true",
+                        help=f"{who}'s vehicles do not draw tokens after which they could not stop before a red light's "
+                             "or a stop sign's line ahead (smart_marl.rollout.stop_lines; default: off)")
+
+
 def output_file(text: str) -> str:
     """A file (or checkpoint name) to write: not a folder, in a folder that exists or can be created."""
     problem = output_file_problem(text)
@@ -156,4 +164,4 @@ def reader_formats() -> list[str]:
 
 
 __all__ = ["checked", "numbers_list", "workers", "MAX_WORKERS", "rollouts", "MAX_ROLLOUTS", "temperature", "positive_int", "non_negative_int", "seed", "positive_number", "bounded_int", "bounded_number",
-           "positive_numbers", "output_file", "motion_types", "collision_avoidance_flag", "output_dir", "device", "device_or_auto", "reader_formats"]
+           "positive_numbers", "output_file", "motion_types", "collision_avoidance_flag", "stop_lines_flag", "output_dir", "device", "device_or_auto", "reader_formats"]

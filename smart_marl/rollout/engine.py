@@ -64,6 +64,7 @@ from ..tokens.road import RoadVocabulary
 from .avoidance import excluded_tokens
 from .frames import INTERPOLATIONS, token_frames
 from .sampling import DEFAULT_TOP_K, sample_tokens
+from .stop_lines import served_after_step, stop_line_tensors, stop_line_test, token_ends
 
 MODES = ("cached", "full")
 LIGHTS = ("current", "log")
@@ -183,7 +184,8 @@ class RolloutState:
 
     def __init__(self, model, vocab: MotionVocabulary, scenes: Sequence[Scenario], num_rollouts: int, seed: int, top_k: int,
                  temperature: float, device, mode: str, road_vocab: RoadVocabulary | None = None,
-                 interpolation: str = "spline", avoid_collisions: bool = True, lights: str = "current") -> None:
+                 interpolation: str = "spline", avoid_collisions: bool = True, lights: str = "current",
+                 stop_lines: bool = False) -> None:
         if lights not in LIGHTS:
             raise ValueError(f"lights must be one of {LIGHTS}, got {lights!r}")
         self.lights = lights
@@ -194,7 +196,7 @@ class RolloutState:
         self.model, self.vocab, self.mode, self.interpolation = model, vocab, mode, interpolation
         self.scenes = list(scenes)
         self.top_k, self.temperature = int(top_k), float(temperature)
-        self.avoid_collisions = bool(avoid_collisions)
+        self.avoid_collisions, self.stop_lines = bool(avoid_collisions), bool(stop_lines)
         self.device = torch.device(device)
         self.generator = torch.Generator(device=self.device).manual_seed(int(seed))
         self.num_rollouts = r = int(num_rollouts)
@@ -242,6 +244,13 @@ class RolloutState:
         for k, tt in enumerate(MOTION_TYPES):
             tp[k, : vocab[tt].size] = torch.from_numpy(vocab[tt].poses)
         self.token_poses = tp.to(dev)
+        # ---- stop lines (mod:`~smart_marl.rollout.stop_lines`): per scene, and the stop sign each slot has served
+        self.stop_xy = self.stop_dir = self.stop_sign = self.stop_red = self.stop_valid = self.stop_served = None
+        if self.stop_lines:
+            for name, t in stop_line_tensors(self.scenes, 0, dev).items():
+                setattr(self, name, t)
+            self.stop_served = torch.full(self.track_index.shape, -1, dtype=torch.long, device=dev)
+            self.stop_token_ends = token_ends(self.token_poses, interpolation)
         # ---- history through the model
         self.history = [hist_tokens, hist_valid, hist_start, hist_end]  # grows by one step per token step (full mode)
         self.pose = hist_end[:, :, -1].clone()  # (G, N, 3) where each slot's next token starts
@@ -260,20 +269,23 @@ class RolloutState:
     @classmethod
     def start(cls, model, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 1, seed: int = 0, top_k: int = DEFAULT_TOP_K,
               temperature: float = 1.0, device="cpu", mode: str = "cached", motion_vocab: MotionVocabulary | None = None,
-              interpolation: str = "spline", avoid_collisions: bool = True, lights: str = "current") -> "RolloutState":
+              interpolation: str = "spline", avoid_collisions: bool = True, lights: str = "current",
+              stop_lines: bool = False) -> "RolloutState":
         """Tokenize the scenes' histories and run them through the model. ``model``: anything
         :func:`~smart_marl.model.checkpoint.load_prior` takes (a SMART model, a Checkpoint, a Prior, a
         checkpoint path or ``"embedded"``); ``motion_vocab`` overrides the vocabulary used to
         tokenize the history and place tokens (by default the checkpoint's, or the model's contours);
         ``interpolation`` draws the 10 Hz frames between token ends (module docstring);
         ``avoid_collisions`` keeps sampled tokens from ending in another agent's box
-        (:mod:`~smart_marl.rollout.avoidance`; False: plain top-k sampling); ``lights``: :data:`LIGHTS`."""
+        (:mod:`~smart_marl.rollout.avoidance`; False: plain top-k sampling); ``lights``: :data:`LIGHTS`;
+        ``stop_lines``: vehicles do not draw tokens after which they could not stop before a red light's or a stop
+        sign's line ahead (:mod:`~smart_marl.rollout.stop_lines`)."""
         m, vocab = load_prior(model, device)
         scenes = [scenes] if isinstance(scenes, Scenario) else list(scenes)
         if not scenes:
             raise ValueError("no scenes to roll out")
         return cls(m, motion_vocab or vocab, scenes, num_rollouts, seed, top_k, temperature, device, mode, interpolation=interpolation,
-                   avoid_collisions=avoid_collisions, lights=lights)
+                   avoid_collisions=avoid_collisions, lights=lights, stop_lines=stop_lines)
 
     # ------------------------------------------------------------------------------ accessors
     @property
@@ -389,8 +401,9 @@ class RolloutState:
         # the top k + 1, ranked once for the collision check and the sampler (both read them)
         top = torch.topk(row_logits, k + 1, dim=-1) if 0 < k < v and (self.avoid_collisions or self.temperature == 1.0) else None
         exclude = None
-        if self.avoid_collisions:
-            pick = torch.ones(len(rows), dtype=torch.bool, device=self.device) if forced_rows is None else forced_rows < 0
+        pick = torch.ones(len(rows), dtype=torch.bool, device=self.device) if forced_rows is None else forced_rows < 0
+        stop_test = stop_line_test(self, rows[pick]) if self.stop_lines else None
+        if self.avoid_collisions or stop_test is not None:
             known = known_frames = None
             if forced_tokens is not None:  # the forced agents' frames of this step, seen by the others' check
                 known = sim & (forced_tokens >= 0)
@@ -402,9 +415,10 @@ class RolloutState:
                 else:
                     known = None
             exclude = torch.zeros(row_logits.shape, dtype=torch.bool, device=self.device)
-            exclude[pick] = excluded_tokens(row_logits[pick], rows[pick], self.pose, self.previous_pose, self.agent_shape, sim,
+            exclude[pick] = excluded_tokens(row_logits[pick], rows[pick], self.pose, self.previous_pose, self.agent_shape,
+                                            sim if self.avoid_collisions else torch.zeros_like(sim),
                                             self.agent_type, self.token_poses, self.top_k, self.interpolation,
-                                            known_frames=known_frames, known=known,
+                                            known_frames=known_frames, known=known, also=stop_test,
                                             top=None if top is None else (top.values[pick], top.indices[pick]),
                                             vocab_sizes=self.vocab_sizes)
         tok_rows, logp_rows = sample_tokens(row_logits, self.generator, self.top_k, self.temperature, forced_rows, exclude,
@@ -431,6 +445,10 @@ class RolloutState:
         self.step_index += 1
         if self._light_index is not None:  # the next step's logits see the lights of the frame it starts at
             self._follow_logged_lights()
+        if self.stop_lines:
+            self.stop_served = served_after_step(self)
+            if self._light_index is not None:
+                self.stop_red = stop_line_tensors(self.scenes, FRAMES_PER_TOKEN * self.step_index, self.device)["stop_red"]
         forced = sim & (forced_tokens >= 0) if forced_tokens is not None else torch.zeros_like(sim)
         return StepOutput(logits=logits, tokens=tokens, log_probs=log_probs, poses=placed, simulated=sim.clone(), forced=forced)
 
@@ -473,12 +491,14 @@ class RolloutResult:
 def rollout(model_or_checkpoint, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 32, num_steps: int = 16,
             top_k: int = DEFAULT_TOP_K, temperature: float = 1.0, seed: int = 0, device="cpu", mode: str = "cached",
             motion_vocab: MotionVocabulary | None = None, interpolation: str = "spline",
-            avoid_collisions: bool = True, lights: str = "current") -> RolloutResult:
+            avoid_collisions: bool = True, lights: str = "current", stop_lines: bool = False) -> RolloutResult:
     """Generate ``num_rollouts`` joint futures of ``num_steps`` tokens (0.5 s each) for every scene
-    in one batch (see the module docstring). Same seed, same rollouts (on the CPU). ``lights``: :data:`LIGHTS`."""
+    in one batch (see the module docstring). Same seed, same rollouts (on the CPU). ``lights``: :data:`LIGHTS`;
+    ``stop_lines``: :meth:`RolloutState.start`."""
     state = RolloutState.start(model_or_checkpoint, scenes, num_rollouts=num_rollouts, seed=seed, top_k=top_k,
                                temperature=temperature, device=device, mode=mode, motion_vocab=motion_vocab,
-                               interpolation=interpolation, avoid_collisions=avoid_collisions, lights=lights)
+                               interpolation=interpolation, avoid_collisions=avoid_collisions, lights=lights,
+                               stop_lines=stop_lines)
     outs = state.run(num_steps)
     return collect_result(state, outs)
 

@@ -28,6 +28,8 @@ from .engine import RolloutState
 _PER_GROUP = {"track_index": -1, "agent_type": 0, "agent_shape": 0.0, "simulated": False, "agent_ids": -1, "pose": 0.0,
               "previous_pose": 0.0}
 _PER_SCENE = {"road_pose": 0.0, "road_valid": False, "road_points": 0.0, "road_type": 0, "road_light": 0, "road_x": 0.0}
+_STOP_LINES = {"stop_xy": 0.0, "stop_dir": float("nan"), "stop_sign": False, "stop_red": False, "stop_valid": False}
+"""Per scene, padded to the most stop lines (states with ``stop_lines``); the slots' served signs go with the slots."""
 
 
 _PENDING_FILLS = (0, 0.0, 0.0, False)  # tokens, start pose, end pose, valid of the step not yet run
@@ -42,6 +44,18 @@ def _check(states: Sequence[RolloutState]) -> None:
             raise ValueError("batching rollout states needs states of the same model and number of rollouts")
         if getattr(st, "lights", "current") != "current":
             raise ValueError("batching rollout states needs lights='current': lights='log' follows one clock for the whole state")
+        if st.stop_lines != first.stop_lines:
+            raise ValueError("batching rollout states needs states that all stop at stop lines, or none")
+
+
+def _per_group(state: RolloutState) -> dict:
+    """The per-slot tensors of ``state`` and their padding."""
+    return {**_PER_GROUP, "stop_served": -1} if state.stop_lines else _PER_GROUP
+
+
+def _lines(state: RolloutState) -> dict:
+    """The per-scene stop-line tensors of ``state`` (none without ``stop_lines``) and their padding."""
+    return _STOP_LINES if state.stop_lines else {}
 
 
 def _same_phase(states: Sequence[RolloutState]) -> list[RolloutState]:
@@ -69,10 +83,13 @@ def stack_states(states: Sequence[RolloutState], seed: int) -> RolloutState:
     n = max(st.num_slots for st in states)
     pieces = max(st.road_pose.shape[1] for st in states)
     out = first.fork(seed)
-    for name, fill in _PER_GROUP.items():
+    for name, fill in _per_group(first).items():
         setattr(out, name, torch.cat([grow(getattr(st, name), {1: n}, fill) for st in states]))
     for name, fill in _PER_SCENE.items():
         setattr(out, name, torch.cat([grow(getattr(st, name), {1: pieces}, fill) for st in states]))
+    lines = max(st.stop_xy.shape[1] for st in states) if first.stop_lines else 0
+    for name, fill in _lines(first).items():
+        setattr(out, name, torch.cat([grow(getattr(st, name), {1: lines}, fill) for st in states]))
     if first._logits is not None:
         out._logits = torch.cat([grow(st._logits, {1: n}, float("-inf")) for st in states])
     else:
@@ -96,10 +113,10 @@ def split_state(state: RolloutState) -> list[RolloutState]:
         n = max(int((state.track_index[groups] >= 0).sum(1).max()), 1)  # slots are filled from the first
         pieces = max(int(state.road_valid[b].sum()), 1)
         one = copy.copy(state)
-        for name in _PER_GROUP:
+        for name in _per_group(state):
             setattr(one, name, getattr(state, name)[groups, :n])
-        for name in _PER_SCENE:
-            setattr(one, name, getattr(state, name)[b : b + 1, :pieces])
+        for name in [*_PER_SCENE, *_lines(state)]:
+            setattr(one, name, getattr(state, name)[b : b + 1, :pieces] if name in _PER_SCENE else getattr(state, name)[b : b + 1])
         if state._logits is not None:
             one._logits = state._logits[groups, :n]
         else:
@@ -137,11 +154,15 @@ def replace_scenes(state: RolloutState, rows: Sequence[int], new: RolloutState) 
     groups = (scenes[:, None] * r + torch.arange(r, device=dev)).reshape(-1)
     n = max(state.num_slots, new.num_slots)
     pieces = max(state.road_pose.shape[1], new.road_pose.shape[1])
-    for name, fill in _PER_GROUP.items():
+    for name, fill in _per_group(state).items():
         setattr(state, name, grow(getattr(state, name), {1: n}, fill))
         put_rows(getattr(state, name), groups, getattr(new, name).to(dev), fill)
     for name, fill in _PER_SCENE.items():
         setattr(state, name, grow(getattr(state, name), {1: pieces}, fill))
+        put_rows(getattr(state, name), scenes, getattr(new, name).to(dev), fill)
+    lines = max(state.stop_xy.shape[1], new.stop_xy.shape[1]) if state.stop_lines else 0
+    for name, fill in _lines(state).items():
+        setattr(state, name, grow(getattr(state, name), {1: lines}, fill))
         put_rows(getattr(state, name), scenes, getattr(new, name).to(dev), fill)
     if state._logits is not None:
         state._logits = grow(state._logits, {1: n}, float("-inf"))
