@@ -165,6 +165,8 @@ def main() -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--device", default="cpu")
     p.add_argument("--shield", action="store_true", help="the controlled agents' shield (envs._shield), checked to the top 3")
+    p.add_argument("--stop-lines", action="store_true", help="the background stops at red lights and stop signs "
+                   "(smart_marl.rollout.stop_lines)")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -176,8 +178,9 @@ def main() -> int:
     model, vocab = load_prior(args.prior, args.device)
     kw = dict(prior=model, motion_vocab=vocab, controlled=args.controlled, max_agents=args.max_agents, background=args.background,
               horizon_steps=args.horizon, terminate_on=(), device=args.device,
-              **(dict(shield=True, reference_top_k=3) if args.shield else {}))
-    common = dict(benchmark="env_throughput", background=args.background, shield=args.shield, prior=args.prior, controlled=args.controlled,
+              stop_lines=args.stop_lines, **(dict(shield=True, reference_top_k=3) if args.shield else {}))
+    common = dict(benchmark="env_throughput", background=args.background, shield=args.shield, stop_lines=args.stop_lines,
+                  prior=args.prior, controlled=args.controlled,
                   max_agents=args.max_agents, horizon_steps=args.horizon, torch_threads=args.threads, device=args.device,
                   cpu=platform.processor() or platform.machine(), scenes=len(scenes))
     if args.device.startswith("cuda"):
