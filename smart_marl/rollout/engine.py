@@ -20,8 +20,9 @@ How a rollout runs:
 3. Every step: each simulated agent's next token is drawn from its type's distribution
    (:func:`~smart_marl.rollout.sampling.sample_tokens`: top-k with renormalised probabilities and a
    temperature; collision-aware by default: tokens whose frames would overlap another agent are not
-   drawn, :mod:`~smart_marl.rollout.avoidance`, ``avoid_collisions=False`` samples plainly) or
-   forced; the token's 6 poses (its contour's centre and heading) are placed at the
+   drawn, :mod:`~smart_marl.rollout.avoidance`, ``avoid_collisions=False`` samples plainly; with
+   ``stop_lines=True`` a vehicle does not draw tokens after which it could not stop before a red light's or a stop
+   sign's line ahead, :mod:`~smart_marl.rollout.stop_lines`) or forced; the token's 6 poses (its contour's centre and heading) are placed at the
    agent's current pose; its last pose is where the agent is 0.5 s later (the next token starts
    there); the tokens go back in. The 10 Hz frames in between (:mod:`~smart_marl.rollout.frames`;
    ``interpolation="spline"``, the default) follow a cubic Hermite curve from the current pose to
@@ -244,8 +245,9 @@ class RolloutState:
         for k, tt in enumerate(MOTION_TYPES):
             tp[k, : vocab[tt].size] = torch.from_numpy(vocab[tt].poses)
         self.token_poses = tp.to(dev)
-        # ---- stop lines (mod:`~smart_marl.rollout.stop_lines`): per scene, and the stop sign each slot has served
+        # ---- stop lines (:mod:`~smart_marl.rollout.stop_lines`): per scene, and the stop sign each slot has served
         self.stop_xy = self.stop_dir = self.stop_sign = self.stop_red = self.stop_valid = self.stop_served = None
+        self.stop_token_ends = None
         if self.stop_lines:
             for name, t in stop_line_tensors(self.scenes, 0, dev).items():
                 setattr(self, name, t)
