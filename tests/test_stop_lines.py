@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 import torch
 
@@ -12,7 +13,7 @@ from smart_marl.embedded import sample_scenarios
 from smart_marl.model.checkpoint import load_prior
 from smart_marl.rollout import RolloutState
 from smart_marl.rollout.refill import replace_scenes, split_state, stack_states
-from smart_marl.rollout.stop_lines import STOP_DECEL_MPS2, nearest_line, served_after_step, stop_line_test
+from smart_marl.rollout.stop_lines import STOP_DECEL_MPS2, line_groups, nearest_line, served_after_step, stop_line_test
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 
@@ -24,7 +25,7 @@ def _lines_state(**extra) -> SimpleNamespace:
     direction = torch.tensor([[[1.0, 0.0], [1.0, 0.0], [1.0, 0.0], [1.0, 0.0], [-1.0, 0.0], [1.0, 0.0]]])
     state = SimpleNamespace(
         scene_of_group=torch.tensor([0]), pose=torch.zeros(1, 2, 3), previous_pose=torch.zeros(1, 2, 3),
-        stop_xy=xy, stop_dir=direction, stop_valid=torch.ones(1, 6, dtype=torch.bool),
+        stop_xy=xy, stop_dir=direction, stop_valid=torch.ones(1, 6, dtype=torch.bool), stop_group=torch.arange(6)[None],
         stop_red=torch.tensor([[True, False, True, True, True, False]]),
         stop_sign=torch.tensor([[False, False, False, False, False, True]]),
         stop_served=torch.tensor([[-1, 5]]), agent_type=torch.zeros(1, 2, dtype=torch.long),
@@ -42,6 +43,24 @@ def test_the_nearest_active_line_ahead_in_the_lane_holds_a_vehicle():
     state.stop_red[:] = False
     dist, line = nearest_line(state, torch.tensor([0]), torch.tensor([1]))
     assert line.tolist() == [-1] and torch.isinf(dist).all()
+
+
+def test_a_red_arrow_beside_a_green_light_of_the_same_line_lets_a_vehicle_go():
+    """Two lanes leave the line 20 m ahead (a through lane and a turn lane, starting at the same point): the vehicle is
+    held only while both are red; the lanes of another stop line 3 m on, or running the other way, are another line."""
+    xy = torch.tensor([[[20.0, 0.0], [20.3, 0.2], [23.0, 0.0], [20.0, 0.5]]])
+    direction = torch.tensor([[[1.0, 0.0], [0.9, 0.44], [1.0, 0.0], [-1.0, 0.0]]])
+    groups = line_groups(xy[0].double().numpy(), direction[0].double().numpy())
+    assert groups.tolist() == [0, 0, 2, 3]
+    assert line_groups(np.zeros((0, 2)), np.zeros((0, 2))).tolist() == []  # a scene without lines
+    state = _lines_state(stop_xy=xy, stop_dir=direction, stop_group=torch.from_numpy(groups)[None],
+                         stop_valid=torch.ones(1, 4, dtype=torch.bool), stop_sign=torch.zeros(1, 4, dtype=torch.bool),
+                         stop_red=torch.tensor([[True, False, True, True]]))
+    _, line = nearest_line(state, torch.tensor([0]), torch.tensor([0]))
+    assert line.tolist() == [2]  # the through lane is green: the next line, 23 m on, holds it
+    state.stop_red[0, 1] = True
+    _, line = nearest_line(state, torch.tensor([0]), torch.tensor([0]))
+    assert line.tolist() == [0]
 
 
 def test_a_held_vehicle_may_draw_only_the_tokens_after_which_it_can_stop():

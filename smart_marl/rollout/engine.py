@@ -246,7 +246,8 @@ class RolloutState:
             tp[k, : vocab[tt].size] = torch.from_numpy(vocab[tt].poses)
         self.token_poses = tp.to(dev)
         # ---- stop lines (:mod:`~smart_marl.rollout.stop_lines`): per scene, and the stop sign each slot has served
-        self.stop_xy = self.stop_dir = self.stop_sign = self.stop_red = self.stop_valid = self.stop_served = None
+        self.stop_xy = self.stop_dir = self.stop_group = self.stop_sign = self.stop_red = self.stop_valid = None
+        self.stop_served = None
         self.stop_token_ends = None
         if self.stop_lines:
             for name, t in stop_line_tensors(self.scenes, 0, dev).items():

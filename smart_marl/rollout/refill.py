@@ -28,7 +28,8 @@ from .engine import RolloutState
 _PER_GROUP = {"track_index": -1, "agent_type": 0, "agent_shape": 0.0, "simulated": False, "agent_ids": -1, "pose": 0.0,
               "previous_pose": 0.0}
 _PER_SCENE = {"road_pose": 0.0, "road_valid": False, "road_points": 0.0, "road_type": 0, "road_light": 0, "road_x": 0.0}
-_STOP_LINES = {"stop_xy": 0.0, "stop_dir": float("nan"), "stop_sign": False, "stop_red": False, "stop_valid": False}
+_STOP_LINES = {"stop_xy": 0.0, "stop_dir": float("nan"), "stop_group": 0, "stop_sign": False, "stop_red": False,
+               "stop_valid": False}
 """Per scene, padded to the most stop lines (states with ``stop_lines``); the slots' served signs go with the slots."""
 
 

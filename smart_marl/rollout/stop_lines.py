@@ -7,10 +7,12 @@ token poses. What goes out: ``bool [M, V]`` per sampling row, true on the tokens
 the stop signs each vehicle has served.
 
 The rule, per sampling vehicle (not pedestrians or cyclists): the nearest *active* line ahead of it, 0-40 m along
-its heading, within 2 m to either side, its lane running within 45 degrees of the vehicle's heading. A signal's
-line is active while its light is red (STOP, ARROW_STOP, FLASHING_STOP; the states the model sees: the current
-frame's, held, or the log's at every step with ``lights="log"``); a stop sign's line until the vehicle has stood
-(under 1 m/s) with its front within 8 m of it, after which that line no longer holds it (stop, then go). With the
+its heading, within 2 m to either side, its lane running within 45 degrees of the vehicle's heading, holds it. The
+lanes that leave one stop line (their starts within a metre of each other, running within 45 degrees of each other)
+form one line: a signal's line is active while every light of it is red (STOP, ARROW_STOP, FLASHING_STOP; a through
+lane's green beside a turn lane's red arrow lets the vehicle go; the states the model sees: the current frame's,
+held, or the log's at every step with ``lights="log"``); a stop sign's line until the vehicle has stood (under
+1 m/s) with its front within 8 m of it, after which that line no longer holds it (stop, then go). With the
 front bumper ``d`` metres before the line, a token whose end lies ``x`` metres ahead and whose end speed is ``v``
 needs ``v^2 / (2 (d - x))`` of deceleration after it; tokens needing more than :data:`STOP_DECEL_MPS2`, or than
 the row's least demanding token plus 1 m/s2 where none is that gentle, are excluded, and a token that puts the
@@ -43,6 +45,8 @@ ALIGNED_COS = math.cos(math.radians(45.0))
 STOPPED_MPS, SERVED_WITHIN_M = 1.0, 8.0
 """A vehicle slower than this with its front this near a stop sign's line has stopped there."""
 RED = (int(SignalState.STOP), int(SignalState.ARROW_STOP), int(SignalState.FLASHING_STOP))
+SAME_LINE_M = 1.0
+"""Lanes whose stop points lie this near each other, running within 45 degrees of each other, leave one stop line."""
 OVERRUN_M = 0.5
 """A token that puts the front bumper further past an active line than this is excluded whatever its speed."""
 
@@ -72,18 +76,34 @@ def scene_stop_lines(scenario: Scenario) -> tuple[np.ndarray, np.ndarray, np.nda
             np.array(light, np.int64))
 
 
+def line_groups(xy: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """[L] the stop line each lane's stop point belongs to (the smallest index of its connected lanes: points within
+    :data:`SAME_LINE_M` of each other, directions within 45 degrees or unknown)."""
+    near = np.linalg.norm(xy[:, None] - xy[None], axis=-1) < SAME_LINE_M
+    cos = np.nan_to_num((direction[:, None] * direction[None]).sum(-1), nan=1.0)
+    linked = near & (cos > ALIGNED_COS)
+    group = np.arange(len(xy))
+    while True:  # each point takes the smallest label among those it is linked to, until none changes
+        new = np.where(linked, group[None], len(xy)).min(1, initial=len(xy))
+        if np.array_equal(new, group):
+            return group
+        group = new
+
+
 def stop_line_tensors(scenes: Sequence[Scenario], frame_offset: int, device) -> dict[str, torch.Tensor]:
-    """Every scene's lines padded to the most lines [B, L]: ``stop_xy`` [B, L, 2], ``stop_dir`` [B, L, 2],
-    ``stop_sign`` [B, L] (a stop sign's line), ``stop_red`` [B, L] (a signal's, red at ``current frame +
-    frame_offset``), ``stop_valid`` [B, L]."""
+    """Every scene's lanes' stop points padded to the most [B, L]: ``stop_xy`` [B, L, 2], ``stop_dir`` [B, L, 2],
+    ``stop_group`` [B, L] (:func:`line_groups`), ``stop_sign`` [B, L] (a stop sign's), ``stop_red`` [B, L] (a signal's,
+    red at ``current frame + frame_offset``), ``stop_valid`` [B, L]."""
     lines = [scene_stop_lines(sc) for sc in scenes]
     size = max([len(li[2]) for li in lines] + [1])
     out = {"stop_xy": torch.zeros(len(scenes), size, 2), "stop_dir": torch.full((len(scenes), size, 2), float("nan")),
+           "stop_group": torch.zeros(len(scenes), size, dtype=torch.long),
            "stop_sign": torch.zeros(len(scenes), size, dtype=torch.bool), "stop_red": torch.zeros(len(scenes), size, dtype=torch.bool),
            "stop_valid": torch.zeros(len(scenes), size, dtype=torch.bool)}
     for b, ((xy, d, light), sc) in enumerate(zip(lines, scenes)):
         k = len(light)
         out["stop_xy"][b, :k], out["stop_dir"][b, :k] = torch.from_numpy(xy), torch.from_numpy(d)
+        out["stop_group"][b, :k] = torch.from_numpy(line_groups(xy.astype(np.float64), d.astype(np.float64)))
         out["stop_sign"][b, :k] = torch.from_numpy(light < 0)
         out["stop_red"][b, :k] = torch.from_numpy(red_lines(sc, light, frame_offset))
         out["stop_valid"][b, :k] = True
@@ -113,12 +133,19 @@ def nearest_line(state, g: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor,
     side = rel[..., 1] * c - rel[..., 0] * sn
     d = state.stop_dir[b]
     aligned = torch.where(torch.isnan(d[..., 0]), torch.ones_like(ahead, dtype=torch.bool), d[..., 0] * c + d[..., 1] * sn > ALIGNED_COS)
-    index = torch.arange(ahead.shape[1], device=ahead.device)
-    served = state.stop_sign[b] & (index[None] == state.stop_served[g, s][:, None])
-    active = state.stop_valid[b] & (state.stop_red[b] | (state.stop_sign[b] & ~served))
-    holds = active & aligned & (ahead > 0) & (ahead <= LINE_AHEAD_M) & (side.abs() <= LINE_SIDE_M)
+    group = state.stop_group[b]  # [M, L]
+    served = state.stop_sign[b] & (group == state.stop_served[g, s][:, None])
+    active = red_line_holds(state)[b] | (state.stop_sign[b] & ~served)
+    holds = state.stop_valid[b] & active & aligned & (ahead > 0) & (ahead <= LINE_AHEAD_M) & (side.abs() <= LINE_SIDE_M)
     dist, line = ahead.masked_fill(~holds, float("inf")).min(-1)
     return dist, torch.where(torch.isfinite(dist), line, torch.full_like(line, -1))
+
+
+def red_line_holds(state) -> torch.Tensor:
+    """[B, L] the signals' lanes whose whole stop line is red (no lane leaving it has a light that is not)."""
+    green = (state.stop_valid & ~state.stop_sign & ~state.stop_red).long()
+    any_green = torch.zeros_like(green).scatter_add_(1, state.stop_group, green) > 0  # per line, by its first lane's index
+    return state.stop_red & ~any_green.gather(1, state.stop_group)
 
 
 def token_ends(token_poses: torch.Tensor, interpolation: str) -> tuple[torch.Tensor, torch.Tensor]:
@@ -163,16 +190,17 @@ def stop_line_test(state, rows: torch.Tensor):
 
 
 def served_after_step(state) -> torch.Tensor:
-    """[G, N] the stop sign's line each slot has now served (:data:`STOPPED_MPS` within :data:`SERVED_WITHIN_M`),
-    else what it had served before."""
+    """[G, N] the stop sign's line (:func:`line_groups`) each slot has now served (:data:`STOPPED_MPS` within
+    :data:`SERVED_WITHIN_M`), else what it had served before."""
     speed = (state.pose[..., :2] - state.previous_pose[..., :2]).norm(dim=-1) / 0.5
     g, s = (state.simulated & (state.agent_type == 0) & (speed < STOPPED_MPS)).nonzero(as_tuple=True)
     served = state.stop_served.clone()
     if len(g):
         dist, line = nearest_line(state, g, s)
         front = dist - state.agent_shape[g, s, 0].to(dist.dtype) / 2
-        at_sign = (line >= 0) & state.stop_sign[state.scene_of_group[g], line.clamp(min=0)] & (front < SERVED_WITHIN_M)
-        served[g[at_sign], s[at_sign]] = line[at_sign]
+        b, line = state.scene_of_group[g], line.clamp(min=0)
+        at_sign = torch.isfinite(dist) & state.stop_sign[b, line] & (front < SERVED_WITHIN_M)
+        served[g[at_sign], s[at_sign]] = state.stop_group[b, line][at_sign]
     return served
 
 
