@@ -187,6 +187,25 @@ def test_log_steps_for_some_tracks_only(sample_scenes):
     leaders = causes.queue_leaders(scene)
     assert causes.simulated_tracks(scene)[leaders].all()
 
+
+def test_departures_count_the_standing_vehicles_that_drive_off_and_read_a_replayed_log_as_the_log(sample_scenes):
+    """benchmarks/departures.py: rollouts that replay the tokenized log start every standing vehicle that drives off
+    in its log (all rollouts moving at 7-8 s, within tokenization error of its speed); a speed series' first moving
+    time is the first frame above 1 m/s, or 8 s."""
+    from smart_marl.model.checkpoint import load_checkpoint
+
+    drift, dep = _load("prior_speed_drift"), _load("departures")
+    assert dep.first_moving_s(np.array([[0.0, 0.5, 1.5, 3.0], [0.0, 0.0, 0.2, 0.9]])).tolist() == [0.3, 0.4]
+    scene = sample_scenes[1]  # 13 vehicles stand at the current frame, 9 of them drive off in the log
+    ck = load_checkpoint("embedded")
+    replayed = dep.scene_records(drift.rollout_from_log(ck, scene, 16, num_rollouts=2, seed=0), scene)
+    off = [r for r in replayed if r["drives_off"]]
+    assert len(replayed) == 13 and len(off) == 9
+    assert all(r["moving"] == 1.0 for r in off)
+    assert abs(sum(r["rollout"] for r in off) / sum(r["log"] for r in off) - 1) < 0.05
+    row = dep.summarise(replayed, {})
+    assert row["drive_off_in_log"] == 9 and row["rollouts_moving"] == 1.0
+
 def test_map_view_measures_the_nearest_pieces_the_model_takes(sample_scenes):
     """benchmarks/map_view.py: on a straight road of pieces every 2 m along a moving vehicle's heading, taking its 8
     nearest within 30 m it sees 7 m around it and 7 m ahead; taking 100, the radius binds (29 m, the last piece)."""
