@@ -47,7 +47,8 @@ from ..readers import expand_paths, read_scenarios
 from ..readers.scene_cache import atomic_write, file_sha256
 from ..rollout import DEFAULT_TOP_K, rollout
 from ..version import __version__
-from .arguments import collision_avoidance_flag, device, stop_lines_flag, non_negative_int, output_dir, positive_int, reader_formats, rollouts, seed, temperature
+from .arguments import (collision_avoidance_flag, device, non_negative_int, output_dir, positive_int, reader_formats, rollouts, seed,
+                        stop_lines_flag, temperature)
 
 POLICY_CHOICES = ("constant_velocity", "log_replay", "random", "prior")
 WOSAC_ROLLOUTS = 32
