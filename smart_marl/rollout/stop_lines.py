@@ -71,7 +71,9 @@ def scene_stop_lines(scenario: Scenario) -> tuple[np.ndarray, np.ndarray, np.nda
     for index in stop_sign_lanes(rm):
         start, d = lane_start(index)
         if np.isfinite(d).all():
-            xy.append(start), direction.append(d), light.append(-1)
+            xy.append(start)
+            direction.append(d)
+            light.append(-1)
     return (np.array(xy, np.float32).reshape(-1, 2), np.array(direction, np.float32).reshape(-1, 2),
             np.array(light, np.int64))
 
@@ -161,14 +163,15 @@ def stop_line_test(state, rows: torch.Tensor):
     indices) of ``state``, or None when no vehicle among them has an active line ahead."""
     n = state.num_slots
     g, s = rows // n, rows % n
-    vehicle = state.agent_type[g, s] == 0
-    dist, _ = nearest_line(state, g, s)
-    held = (vehicle & torch.isfinite(dist)).nonzero().squeeze(1)
+    vehicle = (state.agent_type[g, s] == 0).nonzero().squeeze(1)  # lines hold vehicles only: the others are not measured
+    dist, _ = nearest_line(state, g[vehicle], s[vehicle])
+    ahead = torch.isfinite(dist)
+    held, dist = vehicle[ahead], dist[ahead]
     if not len(held):
         return None
     end_x, end_v = state.stop_token_ends
     kind = state.agent_type[g[held], s[held]]
-    front = dist[held] - state.agent_shape[g[held], s[held], 0].to(dist.dtype) / 2  # [H] bumper to line
+    front = dist - state.agent_shape[g[held], s[held], 0].to(dist.dtype) / 2  # [H] bumper to line
     room = front[:, None] - end_x[kind]  # [H, V]
     need = end_v[kind] ** 2 / (2 * room.clamp(min=0.05))
     need = need.masked_fill(room < -OVERRUN_M, float("inf"))
