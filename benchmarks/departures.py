@@ -19,18 +19,14 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import prior_speed_drift as drift  # noqa: E402  (benchmarks/ is not a package)
 
-from smart_marl.commands.arguments import stop_lines_flag  # noqa: E402
-from smart_marl.model.checkpoint import load_prior  # noqa: E402
-from smart_marl.rollout import DEFAULT_TOP_K  # noqa: E402
 from smart_marl.scenario import AgentType  # noqa: E402
 
-FRAMES, LATE = 80, 10  # 8 s at 10 Hz; the last second
+FRAMES, LATE = drift.NUM_FRAMES, 10  # 8 s at 10 Hz; the last second
 STANDING_MPS, DRIVES_OFF_MPS, MOVING_MPS = 0.5, 3.0, 1.0
 
 
@@ -94,34 +90,14 @@ def summarise(records: list[dict], common: dict) -> dict:
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--prior", default="embedded")
-    ap.add_argument("--set", dest="sets", action="append", metavar="NAME=PATH[,PATH...]",
-                    help="a named set of scenes; repeatable (default: the shared real 91-frame scenes)")
-    ap.add_argument("--rollouts", type=int, default=8)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--sampling", default="default", choices=("default", "plain"))
-    ap.add_argument("--top-k", type=int, default=DEFAULT_TOP_K, help="the prior's top-k (0: the whole distribution)")
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--max-scenes", type=int, default=0, help="the first N scenes of each set (0: all)")
-    ap.add_argument("--lights", default="current", choices=("current", "log"),
-                    help="the light states the prior sees: the current frame's, held, or the log's at every step")
-    stop_lines_flag(ap)
+    drift.vehicle_rollout_arguments(ap, rollouts=8)
     args = ap.parse_args(argv)
-    torch.set_num_threads(args.threads)
-    model, _ = load_prior(args.prior)
-    sets = drift.scene_sets(args.sets or [f"real={','.join(str(drift.SHARED / p) for p in drift.REAL_91_FRAMES)}"])
+    model, sets, rollout_kwargs, fields = drift.vehicle_rollout_sets(args)
     for name, scenes in sets.items():
-        scenes = scenes[: args.max_scenes] if args.max_scenes else scenes
         records = []
         for scene in scenes:
-            res = drift.rollout_from_log(model, scene, num_steps=FRAMES // 5, num_rollouts=args.rollouts, seed=args.seed,
-                                         top_k=args.top_k, avoid_collisions=args.sampling == "default", stop_lines=args.stop_lines,
-                                         lights=args.lights)
-            records += scene_records(res, scene)
-        common = {"benchmark": "departures", "set": name, "scenes": len(scenes), "prior": args.prior, "sampling": args.sampling,
-                  "top_k": args.top_k, "seed": args.seed, "rollouts": args.rollouts, "lights": args.lights,
-                  "stop_lines": args.stop_lines}
-        print(json.dumps(summarise(records, common)), flush=True)
+            records += scene_records(drift.rollout_from_log(model, scene, **rollout_kwargs), scene)
+        print(json.dumps(summarise(records, {"benchmark": "departures", "set": name, "scenes": len(scenes), **fields})), flush=True)
 
 
 if __name__ == "__main__":

@@ -60,7 +60,7 @@ import torch
 
 from smart_marl.commands.arguments import collision_avoidance_flag, stop_lines_flag
 from smart_marl.model.batch import collate_scenes, scene_road, scene_tensors
-from smart_marl.model.checkpoint import load_checkpoint
+from smart_marl.model.checkpoint import load_checkpoint, load_prior
 from smart_marl.model.losses import TREND_BAND  # "keeps": within this share of the speed now (the training weights' band)
 from smart_marl.readers import read_scenarios
 from smart_marl.rollout import DEFAULT_TOP_K, RolloutState, collect_result
@@ -153,6 +153,37 @@ def log_steps_flag(ap: argparse.ArgumentParser) -> None:
     """``--log-steps S`` (:func:`rollout_from_log`), for the benchmarks that roll scenes out."""
     ap.add_argument("--log-steps", type=int, default=0,
                     help="the first this many token steps (0.5 s each) of every agent follow its log, then the prior drives")
+
+
+def vehicle_rollout_arguments(ap: argparse.ArgumentParser, rollouts: int) -> None:
+    """The arguments of the benchmarks that follow vehicles through rollouts of scene sets (``slowing_causes.py``,
+    ``departures.py``): the prior, the sets, rollouts, seed, sampling, top-k, threads, lights, a scene cap, stop lines."""
+    ap.add_argument("--prior", default="embedded")
+    ap.add_argument("--set", dest="sets", action="append", metavar="NAME=PATH[,PATH...]",
+                    help="a named set of scenes; repeatable (default: the shared real 91-frame scenes)")
+    ap.add_argument("--rollouts", type=int, default=rollouts)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--sampling", default="default", choices=("default", "plain"))
+    ap.add_argument("--top-k", type=int, default=DEFAULT_TOP_K, help="the prior's top-k (0: the whole distribution)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--lights", default="current", choices=("current", "log"),
+                    help="the light states the prior sees: the current frame's, held, or the log's at every step")
+    ap.add_argument("--max-scenes", type=int, default=0, help="the first N scenes of each set (0: all)")
+    stop_lines_flag(ap)
+
+
+def vehicle_rollout_sets(args):
+    """For :func:`vehicle_rollout_arguments`' ``args``: (the prior, {set name: scenes}, the keyword arguments of
+    :func:`rollout_from_log`, the fields every JSON line carries); sets threads."""
+    torch.set_num_threads(args.threads)
+    model, _ = load_prior(args.prior)
+    sets = scene_sets(args.sets or [f"real={','.join(str(SHARED / p) for p in REAL_91_FRAMES)}"])
+    sets = {name: scenes[: args.max_scenes] if args.max_scenes else scenes for name, scenes in sets.items()}
+    rollout_kwargs = dict(num_steps=NUM_FRAMES // 5, num_rollouts=args.rollouts, top_k=args.top_k, seed=args.seed,
+                          avoid_collisions=args.sampling == "default", lights=args.lights, stop_lines=args.stop_lines)
+    common = {"prior": args.prior, "sampling": args.sampling, "top_k": args.top_k, "seed": args.seed, "rollouts": args.rollouts,
+              "lights": args.lights, "stop_lines": args.stop_lines}
+    return model, sets, rollout_kwargs, common
 
 
 def logged_tokens(state: RolloutState, scene, steps: int) -> torch.Tensor:

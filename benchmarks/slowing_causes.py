@@ -41,7 +41,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -49,11 +48,8 @@ import prior_speed_drift as drift  # noqa: E402  (benchmarks/ is not a package)
 from prior_speed_drift import _speeds_from_positions, rollout_xy  # noqa: E402
 
 from smart_marl.braking import LANE_HALF_M, SAME_DIRECTION_RAD  # noqa: E402
-from smart_marl.commands.arguments import stop_lines_flag  # noqa: E402
-from smart_marl.model.checkpoint import load_prior  # noqa: E402
 from smart_marl.model.losses import TREND_BAND  # noqa: E402
 from smart_marl.road_map import MapFeatureType  # noqa: E402
-from smart_marl.rollout import DEFAULT_TOP_K  # noqa: E402
 from smart_marl.scenario import AgentType, SignalState, wrap_angle  # noqa: E402
 from smart_marl.tokens.motion import MOTION_TYPES  # noqa: E402
 
@@ -213,39 +209,22 @@ def summarise(records: list[dict], common: dict) -> list[dict]:
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--prior", default="embedded")
-    ap.add_argument("--set", dest="sets", action="append", metavar="NAME=PATH[,PATH...]",
-                    help="a named set of scenes; repeatable (default: the shared real 91-frame scenes)")
-    ap.add_argument("--rollouts", type=int, default=4)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--sampling", default="default", choices=("default", "plain"))
-    ap.add_argument("--top-k", type=int, default=DEFAULT_TOP_K)
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--lights", default="current", choices=("current", "log"),
-                    help="the light states the prior sees: the current frame's, held, or the log's at every step")
-    ap.add_argument("--max-scenes", type=int, default=0, help="the first N scenes of each set (0: all)")
+    drift.vehicle_rollout_arguments(ap, rollouts=4)
     drift.log_steps_flag(ap)
-    stop_lines_flag(ap)
     ap.add_argument("--leaders-from-log", action="store_true",
                     help="the leaders of the queued slowing vehicles follow their tokenized log for all 8 s (the followers "
                          "and everyone else the prior); the leaders' own records are left out")
     args = ap.parse_args(argv)
-    torch.set_num_threads(args.threads)
-    model, _ = load_prior(args.prior)
-    sets = drift.scene_sets(args.sets or [f"real={','.join(str(drift.SHARED / p) for p in drift.REAL_91_FRAMES)}"])
+    model, sets, rollout_kwargs, fields = drift.vehicle_rollout_sets(args)
     for name, scenes in sets.items():
-        scenes = scenes[: args.max_scenes] if args.max_scenes else scenes
         records = []
         for scene in scenes:
             leaders = queue_leaders(scene) if args.leaders_from_log else None
-            res = drift.rollout_from_log(model, scene, FRAMES // 5 if leaders is not None else args.log_steps,
-                                         num_steps=FRAMES // 5, tracks=leaders, num_rollouts=args.rollouts, top_k=args.top_k,
-                                         seed=args.seed, avoid_collisions=args.sampling == "default", lights=args.lights,
-                                         stop_lines=args.stop_lines)
+            res = drift.rollout_from_log(model, scene, FRAMES // 5 if leaders is not None else args.log_steps, tracks=leaders,
+                                         **rollout_kwargs)
             records += scene_records(res, scene, skip=leaders)
-        common = {"benchmark": "slowing_causes", "set": name, "scenes": len(scenes), "prior": args.prior, "sampling": args.sampling,
-                  "seed": args.seed, "rollouts": args.rollouts, "lights": args.lights, "log_steps": args.log_steps,
-                  "leaders_from_log": args.leaders_from_log, "stop_lines": args.stop_lines}
+        common = {"benchmark": "slowing_causes", "set": name, "scenes": len(scenes), **fields, "log_steps": args.log_steps,
+                  "leaders_from_log": args.leaders_from_log}
         for row in summarise(records, common):
             print(json.dumps(row), flush=True)
 
