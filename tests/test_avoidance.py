@@ -85,6 +85,26 @@ def test_tokens_ending_in_a_standing_car_are_excluded_most_likely_first_until_k_
     assert excluded_tokens(logits, rows, pose, prev, size, present, types, _poses(ENDS), top_k=1).tolist() == everything.tolist()
 
 
+def test_the_search_stops_at_its_depth_and_a_row_short_of_k_free_tokens_draws_from_the_free_ones_it_found():
+    pose, prev, size, present, types = _scene()
+    # ranked: 5 m (into the car), 8 m (into it), 2 m (free), 0 m (free), left (free)
+    logits = torch.tensor([[4.0, 1.0, 2.0, 3.0, 0.0]])
+    args = (logits, torch.tensor([0]), pose, prev, size, present, types, _poses(ENDS))
+    whole = excluded_tokens(*args, top_k=2, depth=None)
+    assert whole.tolist() == [[True, False, False, True, False]]  # the two blocked ones; 2 m and 0 m are the top 2 left
+    # checked to the 3rd token only: one free (2 m) among them, so it alone may be drawn (the unchecked 0 m and
+    # "left" are excluded with the two that collide)
+    assert excluded_tokens(*args, top_k=2, depth=3).tolist() == [[True, True, False, True, True]]
+    # no free token among the first 2: the search goes on through the whole vocabulary, as without a depth
+    assert torch.equal(excluded_tokens(*args, top_k=2, depth=2), whole)
+    # a top-k draw from the shortened row takes the free token every time
+    tokens, _ = sample_tokens(logits.expand(50, -1), torch.Generator().manual_seed(0), 2,
+                              exclude=excluded_tokens(*args, top_k=2, depth=3).expand(50, -1))
+    assert set(tokens.tolist()) == {2}
+    # top_k <= 0 (the whole distribution) checks every token whatever the depth
+    assert torch.equal(excluded_tokens(*args, top_k=0, depth=2), excluded_tokens(*args, top_k=0, depth=None))
+
+
 def test_pairs_overlapping_now_and_absent_agents_do_not_block():
     pose, prev, size, present, types = _scene()
     # slot 2 (the pedestrian overlapping slot 0 now) stands at (0.5, 0.5): "stay" (token 1) would hit

@@ -357,6 +357,44 @@ def test_the_samplers_search_excludes_what_a_row_by_row_search_excludes(levels):
     assert (got.sum(-1) > SORTED_DEPTH).sum() > 20 and not got[-10:].any()  # deep rows, boxed-in rows left alone
 
 
+@pytest.mark.parametrize("limit", [10, 40, 128])
+def test_a_search_with_a_depth_leaves_the_top_k_of_the_free_tokens_among_each_row_s_first(limit):
+    """What a top-k draw sees after the search with a depth (``limit``): the ``k`` most likely free tokens
+    among a row's first ``limit``; where fewer are free there, those alone; where none is, the ``k`` most
+    likely free tokens of the whole vocabulary, and where none is free at all, the row's own top k (left
+    alone). Rows on a small vocabulary (some smaller than the depth), rows boxed in, rows not checked."""
+    from smart_marl.rollout.avoidance import _exclude_in_order
+
+    g = torch.Generator().manual_seed(limit)
+    m, v, k = 300, 300, 6
+    logits = torch.randn(m, v, generator=g)
+    logits[:30, 20:] = float("-inf")  # a smaller vocabulary
+    finite = torch.isfinite(logits).sum(-1)
+    want = finite.clamp(max=k)
+    blocked = torch.rand(m, v, generator=g) < torch.linspace(0.05, 1.0, m)[:, None] ** 0.2  # deeper rows further down
+    blocked[-10:] = True  # boxed in
+    todo = torch.rand(m, generator=g) < 0.9
+    got = _exclude_in_order(logits, finite, want, todo, lambda r, tok: blocked[r[:, None], tok], limit=limit)
+    kept = torch.topk(logits.masked_fill(got, float("-inf")), k, dim=-1)
+    order = torch.argsort(logits, dim=-1, descending=True)
+    cases = set()
+    for i in range(m):
+        ranked = order[i, :int(finite[i])].tolist()
+        free = [t for t in ranked[:limit] if not blocked[i, t]]
+        free_anywhere = [t for t in ranked if not blocked[i, t]]
+        if not bool(todo[i]) or not free_anywhere:
+            expect = ranked[:int(want[i])]
+            cases.add("left alone" if bool(todo[i]) else "not checked")
+        elif not free:
+            expect = free_anywhere[:int(want[i])]
+            cases.add("searched on")
+        else:
+            expect = free[:int(want[i])]
+            cases.add("short" if len(free) < want[i] and finite[i] > limit else "k free")
+        assert set(kept.indices[i, torch.isfinite(kept.values[i])].tolist()) == set(expect), i
+    assert cases == {"left alone", "not checked", "short", "k free", "searched on"}
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_the_samplers_box_test_with_shared_products_equals_the_separating_axis_test(dtype):
     """Every outcome the same, touching boxes included (the sums are reordered only where exact)."""
