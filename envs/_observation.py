@@ -52,7 +52,7 @@ HISTORY_FRAMES = max(PAST_OFFSETS_FRAMES) + 1  # frames of pose history the envi
 NUM_MAP_TYPES = 7
 ROAD_BLOCK = 8
 """Road points per block of the nearest-road-point search's bound (:func:`nearest_road_points`)."""
-ROAD_CANDIDATES = 48
+ROAD_CANDIDATES = 64
 """Blocks of smallest bound whose points every observation measures first."""
 _RED = {SignalState.ARROW_STOP, SignalState.STOP, SignalState.FLASHING_STOP}
 _YELLOW = {SignalState.ARROW_CAUTION, SignalState.CAUTION, SignalState.FLASHING_CAUTION}

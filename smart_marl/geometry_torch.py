@@ -239,7 +239,7 @@ SEGMENT_BLOCK = 16
 """Segments per block of the nearest-edge search's bound (:meth:`RoadEdgeTensors.blocks`)."""
 
 
-def nearest_road_edge(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: float = Z_STRETCH, candidates: int = 12,
+def nearest_road_edge(points: torch.Tensor, edges: RoadEdgeTensors, z_stretch: float = Z_STRETCH, candidates: int = 20,
                       max_pairs: int = 1 << 20, group: int = 1) -> torch.Tensor:
     """[B, Q] the index of the segment nearest to each point [B, Q, 3] of its scene by 3D distance with z
     stretched (the lowest index on ties), as :func:`smart_marl.geometry.nearest_segment_indices`.

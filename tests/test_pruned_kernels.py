@@ -511,3 +511,14 @@ def test_a_refill_of_some_rows_recomputes_their_search_blocks_alone():
     assert after is not before and after[0].shape[1] > before[0].shape[1]
     want = block_bounds(torch.stack([batch2.edges.start[..., :2], batch2.edges.end[..., :2]], 2), batch2.edges.valid, SEGMENT_BLOCK)
     assert all(torch.equal(a, w) for a, w in zip(after, want))
+
+
+def test_any_rows_read_as_bytes_is_any():
+    from smart_marl.rollout.sampling import any_rows
+
+    g = torch.Generator().manual_seed(0)
+    for shape in [(5, 0), (0, 5), (3, 7), (300, 1024), (2, 3, 4)]:
+        mask = torch.rand(shape, generator=g) < 0.01
+        assert torch.equal(any_rows(mask), mask.any(-1)), shape
+    strided = (torch.rand(10, 40, generator=g) < 0.05)[:, ::3]
+    assert torch.equal(any_rows(strided), strided.any(-1))

@@ -40,6 +40,7 @@ import torch
 from ..geometry_torch import boxes_overlap
 from ..tokens import FRAMES_PER_TOKEN
 from .frames import token_frames
+from .sampling import any_rows
 
 NEIGHBOURS = 16
 """How many nearest agents (by distance to where they will be) each sampling agent is checked against."""
@@ -208,7 +209,7 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     gap = apart - travel[gi]  # [M, N] nearest they come
     maybe = present[gi] & (gap < reach[:, None] + own_r[:, None] + radius[gi])
     maybe[torch.arange(m, device=rows.device), si] = False
-    sub = (maybe.any(-1) | (also is not None)).nonzero().squeeze(1)
+    sub = (any_rows(maybe) | (also is not None)).nonzero().squeeze(1)
     if not len(sub):
         return out
     logits, rows, gi, si, head, tied = logits[sub], rows[sub], gi[sub], si[sub], head[sub], tied[sub]

@@ -43,6 +43,12 @@ speed at 8 s 0.89-0.90 against 0.85-0.87 over three seeds); smaller k costs kine
 costs speed and, beyond 8, interactive realism."""
 
 
+def any_rows(mask: torch.Tensor) -> torch.Tensor:
+    """``mask.any(-1)`` of a bool tensor, read as bytes (the same result; on the CPU a bool reduction over
+    a [1200, 1024] mask takes 0.4 ms, the bytes' maximum 0.02)."""
+    return mask.contiguous().view(torch.uint8).amax(-1).bool() if mask.shape[-1] else mask.any(-1)
+
+
 def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int = DEFAULT_TOP_K, temperature: float = 1.0,
                   forced: torch.Tensor | None = None, exclude: torch.Tensor | None = None,
                   top: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -70,7 +76,7 @@ def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int =
         top_val, top_idx = torch.topk(flat, k, dim=-1)  # (M, k), -inf entries (beyond the type's size) get zero probability
     if exclude is not None:  # the top k of the rows that lose a token (topk is row by row: the others' stay as they are)
         ex = exclude.reshape(-1, v)
-        r = ex.any(-1).nonzero().squeeze(1)
+        r = any_rows(ex).nonzero().squeeze(1)
         if len(r):
             top_val[r], top_idx[r] = torch.topk(flat[r].masked_fill_(ex[r], float("-inf")), k, dim=-1)
     probs = torch.softmax(top_val, dim=-1)
