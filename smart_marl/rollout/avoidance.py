@@ -205,22 +205,27 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     reach = token_reach(token_poses)[agent_type[gi, si][:, None], first].amax(-1)  # [M] farthest a first token goes
     radius = half.norm(dim=-1)  # [G, N] half diagonals
     own_xy, own_r = pose[gi, si, :2], radius[gi, si]
-    apart = (pose[gi][:, :, :2] - own_xy[:, None]).norm(dim=-1)  # [M, N] how far apart they are now
+    apart = (pose[:, :, :2][gi] - own_xy[:, None]).norm(dim=-1)  # [M, N] how far apart they are now
     gap = apart - travel[gi]  # [M, N] nearest they come
-    maybe = present[gi] & (gap < reach[:, None] + own_r[:, None] + radius[gi])
+    there, other_r = present[gi], radius[gi]  # [M, N]
+    maybe = there & (gap < reach[:, None] + own_r[:, None] + other_r)
     maybe[torch.arange(m, device=rows.device), si] = False
     sub = (any_rows(maybe) | (also is not None)).nonzero().squeeze(1)
     if not len(sub):
         return out
     logits, rows, gi, si, head, tied = logits[sub], rows[sub], gi[sub], si[sub], head[sub], tied[sub]
-    apart, gap = apart[sub], gap[sub]
+    apart, gap, there, other_r, own_r = apart[sub], gap[sub], there[sub], other_r[sub], own_r[sub]
     m = len(sub)
-    # 2. each such row's NEIGHBOURS nearest present others, not overlapping it now
+    # 2. each such row's NEIGHBOURS nearest present others, not overlapping it now (the exact box test
+    # where the centres are closer than the two half diagonals, as :func:`boxes_overlap_near`)
     own_pose, own_before, own_half, own_type = pose[gi, si], previous_pose[gi, si], half[gi, si], agent_type[gi, si]
-    dist = (ahead[gi][:, :, :2] - own_pose[:, None, :2]).norm(dim=-1)  # [M, N]
-    others, there = pose[gi], present[gi]  # [M, N, 3], [M, N]
-    blocked_now = boxes_overlap_near(own_pose[:, None, :2], own_pose[:, None, 2], own_half[:, None], others[:, :, :2],
-                                     others[:, :, 2], half[gi], where=there, apart=apart)
+    dist = (ahead[:, :, :2][gi] - own_pose[:, None, :2]).norm(dim=-1)  # [M, N]
+    cr, cj = (there & (apart < own_r[:, None] + other_r)).nonzero(as_tuple=True)
+    blocked_now = torch.zeros_like(there)
+    if len(cr):
+        cg = gi[cr]
+        blocked_now[cr, cj] = boxes_overlap(own_pose[cr, :2], own_pose[cr, 2], own_half[cr], pose[cg, cj, :2], pose[cg, cj, 2],
+                                            half[cg, cj])
     usable = there & ~blocked_now
     usable[torch.arange(m, device=rows.device), si] = False
     near_d, near = torch.topk(dist.masked_fill(~usable, float("inf")), min(NEIGHBOURS, n - 1), dim=-1, largest=False)
@@ -332,7 +337,7 @@ def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Te
         if start + chunk > order.shape[1] and order.shape[1] < v:
             # deeper than ranked so far: rank everything and check these rows again from the top
             # (the full ranking may order tied logits differently)
-            order = torch.zeros(m, v, dtype=torch.long, device=logits.device)  # rows done by now are not read again
+            order = torch.empty(m, v, dtype=torch.long, device=logits.device)  # rows done by now are not read again
             order[r] = torch.sort(logits[r], dim=-1, descending=True, stable=True).indices
             excluded[r], passed[r], start = False, 0, 0
             ranked[:] = True
@@ -357,5 +362,7 @@ def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Te
                 excluded[short] = torch.ones(len(short), v, dtype=torch.bool, device=logits.device).scatter_(
                     1, first, excluded[short].gather(1, first))
                 todo[short] = False
-    excluded[checked & (passed == 0)] = False  # every token of the row rejected (or none to check)
+    alone = (checked & (passed == 0)).nonzero().squeeze(1)  # every token of the row rejected (or none to check)
+    if len(alone):
+        excluded.index_fill_(0, alone, False)
     return excluded

@@ -431,11 +431,12 @@ class RolloutState:
         log_probs = torch.zeros(g * n, device=self.device)
         log_probs[rows] = logp_rows
         tokens, log_probs = tokens.view(g, n), log_probs.view(g, n)
-        # place each token's poses at the slot's current pose
-        local = self.token_poses[self.agent_type, tokens.clamp(min=0)]  # (G, N, 6, 3)
-        placed = token_frames(local, self.pose, self.previous_pose, self.interpolation)  # (G, N, 5, 3)
-        new_pose = torch.where(sim[..., None], placed[:, :, -1], self.pose)
-        placed = torch.where(sim[:, :, None, None], placed, self.pose[:, :, None, :])
+        # place each simulated slot's token at its current pose (the other slots stay where they are)
+        placed = self.pose[:, :, None, :].expand(g, n, FRAMES_PER_TOKEN, 3).clone()  # (G, N, 5, 3)
+        local = self.token_poses[self.agent_type.reshape(-1)[rows], tok_rows]  # (R, 6, 3)
+        placed.view(g * n, FRAMES_PER_TOKEN, 3)[rows] = token_frames(local, self.pose.reshape(-1, 3)[rows],
+                                                                      self.previous_pose.reshape(-1, 3)[rows], self.interpolation)
+        new_pose = placed[:, :, -1].clone()
         start = self.pose
         self.previous_pose = torch.where(sim[..., None], self.pose, self.previous_pose)
         self._pending = (tokens.clamp(min=0), start, new_pose, sim.clone())
