@@ -114,8 +114,8 @@ def frames_collide(frames: torch.Tensor, own_xy: torch.Tensor, own_half: torch.T
     d = other_xy.reshape(r * k, f, 2).index_select(0, other) - own_frames[..., :2]  # [P, F, 2]
     # the exact test where the centres are closer than the two half diagonals (:func:`boxes_overlap_near`)
     close = d.norm(dim=-1) < (own_r.index_select(0, pi) + other_r.reshape(-1).index_select(0, other))[:, None]  # [P, F]
-    q = close.reshape(-1).nonzero().squeeze(1)  # [Q] flat (pair, frame)
-    p, fr = q // f, q % f
+    p, fr = close.nonzero(as_tuple=True)  # [Q] the (pair, frame) to test exactly
+    q = p * f + fr  # flat
     heading = own_frames.reshape(-1, 3).index_select(0, q)[:, 2]
     row, at = pi.index_select(0, p), other.index_select(0, p)
     slot = at * fo + fr.clamp(max=fo - 1)  # the other's heading on that frame (or its one heading)
@@ -130,17 +130,19 @@ def frames_collide(frames: torch.Tensor, own_xy: torch.Tensor, own_half: torch.T
 def _overlap_sat(d: torch.Tensor, ca: torch.Tensor, sa: torch.Tensor, a_half: torch.Tensor, cb: torch.Tensor, sb: torch.Tensor,
                  b_half: torch.Tensor) -> torch.Tensor:
     """:func:`~smart_marl.geometry_torch.boxes_overlap_rotated`, bit for bit, with fewer operations: of
-    the eight direction products its four axes read, two are a box's own (``ca * ca + sa * sa`` ...)
-    and the others are, up to sign and the order of commutative terms (exact in floating point),
-    ``ca * cb + sa * sb`` and ``sa * cb - ca * sb``; each is computed once."""
+    the eight direction products its four axes read, two are a box's own and the others are, up to sign
+    and the order of commutative terms (exact in floating point), ``ca * cb + sa * sb`` and
+    ``sa * cb - ca * sb``; each is computed once. A box's own products on its own axes are
+    ``ca * ca + sa * sa`` (exactly so: ``ca * ca - (-sa) * sa`` is the same sum) and ``sa * ca - ca * sa``,
+    which is exactly 0 (one product subtracted from itself), so its term drops out (half sizes are
+    finite)."""
     a0, a1, b0, b1 = a_half[..., 0], a_half[..., 1], b_half[..., 0], b_half[..., 1]
     p1 = (ca * cb + sa * sb).abs()
     p2 = (sa * cb - ca * sb).abs()
     nsa, nsb = -sa, -sb
-    own_a1 = a0 * (ca * ca + sa * sa).abs() + a1 * (sa * ca - ca * sa).abs()  # axis (ca, sa)
-    own_a2 = a0 * (nsa * ca + ca * sa).abs() + a1 * (ca * ca - nsa * sa).abs()  # axis (-sa, ca)
-    own_b3 = b0 * (cb * cb + sb * sb).abs() + b1 * (sb * cb - cb * sb).abs()  # axis (cb, sb)
-    own_b4 = b0 * (nsb * cb + cb * sb).abs() + b1 * (cb * cb - nsb * sb).abs()  # axis (-sb, cb)
+    unit_a, unit_b = ca * ca + sa * sa, cb * cb + sb * sb  # each box's own axis, projected on itself
+    own_a1, own_a2 = a0 * unit_a, a1 * unit_a  # axes (ca, sa) and (-sa, ca)
+    own_b3, own_b4 = b0 * unit_b, b1 * unit_b  # axes (cb, sb) and (-sb, cb)
     dx, dy = d[..., 0], d[..., 1]
     hit = (dx * ca + dy * sa).abs() < own_a1 + (b0 * p1 + b1 * p2)
     hit &= (dx * nsa + dy * ca).abs() < own_a2 + (b0 * p2 + b1 * p1)

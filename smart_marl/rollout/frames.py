@@ -46,10 +46,23 @@ def hermite_frames(before: torch.Tensor, start: torch.Tensor, end: torch.Tensor)
     lead_xy = lead[..., :2] * (limit_xy / lead[..., :2].norm(dim=-1, keepdim=True).clamp(min=1e-9)).clamp(max=1.0)
     lead_h = torch.maximum(torch.minimum(lead[..., 2:], MAX_LEAD * chord[..., 2:].abs()), -MAX_LEAD * chord[..., 2:].abs())
     lead = torch.cat([lead_xy, lead_h], -1)
-    s = _HERMITE_S.to(start.device, start.dtype)[:, None]  # (4, 1)
-    h10, h01_plus_h11 = s**3 - 2 * s**2 + s, 2 * s**2 - s**3  # Hermite basis; the end tangent is the chord itself
+    h10, h01_plus_h11 = _hermite_basis(start.device, start.dtype)
     out = start[..., None, :] + h10 * lead[..., None, :] + h01_plus_h11 * chord[..., None, :]
     return torch.cat([out[..., :2], wrap_angle(out[..., 2:])], -1)
+
+
+_BASIS: dict = {}
+
+
+def _hermite_basis(device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Hermite basis at the in-between frames, (4, 1) each: ``h10`` (the start tangent's) and
+    ``h01 + h11`` (the end point's and the end tangent's, which is the chord itself); computed once per
+    device and dtype."""
+    key = (str(device), dtype)
+    if key not in _BASIS:
+        s = _HERMITE_S.to(device, dtype)[:, None]
+        _BASIS[key] = (s**3 - 2 * s**2 + s, 2 * s**2 - s**3)
+    return _BASIS[key]
 
 
 def compose_torch(origin: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
