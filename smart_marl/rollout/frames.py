@@ -36,19 +36,22 @@ def hermite_frames(before: torch.Tensor, start: torch.Tensor, end: torch.Tensor)
     consecutive tokens join with continuous velocity and yaw rate. The start tangent is capped at
     ``MAX_LEAD`` times the token's displacement (position and heading separately) so that the curve
     never overshoots its end. Headings are unwrapped along the way and wrapped back."""
-    chord = torch.cat([end[..., :2] - start[..., :2], wrap_angle(end[..., 2:] - start[..., 2:])], -1)
-    lead = torch.cat([start[..., :2] - before[..., :2], wrap_angle(start[..., 2:] - before[..., 2:])], -1)
+    chord, lead = end - start, start - before
+    chord[..., 2:] = wrap_angle(chord[..., 2:])
+    lead[..., 2:] = wrap_angle(lead[..., 2:])
     lead = torch.where(torch.isnan(lead), chord, lead)
     # no overshoot: a tangent at most 2.8x the token's own displacement (the Fritsch-Carlson bound for
     # a monotone cubic), in position and in heading, so that a token that stops or stops turning
     # does not first run on and come back
     limit_xy = MAX_LEAD * chord[..., :2].norm(dim=-1, keepdim=True)
     lead_xy = lead[..., :2] * (limit_xy / lead[..., :2].norm(dim=-1, keepdim=True).clamp(min=1e-9)).clamp(max=1.0)
-    lead_h = torch.maximum(torch.minimum(lead[..., 2:], MAX_LEAD * chord[..., 2:].abs()), -MAX_LEAD * chord[..., 2:].abs())
+    cap_h = MAX_LEAD * chord[..., 2:].abs()
+    lead_h = torch.maximum(torch.minimum(lead[..., 2:], cap_h), -cap_h)
     lead = torch.cat([lead_xy, lead_h], -1)
     h10, h01_plus_h11 = _hermite_basis(start.device, start.dtype)
     out = start[..., None, :] + h10 * lead[..., None, :] + h01_plus_h11 * chord[..., None, :]
-    return torch.cat([out[..., :2], wrap_angle(out[..., 2:])], -1)
+    out[..., 2:] = wrap_angle(out[..., 2:])
+    return out
 
 
 _BASIS: dict = {}
