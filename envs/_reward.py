@@ -100,12 +100,15 @@ def collisions(ctrl_track: torch.Tensor, live: torch.Tensor, frames: torch.Tenso
     # NaN (no bound) keeps the pair; the margin covers rounding: only more pairs
     near = other & present[:, None] & live[..., None] & ~(lower >= limit + 1e-3 + 1e-5 * (apart + limit))
     qb, qc, qn = near.nonzero(as_tuple=True)
-    dist = (mine[qb, qc, :, :2] - frames[qb, qn, :, :2]).norm(dim=-1)  # [P, F]
+    f = frames.shape[2]  # the pairs' frames as whole rows of flat views (one index each: a fast gather)
+    mine_q = mine.reshape(b * c, f, 3).index_select(0, qb * c + qc)
+    other_q = frames.reshape(b * n, f, 3).index_select(0, qb * n + qn)
+    dist = (mine_q[..., :2] - other_q[..., :2]).norm(dim=-1)  # [P, F]
     p, fi = (dist < (my_reach[qb, qc] + reach[qb, qn])[:, None]).nonzero(as_tuple=True)
     bi, ci, ni = qb[p], qc[p], qn[p]
     out = torch.zeros(b, c, dtype=torch.bool, device=frames.device)
     if len(bi):
-        pa, pb = mine[bi, ci, fi], frames[bi, ni, fi]
+        pa, pb = mine_q[p, fi], other_q[p, fi]
         hit = rounded_boxes_overlap(pa[:, :2], pa[:, 2], my_size[bi, ci], pb[:, :2], pb[:, 2], box_size[bi, ni, :2])
         out[bi[hit], ci[hit]] = True
     return out
