@@ -217,8 +217,8 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     sub = (any_rows(maybe) | (also is not None)).nonzero().squeeze(1)
     if not len(sub):
         return out
-    logits, rows, gi, si, head, tied = logits[sub], rows[sub], gi[sub], si[sub], head[sub], tied[sub]
-    apart, gap, there, other_r, own_r = apart[sub], gap[sub], there[sub], other_r[sub], own_r[sub]
+    logits, rows, gi, si, head, tied, apart, gap, there, other_r, own_r = (
+        t.index_select(0, sub) for t in (logits, rows, gi, si, head, tied, apart, gap, there, other_r, own_r))
     m = len(sub)
     # 2. each such row's NEIGHBOURS nearest present others, not overlapping it now (the exact box test
     # where the centres are closer than the two half diagonals, as :func:`boxes_overlap_near`)
