@@ -136,6 +136,16 @@ class RoadEdgeTensors:
         return kept(self, "_blocks", (self.start, self.end, self.valid),
                     lambda i=slice(None): _segment_blocks(self.start[i], self.end[i], self.valid[i], size), size, by_rows=True)
 
+    def columns(self) -> tuple[torch.Tensor, ...]:
+        """The segments as seven [B, S] columns, kept as :meth:`blocks` is: the start's x, y and z, the
+        direction ``end - start``'s x, y and z, and its squared 2D length (what every distance to the segment
+        reads; contiguous, so the searches gather them with one index each)."""
+        def compute(i=slice(None)):
+            start, e = self.start[i], self.end[i] - self.start[i]
+            denom = e[..., 0] ** 2 + e[..., 1] ** 2
+            return tuple(t.contiguous() for t in (start[..., 0], start[..., 1], start[..., 2], e[..., 0], e[..., 1], e[..., 2], denom))
+        return kept(self, "_columns", (self.start, self.end), compute, by_rows=True)
+
 
 def kept(owner, name: str, inputs: tuple[torch.Tensor, ...], compute, *extra, by_rows: bool = False):
     """``compute()``, kept in ``owner`` (under ``name``) until one of the tensors ``inputs`` is replaced
@@ -226,15 +236,6 @@ def _cross(ax, ay, bx, by):
     return ax * by - ay * bx
 
 
-def _stretched_distance2(points: torch.Tensor, start: torch.Tensor, end: torch.Tensor, z_stretch: float) -> torch.Tensor:
-    """Squared 3D distance (z stretched) from points [..., 3] to segments start-end [..., 3] (broadcast)."""
-    sp, e = points - start, end - start
-    denom = e[..., 0] ** 2 + e[..., 1] ** 2
-    t = torch.where(denom > 0, (sp[..., 0] * e[..., 0] + sp[..., 1] * e[..., 1]) / denom.clamp_min(1e-30), torch.zeros_like(denom))
-    d = sp - e * t.clamp(0.0, 1.0)[..., None]
-    return d[..., 0] ** 2 + d[..., 1] ** 2 + (z_stretch * d[..., 2]) ** 2
-
-
 SEGMENT_BLOCK = 16
 """Segments per block of the nearest-edge search's bound (:meth:`RoadEdgeTensors.blocks`)."""
 
@@ -295,8 +296,14 @@ def _nearest_in_blocks(points: torch.Tensor, scene: torch.Tensor, blocks: torch.
     inside = seg < s
     seg = torch.where(inside, seg, torch.zeros_like(seg))
     flat = (scene[:, None] * s + seg).reshape(-1)  # rows of the flattened edges (one index: a fast gather)
-    start, end = (t.reshape(-1, 3).index_select(0, flat).view(seg.shape[0], 1, seg.shape[1], 3) for t in (edges.start, edges.end))
-    d2 = _stretched_distance2(points[:, :, None], start, end, z_stretch)  # [U, g, m * block]
+    # the squared 3D distance (z stretched) from each point to each segment, on the segments' columns (contiguous, not
+    # strided [..., 3] views): [U, g, m * block]
+    sx, sy, sz, ex, ey, ez, denom = (t.reshape(-1).index_select(0, flat).view(seg.shape[0], 1, seg.shape[1]) for t in edges.columns())
+    px, py, pz = (points[..., c, None] for c in range(3))  # [U, g, 1]
+    spx, spy, spz = px - sx, py - sy, pz - sz
+    t = torch.where(denom > 0, (spx * ex + spy * ey) / denom.clamp_min(1e-30), torch.zeros_like(denom)).clamp(0.0, 1.0)
+    dx, dy, dz = spx - ex * t, spy - ey * t, spz - ez * t
+    d2 = dx ** 2 + dy ** 2 + (z_stretch * dz) ** 2
     d2 = d2.masked_fill(~(inside & edges.valid.reshape(-1).index_select(0, flat).view(seg.shape))[:, None], float("inf"))
     best = d2.argmin(-1, keepdim=True)
     return seg[:, None].expand_as(d2).gather(-1, best)[..., 0], d2.gather(-1, best)[..., 0].sqrt()
