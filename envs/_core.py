@@ -167,6 +167,7 @@ class TrafficCore:
         self.prior = None
         if self.model is not None:
             self.prior = stack_states(self._prior_starts(scenes), seed)
+            self.prior.log_probs_of = "forced"  # the controlled agents' log-probabilities are read, the background's are not
             self._map_slots(list(range(b)))
 
     def refill(self, rows: Sequence[int], scenes: Sequence[CoreScene]) -> None:

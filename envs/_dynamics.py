@@ -47,7 +47,7 @@ class Motion:
 
     frames: torch.Tensor  # [B, N, 5, 3] x, y, heading on the step's 5 frames (local frame)
     present: torch.Tensor  # [B, N] bool, present after the step
-    action_log_prob: torch.Tensor  # [B, N] the prior's log-probability of the track's token (0 without one)
+    action_log_prob: torch.Tensor  # [B, N] the prior's log-probability of a forced (controlled) track's token, else 0
 
 
 def log_frames(scenes: SceneBatch, frame: torch.Tensor, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

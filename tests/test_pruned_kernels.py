@@ -522,3 +522,21 @@ def test_any_rows_read_as_bytes_is_any():
         assert torch.equal(any_rows(mask), mask.any(-1)), shape
     strided = (torch.rand(10, 40, generator=g) < 0.05)[:, ::3]
     assert torch.equal(any_rows(strided), strided.any(-1))
+
+
+def test_the_sampler_s_log_probabilities_of_the_forced_rows_only_are_those_of_every_row():
+    from smart_marl.rollout.sampling import sample_tokens
+
+    g = torch.Generator().manual_seed(0)
+    logits = torch.randn(300, 64, generator=g)
+    logits[:40, 32:] = float("-inf")
+    forced = torch.full((300,), -1, dtype=torch.long)
+    forced[::7] = torch.randint(0, 32, (len(forced[::7]),), generator=g)
+    for temperature in (1.0, 0.7):
+        tok_all, lp_all = sample_tokens(logits, torch.Generator().manual_seed(1), 6, temperature, forced)
+        tok, lp = sample_tokens(logits, torch.Generator().manual_seed(1), 6, temperature, forced, log_probs_of="forced")
+        assert torch.equal(tok, tok_all)
+        assert torch.equal(lp[forced >= 0], lp_all[forced >= 0]) and not lp[forced < 0].any() and lp_all[forced < 0].ne(0).all()
+    assert not sample_tokens(logits, torch.Generator().manual_seed(1), 6, log_probs_of="forced")[1].any()  # nothing forced
+    with pytest.raises(ValueError, match="log_probs_of"):
+        sample_tokens(logits, torch.Generator().manual_seed(1), 6, log_probs_of="some")

@@ -178,7 +178,8 @@ class RolloutState:
     tokens), ``valid`` / ``simulated`` [G, N], ``current_pose`` [G, N, 3] (local frame),
     ``generator`` (the sampler's ``torch.Generator``; replace it to reseed), ``num_groups``,
     ``num_slots``, ``step_index`` (token steps taken), ``scenes``, ``mode``, ``cache`` (the model's
-    :class:`~smart_marl.model.MotionCache` in mode "cached"). :meth:`run` steps in a loop,
+    :class:`~smart_marl.model.MotionCache` in mode "cached"), ``log_probs_of`` (``"all"``; ``"forced"``: the
+    forced slots' :attr:`StepOutput.log_probs` only, 0 elsewhere, for the environments). :meth:`run` steps in a loop,
     :meth:`fork` copies a state. Slots that are never simulated (agents seen in the history but gone at the current frame) are
     kept as context: the history's features of the others depend on them.
     """
@@ -197,7 +198,7 @@ class RolloutState:
         self.model, self.vocab, self.mode, self.interpolation = model, vocab, mode, interpolation
         self.scenes = list(scenes)
         self.top_k, self.temperature = int(top_k), float(temperature)
-        self.avoid_collisions, self.stop_lines = bool(avoid_collisions), bool(stop_lines)
+        self.avoid_collisions, self.stop_lines, self.log_probs_of = bool(avoid_collisions), bool(stop_lines), "all"
         self.device = torch.device(device)
         self.generator = torch.Generator(device=self.device).manual_seed(int(seed))
         self.num_rollouts = r = int(num_rollouts)
@@ -426,7 +427,7 @@ class RolloutState:
                                             top=None if top is None else (top.values[at], top.indices[at]),
                                             vocab_sizes=self.vocab_sizes)
         tok_rows, logp_rows = sample_tokens(row_logits, self.generator, self.top_k, self.temperature, forced_rows, exclude,
-                                            None if top is None else (top.values, top.indices))
+                                            None if top is None else (top.values, top.indices), self.log_probs_of)
         tokens = torch.full((g * n,), -1, dtype=torch.long, device=self.device)
         tokens[rows] = tok_rows
         log_probs = torch.zeros(g * n, device=self.device)

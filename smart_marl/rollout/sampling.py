@@ -51,7 +51,8 @@ def any_rows(mask: torch.Tensor) -> torch.Tensor:
 
 def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int = DEFAULT_TOP_K, temperature: float = 1.0,
                   forced: torch.Tensor | None = None, exclude: torch.Tensor | None = None,
-                  top: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                  top: tuple[torch.Tensor, torch.Tensor] | None = None,
+                  log_probs_of: str = "all") -> tuple[torch.Tensor, torch.Tensor]:
     """Top-k sampling with renormalised probabilities.
 
     logits [..., V] (``-inf`` for tokens outside the agent's vocabulary; a row must have at
@@ -61,6 +62,8 @@ def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int =
     ``log_softmax(logits / temperature)``, the distribution before ``exclude``). ``top``:
     ``torch.topk(logits, top_k + 1)`` [M, k + 1] where the caller has it (read, at temperature 1, instead
     of ranking again; rows with equal values among them are ranked again, so the draw is the same).
+    ``log_probs_of``: ``"all"`` rows, or ``"forced"`` rows only (the others' log-probability is 0; the
+    ``log_softmax`` over [M, V] is the sampler's largest cost after ranking).
     """
     if temperature <= 0:
         raise ValueError(f"temperature must be > 0, got {temperature}")
@@ -68,7 +71,6 @@ def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int =
     flat = logits.reshape(-1, v)  # (M, V)
     if temperature != 1.0:  # dividing by 1 changes nothing (and is a pass over [M, V])
         flat = flat / temperature
-    logp = torch.log_softmax(flat, dim=-1)
     k = v if top_k is None or top_k <= 0 else min(int(top_k), v)
     if top is not None and temperature == 1.0 and k < v:
         top_val, top_idx = _first_k(flat, top, k)
@@ -88,7 +90,14 @@ def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int =
     if forced is not None:
         f = forced.reshape(-1).to(tokens.device)
         tokens = torch.where(f >= 0, f, tokens)
-    log_probs = logp.gather(1, tokens[:, None]).squeeze(1)
+    if log_probs_of not in ("all", "forced"):
+        raise ValueError(f"log_probs_of must be 'all' or 'forced', got {log_probs_of!r}")
+    if log_probs_of == "all":
+        log_probs = torch.log_softmax(flat, dim=-1).gather(1, tokens[:, None]).squeeze(1)
+    else:  # the forced rows', row by row: the same values as over every row
+        at = (f >= 0).nonzero().squeeze(1) if forced is not None else tokens[:0]
+        log_probs = torch.zeros(tokens.shape, dtype=flat.dtype, device=flat.device)
+        log_probs[at] = torch.log_softmax(flat.index_select(0, at), dim=-1).gather(1, tokens[at, None]).squeeze(1)
     return tokens.view(lead), log_probs.view(lead)
 
 
