@@ -242,12 +242,30 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
         """[M, K, ...] the neighbours' entries of ``t`` [G, N, ...] (one flat index: a fast gather)."""
         return t.reshape(-1, *t.shape[2:]).index_select(0, slot).view(*near.shape, *t.shape[2:])
 
-    other_xy, other_cos, other_sin = (at_near(t) for t in _slot_frames(pose, ahead, known, known_frames))
-    other_half = at_near(half)
+    other_xy, other_cos, other_sin, other_half = (at_near(t) for t in (*_slot_frames(pose, ahead, known, known_frames), half))
     other_gap = gap.gather(1, near)  # [M, K] how near each neighbour can come during the step (the bound of ``collides``)
+    collides = _collision_test(token_poses, interpolation, (own_type, own_pose, own_before, own_half),
+                               (other_xy, other_cos, other_sin, other_half, other_gap, near_ok), also, sub)
+    # [M] tokens of the row's type (isfinite as two comparisons: 3x faster on the CPU)
+    finite = (vocab_sizes.to(own_type.device).index_select(0, own_type) if vocab_sizes is not None
+              else ((logits > float("-inf")) & (logits < float("inf"))).sum(-1))
+    want = finite if top_k is None or top_k <= 0 else finite.clamp(max=int(top_k))
+    todo = near_ok.any(-1) | (also is not None)
+    limit = None if depth is None or top_k is None or top_k <= 0 else max(int(depth), int(top_k))
+    out[sub] = _exclude_in_order(logits, finite, want, todo, collides, (head, tied), limit)
+    return out
 
+
+def _collision_test(token_poses: torch.Tensor, interpolation: str, own: tuple[torch.Tensor, ...], others: tuple[torch.Tensor, ...],
+                    also: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None,
+                    sub: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    """The ``test`` of :func:`_exclude_in_order` for :func:`excluded_tokens`' rows: ``own`` = their type, pose, the
+    pose their last token started at and half size [M, ...]; ``others`` = their neighbours' centres on the step's
+    frames, the cosines and sines of their headings, half sizes, gaps and validity [M, K, ...]
+    (:func:`frames_collide`); ``also`` the second test, called with the rows' indices ``sub`` [M] in the caller's."""
     types, v_max = token_poses.shape[:2]
     flat_poses = token_poses.reshape(types * v_max, *token_poses.shape[2:])
+    own_type, own_pose, own_before, own_half = own
 
     def collides(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
         """[R, c]: does token ``tok`` [R, c] of rows ``r`` [R] overlap a neighbour on any of its frames."""
@@ -256,20 +274,9 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
         # the row's pose broadcast, not expanded: what depends on it alone is computed once a row
         pose_r = at(own_pose)
         frames = token_frames(local, pose_r[:, None], at(own_before)[:, None], interpolation)  # [R, c, 5, 3]
-        hit = frames_collide(frames, pose_r[:, :2], at(own_half), at(other_xy), at(other_cos), at(other_sin), at(other_half),
-                             at(other_gap), at(near_ok))
+        hit = frames_collide(frames, pose_r[:, :2], at(own_half), *(at(t) for t in others))
         return hit if also is None else hit | also(sub[r], tok)
-
-    # [M] tokens of the row's type: isfinite as two comparisons (3x faster on the CPU)
-    if vocab_sizes is not None:
-        finite = vocab_sizes.to(own_type.device).index_select(0, own_type)
-    else:
-        finite = ((logits > float("-inf")) & (logits < float("inf"))).sum(-1)
-    want = finite if top_k is None or top_k <= 0 else finite.clamp(max=int(top_k))
-    todo = near_ok.any(-1) | (also is not None)
-    limit = None if depth is None or top_k is None or top_k <= 0 else max(int(depth), int(top_k))
-    out[sub] = _exclude_in_order(logits, finite, want, todo, collides, (head, tied), limit)
-    return out
+    return collides
 
 
 def _slot_frames(pose: torch.Tensor, ahead: torch.Tensor, known: torch.Tensor | None,
