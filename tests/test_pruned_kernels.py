@@ -538,5 +538,7 @@ def test_the_sampler_s_log_probabilities_of_the_forced_rows_only_are_those_of_ev
         assert torch.equal(tok, tok_all)
         assert torch.equal(lp[forced >= 0], lp_all[forced >= 0]) and not lp[forced < 0].any() and lp_all[forced < 0].ne(0).all()
     assert not sample_tokens(logits, torch.Generator().manual_seed(1), 6, log_probs_of="forced")[1].any()  # nothing forced
+    gen = torch.Generator().manual_seed(1)
     with pytest.raises(ValueError, match="log_probs_of"):
-        sample_tokens(logits, torch.Generator().manual_seed(1), 6, log_probs_of="some")
+        sample_tokens(logits, gen, 6, log_probs_of="some")
+    assert torch.equal(gen.get_state(), torch.Generator().manual_seed(1).get_state())  # the refused call drew nothing

@@ -327,16 +327,15 @@ def _exclude_in_order(logits: torch.Tensor, finite: torch.Tensor, want: torch.Te
     not checked, and a row whose every token is rejected is left alone (nothing excluded; read off the
     count of passed tokens, not a sum over [M, V]). ``limit``: a row with fewer than ``want`` but some
     passed among its first ``limit`` stops there, every token past them excluded (a row with none goes
-    on). ``head``:
-    the :func:`_top_set` of ``logits`` if known; where it is not tied and has the first chunk's size, the
-    first chunk is read off it, and only the rows that go on are ranked further (most rows stop there)."""
+    on). ``head``: the :func:`_top_set` of ``logits`` if known; where it is not tied and has the first chunk's
+    size, the first chunk is read off it, and only the rows that go on are ranked further (most rows stop there)."""
     m, v = logits.shape
     excluded = torch.zeros(m, v, dtype=torch.bool, device=logits.device)
     passed = torch.zeros(m, dtype=torch.long, device=logits.device)
     checked, todo = todo, todo.clone()
     start, chunk = 0, max(int(want.max()) if m else 1, 1)
     lim = v if limit is None else min(int(limit), v)
-    depth = min(SORTED_DEPTH if limit is None else lim, v)
+    depth = min(SORTED_DEPTH, v) if limit is None else lim  # ranked up front
     if head is None or head[0].shape[1] != chunk or chunk >= depth:
         head = _top_set(logits, chunk) if chunk < depth else None
     if head is None:

@@ -67,6 +67,8 @@ def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int =
     """
     if temperature <= 0:
         raise ValueError(f"temperature must be > 0, got {temperature}")
+    if log_probs_of not in ("all", "forced"):  # before the draw: a refused call leaves the generator as it was
+        raise ValueError(f"log_probs_of must be 'all' or 'forced', got {log_probs_of!r}")
     lead, v = logits.shape[:-1], logits.shape[-1]
     flat = logits.reshape(-1, v)  # (M, V)
     if temperature != 1.0:  # dividing by 1 changes nothing (and is a pass over [M, V])
@@ -90,8 +92,6 @@ def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int =
     if forced is not None:
         f = forced.reshape(-1).to(tokens.device)
         tokens = torch.where(f >= 0, f, tokens)
-    if log_probs_of not in ("all", "forced"):
-        raise ValueError(f"log_probs_of must be 'all' or 'forced', got {log_probs_of!r}")
     if log_probs_of == "all":
         log_probs = torch.log_softmax(flat, dim=-1).gather(1, tokens[:, None]).squeeze(1)
     else:  # the forced rows', row by row: the same values as over every row
