@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import torch
 
 from smart_marl.rollout import RolloutState
+from smart_marl.geometry_torch import squared_length
 from smart_marl.rollout.frames import compose_torch
 from smart_marl.scenario import DT_S, wrap_angle
 from smart_marl.tokens import FRAMES_PER_TOKEN
@@ -90,7 +91,7 @@ def nearest_tokens(token_ends: torch.Tensor, in_vocab: torch.Tensor, agent_type:
     dx, dy = end[:, 0] - start[:, 0], end[:, 1] - start[:, 1]
     rel = torch.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(end[:, 2] - start[:, 2])], -1)  # [M, 3]
     ends = token_ends[agent_type]  # [M, Vmax, 3]
-    err = (rel[:, None, :2] - ends[..., :2]).square().sum(-1) + wrap_angle(rel[:, None, 2] - ends[..., 2]).square()
+    err = squared_length(rel[:, None, :2] - ends[..., :2]) + wrap_angle(rel[:, None, 2] - ends[..., 2]).square()
     return err.masked_fill(~in_vocab[agent_type], float("inf")).argmin(-1)
 
 

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import torch
 
-from smart_marl.geometry_torch import block_bounds, block_lower_bound, kept
+from smart_marl.geometry_torch import block_bounds, block_lower_bound, kept, squared_length
 from smart_marl.model.layers import smallest_k
 from smart_marl.scenario import SignalState
 
@@ -134,7 +134,7 @@ def nearest_road_points(scenes: SceneBatch, xy: torch.Tensor, k: int) -> tuple[t
     p = scenes.road_xy.shape[1]
     kb = max(ROAD_CANDIDATES, -(-k // ROAD_BLOCK))
     if p <= kb * ROAD_BLOCK:  # a small map: every point
-        d2 = (scenes.road_xy[:, None] - xy[:, :, None]).square().sum(-1).masked_fill(~scenes.road_valid[:, None], float("inf"))
+        d2 = squared_length(scenes.road_xy[:, None] - xy[:, :, None]).masked_fill(~scenes.road_valid[:, None], float("inf"))
         return _nearest(d2, k)
     centre, radius = kept(scenes, "_road_blocks", (scenes.road_xy, scenes.road_valid),
                           lambda i=slice(None): block_bounds(scenes.road_xy[i, :, None], scenes.road_valid[i], ROAD_BLOCK), ROAD_BLOCK,
@@ -173,7 +173,7 @@ def _nearest_in_road_blocks(scenes: SceneBatch, xy: torch.Tensor, scene: torch.T
     flat = (scene[:, None] * p + pts).reshape(-1)  # rows of the flattened road (one index: a fast gather)
     near = scenes.road_xy.reshape(-1, 2).index_select(0, flat).view(*pts.shape, 2)
     valid = scenes.road_valid.reshape(-1).index_select(0, flat).view(pts.shape)
-    d2 = (near - xy[:, None]).square().sum(-1).masked_fill(~(inside & valid), float("inf"))
+    d2 = squared_length(near - xy[:, None]).masked_fill(~(inside & valid), float("inf"))
     val, sub = smallest_k(d2, k)
     ok = torch.isfinite(val)
     return pts.gather(-1, sub).masked_fill(~ok, 0), ok, val[:, -1].sqrt()
@@ -225,7 +225,7 @@ def build_observations(cfg: ObservationConfig, scenes: SceneBatch, ctrl_track: t
 
     # K nearest other agents
     k = cfg.num_agents
-    d2 = (pose[:, None, :, :2] - me[:, :, None, :2]).square().sum(-1)  # [B, C, N]
+    d2 = squared_length(pose[:, None, :, :2] - me[:, :, None, :2])  # [B, C, N]
     others = present[:, None, :] & (torch.arange(pose.shape[1], device=dev)[None, None] != ctrl_track[..., None])
     idx, ok = _nearest(d2.masked_fill(~others, float("inf")), k)  # [B, C, K]
     other_pose = pose.gather(1, idx.reshape(b, -1, 1).expand(-1, -1, 3)).view(b, c, k, 3)
@@ -259,7 +259,7 @@ def build_observations(cfg: ObservationConfig, scenes: SceneBatch, ctrl_track: t
     state = scenes.light_state.gather(1, f[:, None, None].expand(-1, 1, scenes.light_state.shape[2]))[:, 0]  # [B, L]
     lpresent = scenes.light_present.gather(1, f[:, None, None].expand(-1, 1, scenes.light_present.shape[2]))[:, 0]
     lxy = _to_local(me, scenes.light_xy[:, None].expand(b, c, -1, 2))  # [B, C, L, 2]
-    ld2 = lxy.square().sum(-1)
+    ld2 = squared_length(lxy)
     ahead = (lxy[..., 0] > 0) & (ld2 <= cfg.light_radius_m ** 2) & (lpresent & scenes.light_valid)[:, None]
     lidx, lok = _nearest(ld2.masked_fill(~ahead, float("inf")), nl)  # [B, C, nl]
     codes = _light_codes(state.gather(1, lidx.reshape(b, -1)).view(b, c, nl)).to(dtype)

@@ -30,7 +30,7 @@ from typing import Mapping
 
 import torch
 
-from smart_marl.geometry_torch import box_corners_bottom, rounded_boxes_overlap, signed_distance_to_road_edges
+from smart_marl.geometry_torch import bound_length, box_corners_bottom, loose, rounded_boxes_overlap, signed_distance_to_road_edges
 from smart_marl.scenario import DT_S, AgentType
 from smart_marl.tokens import FRAMES_PER_TOKEN
 
@@ -90,10 +90,10 @@ def collisions(ctrl_track: torch.Tensor, live: torch.Tensor, frames: torch.Tenso
     n = frames.shape[1]
     mine = gather_tracks(frames, ctrl_track)  # [B, C, F, 3]
     my_size = gather_tracks(box_size[..., :2], ctrl_track)  # [B, C, 2]
-    reach = box_size[..., :2].norm(dim=-1) / 2  # [B, N] circumscribed radius
+    reach = bound_length(box_size[..., :2]) / 2  # [B, N] circumscribed radius (bounds below: bound_length and loose)
     my_reach = gather_tracks(reach, ctrl_track)  # [B, C]
-    extent = (frames[..., :2] - frames[:, :, :1, :2]).norm(dim=-1).amax(-1)  # [B, N] farthest from the first frame
-    apart = (mine[:, :, None, 0, :2] - frames[:, None, :, 0, :2]).norm(dim=-1)  # [B, C, N] on the first frame
+    extent = bound_length(frames[..., :2] - frames[:, :, :1, :2]).amax(-1)  # [B, N] farthest from the first frame
+    apart = bound_length(mine[:, :, None, 0, :2] - frames[:, None, :, 0, :2])  # [B, C, N] on the first frame
     lower = apart - gather_tracks(extent, ctrl_track)[..., None] - extent[:, None]
     limit = my_reach[..., None] + reach[:, None]
     other = torch.arange(n, device=frames.device)[None, None] != ctrl_track[..., None]  # [B, C, N]
@@ -103,8 +103,8 @@ def collisions(ctrl_track: torch.Tensor, live: torch.Tensor, frames: torch.Tenso
     f = frames.shape[2]  # the pairs' frames as whole rows of flat views (one index each: a fast gather)
     mine_q = mine.reshape(b * c, f, 3).index_select(0, qb * c + qc)
     other_q = frames.reshape(b * n, f, 3).index_select(0, qb * n + qn)
-    dist = (mine_q[..., :2] - other_q[..., :2]).norm(dim=-1)  # [P, F]
-    p, fi = (dist < (my_reach[qb, qc] + reach[qb, qn])[:, None]).nonzero(as_tuple=True)
+    dist = bound_length(mine_q[..., :2] - other_q[..., :2])  # [P, F]
+    p, fi = (dist < loose(my_reach[qb, qc] + reach[qb, qn])[:, None]).nonzero(as_tuple=True)
     bi, ci, ni = qb[p], qc[p], qn[p]
     out = torch.zeros(b, c, dtype=torch.bool, device=frames.device)
     if len(bi):

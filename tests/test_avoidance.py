@@ -36,21 +36,6 @@ def test_boxes_overlap_equals_the_metrics_plain_box_geometry_on_random_boxes():
     np.testing.assert_array_equal(got[clear], want[clear])
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_the_fast_length_of_the_bounds_passes_every_pair_the_norm_passes(dtype):
-    from smart_marl.rollout.avoidance import _loose, bound_length
-
-    g = torch.Generator().manual_seed(3)
-    v = (torch.rand(200_000, 2, generator=g, dtype=dtype) - 0.5) * torch.logspace(-3, 3, 200_000, dtype=dtype)[:, None]
-    exact = v.norm(dim=-1)
-    fast = bound_length(v)
-    assert torch.allclose(fast, exact, rtol=4 * torch.finfo(dtype).eps, atol=0)
-    # a limit at the norm itself and an ulp above it: whatever the norm passes, the loosened bound passes too
-    for limit in (exact, torch.nextafter(exact, torch.full_like(exact, math.inf))):
-        assert bool((fast < _loose(limit))[exact < limit].all())
-        assert bool((fast < _loose(limit)).all())
-
-
 def test_a_rotated_box_beside_a_corner_does_not_overlap_although_its_bounding_box_would():
     t = torch.tensor
     # a 2 x 2 square at the origin and a square turned 45 degrees whose corner points at (1.05, 1.05)'s side

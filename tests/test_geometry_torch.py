@@ -4,14 +4,16 @@ scenes with padded road edges."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
 
 from smart_marl import geometry
 from smart_marl.embedded import sample_scenarios
-from smart_marl.geometry_torch import (RoadEdgeTensors, box_corners, box_corners_bottom, rounded_boxes_overlap,
-                                       signed_distance_to_road_edges)
+from smart_marl.geometry_torch import (RoadEdgeTensors, bound_length, box_corners, box_corners_bottom, loose, rounded_boxes_overlap,
+                                       signed_distance_to_road_edges, squared_length)
 from smart_marl.scenario import MapFeatureType
 
 
@@ -127,3 +129,24 @@ def test_the_nearest_edge_search_in_small_blocks_of_scenes_equals_one_block():
     assert len(set(edges.valid.sum(1).tolist())) >= 3  # scenes of different sizes
     for pairs in (1, 5000, 40 * int(edges.valid.sum(1).max()) * 2):
         assert torch.equal(nearest_road_edge(pts, edges, max_pairs=pairs), want), pairs
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_fast_length_of_the_bounds_passes_every_pair_the_norm_passes(dtype):
+    g = torch.Generator().manual_seed(3)
+    v = (torch.rand(200_000, 2, generator=g, dtype=dtype) - 0.5) * torch.logspace(-3, 3, 200_000, dtype=dtype)[:, None]
+    exact = v.norm(dim=-1)
+    fast = bound_length(v)
+    assert torch.allclose(fast, exact, rtol=4 * torch.finfo(dtype).eps, atol=0)
+    # a limit at the norm itself and an ulp above it: whatever the norm passes, the loosened bound passes too
+    for limit in (exact, torch.nextafter(exact, torch.full_like(exact, math.inf))):
+        assert bool((fast < loose(limit))[exact < limit].all())
+        assert bool((fast < loose(limit)).all())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_squared_length_is_the_square_sum_bit_for_bit(dtype):
+    g = torch.Generator().manual_seed(4)
+    v = torch.randn(100_000, 2, generator=g, dtype=dtype) * torch.logspace(-4, 4, 100_000, dtype=dtype)[:, None]
+    assert torch.equal(squared_length(v), v.square().sum(-1))
+    assert torch.equal(squared_length(v[:, None].expand(-1, 3, -1)), v[:, None].expand(-1, 3, -1).square().sum(-1))  # strided

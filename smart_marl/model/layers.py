@@ -15,6 +15,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from ..geometry_torch import squared_length
 from ..scenario import wrap_angle
 
 
@@ -25,7 +26,7 @@ def relative_pose_features(query_pose: torch.Tensor, key_pose: torch.Tensor) -> 
     query_pose [..., 3] (x, y, heading), key_pose [..., 3] -> [..., 3].
     """
     d = key_pose[..., :2] - query_pose[..., :2]
-    dist = torch.sqrt(d.square().sum(-1) + 1e-12)
+    dist = torch.sqrt(squared_length(d) + 1e-12)
     bearing = wrap_angle(torch.atan2(d[..., 1], d[..., 0]) - query_pose[..., 2])
     dheading = wrap_angle(key_pose[..., 2] - query_pose[..., 2])
     return torch.stack([dist, bearing, dheading], -1)

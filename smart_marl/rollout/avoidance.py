@@ -37,7 +37,7 @@ from typing import Callable
 
 import torch
 
-from ..geometry_torch import boxes_overlap
+from ..geometry_torch import bound_length, boxes_overlap, loose
 from ..tokens import FRAMES_PER_TOKEN
 from .frames import token_frames
 from .sampling import any_rows
@@ -113,7 +113,7 @@ def frames_collide(frames: torch.Tensor, own_xy: torch.Tensor, own_half: torch.T
     own_frames = frames.reshape(r * c, f, 3).index_select(0, path)  # [P, F, 3]
     d = other_xy.reshape(r * k, f, 2).index_select(0, other) - own_frames[..., :2]  # [P, F, 2]
     # the exact test where the centres are closer than the two half diagonals (:func:`boxes_overlap_near`)
-    close = bound_length(d) < _loose(own_r.index_select(0, pi) + other_r.reshape(-1).index_select(0, other))[:, None]  # [P, F]
+    close = bound_length(d) < loose(own_r.index_select(0, pi) + other_r.reshape(-1).index_select(0, other))[:, None]  # [P, F]
     p, fr = close.nonzero(as_tuple=True)  # [Q] the (pair, frame) to test exactly
     q = p * f + fr  # flat
     heading = own_frames.reshape(-1, 3).index_select(0, q)[:, 2]
@@ -149,21 +149,6 @@ def _overlap_sat(d: torch.Tensor, ca: torch.Tensor, sa: torch.Tensor, a_half: to
     hit &= (dx * cb + dy * sb).abs() < (a0 * p1 + a1 * p2) + own_b3
     hit &= (dx * nsb + dy * cb).abs() < (a0 * p2 + a1 * p1) + own_b4
     return hit
-
-
-def bound_length(v: torch.Tensor) -> torch.Tensor:
-    """[...] the length of 2D vectors ``v`` [..., 2] as ``sqrt(x * x + y * y)``: some 4x faster than
-    ``v.norm(dim=-1)`` on the CPU, and not bit for bit the same (it differs by an ulp on about one
-    element in twelve), so it serves the bounds of this module only, whose tests compare it with
-    :func:`_loose`'s margin: a bound passes at least the pairs that can meet, and the exact test decides."""
-    x, y = v[..., 0], v[..., 1]
-    return (x * x + y * y).sqrt()
-
-
-def _loose(limit: torch.Tensor) -> torch.Tensor:
-    """``limit`` widened by a margin for rounding (1e-5 of it and 1 mm): a distance bound compared with
-    it passes more pairs, never fewer."""
-    return limit * (1 + 1e-5) + 1e-3
 
 
 def constant_velocity_pose(pose: torch.Tensor, previous_pose: torch.Tensor) -> torch.Tensor:
@@ -227,7 +212,7 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     apart = bound_length(pose[..., :2].contiguous().index_select(0, gi) - own_xy[:, None])  # [M, N] how far apart they are now
     gap = apart - travel.index_select(0, gi)  # [M, N] nearest they come
     there, other_r = present.index_select(0, gi), radius.index_select(0, gi)  # [M, N]
-    maybe = there & (gap < _loose(reach[:, None] + own_r[:, None] + other_r))
+    maybe = there & (gap < loose(reach[:, None] + own_r[:, None] + other_r))
     maybe[torch.arange(m, device=rows.device), si] = False
     sub = (any_rows(maybe) | (also is not None)).nonzero().squeeze(1)
     if not len(sub):
@@ -239,7 +224,7 @@ def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor
     # where the centres are closer than the two half diagonals, as :func:`boxes_overlap_near`)
     own_pose, own_before, own_half, own_type = pose[gi, si], previous_pose[gi, si], half[gi, si], agent_type[gi, si]
     dist = (ahead[..., :2].contiguous().index_select(0, gi) - own_pose[:, None, :2]).norm(dim=-1)  # [M, N]
-    cr, cj = (there & (apart < _loose(own_r[:, None] + other_r))).nonzero(as_tuple=True)
+    cr, cj = (there & (apart < loose(own_r[:, None] + other_r))).nonzero(as_tuple=True)
     blocked_now = torch.zeros_like(there)
     if len(cr):
         cg = gi[cr]
