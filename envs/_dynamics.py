@@ -30,8 +30,8 @@ from dataclasses import dataclass
 
 import torch
 
-from smart_marl.rollout import RolloutState
 from smart_marl.geometry_torch import squared_length
+from smart_marl.rollout import RolloutState
 from smart_marl.rollout.frames import compose_torch
 from smart_marl.scenario import DT_S, wrap_angle
 from smart_marl.tokens import FRAMES_PER_TOKEN

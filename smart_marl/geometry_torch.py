@@ -63,8 +63,8 @@ def boxes_overlap_rotated(d: torch.Tensor, a_cos: torch.Tensor, a_sin: torch.Ten
 def bound_length(v: torch.Tensor) -> torch.Tensor:
     """[...] the length of 2D vectors ``v`` [..., 2] as ``sqrt(x * x + y * y)``: some 4x faster than
     ``v.norm(dim=-1)`` on the CPU, and not bit for bit the same (it differs by an ulp on about one
-    element in twelve), so it serves bounds only, whose tests compare it with
-    :func:`loose`'s margin: a bound passes at least the pairs that can meet, and the exact test decides."""
+    element in twelve), so it serves bounds only, compared with a :func:`loose` limit: such a bound lets through
+    at least the pairs that can meet, and an exact test decides."""
     x, y = v[..., 0], v[..., 1]
     return (x * x + y * y).sqrt()
 
