@@ -162,3 +162,22 @@ def test_refills_of_a_one_scene_batch_leave_the_kept_fresh_states_as_they_were(s
     for key, before in kept.items():
         for name, value in before.items():
             assert torch.equal(getattr(env.core._pristine[key], name), value), (key, name)
+
+
+def test_the_prior_scores_the_controlled_agents_tokens_only_through_refills(samples, prior):
+    """The environments read the log-probability of the controlled (forced) agents' tokens and never the
+    background's, so the core's prior computes those only (``log_probs_of="forced"``: the sampler's largest
+    cost after ranking otherwise); a refill keeps that, and the controlled agents' values are the prior's."""
+    env = batched(samples, prior, num_scenes=2, horizon_steps=1, terminate_on=())
+    td = env.reset()
+    for _ in range(3):  # every step ends the episodes: each refill puts new scenes in both rows
+        assert env.core.prior.log_probs_of == "forced"
+        logits = td["agents", "observation", "prior_logits"].clone()
+        action = logits.argmax(-1)
+        td["agents", "action"] = action
+        out = env.step(td)
+        live = td["agents", "mask"]
+        got = out["next", "agents", "info", "action_log_prob"][..., 0][live]
+        want = logits.log_softmax(-1).gather(-1, action[..., None])[..., 0][live]
+        assert torch.allclose(got.float(), want.float(), atol=1e-5) and bool((got < 0).all())
+        td = env.reset(step_mdp(out).set("_reset", step_mdp(out)["done"].clone()))
