@@ -165,7 +165,7 @@ class RoadEdgeTensors:
         reads; contiguous, so the searches gather them with one index each)."""
         def compute(i=slice(None)):
             start, e = self.start[i], self.end[i] - self.start[i]
-            denom = e[..., 0] ** 2 + e[..., 1] ** 2
+            denom = squared_length(e)
             return tuple(t.contiguous() for t in (start[..., 0], start[..., 1], start[..., 2], e[..., 0], e[..., 1], e[..., 2], denom))
         return kept(self, "_columns", (self.start, self.end), compute, by_rows=True)
 
@@ -347,7 +347,7 @@ def signed_distance_to_road_edges(points: torch.Tensor, edges: RoadEdgeTensors, 
     def terms(idx: torch.Tensor | None = None):
         s0, s1 = gather3(edges.start, idx), gather3(edges.end, idx)
         sp, e = points - s0, s1 - s0
-        denom = e[..., 0] ** 2 + e[..., 1] ** 2
+        denom = squared_length(e)
         rel_t = torch.where(denom > 0, (sp[..., 0] * e[..., 0] + sp[..., 1] * e[..., 1]) / denom.clamp_min(1e-30),
                             torch.zeros_like(denom))
         side = torch.sign(_cross(sp[..., 0], sp[..., 1], e[..., 0], e[..., 1]))

@@ -107,7 +107,7 @@ def frames_collide(frames: torch.Tensor, own_xy: torch.Tensor, own_half: torch.T
     own_r, other_r = bound_length(own_half), bound_length(other_half)  # [R], [R, K] half diagonals
     extent = bound_length(frames[..., :2] - own_xy[:, None, None]).amax(-1)  # [R, c] farthest the path gets
     reach = extent[..., None] + (own_r[:, None] + other_r)[:, None]  # [R, c, K]
-    can = other_ok[:, None] & (other_gap[:, None] < reach + 1e-3 + 1e-5 * reach.abs())  # margin for rounding: only more pairs
+    can = other_ok[:, None] & (other_gap[:, None] < loose(reach))  # margin for rounding: only more pairs
     pi, pc, pk = can.nonzero(as_tuple=True)  # [P] the (row, path, other) pairs to test on every frame
     path, other = pi * c + pc, pi * k + pk  # the pairs' rows of frames [R * c, F, 3] and of the others [R * K, ...]
     own_frames = frames.reshape(r * c, f, 3).index_select(0, path)  # [P, F, 3]
