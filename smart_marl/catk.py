@@ -66,7 +66,30 @@ def catk_tokens(model, scenes: Sequence[Scenario], roads: Sequence[RoadArrays], 
     """
     if top_k < 1:
         raise ValueError(f"CAT-K needs top_k >= 1, got {top_k}")
-    device = torch.device(device)
+    return _by_token_grid(model, scenes, lambda idx: _catk_group(model, [scenes[i] for i in idx], [roads[i] for i in idx], vocab,
+                                                                 top_k, torch.device(device), avoid))
+
+
+@torch.no_grad()
+def sampled_tokens(model, scenes: Sequence[Scenario], roads: Sequence[RoadArrays], vocab: MotionVocabulary, top_k: int,
+                   generator: torch.Generator, follow_log: Sequence[np.ndarray] | None = None,
+                   device: torch.device | str = "cpu") -> list[MotionTokens]:
+    """Sampled rollouts of ``scenes`` under ``model`` as token sequences (the history logged, every
+    later token drawn from the model's top ``top_k``, as the simulator draws), in the format of
+    :func:`catk_tokens`. ``follow_log[i]`` [tracks of scene i] bool: those tracks follow their log
+    (the closest token of the whole vocabulary: scripted agents). One scene list may repeat a scene:
+    each copy is a rollout of its own."""
+    def group(idx: list[int]) -> list[MotionTokens]:
+        follow = None if follow_log is None else np.concatenate([np.asarray(follow_log[i], bool) for i in idx])
+        return _catk_group(model, [scenes[i] for i in idx], [roads[i] for i in idx], vocab, top_k, torch.device(device),
+                           sample=generator, follow_log=follow)
+
+    return _by_token_grid(model, scenes, group)
+
+
+def _by_token_grid(model, scenes: Sequence[Scenario], run) -> list[MotionTokens]:
+    """``run(indices)`` on each group of scenes that share a token grid (same current frame and frame
+    count), the model in eval mode meanwhile; the groups' token sequences back in scene order."""
     out: list[MotionTokens | None] = [None] * len(scenes)
     groups: dict[tuple, list[int]] = defaultdict(list)
     for i, sc in enumerate(scenes):
@@ -75,8 +98,7 @@ def catk_tokens(model, scenes: Sequence[Scenario], roads: Sequence[RoadArrays], 
     model.eval()
     try:
         for idx in groups.values():
-            for i, tokens in zip(idx, _catk_group(model, [scenes[i] for i in idx], [roads[i] for i in idx], vocab, top_k, device,
-                                                       avoid)):
+            for i, tokens in zip(idx, run(idx)):
                 out[i] = tokens
     finally:
         model.train(was_training)
@@ -169,9 +191,13 @@ class _GapKeeper:
 
 
 def _catk_group(model, scenes: list[Scenario], roads: list[RoadArrays], vocab: MotionVocabulary, top_k: int,
-                device: torch.device, avoid: bool = False) -> list[MotionTokens]:
+                device: torch.device, avoid: bool = False, sample: torch.Generator | None = None,
+                follow_log: np.ndarray | None = None) -> list[MotionTokens]:
     """Scenes on one token grid: their tracks concatenated into one rolling matching, the model
-    stepped once per token step for all scenes (group g = scene g, slots = its motion agents)."""
+    stepped once per token step for all scenes (group g = scene g, slots = its motion agents).
+    ``sample``: each token is drawn from the model's top-k instead (a plain sampled rollout, the
+    closest-token rule left with one candidate); ``follow_log`` [rows of the concatenated tracks]:
+    those tracks take the token closest to their log among the whole vocabulary (scripted agents)."""
     cfg, sc0 = model.config, scenes[0]
     bounds, kc = token_boundaries(sc0.current_frame, sc0.num_frames), first_future_step(sc0)
     motion_types = np.array([int(t) for t in vocab.types])
@@ -250,9 +276,15 @@ def _catk_group(model, scenes: list[Scenario], roads: list[RoadArrays], vocab: M
             if not sel_t.any():
                 continue
             top = logits[sel_t, : sizes[t]].topk(min(top_k, sizes[t]), dim=-1)
-            allowed_slots[rows[sel_t].cpu()[:, None], top.indices.cpu()] = torch.isfinite(top.values).cpu()
+            if sample is None:
+                allowed_slots[rows[sel_t].cpu()[:, None], top.indices.cpu()] = torch.isfinite(top.values).cpu()
+            else:
+                pick = torch.multinomial(top.values.float().softmax(-1).cpu(), 1, generator=sample)
+                allowed_slots[rows[sel_t].cpu(), top.indices.cpu().gather(1, pick)[:, 0]] = True
         allowed = np.zeros((len(slot_of_row), vmax), bool)
         allowed[has_slot.numpy()] = allowed_slots[slot_of_row[has_slot]].numpy()
+        if follow_log is not None:
+            allowed[follow_log] = False  # no candidate: the closest token of the whole vocabulary
         return allowed
 
     pos = np.concatenate([sc.tracks.position for sc in scenes])

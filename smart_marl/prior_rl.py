@@ -1,0 +1,324 @@
+"""Training stage, the prior fine-tuned by its own reinforcement learning (issue 33).
+
+Next-token training never shows the prior what its own draws lead to: its logs are drives in which
+nobody ran into anybody, and a follower whose leader brakes harder than in any log has no target that
+says "brake more". This stage rolls the prior out on training scenes in which some leaders brake hard,
+scores what each simulated agent's draws led to, and moves the weights toward the draws that kept
+their distance (policy gradient with a group baseline, KL-regularised toward the weights it started
+from, as the issue's SPACeR / SMART-R1 suggestion):
+
+1. ``scenes_per_iteration`` training scenes; in each, a share of the leaders that have a follower
+   brake from an onset at 4-9 m/s2 (:func:`smart_marl.braking.braking_leaders`); those leaders follow
+   the edited log (scripted), every other agent is the prior's.
+2. ``rollouts`` sampled rollouts of each scene under the current weights, all scenes and rollouts
+   stepped together (:func:`smart_marl.catk.sampled_tokens`: top-k sampling as the simulator draws).
+3. Each simulated agent's return: ``-1`` if it runs into another agent (its first rounded-box overlap
+   with another present agent, the other within 45 degrees of its heading a frame before: it hit the
+   other with its front; :func:`at_fault_collisions`) or, a vehicle on the road at the current frame,
+   leaves the road (``offroad``, :func:`first_offroad`), else 0.
+4. Its advantage: that return minus the mean return of the same agent over the scene's rollouts (a
+   group baseline, no critic), on every token it drew up to that collision.
+5. Loss: ``-mean(A * log pi(token)) + beta * mean KL(pi || pi_ref)`` over the drawn tokens of the
+   simulated agents (:func:`rl_loss`), ``pi_ref`` the frozen starting weights.
+
+What comes in: a checkpoint (or ``"embedded"``) and training scenes. What goes out: checkpoints of the
+fine-tuned prior and a JSON-lines log (``train.jsonl``: per iteration the share of simulated agents at
+fault in a collision, the KL, the loss) in ``out_dir``. CPU or one GPU; resumable from ``last``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .braking import braking_leaders, with_braking_leaders
+from .catk import _agent_shapes, first_future_step, sampled_tokens
+from .geometry import box_distance_bounds, box_distance_to_road_edge, boxes_overlap
+from .geometry_torch import scene_road_edges
+from .model.batch import SmartBatch, collate_scenes, scene_road, scene_tensors
+from .model.checkpoint import checkpoint_paths, load_checkpoint, load_embedded, save_checkpoint
+from .model.losses import rows_reaching_targets
+from .model.motionnet import NUM_MOTION_TYPES
+from .rollout import DEFAULT_TOP_K
+from .rollout.frames import compose_torch
+from .scenario import AgentType, Scenario
+from .tokens import FRAMES_PER_TOKEN, MotionTokens, MotionVocabulary
+from .train_data import open_scenes
+
+AT_FAULT_DEG = 45.0  # the other agent within this angle of the agent's heading: it ran into the other
+
+
+@dataclass
+class PriorRLConfig:
+    """Every knob of a run (module docstring)."""
+
+    scenes: str = "data/rl_train"  # training scenes: a scene cache folder, scene files, a folder or a glob
+    out_dir: str = "runs/prior_rl"
+    init: str = "embedded"  # the checkpoint to start from (and the KL reference)
+    iterations: int = 100
+    scenes_per_iteration: int = 4
+    rollouts: int = 8  # per scene: the group of the baseline
+    top_k: int = DEFAULT_TOP_K
+    brake_share: float = 0.5  # share of each scene's leaders that brake hard
+    offroad: bool = True  # a vehicle on the road now that leaves it is penalised as a collision is
+    lr: float = 3e-5
+    beta: float = 0.1  # weight of KL(pi || pi_ref)
+    grad_clip: float = 1.0
+    save_every: int = 10
+    seed: int = 0
+    threads: int = 0  # torch threads (0: torch's default)
+
+
+# ------------------------------------------------------------------------------ rewards
+def token_step_frames(tokens: MotionTokens, vocab: MotionVocabulary, first_step: int) -> tuple[np.ndarray, np.ndarray]:
+    """(poses [N, F, 3], present [N, F]) of every track over the frames of token steps ``first_step``
+    onward (5 per step: the token's contour poses placed where it starts), F = 5 x those steps."""
+    n, s = tokens.ids.shape
+    steps = max(s - first_step, 0)
+    local = np.zeros((n, steps, FRAMES_PER_TOKEN, 3), np.float32)
+    for t, v in vocab.types.items():
+        rows = np.flatnonzero(tokens.types == int(t))
+        if len(rows):
+            local[rows] = v.poses[tokens.ids[rows, first_step:]][..., 1:, :]
+    start = torch.from_numpy(tokens.start_pose[:, first_step:]).float()
+    poses = compose_torch(start[:, :, None, :], torch.from_numpy(local)).numpy()
+    present = np.repeat(tokens.valid[:, first_step:], FRAMES_PER_TOKEN, axis=1)
+    return poses.reshape(n, steps * FRAMES_PER_TOKEN, 3), present
+
+
+def at_fault_collisions(poses: np.ndarray, present: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """int [N]: for each track, the frame of its first collision in which it ran into the other (its
+    rounded box overlaps another present track's, :func:`smart_marl.geometry.boxes_overlap`, and that
+    track's centre was within :data:`AT_FAULT_DEG` of its heading a frame before), -1 where none.
+    poses [N, F, 3], present [N, F], size [N, 2+] (length, width)."""
+    n, f = present.shape
+    out = np.full(n, -1, np.int64)
+    if n < 2 or f == 0:
+        return out
+    length, width = size[:, 0].astype(np.float64), size[:, 1].astype(np.float64)
+    dist = np.linalg.norm(poses[:, None, :, :2] - poses[None, :, :, :2], axis=-1)  # [N, N, F]
+    lo, _ = box_distance_bounds(dist, length[:, None, None], width[:, None, None], length[None, :, None], width[None, :, None])
+    cand = (lo < 0) & present[:, None, :] & present[None, :, :] & ~np.eye(n, dtype=bool)[:, :, None]
+    a, b, fr = np.nonzero(cand)
+    if not len(a):
+        return out
+    pa, pb = poses[a, fr].astype(np.float64), poses[b, fr].astype(np.float64)
+    hit = boxes_overlap(pa[:, 0], pa[:, 1], length[a], width[a], pa[:, 2], pb[:, 0], pb[:, 1], length[b], width[b], pb[:, 2])
+    a, b, fr = a[hit], b[hit], fr[hit]
+    first = np.full(n, f, np.int64)
+    np.minimum.at(first, a, fr)
+    for i in np.flatnonzero(first < f):
+        at = fr == first[i]
+        for j in b[(a == i) & at]:
+            before = max(int(first[i]) - 1, 0)
+            d = poses[j, before, :2] - poses[i, before, :2]
+            h = poses[i, before, 2]
+            ahead = np.degrees(abs(np.arctan2(-d[0] * np.sin(h) + d[1] * np.cos(h), d[0] * np.cos(h) + d[1] * np.sin(h))))
+            if ahead < AT_FAULT_DEG:
+                out[i] = first[i]
+                break
+    return out
+
+
+def first_offroad(poses: np.ndarray, present: np.ndarray, size: np.ndarray, z: np.ndarray, segments, rows: np.ndarray) -> np.ndarray:
+    """int [N]: for tracks ``rows``, the first frame where their box leaves the road (the metrics' test:
+    a bottom corner beyond the road edge, :func:`smart_marl.geometry.box_distance_to_road_edge`), -1 where
+    none or for the other tracks. poses [N, F, 3], present [N, F], size [N, 3], z [N] (held)."""
+    out = np.full(len(present), -1, np.int64)
+    if segments is None or not len(rows):
+        return out
+    p = poses[rows].astype(np.float64)
+    zz = np.broadcast_to(z[rows, None], p.shape[:2])
+    sz = [np.broadcast_to(size[rows, i, None], p.shape[:2]) for i in range(3)]
+    off = (box_distance_to_road_edge(p[..., 0], p[..., 1], zz, sz[0], sz[1], sz[2], p[..., 2], segments) > 0) & present[rows]
+    hit = off.any(1)
+    out[rows[hit]] = off[hit].argmax(1)
+    return out
+
+
+# ------------------------------------------------------------------------------ the loss
+def rl_loss(model, reference, batch: SmartBatch, weight: torch.Tensor, beta: float) -> dict[str, torch.Tensor]:
+    """``-sum(weight * log pi(target)) / M + beta * sum KL(pi || pi_ref) / M`` over the M (agent, step)
+    rows of ``batch`` with a valid target (the token drawn next), ``weight`` [B, N, S] the advantages of
+    those rows; ``reference`` the frozen model of the KL. Returns ``loss`` and detached ``pg``, ``kl``."""
+    rows = rows_reaching_targets(batch)
+    feats, _ = model(batch, agent_valid=rows)
+    with torch.no_grad():
+        ref_feats, _ = reference(batch, agent_valid=rows)
+    pg = feats.new_zeros(())
+    kl = feats.new_zeros(())
+    count = 0
+    tv = batch.target_valid
+    for t in range(NUM_MOTION_TYPES):
+        sel = tv & (batch.agent_type == t)[:, :, None]
+        if not sel.any():
+            continue
+        logp = F.log_softmax(model.motion_heads[t](feats[sel]).float(), -1)
+        with torch.no_grad():
+            ref_logp = F.log_softmax(reference.motion_heads[t](ref_feats[sel]).float(), -1)
+        taken = logp.gather(1, batch.target_tokens[sel][:, None])[:, 0]
+        pg = pg - (weight[sel] * taken).sum()
+        kl = kl + (logp.exp() * (logp - ref_logp)).sum()
+        count += int(sel.sum())
+    count = max(count, 1)
+    loss = (pg + beta * kl) / count
+    return {"loss": loss, "pg": pg.detach() / count, "kl": kl.detach() / count, "tokens": torch.tensor(float(count))}
+
+
+# ------------------------------------------------------------------------------ one iteration
+def scene_batch(scenes: Sequence[Scenario], tokens: Sequence[MotionTokens], roads, vocab: MotionVocabulary,
+                advantage: Sequence[np.ndarray], last_step: Sequence[np.ndarray], scripted: Sequence[np.ndarray],
+                first_step: int) -> tuple[SmartBatch, torch.Tensor]:
+    """The training batch of sampled rollouts (targets: the drawn tokens) and its weights [B, N, S]:
+    track ``r``'s advantage on the tokens it drew from ``first_step`` to ``last_step[r]``; scripted
+    tracks and the history are no target."""
+    arrays, weights = [], []
+    for sc, mt, road, adv, last, scr in zip(scenes, tokens, roads, advantage, last_step, scripted):
+        drawn = dataclasses.replace(mt, nearest_ids=mt.ids)
+        a = scene_tensors(sc, vocab, road, road_mask_prob=0.0, motion_tokens=drawn)
+        keep = np.flatnonzero(mt.valid.any(1))
+        steps = np.arange(mt.ids.shape[1])
+        target = (steps[None, :] >= first_step) & (steps[None, :] <= last[keep, None]) & ~scr[keep, None]
+        tv = a["target_valid"].copy()
+        tv[:, :-1] &= target[:, 1:]
+        tv[:, -1] = False
+        w = np.zeros(tv.shape, np.float32)
+        w[:, :-1] = adv[keep, None]
+        arrays.append({**a, "target_valid": tv})
+        weights.append(w * tv)
+    batch = collate_scenes(arrays)
+    wt = torch.zeros(batch.target_valid.shape)
+    for i, w in enumerate(weights):
+        wt[i, : w.shape[0], : w.shape[1]] = torch.from_numpy(w)
+    return batch, wt
+
+
+def rollout_group(model, scene: Scenario, road, vocab: MotionVocabulary, cfg: PriorRLConfig, rng: np.random.Generator,
+                  generator: torch.Generator):
+    """One scene with braking leaders, ``cfg.rollouts`` sampled rollouts of it, their at-fault collisions.
+    Returns (scenes, tokens, roads, advantages [K, N], last steps [K, N], scripted [N], the shares of
+    the simulated agent-rollouts penalised, at fault in a collision, off the road)."""
+    edits = braking_leaders(scene, rng, cfg.brake_share)
+    edited = with_braking_leaders(scene, edits)
+    scripted = np.zeros(scene.num_tracks, bool)
+    scripted[[e[0] for e in edits]] = True
+    k = cfg.rollouts
+    tokens = sampled_tokens(model, [edited] * k, [road] * k, vocab, cfg.top_k, generator, [scripted] * k)
+    kc = first_future_step(scene)
+    size = _agent_shapes(scene, np.arange(scene.num_tracks))
+    simulated = ~scripted & tokens[0].valid[:, kc:].any(1)
+    edges, z = scene_road_edges(scene.road_map), scene.tracks.position[:, scene.current_frame, 2]
+    on_road = _vehicles_on_road(scene, size, simulated, edges) if cfg.offroad else np.zeros(0, np.int64)
+    ret = np.zeros((k, scene.num_tracks), np.float32)
+    collided = offroad = 0
+    last = np.full((k, scene.num_tracks), tokens[0].ids.shape[1], np.int64)
+    for c, mt in enumerate(tokens):
+        poses, present = token_step_frames(mt, vocab, kc)
+        hit = at_fault_collisions(poses, present, size)
+        off = first_offroad(poses, present, size, z, edges, on_road)
+        first = np.where(hit < 0, off, np.where(off < 0, hit, np.minimum(hit, off)))
+        bad = (first >= 0) & simulated
+        collided, offroad = collided + int(((hit >= 0) & simulated).sum()), offroad + int((off >= 0).sum())
+        ret[c, bad] = -1.0
+        last[c, bad] = kc + first[bad] // FRAMES_PER_TOKEN
+    adv = (ret - ret.mean(0, keepdims=True)) * simulated
+    n = max(simulated.sum() * k, 1)
+    shares = {"penalised": float((ret < 0).sum() / n), "at_fault": collided / n, "offroad": offroad / n}
+    return [edited] * k, tokens, [road] * k, list(adv), list(last), [scripted] * k, shares
+
+
+def _vehicles_on_road(scene: Scenario, size: np.ndarray, rows: np.ndarray, edges) -> np.ndarray:
+    """The tracks of ``rows`` (bool) that are vehicles inside the road edges at the current frame: the
+    ones the off-road penalty watches (a car parked off the road is not penalised for staying there)."""
+    tr, cf = scene.tracks, scene.current_frame
+    cand = np.flatnonzero(rows & (tr.types == int(AgentType.VEHICLE)) & tr.valid[:, cf])
+    if edges is None or not len(cand):
+        return cand[:0]
+    p = tr.position[cand, cf]
+    d = box_distance_to_road_edge(p[:, 0], p[:, 1], p[:, 2], size[cand, 0], size[cand, 1], size[cand, 2], tr.heading[cand, cf],
+                                  edges)
+    return cand[d <= 0]
+
+
+# ------------------------------------------------------------------------------ the run
+def _load(init: str):
+    return load_embedded() if init == "embedded" else load_checkpoint(init)
+
+
+def train_prior_rl(cfg: PriorRLConfig) -> Path:
+    """The run (module docstring); returns the path of the last checkpoint."""
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    out = Path(cfg.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ck, ref = _load(cfg.init), _load(cfg.init).model.eval()
+    for p in ref.parameters():
+        p.requires_grad_(False)
+    model, vocab, road_vocab = ck.model, ck.motion_vocab, ck.road_vocab
+    start = 0
+    last_path = out / "last"
+    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=0.0)
+    if checkpoint_paths(last_path)["meta"].is_file():
+        resumed = load_checkpoint(last_path)
+        model.load_state_dict(resumed.model.state_dict())
+        start = resumed.step
+    scenes = open_scenes(cfg.scenes)
+    settings = model.config.road_settings
+    log = (out / "train.jsonl").open("a")
+    for it in range(start, cfg.iterations):
+        t0 = time.time()
+        rng = np.random.default_rng([cfg.seed, it])
+        generator = torch.Generator().manual_seed(cfg.seed * 100_003 + it)
+        model.eval()
+        parts: list[list] = [[] for _ in range(6)]
+        shares = []
+        for i in rng.choice(len(scenes), cfg.scenes_per_iteration, replace=False):
+            scene = scenes[int(i)]
+            road = scene_road(scene, road_vocab, settings)
+            *group, share = rollout_group(model, scene, road, vocab, cfg, rng, generator)
+            for p, g in zip(parts, group):
+                p.extend(g)
+            shares.append(share)
+        t1 = time.time()  # the update in eval mode too (no dropout): the log-probabilities are those the draws had
+        sc, tok, roads, adv, last, scripted = parts
+        batch, weight = scene_batch(sc, tok, roads, vocab, adv, last, scripted, first_future_step(sc[0]))
+        res = rl_loss(model, ref, batch, weight, cfg.beta)
+        optimizer.zero_grad(set_to_none=True)
+        res["loss"].backward()
+        grad = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+        optimizer.step()
+        row = {"iteration": it + 1, **{key: float(np.mean([sh[key] for sh in shares])) for key in shares[0]}, "pg": float(res["pg"]), "kl": float(res["kl"]),
+               "loss": float(res["loss"].detach()), "grad_norm": float(grad), "tokens": int(res["tokens"]),
+               "rollout_s": round(t1 - t0, 2), "update_s": round(time.time() - t1, 2)}
+        log.write(json.dumps(row) + "\n")
+        log.flush()
+        print(json.dumps(row), flush=True)
+        if (it + 1) % cfg.save_every == 0 or it + 1 == cfg.iterations:
+            meta = {"prior_rl": dataclasses.asdict(cfg)}
+            save_checkpoint(out / f"iter{it + 1:04d}", model, vocab, road_vocab, step=it + 1, data=meta)
+            save_checkpoint(last_path, model, vocab, road_vocab, step=it + 1, data=meta)
+    log.close()
+    return last_path
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    for f in dataclasses.fields(PriorRLConfig):
+        kind = type(f.default)
+        parser.add_argument(f"--{f.name.replace('_', '-')}", default=f.default,
+                            type=(lambda v: v.lower() in ("1", "true", "yes")) if kind is bool else kind)
+    cfg = PriorRLConfig(**vars(parser.parse_args(argv)))
+    train_prior_rl(cfg)
+
+
+if __name__ == "__main__":
+    main()

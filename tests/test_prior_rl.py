@@ -1,0 +1,160 @@
+"""The prior's own reinforcement learning (smart_marl.prior_rl): who is at fault in a collision, the sampled
+rollouts' token sequences (scripted tracks follow their log), the batch's targets and weights, the loss's
+direction, and a run that writes checkpoints and resumes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from smart_marl.catk import first_future_step, sampled_tokens
+from smart_marl.model.batch import scene_road
+from smart_marl.prior_rl import PriorRLConfig, at_fault_collisions, rl_loss, scene_batch, token_step_frames, train_prior_rl
+from smart_marl.tokens import tokenize_motion
+from smart_marl.tokens.road import RoadVocabulary, road_pieces
+
+
+@pytest.fixture(scope="module")
+def road_vocab(sample_scenes):
+    pieces = road_pieces(sample_scenes[0].road_map).local
+    return RoadVocabulary(points=pieces[np.random.default_rng(0).choice(len(pieces), 8)], tolerance_m=0.0, requested_size=8)
+
+
+def _line(x0: float, speed: float, frames: int = 20) -> np.ndarray:
+    x = x0 + speed * 0.1 * np.arange(frames)
+    return np.stack([x, np.zeros(frames), np.zeros(frames)], -1)
+
+
+def test_the_car_that_runs_into_the_one_ahead_is_at_fault_and_the_one_hit_is_not():
+    size = np.array([[4.5, 2.0], [4.5, 2.0], [4.5, 2.0]])
+    # track 0 drives at 10 m/s into track 1, standing 12 m ahead; track 2 drives beside them, 4 m to the left
+    beside = _line(0.0, 10.0)
+    beside[:, 1] = 4.0
+    poses = np.stack([_line(0.0, 10.0), _line(12.0, 0.0), beside])
+    present = np.ones(poses.shape[:2], bool)
+    got = at_fault_collisions(poses, present, size)
+    assert got[1] == -1 and got[2] == -1
+    # bumpers touch when 0 has covered 12 - 4.5 = 7.5 m, 0.75 s: frame 8 (the rounded boxes' corners a frame later at most)
+    assert 7 <= got[0] <= 9
+    present[1, :] = False  # the standing car is not there: nobody is hit
+    assert (at_fault_collisions(poses, present, size) == -1).all()
+
+
+def test_sampled_rollouts_draw_from_the_top_k_and_scripted_tracks_follow_their_log(sample_scenes, sample_vocab, tiny_smart,
+                                                                                   road_vocab, one_torch_thread):
+    model = tiny_smart(sample_vocab)
+    sc = sample_scenes[2]
+    road = scene_road(sc, road_vocab)
+    log = tokenize_motion(sc, sample_vocab)
+    follow = np.zeros(sc.num_tracks, bool)
+    follow[np.flatnonzero(log.valid.any(1))[:5]] = True
+    runs = [sampled_tokens(model, [sc, sc], [road, road], sample_vocab, 3, torch.Generator().manual_seed(s), [follow, follow])
+            for s in (0, 0, 1)]
+    a, b = runs[0]
+    np.testing.assert_array_equal(a.ids, runs[1][0].ids)  # the same seed draws the same rollout
+    assert not np.array_equal(a.ids, b.ids)  # two copies of one scene are two rollouts
+    assert not np.array_equal(a.ids, runs[2][0].ids)
+    kc = first_future_step(sc)
+    for mt in (a, b):
+        np.testing.assert_array_equal(mt.valid, log.valid)
+        np.testing.assert_array_equal(mt.ids[:, :kc][log.valid[:, :kc]], log.ids[:, :kc][log.valid[:, :kc]])  # the history
+        np.testing.assert_array_equal(mt.ids[follow], log.ids[follow])  # scripted: the log's rolling matching
+    assert (a.ids[~follow, kc:] != log.ids[~follow, kc:])[log.valid[~follow, kc:]].any()
+
+
+def test_the_batch_trains_the_drawn_tokens_up_to_the_collision_and_the_loss_raises_a_rewarded_token(
+        sample_scenes, sample_vocab, tiny_smart, road_vocab, one_torch_thread):
+    model, ref = tiny_smart(sample_vocab).eval(), tiny_smart(sample_vocab).eval()
+    ref.load_state_dict(model.state_dict())
+    sc = sample_scenes[3]
+    road = scene_road(sc, road_vocab)
+    mt = sampled_tokens(model, [sc], [road], sample_vocab, 3, torch.Generator().manual_seed(0))[0]
+    kc = first_future_step(sc)
+    keep = np.flatnonzero(mt.valid.any(1))
+    adv = np.zeros(sc.num_tracks, np.float32)
+    adv[keep[0]], adv[keep[1]] = 1.0, -1.0
+    last = np.full(sc.num_tracks, mt.num_steps, np.int64)
+    last[keep[1]] = kc + 2  # collided in its third drawn token
+    scripted = np.zeros(sc.num_tracks, bool)
+    scripted[keep[2]] = True
+    batch, weight = scene_batch([sc], [mt], [road], sample_vocab, [adv], [last], [scripted], kc)
+    tv = batch.target_valid[0]
+    steps = torch.arange(tv.shape[1])
+    assert not tv[2].any()  # scripted: no target
+    assert tv[1, steps >= kc + 2].sum() == 0 and tv[1, kc - 1: kc + 2].all()  # targets: tokens kc .. kc + 2
+    assert tv[0, : kc - 1].sum() == 0  # the history is no target
+    assert torch.equal(batch.target_tokens[0, 0, kc - 1:-1], torch.from_numpy(mt.ids[keep[0], kc:]))  # the drawn tokens
+    assert (weight[0, 0][tv[0]] == 1).all() and (weight[0, 1][tv[1]] == -1).all()
+    res = rl_loss(model, ref, batch, weight, beta=0.1)
+    assert float(res["kl"]) == pytest.approx(0.0, abs=1e-7)  # the same weights: no divergence
+    opt = torch.optim.SGD(model.parameters(), lr=0.5)
+
+    def logp(m):
+        with torch.no_grad():
+            feats, _ = m(batch)
+        t = int(batch.agent_type[0, 0])
+        lp = torch.log_softmax(m.motion_heads[t](feats[0, 0]), -1)
+        return lp.gather(1, batch.target_tokens[0, 0][:, None])[:, 0][tv[0]].sum()
+
+    before = logp(model)
+    opt.zero_grad()
+    res["loss"].backward()
+    opt.step()
+    assert logp(model) > before  # the rewarded agent's drawn tokens got likelier
+    assert float(rl_loss(model, ref, batch, weight, beta=0.1)["kl"]) > 0
+
+
+def test_token_step_frames_place_each_token_where_it_starts(sample_scenes, sample_vocab):
+    sc = sample_scenes[3]
+    mt = tokenize_motion(sc, sample_vocab)
+    kc = first_future_step(sc)
+    poses, present = token_step_frames(mt, sample_vocab, kc)
+    assert poses.shape == (sc.num_tracks, 5 * (mt.num_steps - kc), 3)
+    r = int(np.flatnonzero(mt.valid[:, kc]).min())
+    np.testing.assert_allclose(poses[r, 4, :2], mt.reached[r, kc + 1, :2], atol=1e-4)  # a token's last frame is where it ends
+    assert present[r, :5].all()
+
+
+def test_a_run_writes_its_log_and_checkpoints_and_resumes(sample_scenes, tiny_prior, tmp_path, one_torch_thread):
+    from smart_marl.embedded import SAMPLES_DIR
+    from smart_marl.model.checkpoint import load_checkpoint
+
+    cfg = PriorRLConfig(scenes=str(SAMPLES_DIR), out_dir=str(tmp_path / "run"), init=str(tiny_prior), iterations=2,
+                        scenes_per_iteration=2, rollouts=2, save_every=1, top_k=3)
+    train_prior_rl(cfg)
+    rows = [json.loads(x) for x in (tmp_path / "run" / "train.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in rows] == [1, 2]
+    assert all(np.isfinite(r["loss"]) and 0 <= r["at_fault"] <= r["penalised"] <= 1 for r in rows)
+    assert load_checkpoint(tmp_path / "run" / "last").step == 2
+    before = load_checkpoint(tiny_prior).model.state_dict()
+    after = load_checkpoint(tmp_path / "run" / "iter0002").model.state_dict()
+    assert any(not torch.equal(before[k], after[k]) for k in before)
+    train_prior_rl(PriorRLConfig(**{**cfg.__dict__, "iterations": 3}))  # resumes at iteration 3
+    rows = [json.loads(x) for x in (tmp_path / "run" / "train.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in rows] == [1, 2, 3]
+
+
+def test_a_vehicle_pushed_off_the_road_is_off_road_from_that_frame(sample_scenes):
+    from smart_marl.catk import _agent_shapes
+    from smart_marl.geometry_torch import scene_road_edges
+    from smart_marl.prior_rl import _vehicles_on_road, first_offroad
+
+    sc = sample_scenes[2]
+    edges = scene_road_edges(sc.road_map)
+    size = _agent_shapes(sc, np.arange(sc.num_tracks))
+    rows = _vehicles_on_road(sc, size, np.ones(sc.num_tracks, bool), edges)
+    assert len(rows) >= 3
+    tr, cf = sc.tracks, sc.current_frame
+    now = np.concatenate([tr.position[:, cf, :2], tr.heading[:, cf, None]], -1).astype(np.float64)
+    poses = np.repeat(now[:, None], 6, axis=1)
+    side = np.stack([-np.sin(now[:, 2]), np.cos(now[:, 2])], -1)
+    poses[:, 3:, :2] += 60.0 * side[:, None]  # from frame 3 on, 60 m to the left of where it stands
+    present = np.ones(poses.shape[:2], bool)
+    z = tr.position[:, cf, 2]
+    got = first_offroad(poses, present, size, z, edges, rows)
+    assert (got[np.setdiff1d(np.arange(sc.num_tracks), rows)] == -1).all()  # only the watched vehicles
+    assert ((got[rows] == -1) | (got[rows] >= 3)).all() and (got[rows] == 3).mean() > 0.5
+    assert (first_offroad(np.repeat(now[:, None], 6, axis=1), present, size, z, edges, rows) == -1).all()
