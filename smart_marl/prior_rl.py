@@ -15,7 +15,8 @@ from, as the issue's SPACeR / SMART-R1 suggestion):
 3. Each simulated agent's return: ``-1`` if it runs into another agent (its first rounded-box overlap
    with another present agent, the other within 45 degrees of its heading a frame before: it hit the
    other with its front; :func:`at_fault_collisions`) or, a vehicle on the road at the current frame,
-   leaves the road (``offroad``, :func:`first_offroad`), else 0.
+   leaves the road (``offroad``, :func:`first_offroad`), else 0; with ``progress`` > 0, minus that times how far
+   the distance it drove is from its logged distance (:func:`progress_error`).
 4. Its advantage: that return minus the mean return of the same agent over the scene's rollouts (a
    group baseline, no critic), on every token it drew up to that collision.
 5. Loss: ``-mean(A * log pi(token)) + beta * mean KL(pi || pi_ref)`` over the drawn tokens of the
@@ -70,6 +71,8 @@ class PriorRLConfig:
     top_k: int = DEFAULT_TOP_K
     brake_share: float = 0.5  # share of each scene's leaders that brake hard
     offroad: bool = True  # a vehicle on the road now that leaves it is penalised as a collision is
+    positive_only: bool = False  # only draws that did better than their group's mean are pushed up; none pushed down
+    progress: float = 0.0  # weight of the progress term: -progress * |distance driven / logged distance - 1| (capped at 1)
     lr: float = 3e-5
     beta: float = 0.1  # weight of KL(pi || pi_ref)
     grad_clip: float = 1.0
@@ -145,6 +148,20 @@ def first_offroad(poses: np.ndarray, present: np.ndarray, size: np.ndarray, z: n
     return out
 
 
+def progress_error(scene: Scenario, tokens: MotionTokens, first_step: int, min_log_m: float = 5.0) -> np.ndarray:
+    """float [N]: ``|distance driven / logged distance - 1|``, capped at 1, of each track over its drawn tokens
+    (steps ``first_step`` on; the same token spans in the log), 0 for tracks whose log covers less than
+    ``min_log_m`` there. A prior that avoids collisions by crawling loses here what it gains there."""
+    v = tokens.valid[:, first_step:]
+    b = tokens.boundaries
+    driven = np.linalg.norm(np.diff(tokens.reached[:, first_step:, :2], axis=1), axis=-1)  # [N, S - first_step]
+    pos = scene.tracks.position[:, b[first_step:], :2]
+    logged = np.linalg.norm(np.diff(pos, axis=1), axis=-1)
+    d, l = (driven * v).sum(1), (logged * v).sum(1)
+    moving = l >= min_log_m
+    return np.where(moving, np.minimum(np.abs(d / np.maximum(l, 1e-6) - 1.0), 1.0), 0.0)
+
+
 # ------------------------------------------------------------------------------ the loss
 def rl_loss(model, reference, batch: SmartBatch, weight: torch.Tensor, beta: float) -> dict[str, torch.Tensor]:
     """``-sum(weight * log pi(target)) / M + beta * sum KL(pi || pi_ref) / M`` over the M (agent, step)
@@ -206,7 +223,7 @@ def rollout_group(model, scene: Scenario, road, vocab: MotionVocabulary, cfg: Pr
                   generator: torch.Generator):
     """One scene with braking leaders, ``cfg.rollouts`` sampled rollouts of it, their at-fault collisions.
     Returns (scenes, tokens, roads, advantages [K, N], last steps [K, N], scripted [N], the shares of
-    the simulated agent-rollouts penalised, at fault in a collision, off the road)."""
+    the simulated agent-rollouts penalised, at fault in a collision, off the road, and their mean progress error)."""
     edits = braking_leaders(scene, rng, cfg.brake_share)
     edited = with_braking_leaders(scene, edits)
     scripted = np.zeros(scene.num_tracks, bool)
@@ -220,6 +237,7 @@ def rollout_group(model, scene: Scenario, road, vocab: MotionVocabulary, cfg: Pr
     on_road = _vehicles_on_road(scene, size, simulated, edges) if cfg.offroad else np.zeros(0, np.int64)
     ret = np.zeros((k, scene.num_tracks), np.float32)
     collided = offroad = 0
+    progress = 0.0
     last = np.full((k, scene.num_tracks), tokens[0].ids.shape[1], np.int64)
     for c, mt in enumerate(tokens):
         poses, present = token_step_frames(mt, vocab, kc)
@@ -227,12 +245,18 @@ def rollout_group(model, scene: Scenario, road, vocab: MotionVocabulary, cfg: Pr
         off = first_offroad(poses, present, size, z, edges, on_road)
         first = np.where(hit < 0, off, np.where(off < 0, hit, np.minimum(hit, off)))
         bad = (first >= 0) & simulated
+        err = progress_error(edited, mt, kc) * simulated
+        ret[c] -= cfg.progress * err
+        progress += float(err.sum())
         collided, offroad = collided + int(((hit >= 0) & simulated).sum()), offroad + int((off >= 0).sum())
         ret[c, bad] = -1.0
         last[c, bad] = kc + first[bad] // FRAMES_PER_TOKEN
     adv = (ret - ret.mean(0, keepdims=True)) * simulated
+    if cfg.positive_only:
+        adv = np.maximum(adv, 0.0)
     n = max(simulated.sum() * k, 1)
-    shares = {"penalised": float((ret < 0).sum() / n), "at_fault": collided / n, "offroad": offroad / n}
+    shares = {"penalised": float((ret <= -1).sum() / n), "at_fault": collided / n, "offroad": offroad / n,
+              "progress_error": progress / n}
     return [edited] * k, tokens, [road] * k, list(adv), list(last), [scripted] * k, shares
 
 

@@ -158,3 +158,24 @@ def test_a_vehicle_pushed_off_the_road_is_off_road_from_that_frame(sample_scenes
     assert (got[np.setdiff1d(np.arange(sc.num_tracks), rows)] == -1).all()  # only the watched vehicles
     assert ((got[rows] == -1) | (got[rows] >= 3)).all() and (got[rows] == 3).mean() > 0.5
     assert (first_offroad(np.repeat(now[:, None], 6, axis=1), present, size, z, edges, rows) == -1).all()
+
+
+def test_progress_error_is_small_on_the_log_and_one_for_a_car_that_stands(sample_scenes, sample_vocab):
+    import dataclasses
+
+    from smart_marl.prior_rl import progress_error
+
+    sc = sample_scenes[2]
+    mt = tokenize_motion(sc, sample_vocab)
+    kc = first_future_step(sc)
+    err = progress_error(sc, mt, kc)
+    moving = err > 0
+    assert np.median(err[moving]) < 0.05 and err.max() < 0.2  # the log's own tokens (32 a type) drive about its distance
+    standing = mt.reached.copy()
+    standing[:, kc:] = standing[:, kc : kc + 1]
+    err = progress_error(sc, dataclasses.replace(mt, reached=standing), kc)
+    logged = np.linalg.norm(np.diff(sc.tracks.position[:, mt.boundaries[kc:], :2], axis=1), axis=-1)
+    moved = ((logged * mt.valid[:, kc:]).sum(1) >= 5.0)
+    assert moved.sum() >= 5 and moving.sum() <= moved.sum()
+    np.testing.assert_allclose(err[moved], 1.0)  # it drove nothing of its logged distance
+    assert (err[~moved] == 0).all()  # too short a log to judge
