@@ -37,6 +37,7 @@ from .model.batch import RoadArrays
 from .model.motionnet import NUM_MOTION_TYPES
 from .model.smart import RoadInputs
 from .rollout.avoidance import excluded_tokens
+from .rollout.sampling import sample_tokens
 from .scenario import Scenario
 from .tokens import FRAMES_PER_TOKEN, MOTION_TYPES, MotionTokens, MotionVocabulary, token_boundaries, tokenize_tracks
 
@@ -275,12 +276,12 @@ def _catk_group(model, scenes: list[Scenario], roads: list[RoadArrays], vocab: M
             sel_t = types == t
             if not sel_t.any():
                 continue
+            if sample is not None:  # the simulator's draw: one candidate
+                drawn, _ = sample_tokens(logits[sel_t, : sizes[t]].float().cpu(), sample, top_k)
+                allowed_slots[rows[sel_t].cpu(), drawn] = True
+                continue
             top = logits[sel_t, : sizes[t]].topk(min(top_k, sizes[t]), dim=-1)
-            if sample is None:
-                allowed_slots[rows[sel_t].cpu()[:, None], top.indices.cpu()] = torch.isfinite(top.values).cpu()
-            else:
-                pick = torch.multinomial(top.values.float().softmax(-1).cpu(), 1, generator=sample)
-                allowed_slots[rows[sel_t].cpu(), top.indices.cpu().gather(1, pick)[:, 0]] = True
+            allowed_slots[rows[sel_t].cpu()[:, None], top.indices.cpu()] = torch.isfinite(top.values).cpu()
         allowed = np.zeros((len(slot_of_row), vmax), bool)
         allowed[has_slot.numpy()] = allowed_slots[slot_of_row[has_slot]].numpy()
         if follow_log is not None:

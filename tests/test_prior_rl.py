@@ -63,6 +63,23 @@ def test_sampled_rollouts_draw_from_the_top_k_and_scripted_tracks_follow_their_l
         np.testing.assert_array_equal(mt.ids[:, :kc][log.valid[:, :kc]], log.ids[:, :kc][log.valid[:, :kc]])  # the history
         np.testing.assert_array_equal(mt.ids[follow], log.ids[follow])  # scripted: the log's rolling matching
     assert (a.ids[~follow, kc:] != log.ids[~follow, kc:])[log.valid[~follow, kc:]].any()
+    # every drawn token is among the model's top 3 where it was drawn (a full forward over the sequence)
+    from smart_marl.model.batch import collate_scenes, scene_tensors
+
+    batch = collate_scenes([scene_tensors(sc, sample_vocab, road, road_mask_prob=0.0, rng=0, motion_tokens=a)])
+    with torch.no_grad():
+        feats, _ = model(batch)
+    keep = np.flatnonzero(a.valid.any(1))
+    checked = 0
+    for j, row in enumerate(keep):
+        if follow[row]:
+            continue
+        for k in range(kc, a.num_steps):
+            if a.valid[row, k] and a.valid[row, k - 1]:
+                top = model.motion_heads[int(sc.tracks.types[row])](feats[0, j, k - 1]).topk(3).indices
+                assert a.ids[row, k] in top.tolist()
+                checked += 1
+    assert checked > 100
 
 
 def test_the_batch_trains_the_drawn_tokens_up_to_the_collision_and_the_loss_raises_a_rewarded_token(
