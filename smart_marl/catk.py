@@ -191,6 +191,24 @@ class _GapKeeper:
         return nearest
 
 
+def _candidates(logits: torch.Tensor, rows: torch.Tensor, types: torch.Tensor, sizes: list[int], top_k: int,
+                sample: torch.Generator | None, slots: int) -> torch.Tensor:
+    """bool [slots, Vmax]: the candidates of slots ``rows`` [Q] (of types ``types``) at this step, from their
+    ``logits`` [Q, Vmax]: their top ``top_k`` finite tokens, or with ``sample`` one token drawn from them."""
+    allowed = torch.zeros(slots, max(sizes), dtype=torch.bool)
+    for t in range(NUM_MOTION_TYPES):
+        sel_t = types == t
+        if not sel_t.any():
+            continue
+        if sample is not None:  # the simulator's draw: one candidate
+            drawn, _ = sample_tokens(logits[sel_t, : sizes[t]].float().cpu(), sample, top_k)
+            allowed[rows[sel_t].cpu(), drawn] = True
+            continue
+        top = logits[sel_t, : sizes[t]].topk(min(top_k, sizes[t]), dim=-1)
+        allowed[rows[sel_t].cpu()[:, None], top.indices.cpu()] = torch.isfinite(top.values).cpu()
+    return allowed
+
+
 def _catk_group(model, scenes: list[Scenario], roads: list[RoadArrays], vocab: MotionVocabulary, top_k: int,
                 device: torch.device, avoid: bool = False, sample: torch.Generator | None = None,
                 follow_log: np.ndarray | None = None) -> list[MotionTokens]:
@@ -271,17 +289,7 @@ def _catk_group(model, scenes: list[Scenario], roads: list[RoadArrays], vocab: M
         if keeper is not None:
             keeper.at_step(k, partial)
             logits = keeper.mask(logits, rows)
-        allowed_slots = torch.zeros(g * n, vmax, dtype=torch.bool)
-        for t in range(NUM_MOTION_TYPES):
-            sel_t = types == t
-            if not sel_t.any():
-                continue
-            if sample is not None:  # the simulator's draw: one candidate
-                drawn, _ = sample_tokens(logits[sel_t, : sizes[t]].float().cpu(), sample, top_k)
-                allowed_slots[rows[sel_t].cpu(), drawn] = True
-                continue
-            top = logits[sel_t, : sizes[t]].topk(min(top_k, sizes[t]), dim=-1)
-            allowed_slots[rows[sel_t].cpu()[:, None], top.indices.cpu()] = torch.isfinite(top.values).cpu()
+        allowed_slots = _candidates(logits, rows, types, sizes, top_k, sample, g * n)
         allowed = np.zeros((len(slot_of_row), vmax), bool)
         allowed[has_slot.numpy()] = allowed_slots[slot_of_row[has_slot]].numpy()
         if follow_log is not None:

@@ -268,6 +268,9 @@ def test_every_documented_command_names_what_exists(where, command, capsys):
         assert script.is_file()
         unknown = {w.split("=")[0] for w in words[2:] if w.startswith("--")} - _script_flags(script)
         assert not unknown, f"{script.name} defines no {sorted(unknown)}"
+    elif words[:2] == [".venv/bin/python", "-m"] and words[2].startswith("smart_marl."):
+        unknown = {w.split("=")[0] for w in words[3:] if w.startswith("--")} - _module_flags(words[2])
+        assert not unknown, f"{words[2]} defines no {sorted(unknown)}"
     elif words[:2] == [".venv/bin/python", "-c"]:
         tree = ast.parse(words[2])
         imports = ast.Module([n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))], [])
@@ -287,6 +290,20 @@ COVERED_ELSEWHERE = {  # commands whose check is a test of this file, named here
     "tar czf submission.tar.gz -C runs/val $(cd runs/val && ls submission.binproto-*)":
         "test_the_submission_upload_command_packs_every_file_of_the_set",
 }
+
+@functools.lru_cache(maxsize=None)
+def _module_flags(module: str) -> frozenset[str]:
+    """The options a package module run with ``python -m`` defines: its ``--help``, run in this process."""
+    out = io.StringIO()
+    argv = sys.argv
+    sys.argv = [module, "--help"]
+    try:
+        with contextlib.redirect_stdout(out), pytest.raises(SystemExit):
+            runpy.run_module(module, run_name="__main__", alter_sys=False)
+    finally:
+        sys.argv = argv
+    return frozenset(re.findall(r"(--[\w-]+)", out.getvalue()))
+
 
 # Each command of the README and the user pages -> the tests that run it (a test of this file, or
 # another module's, whose source holds the needle: the command's words as that test spells them).
@@ -330,6 +347,8 @@ RUN_BY = [
     (r"smart-marl eval --scenes \.\./shared\S* --policy constant_velocity",
      [("tests/test_metrics_submission.py::test_eval_command_scores_a_written_policy_submission_identically", '"eval"')]),
     (r"benchmarks/", [("tests/test_docs.py::test_every_documented_command_names_what_exists", "_script_flags")]),
+    (r"-m smart_marl\.prior_rl ", [("tests/test_prior_rl.py::test_the_command_line_runs_and_resumes", "main(args"),
+                                   ("tests/test_docs.py::test_every_documented_command_names_what_exists", "_module_flags")]),
     (r"smart-marl finetune --config scale|smart_marl\.cli finetune --config scale",
      [("tests/test_docs.py::test_the_scale_finetune_commands_run_on_a_small_pool", "main(argv)")]),
     # the launcher: two processes fine-tuning one policy (the test starts them with a script calling finetune())

@@ -154,6 +154,22 @@ def test_a_run_writes_its_log_and_checkpoints_and_resumes(sample_scenes, tiny_pr
     assert [r["iteration"] for r in rows] == [1, 2, 3]
 
 
+def test_the_command_line_runs_and_resumes(tiny_prior, tmp_path, one_torch_thread):
+    from smart_marl.embedded import SAMPLES_DIR
+    from smart_marl.model.checkpoint import load_checkpoint
+    from smart_marl.prior_rl import main
+
+    args = ["--scenes", str(SAMPLES_DIR), "--out-dir", str(tmp_path / "cli"), "--init", str(tiny_prior), "--iterations", "1",
+            "--scenes-per-iteration", "1", "--rollouts", "2", "--top-k", "3", "--offroad", "false", "--progress", "0.5",
+            "--lr", "1e-3"]
+    main(args)
+    main(args[:7] + ["2"] + args[8:])  # one more iteration, from the saved one
+    rows = [json.loads(x) for x in (tmp_path / "cli" / "train.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in rows] == [1, 2] and rows[0]["offroad"] == 0.0
+    cfg = load_checkpoint(tmp_path / "cli" / "last").meta["data"]["prior_rl"]
+    assert cfg["offroad"] is False and cfg["progress"] == 0.5 and cfg["iterations"] == 2
+
+
 def test_a_vehicle_pushed_off_the_road_is_off_road_from_that_frame(sample_scenes):
     from smart_marl.catk import _agent_shapes
     from smart_marl.geometry_torch import scene_road_edges
