@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from envs._core import CoreScene, TrafficCore
-from smart_marl.geometry import boxes_overlap
+from smart_marl.geometry import bearing_deg, boxes_overlap
 from smart_marl.metrics import Rollouts, SceneNotScorableError, aggregate, logged_scene, score_rollouts
 from smart_marl.metrics.config import NUM_SIMULATION_STEPS
 from smart_marl.metrics.inputs import simulated_agent_indices
@@ -76,8 +76,7 @@ def first_collision_kinds(poses: np.ndarray, present: np.ndarray, box_size: np.n
         first = int(frames[0])
         other, before = int(np.argmax(hit[:, first])), max(first - 1, 0)
         dx, dy = poses[other, before, :2] - poses[c, before, :2]
-        h = poses[c, before, 2]
-        angle = abs(math.degrees(math.atan2(-dx * math.sin(h) + dy * math.cos(h), dx * math.cos(h) + dy * math.sin(h))))
+        angle = bearing_deg(float(dx), float(dy), float(poses[c, before, 2]))
         kinds.append("front" if angle < 45.0 else "rear_ended" if angle > 135.0 else "side")
     return kinds
 

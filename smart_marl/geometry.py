@@ -21,6 +21,7 @@ quirks that change numbers are kept and named where they occur (see docs/wosac_m
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
 
@@ -183,6 +184,13 @@ def box_distance_bounds(dist_centres, length_a, width_a, length_b, width_b):
     circ = 0.5 * np.hypot(la, wa) + 0.5 * np.hypot(lb, wb)
     insc = 0.5 * np.minimum(la, wa) + 0.5 * np.minimum(lb, wb)
     return dist_centres - circ, dist_centres - insc
+
+
+def bearing_deg(dx: float, dy: float, heading: float) -> float:
+    """The angle (degrees, 0-180) between a heading and the direction (dx, dy) to another point: 0 dead
+    ahead, 180 straight behind (who ran into whom: the one that has the other ahead)."""
+    c, s = math.cos(heading), math.sin(heading)
+    return abs(math.degrees(math.atan2(-dx * s + dy * c, dx * c + dy * s)))
 
 
 def colliding(poses: np.ndarray, present: np.ndarray, length: np.ndarray, width: np.ndarray,

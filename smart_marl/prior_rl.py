@@ -30,6 +30,7 @@ fault in a collision, the KL, the loss) in ``out_dir``. CPU or one GPU; resumabl
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import json
 import time
@@ -43,14 +44,14 @@ import torch.nn.functional as F
 
 from .braking import braking_leaders, with_braking_leaders
 from .catk import _agent_shapes, first_future_step, sampled_tokens
-from .geometry import box_distance_bounds, box_distance_to_road_edge, boxes_overlap
+from .geometry import bearing_deg, box_distance_bounds, box_distance_to_road_edge, boxes_overlap
 from .geometry_torch import scene_road_edges
 from .model.batch import SmartBatch, collate_scenes, scene_road, scene_tensors
 from .model.checkpoint import checkpoint_paths, load_checkpoint, load_embedded, save_checkpoint
 from .model.losses import rows_reaching_targets
 from .model.motionnet import NUM_MOTION_TYPES
 from .rollout import DEFAULT_TOP_K
-from .rollout.frames import compose_torch
+from .rollout.frames import token_frames
 from .scenario import AgentType, Scenario
 from .tokens import FRAMES_PER_TOKEN, MotionTokens, MotionVocabulary
 from .train_data import open_scenes
@@ -71,7 +72,6 @@ class PriorRLConfig:
     top_k: int = DEFAULT_TOP_K
     brake_share: float = 0.5  # share of each scene's leaders that brake hard
     offroad: bool = True  # a vehicle on the road now that leaves it is penalised as a collision is
-    positive_only: bool = False  # only draws that did better than their group's mean are pushed up; none pushed down
     progress: float = 0.0  # weight of the progress term: -progress * |distance driven / logged distance - 1| (capped at 1)
     lr: float = 3e-5
     beta: float = 0.1  # weight of KL(pi || pi_ref)
@@ -87,13 +87,13 @@ def token_step_frames(tokens: MotionTokens, vocab: MotionVocabulary, first_step:
     onward (5 per step: the token's contour poses placed where it starts), F = 5 x those steps."""
     n, s = tokens.ids.shape
     steps = max(s - first_step, 0)
-    local = np.zeros((n, steps, FRAMES_PER_TOKEN, 3), np.float32)
+    local = np.zeros((n, steps, FRAMES_PER_TOKEN + 1, 3), np.float32)
     for t, v in vocab.types.items():
         rows = np.flatnonzero(tokens.types == int(t))
         if len(rows):
-            local[rows] = v.poses[tokens.ids[rows, first_step:]][..., 1:, :]
+            local[rows] = v.poses[tokens.ids[rows, first_step:]]
     start = torch.from_numpy(tokens.start_pose[:, first_step:]).float()
-    poses = compose_torch(start[:, :, None, :], torch.from_numpy(local)).numpy()
+    poses = token_frames(torch.from_numpy(local), start, start, interpolation="contour").numpy()
     present = np.repeat(tokens.valid[:, first_step:], FRAMES_PER_TOKEN, axis=1)
     return poses.reshape(n, steps * FRAMES_PER_TOKEN, 3), present
 
@@ -124,9 +124,7 @@ def at_fault_collisions(poses: np.ndarray, present: np.ndarray, size: np.ndarray
         for j in b[(a == i) & at]:
             before = max(int(first[i]) - 1, 0)
             d = poses[j, before, :2] - poses[i, before, :2]
-            h = poses[i, before, 2]
-            ahead = np.degrees(abs(np.arctan2(-d[0] * np.sin(h) + d[1] * np.cos(h), d[0] * np.cos(h) + d[1] * np.sin(h))))
-            if ahead < AT_FAULT_DEG:
+            if bearing_deg(float(d[0]), float(d[1]), float(poses[i, before, 2])) < AT_FAULT_DEG:
                 out[i] = first[i]
                 break
     return out
@@ -252,8 +250,6 @@ def rollout_group(model, scene: Scenario, road, vocab: MotionVocabulary, cfg: Pr
         ret[c, bad] = -1.0
         last[c, bad] = kc + first[bad] // FRAMES_PER_TOKEN
     adv = (ret - ret.mean(0, keepdims=True)) * simulated
-    if cfg.positive_only:
-        adv = np.maximum(adv, 0.0)
     n = max(simulated.sum() * k, 1)
     shares = {"penalised": float((ret <= -1).sum() / n), "at_fault": collided / n, "offroad": offroad / n,
               "progress_error": progress / n}
@@ -274,17 +270,14 @@ def _vehicles_on_road(scene: Scenario, size: np.ndarray, rows: np.ndarray, edges
 
 
 # ------------------------------------------------------------------------------ the run
-def _load(init: str):
-    return load_embedded() if init == "embedded" else load_checkpoint(init)
-
-
 def train_prior_rl(cfg: PriorRLConfig) -> Path:
     """The run (module docstring); returns the path of the last checkpoint."""
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    ck, ref = _load(cfg.init), _load(cfg.init).model.eval()
+    ck = load_embedded() if cfg.init == "embedded" else load_checkpoint(cfg.init)
+    ref = copy.deepcopy(ck.model).eval()
     for p in ref.parameters():
         p.requires_grad_(False)
     model, vocab, road_vocab = ck.model, ck.motion_vocab, ck.road_vocab

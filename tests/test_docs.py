@@ -243,18 +243,24 @@ def _print_config_or_parse(argv: list[str], capsys) -> None:
         build_parser().parse_args(argv)  # argparse exits 2 on an unknown flag or a bad value
 
 
-@functools.lru_cache(maxsize=None)
-def _script_flags(script: Path) -> frozenset[str]:
-    """The options a benchmark script's parser defines: its ``--help``, run in this process."""
+def _help_flags(name: str, run, path: list[str]) -> frozenset[str]:
+    """The options in the ``--help`` of ``run()`` (a script or a module run as ``__main__`` in this process,
+    ``sys.argv[0]`` = ``name``, ``path`` put first on ``sys.path`` meanwhile)."""
     out = io.StringIO()
-    argv, path = sys.argv, list(sys.path)
-    sys.argv, sys.path[:0] = [str(script), "--help"], [str(script.parent)]
+    argv, saved = sys.argv, list(sys.path)
+    sys.argv, sys.path[:0] = [name, "--help"], path
     try:
         with contextlib.redirect_stdout(out), pytest.raises(SystemExit):
-            runpy.run_path(str(script), run_name="__main__")
+            run()
     finally:
-        sys.argv, sys.path[:] = argv, path
+        sys.argv, sys.path[:] = argv, saved
     return frozenset(re.findall(r"(--[\w-]+)", out.getvalue()))
+
+
+@functools.lru_cache(maxsize=None)
+def _script_flags(script: Path) -> frozenset[str]:
+    """The options a benchmark script's parser defines."""
+    return _help_flags(str(script), lambda: runpy.run_path(str(script), run_name="__main__"), [str(script.parent)])
 
 
 @pytest.mark.parametrize("where,command", ALL_COMMANDS, ids=[w for w, _ in ALL_COMMANDS])
@@ -293,16 +299,8 @@ COVERED_ELSEWHERE = {  # commands whose check is a test of this file, named here
 
 @functools.lru_cache(maxsize=None)
 def _module_flags(module: str) -> frozenset[str]:
-    """The options a package module run with ``python -m`` defines: its ``--help``, run in this process."""
-    out = io.StringIO()
-    argv = sys.argv
-    sys.argv = [module, "--help"]
-    try:
-        with contextlib.redirect_stdout(out), pytest.raises(SystemExit):
-            runpy.run_module(module, run_name="__main__", alter_sys=False)
-    finally:
-        sys.argv = argv
-    return frozenset(re.findall(r"(--[\w-]+)", out.getvalue()))
+    """The options a package module run with ``python -m`` defines."""
+    return _help_flags(module, lambda: runpy.run_module(module, run_name="__main__", alter_sys=False), [])
 
 
 # Each command of the README and the user pages -> the tests that run it (a test of this file, or
