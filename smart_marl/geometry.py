@@ -193,33 +193,43 @@ def bearing_deg(dx: float, dy: float, heading: float) -> float:
     return abs(math.degrees(math.atan2(-dx * s + dy * c, dx * c + dy * s)))
 
 
-def colliding(poses: np.ndarray, present: np.ndarray, length: np.ndarray, width: np.ndarray,
-              query: np.ndarray | None = None) -> np.ndarray:
-    """Which agents collide: [..., Q] bool, true when agent ``query[q]``'s rounded box overlaps
-    (:func:`boxes_overlap`, query first) another agent's on some frame where both are present.
-
-    poses [..., A, F, 3] (x, y, heading of A agents over F frames), present [..., A, F] bool,
-    length / width [A]; query [Q] agent indices (default: every agent). Only the pairs whose
-    centre distance allows an overlap (:func:`box_distance_bounds`) are tested box against box.
-    """
+def overlapping_pairs(poses: np.ndarray, present: np.ndarray, length: np.ndarray, width: np.ndarray,
+                      query: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+    """Every (query agent, other agent, frame) whose rounded boxes overlap (:func:`boxes_overlap`, query
+    first) where both are present: index arrays ``(*leading, q, a, f)``, ``q`` into ``query`` (default:
+    every agent), ``a`` an agent index, ``f`` a frame. poses [..., A, F, 3], present [..., A, F] bool,
+    length / width [A]. Only the pairs whose centre distance allows an overlap
+    (:func:`box_distance_bounds`) are tested box against box."""
     poses, present = _f64(poses), np.asarray(present, bool)
     length, width = _f64(length), _f64(width)
     a = poses.shape[-3]
     q = np.arange(a) if query is None else np.asarray(query, np.int64)
-    out = np.zeros(poses.shape[:-3] + (len(q),), bool)
     if len(q) == 0 or a == 0:
-        return out
+        return tuple(np.zeros(0, np.int64) for _ in range(poses.ndim - 1))
     mine = poses[..., q, :, :]  # [..., Q, F, 3]
     dist = np.linalg.norm(mine[..., :, None, :, :2] - poses[..., None, :, :, :2], axis=-1)  # [..., Q, A, F]
     lo, _ = box_distance_bounds(dist, length[q, None, None], width[q, None, None], length[None, :, None], width[None, :, None])
     other = q[:, None, None] != np.arange(a)[None, :, None]  # [Q, A, 1]
     cand = (lo < 0) & other & present[..., q, None, :] & present[..., None, :, :]
     *lead, qi, ai, fi = np.nonzero(cand)
-    if len(qi) == 0:
-        return out
     pa, pb = mine[(*lead, qi, fi)], poses[(*lead, ai, fi)]  # [M, 3]
     hit = boxes_overlap(pa[:, 0], pa[:, 1], length[q[qi]], width[q[qi]], pa[:, 2], pb[:, 0], pb[:, 1], length[ai], width[ai], pb[:, 2])
-    out[(*[i[hit] for i in lead], qi[hit])] = True
+    return (*[i[hit] for i in lead], qi[hit], ai[hit], fi[hit])
+
+
+def colliding(poses: np.ndarray, present: np.ndarray, length: np.ndarray, width: np.ndarray,
+              query: np.ndarray | None = None) -> np.ndarray:
+    """Which agents collide: [..., Q] bool, true when agent ``query[q]``'s rounded box overlaps
+    another agent's on some frame where both are present (:func:`overlapping_pairs`).
+
+    poses [..., A, F, 3] (x, y, heading of A agents over F frames), present [..., A, F] bool,
+    length / width [A]; query [Q] agent indices (default: every agent).
+    """
+    a = np.shape(poses)[-3]
+    nq = a if query is None else len(query)
+    out = np.zeros(np.shape(poses)[:-3] + (nq,), bool)
+    *lead, qi, _ai, _fi = overlapping_pairs(poses, present, length, width, query)
+    out[(*lead, qi)] = True
     return out
 
 

@@ -122,3 +122,22 @@ def test_box_is_offroad_when_one_corner_crosses_the_edge():
     # turned 90 degrees the box reaches 0.5 m past the edge
     assert g.box_distance_to_road_edge(0.0, 1.5, 0.75, 4.0, 2.0, 1.5, np.pi / 2, edge) == pytest.approx(0.5, abs=1e-6)
     assert g.is_offroad(0.0, 1.5, 0.75, 4.0, 2.0, 1.5, np.pi / 2, edge)
+
+
+def test_overlapping_pairs_name_who_overlaps_whom_on_which_frame_and_colliding_agrees():
+    # three 4 x 2 m cars on the x axis over 3 frames: 0 and 1 touch on frame 2 only, 2 stays far away;
+    # a second scene (leading axis) where nobody overlaps
+    poses = np.zeros((2, 3, 3, 3))
+    poses[:, 0, :, 0] = [0.0, 0.0, 0.0]
+    poses[0, 1, :, 0] = [10.0, 6.0, 3.0]
+    poses[1, 1, :, 0] = [10.0, 9.0, 8.0]
+    poses[:, 2, :, 0] = 50.0
+    present = np.ones((2, 3, 3), bool)
+    length, width = np.full(3, 4.0), np.full(3, 2.0)
+    s, q, a, f = g.overlapping_pairs(poses, present, length, width)
+    assert sorted(zip(s.tolist(), q.tolist(), a.tolist(), f.tolist())) == [(0, 0, 1, 2), (0, 1, 0, 2)]
+    np.testing.assert_array_equal(g.colliding(poses, present, length, width), [[True, True, False], [False, False, False]])
+    present[0, 1, 2] = False  # absent on the frame of the touch: no pair
+    assert len(g.overlapping_pairs(poses, present, length, width)[0]) == 0
+    q, a, f = g.overlapping_pairs(poses[0], np.ones((3, 3), bool), length, width, query=np.array([1]))
+    assert (q.tolist(), a.tolist(), f.tolist()) == ([0], [0], [2])  # q indexes the query
