@@ -131,6 +131,20 @@ def braking_leaders(scene: Scenario, rng: np.random.Generator, share: float, dec
     return out
 
 
+def behind_in_lane(scene: Scenario, tracks, max_gap_m: float) -> np.ndarray:
+    """bool [N]: the vehicles valid at the current frame whose centre is within ``max_gap_m`` behind any of
+    ``tracks`` in its lane (lateral offset within :data:`LANE_HALF_M`, heading within 30 degrees): the
+    queue a braking leader holds up, not only its nearest follower."""
+    tr, cf = scene.tracks, scene.current_frame
+    veh = tr.valid[:, cf] & (tr.types == int(AgentType.VEHICLE))
+    out = np.zeros(scene.num_tracks, bool)
+    for i in tracks:
+        rel = poses_relative_to(scene, int(i))
+        out |= veh & (rel[:, 0] < 0) & (-rel[:, 0] <= max_gap_m) & (np.abs(rel[:, 1]) < LANE_HALF_M) \
+            & (np.abs(rel[:, 2]) < SAME_DIRECTION_RAD)
+    return out
+
+
 def with_braking_leaders(scene: Scenario, edits: list[tuple[int, int, float]]) -> Scenario:
     """``scene`` with each (track, onset frame, deceleration) of ``edits`` (:func:`braking_leaders`) braking."""
     for track, frame, decel in edits:

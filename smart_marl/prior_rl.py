@@ -16,7 +16,8 @@ from, as the issue's SPACeR / SMART-R1 suggestion):
    with another present agent, the other within 45 degrees of its heading a frame before: it hit the
    other with its front; :func:`at_fault_collisions`) or, a vehicle on the road at the current frame,
    leaves the road (``offroad``, :func:`first_offroad`), else 0; with ``progress`` > 0, minus that times how far
-   the distance it drove is from its logged distance (:func:`progress_error`).
+   the distance it drove is from its logged distance (:func:`progress_error`); vehicles within
+   ``progress_queue_m`` behind a braking leader in its lane are not judged on progress (their log did not brake).
 4. Its advantage: that return minus the mean return of the same agent over the scene's rollouts (a
    group baseline, no critic), on every token it drew up to that collision.
 5. Loss: ``-mean(A * log pi(token)) + beta * mean KL(pi || pi_ref)`` over the drawn tokens of the
@@ -42,9 +43,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .braking import braking_leaders, with_braking_leaders
+from .braking import behind_in_lane, braking_leaders, with_braking_leaders
 from .catk import _agent_shapes, first_future_step, sampled_tokens
-from .geometry import bearing_deg, box_distance_bounds, box_distance_to_road_edge, boxes_overlap
+from .geometry import bearing_deg, box_distance_to_road_edge, overlapping_pairs
 from .geometry_torch import scene_road_edges
 from .model.batch import SmartBatch, collate_scenes, scene_road, scene_tensors
 from .model.checkpoint import checkpoint_paths, load_checkpoint, load_embedded, save_checkpoint
@@ -73,6 +74,7 @@ class PriorRLConfig:
     brake_share: float = 0.5  # share of each scene's leaders that brake hard
     offroad: bool = True  # a vehicle on the road now that leaves it is penalised as a collision is
     progress: float = 0.0  # weight of the progress term: -progress * |distance driven / logged distance - 1| (capped at 1)
+    progress_queue_m: float = 0.0  # vehicles this far behind a braking leader in its lane are not judged on progress
     lr: float = 3e-5
     beta: float = 0.1  # weight of KL(pi || pi_ref)
     grad_clip: float = 1.0
@@ -105,18 +107,9 @@ def at_fault_collisions(poses: np.ndarray, present: np.ndarray, size: np.ndarray
     poses [N, F, 3], present [N, F], size [N, 2+] (length, width)."""
     n, f = present.shape
     out = np.full(n, -1, np.int64)
-    if n < 2 or f == 0:
-        return out
-    length, width = size[:, 0].astype(np.float64), size[:, 1].astype(np.float64)
-    dist = np.linalg.norm(poses[:, None, :, :2] - poses[None, :, :, :2], axis=-1)  # [N, N, F]
-    lo, _ = box_distance_bounds(dist, length[:, None, None], width[:, None, None], length[None, :, None], width[None, :, None])
-    cand = (lo < 0) & present[:, None, :] & present[None, :, :] & ~np.eye(n, dtype=bool)[:, :, None]
-    a, b, fr = np.nonzero(cand)
+    a, b, fr = overlapping_pairs(poses, present, size[:, 0], size[:, 1])
     if not len(a):
         return out
-    pa, pb = poses[a, fr].astype(np.float64), poses[b, fr].astype(np.float64)
-    hit = boxes_overlap(pa[:, 0], pa[:, 1], length[a], width[a], pa[:, 2], pb[:, 0], pb[:, 1], length[b], width[b], pb[:, 2])
-    a, b, fr = a[hit], b[hit], fr[hit]
     first = np.full(n, f, np.int64)
     np.minimum.at(first, a, fr)
     for i in np.flatnonzero(first < f):
@@ -231,6 +224,7 @@ def rollout_group(model, scene: Scenario, road, vocab: MotionVocabulary, cfg: Pr
     kc = first_future_step(scene)
     size = _agent_shapes(scene, np.arange(scene.num_tracks))
     simulated = ~scripted & tokens[0].valid[:, kc:].any(1)
+    judged = simulated & ~behind_in_lane(scene, scripted.nonzero()[0], cfg.progress_queue_m)
     edges, z = scene_road_edges(scene.road_map), scene.tracks.position[:, scene.current_frame, 2]
     on_road = _vehicles_on_road(scene, size, simulated, edges) if cfg.offroad else np.zeros(0, np.int64)
     ret = np.zeros((k, scene.num_tracks), np.float32)
@@ -243,7 +237,7 @@ def rollout_group(model, scene: Scenario, road, vocab: MotionVocabulary, cfg: Pr
         off = first_offroad(poses, present, size, z, edges, on_road)
         first = np.where(hit < 0, off, np.where(off < 0, hit, np.minimum(hit, off)))
         bad = (first >= 0) & simulated
-        err = progress_error(edited, mt, kc) * simulated
+        err = progress_error(edited, mt, kc) * judged
         ret[c] -= cfg.progress * err
         progress += float(err.sum())
         collided, offroad = collided + int(((hit >= 0) & simulated).sum()), offroad + int((off >= 0).sum())

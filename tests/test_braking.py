@@ -124,3 +124,16 @@ def _empty_road():
     return RoadArrays(local=np.zeros((0, 0, 2), np.float32), pose=np.zeros((0, 3), np.float32), type_id=np.zeros(0, np.int64),
                       light=np.zeros(0, np.int64), token=np.zeros(0, np.int64), pairs=np.zeros((0, 2), np.int64),
                       light_index=np.zeros(0, np.int64))
+
+
+def test_behind_in_lane_holds_each_leaders_followers_and_grows_with_the_distance(pair_scene):
+    sc, pairs = pair_scene
+    from smart_marl.braking import FOLLOW_GAP_M, behind_in_lane
+
+    leaders = sorted({p[0] for p in pairs})
+    assert not behind_in_lane(sc, [], 60.0).any()
+    near = behind_in_lane(sc, leaders, FOLLOW_GAP_M)
+    assert all(near[f] for _, f, _ in pairs)  # every nearest follower is in the queue
+    far = behind_in_lane(sc, leaders, 200.0)
+    assert (far >= near).all()
+    assert not behind_in_lane(sc, leaders, 0.5).any()  # nobody's centre half a metre behind
