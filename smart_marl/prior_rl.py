@@ -18,8 +18,11 @@ from, as the issue's SPACeR / SMART-R1 suggestion):
    leaves the road (``offroad``, :func:`first_offroad`), else 0; with ``progress`` > 0, minus that times how far
    the distance it drove is from its logged distance (:func:`progress_error`); vehicles within
    ``progress_queue_m`` behind a braking leader in its lane are not judged on progress (their log did not brake).
-4. Its advantage: that return minus the mean return of the same agent over the scene's rollouts (a
-   group baseline, no critic), on every token it drew up to that collision.
+   With ``discount`` < 1 the penalty is a reward at the step it happens: the token drawn n steps before
+   it sees ``-discount**n`` (the return from that step on), so blame falls on the last seconds before a
+   collision rather than on the whole drive.
+4. Its advantage at each token step: that return minus the mean return of the same agent at that step over
+   the scene's rollouts (a group baseline, no critic), on every token it drew up to that collision.
 5. Loss: ``-mean(A * log pi(token)) + beta * mean KL(pi || pi_ref)`` over the drawn tokens of the
    simulated agents (:func:`rl_loss`), ``pi_ref`` the frozen starting weights.
 
@@ -75,6 +78,7 @@ class PriorRLConfig:
     offroad: bool = True  # a vehicle on the road now that leaves it is penalised as a collision is
     progress: float = 0.0  # weight of the progress term: -progress * |distance driven / logged distance - 1| (capped at 1)
     progress_queue_m: float = 0.0  # vehicles this far behind a braking leader in its lane are not judged on progress
+    discount: float = 1.0  # per token step: a penalty reaches the token drawn n steps before it times discount**n
     lr: float = 3e-5
     beta: float = 0.1  # weight of KL(pi || pi_ref)
     grad_clip: float = 1.0
@@ -187,7 +191,7 @@ def scene_batch(scenes: Sequence[Scenario], tokens: Sequence[MotionTokens], road
                 advantage: Sequence[np.ndarray], last_step: Sequence[np.ndarray], scripted: Sequence[np.ndarray],
                 first_step: int) -> tuple[SmartBatch, torch.Tensor]:
     """The training batch of sampled rollouts (targets: the drawn tokens) and its weights [B, N, S]:
-    track ``r``'s advantage on the tokens it drew from ``first_step`` to ``last_step[r]``; scripted
+    track ``r``'s advantage ([N], or [N, S] per token step) on the tokens it drew from ``first_step`` to ``last_step[r]``; scripted
     tracks and the history are no target."""
     arrays, weights = [], []
     for sc, mt, road, adv, last, scr in zip(scenes, tokens, roads, advantage, last_step, scripted):
@@ -200,7 +204,7 @@ def scene_batch(scenes: Sequence[Scenario], tokens: Sequence[MotionTokens], road
         tv[:, :-1] &= target[:, 1:]
         tv[:, -1] = False
         w = np.zeros(tv.shape, np.float32)
-        w[:, :-1] = adv[keep, None]
+        w[:, :-1] = adv[keep, None] if adv.ndim == 1 else adv[keep, 1:]
         arrays.append({**a, "target_valid": tv})
         weights.append(w * tv)
     batch = collate_scenes(arrays)
@@ -213,7 +217,7 @@ def scene_batch(scenes: Sequence[Scenario], tokens: Sequence[MotionTokens], road
 def rollout_group(model, scene: Scenario, road, vocab: MotionVocabulary, cfg: PriorRLConfig, rng: np.random.Generator,
                   generator: torch.Generator):
     """One scene with braking leaders, ``cfg.rollouts`` sampled rollouts of it, their at-fault collisions.
-    Returns (scenes, tokens, roads, advantages [K, N], last steps [K, N], scripted [N], the shares of
+    Returns (scenes, tokens, roads, advantages [K, N, S], last steps [K, N], scripted [N], the shares of
     the simulated agent-rollouts penalised, at fault in a collision, off the road, and their mean progress error)."""
     edits = braking_leaders(scene, rng, cfg.brake_share)
     edited = with_braking_leaders(scene, edits)
@@ -227,27 +231,42 @@ def rollout_group(model, scene: Scenario, road, vocab: MotionVocabulary, cfg: Pr
     judged = simulated & ~behind_in_lane(scene, scripted.nonzero()[0], cfg.progress_queue_m)
     edges, z = scene_road_edges(scene.road_map), scene.tracks.position[:, scene.current_frame, 2]
     on_road = _vehicles_on_road(scene, size, simulated, edges) if cfg.offroad else np.zeros(0, np.int64)
-    ret = np.zeros((k, scene.num_tracks), np.float32)
+    steps = tokens[0].ids.shape[1]
     collided = offroad = 0
-    progress = 0.0
-    last = np.full((k, scene.num_tracks), tokens[0].ids.shape[1], np.int64)
+    last = np.full((k, scene.num_tracks), -1, np.int64)
+    err = np.zeros((k, scene.num_tracks), np.float32)
     for c, mt in enumerate(tokens):
         poses, present = token_step_frames(mt, vocab, kc)
         hit = at_fault_collisions(poses, present, size)
         off = first_offroad(poses, present, size, z, edges, on_road)
         first = np.where(hit < 0, off, np.where(off < 0, hit, np.minimum(hit, off)))
         bad = (first >= 0) & simulated
-        err = progress_error(edited, mt, kc) * judged
-        ret[c] -= cfg.progress * err
-        progress += float(err.sum())
+        err[c] = progress_error(edited, mt, kc) * judged
         collided, offroad = collided + int(((hit >= 0) & simulated).sum()), offroad + int((off >= 0).sum())
-        ret[c, bad] = -1.0
         last[c, bad] = kc + first[bad] // FRAMES_PER_TOKEN
-    adv = (ret - ret.mean(0, keepdims=True)) * simulated
+    ret = token_returns(last, -cfg.progress * err, steps, cfg.discount)
+    adv = group_advantages(ret, simulated)
+    progress = float(err.sum())
+    last[last < 0] = steps
     n = max(simulated.sum() * k, 1)
-    shares = {"penalised": float((ret <= -1).sum() / n), "at_fault": collided / n, "offroad": offroad / n,
+    shares = {"penalised": float((ret[..., -1] <= -1).sum() / n), "at_fault": collided / n, "offroad": offroad / n,
               "progress_error": progress / n}
     return [edited] * k, tokens, [road] * k, list(adv), list(last), [scripted] * k, shares
+
+
+def token_returns(penalty_step: np.ndarray, final: np.ndarray, steps: int, discount: float) -> np.ndarray:
+    """[K, N, S] the return from each token step on of K rollouts of N agents: ``-discount**n`` at a step n steps
+    before the agent's penalty (``penalty_step`` [K, N], -1 for none; -1 from that step on), else ``final``
+    [K, N] (the episode's progress term, the same at every step)."""
+    ahead = penalty_step[..., None] - np.arange(steps)  # [K, N, S] steps until the penalty
+    penalised = -(discount ** np.maximum(ahead, 0)).astype(np.float32)
+    return np.where((penalty_step >= 0)[..., None], penalised, final[..., None]).astype(np.float32)
+
+
+def group_advantages(returns: np.ndarray, simulated: np.ndarray) -> np.ndarray:
+    """[K, N, S] each return minus the same agent's mean return at that step over the K rollouts (the group
+    baseline), 0 for the agents that are not ``simulated`` [N]."""
+    return (returns - returns.mean(0, keepdims=True)) * simulated[:, None]
 
 
 def _vehicles_on_road(scene: Scenario, size: np.ndarray, rows: np.ndarray, edges) -> np.ndarray:

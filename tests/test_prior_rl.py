@@ -105,6 +105,10 @@ def test_the_batch_trains_the_drawn_tokens_up_to_the_collision_and_the_loss_rais
     assert tv[0, : kc - 1].sum() == 0  # the history is no target
     assert torch.equal(batch.target_tokens[0, 0, kc - 1:-1], torch.from_numpy(mt.ids[keep[0], kc:]))  # the drawn tokens
     assert (weight[0, 0][tv[0]] == 1).all() and (weight[0, 1][tv[1]] == -1).all()
+    per_step = np.zeros((sc.num_tracks, mt.num_steps), np.float32)  # advantages per token step
+    per_step[keep[1]] = np.arange(mt.num_steps)
+    _, w2 = scene_batch([sc], [mt], [road], sample_vocab, [per_step], [last], [scripted], kc)
+    assert torch.equal(w2[0, 1, kc - 1: kc + 2], torch.tensor([kc, kc + 1.0, kc + 2]))  # row s weighs token s + 1
     res = rl_loss(model, ref, batch, weight, beta=0.1)
     assert float(res["kl"]) == pytest.approx(0.0, abs=1e-7)  # the same weights: no divergence
     opt = torch.optim.SGD(model.parameters(), lr=0.5)
@@ -212,3 +216,19 @@ def test_progress_error_is_small_on_the_log_and_one_for_a_car_that_stands(sample
     assert moved.sum() >= 5 and moving.sum() <= moved.sum()
     np.testing.assert_allclose(err[moved], 1.0)  # it drove nothing of its logged distance
     assert (err[~moved] == 0).all()  # too short a log to judge
+
+
+def test_returns_blame_the_steps_before_a_penalty_by_the_discount_and_the_baseline_is_the_groups_mean():
+    from smart_marl.prior_rl import group_advantages, token_returns
+
+    penalty = np.array([[3, -1], [-1, -1]])  # rollout 0: agent 0 penalised at step 3; nobody else
+    final = np.array([[0.0, -0.2], [-0.1, -0.4]], np.float32)  # the progress term
+    ret = token_returns(penalty, final, 6, 0.5)
+    np.testing.assert_allclose(ret[0, 0], [-0.125, -0.25, -0.5, -1, -1, -1])  # the penalty replaces progress
+    np.testing.assert_allclose(ret[1, 0], [-0.1] * 6)
+    np.testing.assert_allclose(ret[:, 1], [[-0.2] * 6, [-0.4] * 6])
+    np.testing.assert_allclose(token_returns(penalty, final, 6, 1.0)[0, 0], [-1] * 6)  # undiscounted: the whole drive
+    adv = group_advantages(ret, np.array([True, False]))
+    np.testing.assert_allclose(adv[:, 0, 2], [-0.2, 0.2])  # -0.5 and -0.1 around their mean -0.3
+    np.testing.assert_allclose(adv.sum(0), 0, atol=1e-7)
+    assert (adv[:, 1] == 0).all()  # not simulated: no advantage
