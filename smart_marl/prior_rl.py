@@ -158,17 +158,18 @@ def progress_error(scene: Scenario, tokens: MotionTokens, first_step: int, min_l
 
 
 # ------------------------------------------------------------------------------ the loss
-def rl_loss(model, reference, batch: SmartBatch, weight: torch.Tensor, beta: float) -> dict[str, torch.Tensor]:
+def rl_loss(model, reference, batch: SmartBatch, weight: torch.Tensor, beta: float, count: int | None = None) -> dict[str, torch.Tensor]:
     """``-sum(weight * log pi(target)) / M + beta * sum KL(pi || pi_ref) / M`` over the M (agent, step)
     rows of ``batch`` with a valid target (the token drawn next), ``weight`` [B, N, S] the advantages of
-    those rows; ``reference`` the frozen model of the KL. Returns ``loss`` and detached ``pg``, ``kl``."""
+    those rows; ``reference`` the frozen model of the KL; ``count`` replaces M (a part of a larger batch whose
+    gradients are summed: the whole batch's M). Returns ``loss`` and detached ``pg``, ``kl``."""
     rows = rows_reaching_targets(batch)
     feats, _ = model(batch, agent_valid=rows)
     with torch.no_grad():
         ref_feats, _ = reference(batch, agent_valid=rows)
     pg = feats.new_zeros(())
     kl = feats.new_zeros(())
-    count = 0
+    norm, count = count, 0
     tv = batch.target_valid
     for t in range(NUM_MOTION_TYPES):
         sel = tv & (batch.agent_type == t)[:, :, None]
@@ -181,9 +182,10 @@ def rl_loss(model, reference, batch: SmartBatch, weight: torch.Tensor, beta: flo
         pg = pg - (weight[sel] * taken).sum()
         kl = kl + (logp.exp() * (logp - ref_logp)).sum()
         count += int(sel.sum())
-    count = max(count, 1)
+    tokens = count
+    count = max(count if norm is None else norm, 1)
     loss = (pg + beta * kl) / count
-    return {"loss": loss, "pg": pg.detach() / count, "kl": kl.detach() / count, "tokens": torch.tensor(float(count))}
+    return {"loss": loss, "pg": pg.detach() / count, "kl": kl.detach() / count, "tokens": torch.tensor(float(tokens))}
 
 
 # ------------------------------------------------------------------------------ one iteration
@@ -319,15 +321,12 @@ def train_prior_rl(cfg: PriorRLConfig) -> Path:
                 p.extend(g)
             shares.append(share)
         t1 = time.time()  # the update in eval mode too (no dropout): the log-probabilities are those the draws had
-        sc, tok, roads, adv, last, scripted = parts
-        batch, weight = scene_batch(sc, tok, roads, vocab, adv, last, scripted, first_future_step(sc[0]))
-        res = rl_loss(model, ref, batch, weight, cfg.beta)
         optimizer.zero_grad(set_to_none=True)
-        res["loss"].backward()
+        res = update_in_parts(model, ref, parts, vocab, cfg)
         grad = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
         optimizer.step()
-        row = {"iteration": it + 1, **{key: float(np.mean([sh[key] for sh in shares])) for key in shares[0]}, "pg": float(res["pg"]), "kl": float(res["kl"]),
-               "loss": float(res["loss"].detach()), "grad_norm": float(grad), "tokens": int(res["tokens"]),
+        row = {"iteration": it + 1, **{key: float(np.mean([sh[key] for sh in shares])) for key in shares[0]}, "pg": res["pg"], "kl": res["kl"],
+               "loss": res["loss"], "grad_norm": float(grad), "tokens": res["tokens"],
                "rollout_s": round(t1 - t0, 2), "update_s": round(time.time() - t1, 2)}
         log.write(json.dumps(row) + "\n")
         log.flush()
@@ -338,6 +337,25 @@ def train_prior_rl(cfg: PriorRLConfig) -> Path:
             save_checkpoint(last_path, model, vocab, road_vocab, step=it + 1, data=meta)
     log.close()
     return last_path
+
+
+def update_in_parts(model, reference, parts: list[list], vocab: MotionVocabulary, cfg: PriorRLConfig) -> dict[str, float]:
+    """The gradients of :func:`rl_loss` over all of an iteration's rollouts (``parts``: scenes, tokens, roads,
+    advantages, last steps, scripted), summed one scene's rollouts at a time (``cfg.rollouts`` rows each), so that
+    the activations of one scene's batch, not of the whole iteration's, are held at once. Returns the
+    iteration's ``loss``, ``pg``, ``kl`` and ``tokens``."""
+    sc, tok, roads, adv, last, scripted = parts
+    kc, k = first_future_step(sc[0]), cfg.rollouts
+    chunks = [scene_batch(sc[i:i + k], tok[i:i + k], roads[i:i + k], vocab, adv[i:i + k], last[i:i + k], scripted[i:i + k], kc)
+              for i in range(0, len(sc), k)]
+    total = int(sum(int(b.target_valid.sum()) for b, _ in chunks))
+    out = {"loss": 0.0, "pg": 0.0, "kl": 0.0, "tokens": total}
+    for batch, weight in chunks:
+        res = rl_loss(model, reference, batch, weight, cfg.beta, count=total)
+        res["loss"].backward()
+        for key in ("loss", "pg", "kl"):
+            out[key] += float(res[key].detach())
+    return out
 
 
 def main(argv: Sequence[str] | None = None) -> None:

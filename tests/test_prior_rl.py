@@ -232,3 +232,30 @@ def test_returns_blame_the_steps_before_a_penalty_by_the_discount_and_the_baseli
     np.testing.assert_allclose(adv[:, 0, 2], [-0.2, 0.2])  # -0.5 and -0.1 around their mean -0.3
     np.testing.assert_allclose(adv.sum(0), 0, atol=1e-7)
     assert (adv[:, 1] == 0).all()  # not simulated: no advantage
+
+
+def test_the_update_in_parts_sums_to_the_gradient_of_the_whole_batch(sample_scenes, sample_vocab, tiny_smart, road_vocab,
+                                                                      one_torch_thread):
+    from smart_marl.prior_rl import update_in_parts
+
+    model, ref = tiny_smart(sample_vocab).eval(), tiny_smart(sample_vocab).eval()
+    parts: list[list] = [[] for _ in range(6)]
+    for sc in (sample_scenes[2], sample_scenes[3]):  # two scenes x two rollouts
+        road = scene_road(sc, road_vocab)
+        mt = sampled_tokens(model, [sc, sc], [road, road], sample_vocab, 3, torch.Generator().manual_seed(0))
+        adv = np.random.default_rng(0).normal(size=(2, sc.num_tracks, mt[0].num_steps)).astype(np.float32)
+        last = np.full((2, sc.num_tracks), mt[0].num_steps, np.int64)
+        for p, g in zip(parts, ([sc, sc], mt, [road, road], list(adv), list(last), [np.zeros(sc.num_tracks, bool)] * 2)):
+            p.extend(g)
+    cfg = PriorRLConfig(rollouts=2, beta=0.1)
+    model.zero_grad()
+    got = update_in_parts(model, ref, parts, sample_vocab, cfg)
+    in_parts = [p.grad.clone() for p in model.parameters() if p.grad is not None]
+    model.zero_grad()
+    batch, weight = scene_batch(parts[0], parts[1], parts[2], sample_vocab, parts[3], parts[4], parts[5], first_future_step(parts[0][0]))
+    whole = rl_loss(model, ref, batch, weight, 0.1)
+    whole["loss"].backward()
+    assert got["tokens"] == int(whole["tokens"]) > 0
+    assert got["loss"] == pytest.approx(float(whole["loss"].detach()), rel=1e-4, abs=1e-6)
+    for a, b in zip(in_parts, [p.grad for p in model.parameters() if p.grad is not None]):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
