@@ -6,6 +6,7 @@ import importlib.util
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from smart_marl.scenario import AgentType
@@ -223,3 +224,27 @@ def test_map_view_measures_the_nearest_pieces_the_model_takes(sample_scenes):
     assert row[0] == 30 and abs(row[1] - 7.0) < 1e-6 and abs(row[2] - 7.0) < 1e-6  # 30 within 30 m; the 8 nearest reach 7 m
     wide = view.vehicle_views(scene, road, 100, 30.0)[0]
     assert abs(wide[1] - 29.0) < 1e-6 and abs(wide[2] - 29.0) < 1e-6  # every piece within 30 m taken
+
+
+def test_room_ahead_is_the_nearest_agent_ahead_in_the_lane(sample_scenes):
+    import dataclasses
+
+    from smart_marl.braking import leader_follower_pairs
+
+    room_ahead = _load("speed_by_space_ahead").room_ahead
+    sc = sample_scenes[2]
+    pairs = leader_follower_pairs(sc)
+    assert pairs
+    tr, cf = sc.tracks, sc.current_frame
+    for leader, follower, _ in pairs:
+        apart = float(np.linalg.norm(tr.position[leader, cf, :2] - tr.position[follower, cf, :2]))
+        assert 0 < room_ahead(sc, follower) <= apart + 1e-6  # the leader is ahead in its lane; something nearer may be too
+    leader, follower, _ = pairs[0]
+    alone = tr.valid.copy()
+    alone[:, cf] = False
+    alone[[leader, follower], cf] = True
+    only_two = dataclasses.replace(sc, tracks=dataclasses.replace(tr, valid=alone))
+    d = tr.position[leader, cf, :2] - tr.position[follower, cf, :2]
+    h = tr.heading[follower, cf]
+    assert room_ahead(only_two, follower) == pytest.approx(np.cos(h) * d[0] + np.sin(h) * d[1])  # along its heading
+    assert room_ahead(only_two, leader) == np.inf  # its follower is behind it, nobody else is there
