@@ -57,8 +57,7 @@ def leader_follower_pairs(scene: Scenario, max_gap_m: float = FOLLOW_GAP_M, max_
     out = []
     for i in np.flatnonzero(veh & (v > LEADER_MIN_MPS)):
         rel = poses_relative_to(scene, int(i))
-        behind = veh & (v > FOLLOWER_MIN_MPS) & (rel[:, 0] < 0) & (-rel[:, 0] <= max_gap_m) & (np.abs(rel[:, 1]) < LANE_HALF_M) \
-            & (np.abs(rel[:, 2]) < SAME_DIRECTION_RAD)
+        behind = veh & (v > FOLLOWER_MIN_MPS) & _in_lane_behind(rel, max_gap_m)
         behind[i] = False
         if behind.any():
             j = int(np.flatnonzero(behind)[np.argmax(rel[behind, 0])])
@@ -131,17 +130,21 @@ def braking_leaders(scene: Scenario, rng: np.random.Generator, share: float, dec
     return out
 
 
+def _in_lane_behind(rel: np.ndarray, max_gap_m: float) -> np.ndarray:
+    """bool [N]: the tracks whose centre is within ``max_gap_m`` behind a track in its lane (lateral offset within
+    :data:`LANE_HALF_M`, heading within 30 degrees of its), ``rel`` [N, 3] their poses relative to it
+    (:func:`poses_relative_to`)."""
+    return (rel[:, 0] < 0) & (-rel[:, 0] <= max_gap_m) & (np.abs(rel[:, 1]) < LANE_HALF_M) & (np.abs(rel[:, 2]) < SAME_DIRECTION_RAD)
+
+
 def behind_in_lane(scene: Scenario, tracks, max_gap_m: float) -> np.ndarray:
-    """bool [N]: the vehicles valid at the current frame whose centre is within ``max_gap_m`` behind any of
-    ``tracks`` in its lane (lateral offset within :data:`LANE_HALF_M`, heading within 30 degrees): the
-    queue a braking leader holds up, not only its nearest follower."""
+    """bool [N]: the vehicles valid at the current frame within ``max_gap_m`` behind any of ``tracks`` in its
+    lane (:func:`_in_lane_behind`): the queue a braking leader holds up, not only its nearest follower."""
     tr, cf = scene.tracks, scene.current_frame
     veh = tr.valid[:, cf] & (tr.types == int(AgentType.VEHICLE))
     out = np.zeros(scene.num_tracks, bool)
     for i in tracks:
-        rel = poses_relative_to(scene, int(i))
-        out |= veh & (rel[:, 0] < 0) & (-rel[:, 0] <= max_gap_m) & (np.abs(rel[:, 1]) < LANE_HALF_M) \
-            & (np.abs(rel[:, 2]) < SAME_DIRECTION_RAD)
+        out |= veh & _in_lane_behind(poses_relative_to(scene, int(i)), max_gap_m)
     return out
 
 

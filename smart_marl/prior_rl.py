@@ -158,10 +158,10 @@ def progress_error(scene: Scenario, tokens: MotionTokens, first_step: int, min_l
 
 
 # ------------------------------------------------------------------------------ the loss
-def rl_loss(model, reference, batch: SmartBatch, weight: torch.Tensor, beta: float, count: int | None = None) -> dict[str, torch.Tensor]:
+def rl_loss(model, reference, batch: SmartBatch, weight: torch.Tensor, beta: float, total: int | None = None) -> dict[str, torch.Tensor]:
     """``-sum(weight * log pi(target)) / M + beta * sum KL(pi || pi_ref) / M`` over the M (agent, step)
     rows of ``batch`` with a valid target (the token drawn next), ``weight`` [B, N, S] the advantages of
-    those rows; ``reference`` the frozen model of the KL; ``count`` replaces M (a part of a larger batch whose
+    those rows; ``reference`` the frozen model of the KL; ``total`` replaces M (a part of a larger batch whose
     gradients are summed: the whole batch's M). Returns ``loss`` and detached ``pg``, ``kl``."""
     rows = rows_reaching_targets(batch)
     feats, _ = model(batch, agent_valid=rows)
@@ -169,7 +169,7 @@ def rl_loss(model, reference, batch: SmartBatch, weight: torch.Tensor, beta: flo
         ref_feats, _ = reference(batch, agent_valid=rows)
     pg = feats.new_zeros(())
     kl = feats.new_zeros(())
-    norm, count = count, 0
+    count = 0
     tv = batch.target_valid
     for t in range(NUM_MOTION_TYPES):
         sel = tv & (batch.agent_type == t)[:, :, None]
@@ -182,10 +182,9 @@ def rl_loss(model, reference, batch: SmartBatch, weight: torch.Tensor, beta: flo
         pg = pg - (weight[sel] * taken).sum()
         kl = kl + (logp.exp() * (logp - ref_logp)).sum()
         count += int(sel.sum())
-    tokens = count
-    count = max(count if norm is None else norm, 1)
-    loss = (pg + beta * kl) / count
-    return {"loss": loss, "pg": pg.detach() / count, "kl": kl.detach() / count, "tokens": torch.tensor(float(tokens))}
+    m = max(count if total is None else total, 1)
+    loss = (pg + beta * kl) / m
+    return {"loss": loss, "pg": pg.detach() / m, "kl": kl.detach() / m, "tokens": torch.tensor(float(count))}
 
 
 # ------------------------------------------------------------------------------ one iteration
@@ -351,7 +350,7 @@ def update_in_parts(model, reference, parts: list[list], vocab: MotionVocabulary
     total = int(sum(int(b.target_valid.sum()) for b, _ in chunks))
     out = {"loss": 0.0, "pg": 0.0, "kl": 0.0, "tokens": total}
     for batch, weight in chunks:
-        res = rl_loss(model, reference, batch, weight, cfg.beta, count=total)
+        res = rl_loss(model, reference, batch, weight, cfg.beta, total=total)
         res["loss"].backward()
         for key in ("loss", "pg", "kl"):
             out[key] += float(res[key].detach())
