@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from envs._core import CoreScene, TrafficCore
-from smart_marl.geometry import bearing_deg, boxes_overlap
+from smart_marl.geometry import bearing_deg, first_overlaps
 from smart_marl.metrics import Rollouts, SceneNotScorableError, aggregate, logged_scene, score_rollouts
 from smart_marl.metrics.config import NUM_SIMULATION_STEPS
 from smart_marl.metrics.inputs import simulated_agent_indices
@@ -57,25 +57,17 @@ REALISM = ("meta_metric", "kinematic", "interactive", "map_based", "min_ade")
 def first_collision_kinds(poses: np.ndarray, present: np.ndarray, box_size: np.ndarray, ctrl: Sequence[int]) -> list:
     """Per controlled track ``ctrl[i]``: None (no collision) or the :data:`COLLISION_KINDS` entry of its
     first collision: the first frame its rounded box overlaps another present track's (the env's
-    collision test, :func:`smart_marl.geometry.boxes_overlap`), the other taken at the frame before,
+    collision test, :func:`smart_marl.geometry.first_overlaps`), the lowest-indexed other taken at the frame before,
     in the controlled agent's frame then. poses [N, F, 3] x, y, heading, present [N, F] bool,
     box_size [N, 2+] length, width (``env.trajectories()`` and ``env.static.box_size``)."""
-    n, f = present.shape
-    length, width = box_size[:, 0, None], box_size[:, 1, None]
+    first, partners = first_overlaps(poses, present, box_size[:, 0], box_size[:, 1], np.asarray(ctrl, np.int64))
     kinds = []
-    for c in ctrl:
-        c = int(c)
-        a = [np.broadcast_to(v, (n, f)) for v in (poses[c, :, 0], poses[c, :, 1], box_size[c, 0], box_size[c, 1], poses[c, :, 2])]
-        b = [np.broadcast_to(v, (n, f)) for v in (poses[:, :, 0], poses[:, :, 1], length, width, poses[:, :, 2])]
-        hit = boxes_overlap(*a, *b) & present & present[c]
-        hit[c] = False
-        frames = np.flatnonzero(hit.any(0))
-        if not len(frames):
+    for c, frame, others in zip(ctrl, first, partners):
+        if frame < 0:
             kinds.append(None)
             continue
-        first = int(frames[0])
-        other, before = int(np.argmax(hit[:, first])), max(first - 1, 0)
-        dx, dy = poses[other, before, :2] - poses[c, before, :2]
+        c, before = int(c), max(int(frame) - 1, 0)
+        dx, dy = poses[int(others[0]), before, :2] - poses[c, before, :2]
         angle = bearing_deg(float(dx), float(dy), float(poses[c, before, 2]))
         kinds.append("front" if angle < 45.0 else "rear_ended" if angle > 135.0 else "side")
     return kinds

@@ -23,7 +23,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from prior_speed_drift import LATE_FRAMES, NUM_FRAMES, _speeds_from_positions, rollout_from_log, rollout_xy, scene_sets  # noqa: E402
-from smart_marl.braking import LANE_HALF_M, speeds_now  # noqa: E402
+from smart_marl.braking import LANE_HALF_M, poses_relative_to, speeds_now  # noqa: E402
 from smart_marl.model.checkpoint import load_checkpoint, load_embedded  # noqa: E402
 from smart_marl.scenario import AgentType  # noqa: E402
 
@@ -33,13 +33,10 @@ MOVING_MPS = 3.0
 
 def room_ahead(scene, i: int) -> float:
     """Metres to the nearest agent valid at the current frame ahead of track ``i`` in its lane (inf: none)."""
-    tr, cf = scene.tracks, scene.current_frame
-    d = tr.position[:, cf, :2] - tr.position[i, cf, :2]
-    c, s = np.cos(tr.heading[i, cf]), np.sin(tr.heading[i, cf])
-    x, y = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
-    ahead = tr.valid[:, cf] & (x > 0) & (np.abs(y) < LANE_HALF_M)
+    rel = poses_relative_to(scene, i)
+    ahead = scene.tracks.valid[:, scene.current_frame] & (rel[:, 0] > 0) & (np.abs(rel[:, 1]) < LANE_HALF_M)
     ahead[i] = False
-    return float(x[ahead].min()) if ahead.any() else np.inf
+    return float(rel[ahead, 0].min()) if ahead.any() else np.inf
 
 
 def late_speeds(priors: dict, scenes, rollouts: int, seed: int) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:

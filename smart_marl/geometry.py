@@ -217,6 +217,22 @@ def overlapping_pairs(poses: np.ndarray, present: np.ndarray, length: np.ndarray
     return (*[i[hit] for i in lead], qi[hit], ai[hit], fi[hit])
 
 
+def first_overlaps(poses: np.ndarray, present: np.ndarray, length: np.ndarray, width: np.ndarray,
+                   query: np.ndarray | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Each query agent's first collision: (first frame [Q], -1 for none; the agents its box overlaps on that
+    frame, ascending, one array per query agent) from :func:`overlapping_pairs`. poses [A, F, 3], present
+    [A, F] bool, length / width [A]; query [Q] agent indices (default: every agent)."""
+    nq = poses.shape[-3] if query is None else len(query)
+    q, a, f = overlapping_pairs(poses, present, length, width, query)
+    first = np.full(nq, -1, np.int64)
+    partners = [np.zeros(0, np.int64) for _ in range(nq)]
+    for i in np.unique(q):
+        mine = q == i
+        first[i] = f[mine].min()
+        partners[i] = np.unique(a[mine & (f == first[i])])
+    return first, partners
+
+
 def colliding(poses: np.ndarray, present: np.ndarray, length: np.ndarray, width: np.ndarray,
               query: np.ndarray | None = None) -> np.ndarray:
     """Which agents collide: [..., Q] bool, true when agent ``query[q]``'s rounded box overlaps

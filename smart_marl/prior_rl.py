@@ -48,7 +48,7 @@ import torch.nn.functional as F
 
 from .braking import behind_in_lane, braking_leaders, with_braking_leaders
 from .catk import _agent_shapes, first_future_step, sampled_tokens
-from .geometry import bearing_deg, box_distance_to_road_edge, overlapping_pairs
+from .geometry import bearing_deg, box_distance_to_road_edge, first_overlaps
 from .geometry_torch import scene_road_edges
 from .model.batch import SmartBatch, collate_scenes, scene_road, scene_tensors
 from .model.checkpoint import checkpoint_paths, load_checkpoint, load_embedded, save_checkpoint
@@ -106,20 +106,14 @@ def token_step_frames(tokens: MotionTokens, vocab: MotionVocabulary, first_step:
 
 def at_fault_collisions(poses: np.ndarray, present: np.ndarray, size: np.ndarray) -> np.ndarray:
     """int [N]: for each track, the frame of its first collision in which it ran into the other (its
-    rounded box overlaps another present track's, :func:`smart_marl.geometry.boxes_overlap`, and that
+    rounded box overlaps another present track's, :func:`smart_marl.geometry.first_overlaps`, and that
     track's centre was within :data:`AT_FAULT_DEG` of its heading a frame before), -1 where none.
     poses [N, F, 3], present [N, F], size [N, 2+] (length, width)."""
-    n, f = present.shape
-    out = np.full(n, -1, np.int64)
-    a, b, fr = overlapping_pairs(poses, present, size[:, 0], size[:, 1])
-    if not len(a):
-        return out
-    first = np.full(n, f, np.int64)
-    np.minimum.at(first, a, fr)
-    for i in np.flatnonzero(first < f):
-        at = fr == first[i]
-        for j in b[(a == i) & at]:
-            before = max(int(first[i]) - 1, 0)
+    first, partners = first_overlaps(poses, present, size[:, 0], size[:, 1])
+    out = np.full(len(first), -1, np.int64)
+    for i in np.flatnonzero(first >= 0):
+        before = max(int(first[i]) - 1, 0)
+        for j in partners[i]:
             d = poses[j, before, :2] - poses[i, before, :2]
             if bearing_deg(float(d[0]), float(d[1]), float(poses[i, before, 2])) < AT_FAULT_DEG:
                 out[i] = first[i]

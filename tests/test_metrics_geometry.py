@@ -141,3 +141,18 @@ def test_overlapping_pairs_name_who_overlaps_whom_on_which_frame_and_colliding_a
     assert len(g.overlapping_pairs(poses, present, length, width)[0]) == 0
     q, a, f = g.overlapping_pairs(poses[0], np.ones((3, 3), bool), length, width, query=np.array([1]))
     assert (q.tolist(), a.tolist(), f.tolist()) == ([0], [0], [2])  # q indexes the query
+
+
+def test_first_overlaps_give_each_agents_first_collision_frame_and_who_it_touched_then():
+    poses = np.zeros((4, 4, 3))
+    poses[0, :, 0] = 0.0
+    poses[1, :, 0] = [10.0, 10.0, 3.0, 3.0]  # touches 0 from frame 2
+    poses[2, :, 0] = [20.0, -3.0, -3.0, -3.0]  # touches 0 from frame 1
+    poses[3, :, 0] = 50.0
+    present, length, width = np.ones((4, 4), bool), np.full(4, 4.0), np.full(4, 2.0)
+    first, partners = g.first_overlaps(poses, present, length, width)
+    assert first.tolist() == [1, 2, 1, -1]
+    assert [p.tolist() for p in partners] == [[2], [0], [0], []]
+    poses[1, 1, 0] = 3.0  # now 1 touches 0 on frame 1 as well: both are 0's partners then
+    first, partners = g.first_overlaps(poses, present, length, width, query=np.array([0, 3]))
+    assert first.tolist() == [1, -1] and [p.tolist() for p in partners] == [[1, 2], []]
