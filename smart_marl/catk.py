@@ -36,9 +36,11 @@ import torch
 from .model.batch import RoadArrays
 from .model.motionnet import NUM_MOTION_TYPES
 from .model.smart import RoadInputs
+from .geometry_torch import RoadEdgeTensors, boxes_off_road, scene_road_edges
 from .rollout.avoidance import excluded_tokens
+from .rollout.frames import compose_torch
 from .rollout.sampling import sample_tokens
-from .scenario import Scenario
+from .scenario import AgentType, Scenario
 from .tokens import FRAMES_PER_TOKEN, MOTION_TYPES, MotionTokens, MotionVocabulary, token_boundaries, tokenize_tracks
 
 
@@ -74,16 +76,26 @@ def catk_tokens(model, scenes: Sequence[Scenario], roads: Sequence[RoadArrays], 
 @torch.no_grad()
 def sampled_tokens(model, scenes: Sequence[Scenario], roads: Sequence[RoadArrays], vocab: MotionVocabulary, top_k: int,
                    generator: torch.Generator, follow_log: Sequence[np.ndarray] | None = None,
-                   device: torch.device | str = "cpu") -> list[MotionTokens]:
+                   device: torch.device | str = "cpu", excluded: dict | None = None, offroad: bool = False) -> list[MotionTokens]:
     """Sampled rollouts of ``scenes`` under ``model`` as token sequences (the history logged, every
     later token drawn from the model's top ``top_k``, as the simulator draws), in the format of
     :func:`catk_tokens`. ``follow_log[i]`` [tracks of scene i] bool: those tracks follow their log
     (the closest token of the whole vocabulary: scripted agents). One scene list may repeat a scene:
-    each copy is a rollout of its own."""
+    each copy is a rollout of its own.
+
+    ``excluded``: a dict that receives, for each scene index i, bool [tracks, S, Vmax]: at each drawn
+    token step the tokens the simulator's collision rule would not have let the track draw
+    (:func:`~smart_marl.rollout.avoidance.excluded_tokens` as the rollout engine calls it: spline frames, the
+    others at constant velocity, the ``follow_log`` tracks on their logged motion); with ``offroad`` also the
+    tokens that end with a vehicle on the road at the current frame off it (the shield's test). The draw itself is plain."""
     def group(idx: list[int]) -> list[MotionTokens]:
         follow = None if follow_log is None else np.concatenate([np.asarray(follow_log[i], bool) for i in idx])
-        return _catk_group(model, [scenes[i] for i in idx], [roads[i] for i in idx], vocab, top_k, torch.device(device),
-                           sample=generator, follow_log=follow)
+        rule = [] if excluded is not None else None
+        out = _catk_group(model, [scenes[i] for i in idx], [roads[i] for i in idx], vocab, top_k, torch.device(device),
+                          sample=generator, follow_log=follow, rule_out=rule, rule_offroad=offroad)
+        if rule is not None:
+            excluded.update(zip(idx, rule))
+        return out
 
     return _by_token_grid(model, scenes, group)
 
@@ -125,7 +137,8 @@ class _GapKeeper:
     concatenated tracks' (``slot_of_row``, -1 for tracks without a slot)."""
 
     def __init__(self, vocab: MotionVocabulary, scenes: list[Scenario], agent_type: torch.Tensor, agent_shape: torch.Tensor,
-                 slot_of_row: torch.Tensor, bounds: np.ndarray, top_k: int, device: torch.device) -> None:
+                 slot_of_row: torch.Tensor, bounds: np.ndarray, top_k: int, device: torch.device,
+                 known_rows: np.ndarray | None = None, interpolation: str = "contour") -> None:
         vmax = max(vocab[t].size for t in MOTION_TYPES)
         tp = torch.zeros(NUM_MOTION_TYPES, vmax, FRAMES_PER_TOKEN + 1, 3)
         for i, t in enumerate(MOTION_TYPES):
@@ -137,8 +150,11 @@ class _GapKeeper:
         self.log_pose = np.concatenate([np.concatenate([sc.tracks.position[..., :2], sc.tracks.heading[..., None]], -1)
                                         for sc in scenes])[hs]
         self.log_valid = np.concatenate([sc.tracks.valid for sc in scenes])[hs]
-        self.bounds, self.top_k, self.device = bounds, top_k, device
+        # the rows seen on their logged motion (None: every row; the others at constant velocity, as in rollouts)
+        self.known_rows = None if known_rows is None else np.asarray(known_rows, bool)[hs]
+        self.bounds, self.top_k, self.device, self.interpolation = bounds, top_k, device, interpolation
         self.state: tuple | None = None
+        self.edges: RoadEdgeTensors | None = None  # with keep_on_road: the scenes' road edges
 
     def at_step(self, k: int, partial: MotionTokens) -> None:
         """Every slot's pose where token ``k`` starts (reached by the rollout, else logged), its pose a token
@@ -159,16 +175,65 @@ class _GapKeeper:
         moved = self.log_pose[:, frames] + (now - self.log_pose[:, b0])[:, None]  # [rows, 5, 3]
         known = torch.zeros(g * n, dtype=torch.bool)
         known_frames = torch.zeros(g * n, FRAMES_PER_TOKEN, 3)
-        known[flat] = torch.from_numpy(self.log_valid[:, np.r_[b0, frames]].all(1))
+        logged = self.log_valid[:, np.r_[b0, frames]].all(1)
+        known[flat] = torch.from_numpy(logged if self.known_rows is None else logged & self.known_rows)
         known_frames[flat] = torch.from_numpy(moved).float()
         d = self.device
         self.state = (pose.view(g, n, 3).to(d), prev.view(g, n, 3).to(d), present.view(g, n).to(d),
                       known_frames.view(g, n, FRAMES_PER_TOKEN, 3).to(d), known.view(g, n).to(d))
 
+    def start_recording(self, vmax: int, offroad_scenes: list[Scenario] | None = None) -> None:
+        """Keep what :meth:`record` finds in ``recorded`` (bool [rows, steps, vmax]); with ``offroad_scenes`` (the
+        group's scenes) the road test too (:meth:`keep_on_road`)."""
+        self.row_of_slot = np.full(self.agent_type.numel(), -1, np.int64)
+        self.row_of_slot[self.flat.numpy()] = np.flatnonzero(self.has_slot)
+        self.recorded = np.zeros((len(self.slot_of_row), len(self.bounds) - 1, vmax), bool)
+        if offroad_scenes is not None:
+            self.keep_on_road(offroad_scenes)
+
+    def record(self, k: int, partial: MotionTokens, logits: torch.Tensor, rows: torch.Tensor) -> None:
+        """The tokens the rule excludes at step ``k`` for slots ``rows`` [Q] whose ``logits`` are [Q, Vmax]."""
+        self.at_step(k, partial)
+        self.recorded[self.row_of_slot[rows.cpu().numpy()], k] = self._excluded(logits, rows, self.top_k).cpu().numpy()
+
+    def keep_on_road(self, scenes: list[Scenario]) -> None:
+        """Also exclude the tokens that end with a vehicle's box off the road (the shield's ``"offroad"``,
+        :mod:`envs._shield`), for the vehicles on the road at the scenes' current frame."""
+        g, n = self.agent_type.shape
+        self.edges = RoadEdgeTensors.from_segments([scene_road_edges(sc.road_map) for sc in scenes], device=self.device)
+        rows = self.flat.to(self.device)  # the slots that have a row
+        cf = int(scenes[0].current_frame)
+        z = torch.zeros(g * n, device=self.device)
+        z[rows] = torch.from_numpy(np.concatenate([sc.tracks.position[:, cf, 2] for sc in scenes])[self.has_slot]).float().to(self.device)
+        self.z = z
+        pose = torch.from_numpy(self.log_pose[:, cf]).float().to(self.device)
+        size = self.agent_shape.reshape(-1, 3)[rows]
+        vehicle = self.agent_type.reshape(-1)[rows] == int(AgentType.VEHICLE)
+        off = boxes_off_road(self.edges, rows // n, pose[:, None, :2], pose[:, None, 2], size, z[rows])[:, 0]
+        self.on_road = torch.zeros(g * n, dtype=torch.bool, device=self.device)
+        self.on_road[rows] = vehicle & ~off & torch.from_numpy(self.log_valid[:, cf]).to(self.device)
+
+    def _off_road(self, rows: torch.Tensor):
+        """``also`` of :func:`excluded_tokens` for slots ``rows`` (:meth:`keep_on_road`)."""
+        pose = self.state[0].reshape(-1, 3)
+        n = self.agent_type.shape[1]
+
+        def test(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
+            slot = rows[r]
+            order = torch.argsort(slot // n, stable=True)
+            slot, tok_o = slot[order], tok[order]
+            ends = self.token_poses[self.agent_type.reshape(-1)[slot]][:, :, -1]  # [R, V, 3]
+            end = compose_torch(pose[slot][:, None], ends.gather(1, tok_o[..., None].expand(-1, -1, 3)))
+            off = boxes_off_road(self.edges, slot // n, end[..., :2], end[..., 2], self.agent_shape.reshape(-1, 3)[slot],
+                                 self.z[slot]) & self.on_road[slot][:, None]
+            return torch.empty_like(off).index_copy_(0, order, off)
+        return test
+
     def _excluded(self, logits: torch.Tensor, rows: torch.Tensor, top_k: int) -> torch.Tensor:
         pose, prev, present, known_frames, known = self.state
+        also = self._off_road(rows) if self.edges is not None else None
         return excluded_tokens(logits, rows, pose, prev, self.agent_shape, present, self.agent_type, self.token_poses, top_k,
-                               interpolation="contour", known_frames=known_frames, known=known)
+                               interpolation=self.interpolation, known_frames=known_frames, known=known, also=also)
 
     def mask(self, logits: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
         """``logits`` [Q, Vmax] of slots ``rows`` [Q] with the tokens the rule excludes at ``-inf``."""
@@ -209,14 +274,36 @@ def _candidates(logits: torch.Tensor, rows: torch.Tensor, types: torch.Tensor, s
     return allowed
 
 
+def _start_cache(model, roads: list[RoadArrays], agent_type: torch.Tensor, agent_shape: torch.Tensor, device: torch.device):
+    """The model's KV cache for groups with road pieces ``roads`` (every piece of each scene, encoded once: no piece
+    is hidden, this is not the road task) and agents of ``agent_type`` / ``agent_shape`` [G, N(, 3)]."""
+    rmax = max(max(len(rd.token) for rd in roads), 1)
+    p = model.config.road_piece_points
+
+    def pad(arrays, size, fill=0):
+        o = np.full((len(arrays), *size), fill, dtype=np.asarray(arrays[0]).dtype)
+        for i, a in enumerate(arrays):
+            o[(i, *[slice(0, k) for k in np.shape(a)])] = a
+        return torch.from_numpy(o).to(device)
+
+    road_pose = pad([rd.pose.astype(np.float32) for rd in roads], (rmax, 3))
+    road_valid = pad([np.ones(len(rd.token), bool) for rd in roads], (rmax,), False)
+    road_points = pad([rd.local.astype(np.float32).reshape(-1, p, 2) for rd in roads], (rmax, p, 2))
+    road_x = model.encode_road(RoadInputs(road_points, road_pose, pad([rd.type_id for rd in roads], (rmax,)),
+                                          pad([rd.light for rd in roads], (rmax,)), road_valid))  # (G, R, d)
+    return model.start_cache(road_x, road_pose, road_valid, torch.arange(len(roads), device=device), agent_type.to(device),
+                             agent_shape.to(device))
+
+
 def _catk_group(model, scenes: list[Scenario], roads: list[RoadArrays], vocab: MotionVocabulary, top_k: int,
                 device: torch.device, avoid: bool = False, sample: torch.Generator | None = None,
-                follow_log: np.ndarray | None = None) -> list[MotionTokens]:
+                follow_log: np.ndarray | None = None, rule_out: list | None = None, rule_offroad: bool = False) -> list[MotionTokens]:
     """Scenes on one token grid: their tracks concatenated into one rolling matching, the model
     stepped once per token step for all scenes (group g = scene g, slots = its motion agents).
     ``sample``: each token is drawn from the model's top-k instead (a plain sampled rollout, the
     closest-token rule left with one candidate); ``follow_log`` [rows of the concatenated tracks]:
-    those tracks take the token closest to their log among the whole vocabulary (scripted agents)."""
+    those tracks take the token closest to their log among the whole vocabulary (scripted agents).
+    ``rule_out``: a list that receives each scene's excluded tokens (:func:`sampled_tokens`)."""
     cfg, sc0 = model.config, scenes[0]
     bounds, kc = token_boundaries(sc0.current_frame, sc0.num_frames), first_future_step(sc0)
     motion_types = np.array([int(t) for t in vocab.types])
@@ -242,28 +329,17 @@ def _catk_group(model, scenes: list[Scenario], roads: list[RoadArrays], vocab: M
     for b, (sc, rows) in enumerate(zip(scenes, slot_rows)):
         agent_type[b, : len(rows)] = torch.from_numpy(sc.tracks.types[rows].astype(np.int64))
         agent_shape[b, : len(rows)] = torch.from_numpy(_agent_shapes(sc, rows))
-    # road: every piece of each scene, encoded once (no piece is hidden: this is not the road task)
-    rmax = max(max(len(rd.token) for rd in roads), 1)
-    p = cfg.road_piece_points
-
-    def pad(arrays, size, fill=0):
-        o = np.full((len(arrays), *size), fill, dtype=np.asarray(arrays[0]).dtype)
-        for i, a in enumerate(arrays):
-            o[(i, *[slice(0, k) for k in np.shape(a)])] = a
-        return torch.from_numpy(o).to(device)
-
-    road_pose = pad([rd.pose.astype(np.float32) for rd in roads], (rmax, 3))
-    road_valid = pad([np.ones(len(rd.token), bool) for rd in roads], (rmax,), False)
-    road_points = pad([rd.local.astype(np.float32).reshape(-1, p, 2) for rd in roads], (rmax, p, 2))
-    road_x = model.encode_road(RoadInputs(road_points, road_pose, pad([rd.type_id for rd in roads], (rmax,)),
-                                          pad([rd.light for rd in roads], (rmax,)), road_valid))  # (G, R, d)
-    cache = model.start_cache(road_x, road_pose, road_valid, torch.arange(g, device=device), agent_type.to(device),
-                              agent_shape.to(device))
+    cache = _start_cache(model, roads, agent_type, agent_shape, device)
     sizes = list(cfg.motion_vocab_sizes)
     vmax = max(sizes)
     flat_type = agent_type.reshape(-1).to(device)
 
     keeper = _GapKeeper(vocab, scenes, agent_type, agent_shape, slot_of_row, bounds, top_k, device) if avoid else None
+    rule = None
+    if rule_out is not None:  # the simulator's rule, recorded beside the plain draw
+        rule = _GapKeeper(vocab, scenes, agent_type, agent_shape, slot_of_row, bounds, top_k, device,
+                          known_rows=np.zeros(len(slot_of_row), bool) if follow_log is None else follow_log, interpolation="spline")
+        rule.start_recording(vmax, scenes if rule_offroad else None)
 
     def candidates(k: int, partial: MotionTokens):
         if keeper is not None:
@@ -289,6 +365,8 @@ def _catk_group(model, scenes: list[Scenario], roads: list[RoadArrays], vocab: M
         if keeper is not None:
             keeper.at_step(k, partial)
             logits = keeper.mask(logits, rows)
+        if rule is not None:
+            rule.record(k, partial, logits, rows)
         allowed_slots = _candidates(logits, rows, types, sizes, top_k, sample, g * n)
         allowed = np.zeros((len(slot_of_row), vmax), bool)
         allowed[has_slot.numpy()] = allowed_slots[slot_of_row[has_slot]].numpy()
@@ -302,10 +380,14 @@ def _catk_group(model, scenes: list[Scenario], roads: list[RoadArrays], vocab: M
     types = np.concatenate([sc.tracks.types for sc in scenes])
     mt = tokenize_tracks(pos, heading, valid, types, vocab, bounds, candidates=candidates,
                          relabel=keeper.relabel if keeper is not None else None)
+    if rule is not None and follow_log is not None:
+        rule.recorded[follow_log] = False  # scripted: they draw nothing
     per_scene = []
     for b, sc in enumerate(scenes):
         r = slice(offsets[b], offsets[b] + sc.num_tracks)
         per_scene.append(MotionTokens(ids=mt.ids[r], valid=mt.valid[r], start_pose=mt.start_pose[r], reached=mt.reached[r],
                                       reached_valid=mt.reached_valid[r], types=mt.types[r], boundaries=mt.boundaries,
                                       nearest_ids=mt.nearest_ids[r]))
+        if rule_out is not None:
+            rule_out.append(rule.recorded[r])
     return per_scene

@@ -26,6 +26,11 @@ from, as the issue's SPACeR / SMART-R1 suggestion):
 5. Loss: ``-mean(A * log pi(token)) + beta * mean KL(pi || pi_ref)`` over the drawn tokens of the
    simulated agents (:func:`rl_loss`), ``pi_ref`` the frozen starting weights.
 
+``objective="rule"`` teaches the weights the simulator's collision rule instead (:func:`rule_loss`): the same
+sampled rollouts, drawn plainly, record at every step the tokens the rule would not have let each agent draw
+(:func:`smart_marl.catk.sampled_tokens`, ``excluded``), and the loss is the KL from the starting weights' distribution
+with those tokens taken out (what the rule would draw from) to the current one; no reward, no baseline.
+
 What comes in: a checkpoint (or ``"embedded"``) and training scenes. What goes out: checkpoints of the
 fine-tuned prior and a JSON-lines log (``train.jsonl``: per iteration the share of simulated agents at
 fault in a collision, the KL, the loss) in ``out_dir``. CPU or one GPU; resumable from ``last``.
@@ -79,6 +84,9 @@ class PriorRLConfig:
     progress: float = 0.0  # weight of the progress term: -progress * |distance driven / logged distance - 1| (capped at 1)
     progress_queue_m: float = 0.0  # vehicles this far behind a braking leader in its lane are not judged on progress
     discount: float = 1.0  # per token step: a penalty reaches the token drawn n steps before it times discount**n
+    objective: str = "rl"  # "rl": the policy gradient above; "rule": the collision rule taught to the weights (rule_loss)
+    rule_anchor: float = 1.0  # "rule": the weight of the rows where the rule excludes nothing (KL to the starting weights)
+    rule_offroad: bool = False  # "rule": tokens that end a vehicle on the road off it are excluded too (the shield's test)
     lr: float = 3e-5
     beta: float = 0.1  # weight of KL(pi || pi_ref)
     grad_clip: float = 1.0
@@ -151,27 +159,32 @@ def progress_error(scene: Scenario, tokens: MotionTokens, first_step: int, min_l
     return np.where(moving, np.minimum(np.abs(d / np.maximum(l, 1e-6) - 1.0), 1.0), 0.0)
 
 
-# ------------------------------------------------------------------------------ the loss
-def rl_loss(model, reference, batch: SmartBatch, weight: torch.Tensor, beta: float, total: int | None = None) -> dict[str, torch.Tensor]:
-    """``-sum(weight * log pi(target)) / M + beta * sum KL(pi || pi_ref) / M`` over the M (agent, step)
-    rows of ``batch`` with a valid target (the token drawn next), ``weight`` [B, N, S] the advantages of
-    those rows; ``reference`` the frozen model of the KL; ``total`` replaces M (a part of a larger batch whose
-    gradients are summed: the whole batch's M). Returns ``loss`` and detached ``pg``, ``kl``."""
+# ------------------------------------------------------------------------------ the losses
+def _log_probs_by_type(model, reference, batch: SmartBatch):
+    """Per motion type with rows: (sel [B, N, S] the rows of ``batch`` with a valid target of that type,
+    log pi [M_t, V_t], log pi_ref [M_t, V_t] (no gradient)), ``reference`` the frozen model."""
     rows = rows_reaching_targets(batch)
     feats, _ = model(batch, agent_valid=rows)
     with torch.no_grad():
         ref_feats, _ = reference(batch, agent_valid=rows)
-    pg = feats.new_zeros(())
-    kl = feats.new_zeros(())
-    count = 0
-    tv = batch.target_valid
     for t in range(NUM_MOTION_TYPES):
-        sel = tv & (batch.agent_type == t)[:, :, None]
+        sel = batch.target_valid & (batch.agent_type == t)[:, :, None]
         if not sel.any():
             continue
         logp = F.log_softmax(model.motion_heads[t](feats[sel]).float(), -1)
         with torch.no_grad():
             ref_logp = F.log_softmax(reference.motion_heads[t](ref_feats[sel]).float(), -1)
+        yield sel, logp, ref_logp
+
+
+def rl_loss(model, reference, batch: SmartBatch, weight: torch.Tensor, beta: float, total: int | None = None) -> dict[str, torch.Tensor]:
+    """``-sum(weight * log pi(target)) / M + beta * sum KL(pi || pi_ref) / M`` over the M (agent, step)
+    rows of ``batch`` with a valid target (the token drawn next), ``weight`` [B, N, S] the advantages of
+    those rows; ``reference`` the frozen model of the KL; ``total`` replaces M (a part of a larger batch whose
+    gradients are summed: the whole batch's M). Returns ``loss`` and detached ``pg``, ``kl``."""
+    pg = kl = torch.zeros(())
+    count = 0
+    for sel, logp, ref_logp in _log_probs_by_type(model, reference, batch):
         taken = logp.gather(1, batch.target_tokens[sel][:, None])[:, 0]
         pg = pg - (weight[sel] * taken).sum()
         kl = kl + (logp.exp() * (logp - ref_logp)).sum()
@@ -181,13 +194,40 @@ def rl_loss(model, reference, batch: SmartBatch, weight: torch.Tensor, beta: flo
     return {"loss": loss, "pg": pg.detach() / m, "kl": kl.detach() / m, "tokens": torch.tensor(float(count))}
 
 
+def rule_loss(model, reference, batch: SmartBatch, excluded: torch.Tensor, total: int | None = None,
+              anchor: float = 1.0) -> dict[str, torch.Tensor]:
+    """The collision rule taught to the weights: ``sum w KL(q || pi) / M`` over the M rows of ``batch`` with a
+    valid target, ``q`` the reference's distribution with the tokens the rule excluded there (``excluded``
+    [B, N, S, Vmax] bool) taken out and the rest renormalised: the reference's draw under the rule. Where
+    nothing is excluded ``q`` is the reference's own and the row weighs ``anchor`` (it holds the weights there;
+    the rule touches about 1% of the rows, so at 1 they outweigh what it teaches), elsewhere 1; where everything
+    is excluded, the row is left out. Returns ``loss``, detached ``kl`` (unweighted) and ``excluded_mass`` (pi's
+    mean probability on excluded tokens over the rows it is taught on), ``ruled`` (their number), ``tokens``."""
+    kl = loss = torch.zeros(())
+    mass, ruled, count = 0.0, 0, 0
+    for sel, logp, ref_logp in _log_probs_by_type(model, reference, batch):
+        out = excluded[sel][:, : logp.shape[1]]
+        keep = ~out.all(-1)
+        log_q = torch.log_softmax(ref_logp.masked_fill(out, float("-inf")), -1)[keep]
+        row_kl = (log_q.exp() * (log_q.clamp(min=-1e4) - logp[keep])).sum(-1)
+        kl = kl + row_kl.sum()
+        loss = loss + torch.where(out[keep].any(-1), 1.0, anchor) @ row_kl
+        hit = out.any(-1) & keep
+        mass += float((logp.detach().exp() * out).sum(-1)[hit].sum())
+        ruled, count = ruled + int(hit.sum()), count + int(sel.sum())
+    m = max(count if total is None else total, 1)
+    return {"loss": loss / m, "kl": kl.detach() / m, "excluded_mass": torch.tensor(mass / max(ruled, 1)),
+            "ruled": torch.tensor(float(ruled)), "tokens": torch.tensor(float(count))}
+
+
 # ------------------------------------------------------------------------------ one iteration
 def scene_batch(scenes: Sequence[Scenario], tokens: Sequence[MotionTokens], roads, vocab: MotionVocabulary,
                 advantage: Sequence[np.ndarray], last_step: Sequence[np.ndarray], scripted: Sequence[np.ndarray],
                 first_step: int) -> tuple[SmartBatch, torch.Tensor]:
-    """The training batch of sampled rollouts (targets: the drawn tokens) and its weights [B, N, S]:
-    track ``r``'s advantage ([N], or [N, S] per token step) on the tokens it drew from ``first_step`` to ``last_step[r]``; scripted
-    tracks and the history are no target."""
+    """The training batch of sampled rollouts (targets: the drawn tokens) and its weights [B, N, S, ...]:
+    track ``r``'s advantage ([N], or [N, S] per token step, or [N, S, V]: per token step and token, e.g. the
+    rule's excluded tokens) on the tokens it drew from ``first_step`` to ``last_step[r]``; scripted
+    tracks and the history are no target (zero)."""
     arrays, weights = [], []
     for sc, mt, road, adv, last, scr in zip(scenes, tokens, roads, advantage, last_step, scripted):
         drawn = dataclasses.replace(mt, nearest_ids=mt.ids)
@@ -198,12 +238,12 @@ def scene_batch(scenes: Sequence[Scenario], tokens: Sequence[MotionTokens], road
         tv = a["target_valid"].copy()
         tv[:, :-1] &= target[:, 1:]
         tv[:, -1] = False
-        w = np.zeros(tv.shape, np.float32)
+        w = np.zeros(tv.shape + adv.shape[2:], adv.dtype if adv.ndim > 2 else np.float32)
         w[:, :-1] = adv[keep, None] if adv.ndim == 1 else adv[keep, 1:]
         arrays.append({**a, "target_valid": tv})
-        weights.append(w * tv)
+        weights.append(w * tv.reshape(tv.shape + (1,) * (w.ndim - 2)))
     batch = collate_scenes(arrays)
-    wt = torch.zeros(batch.target_valid.shape)
+    wt = torch.zeros(batch.target_valid.shape + weights[0].shape[2:], dtype=torch.from_numpy(weights[0]).dtype)
     for i, w in enumerate(weights):
         wt[i, : w.shape[0], : w.shape[1]] = torch.from_numpy(w)
     return batch, wt
@@ -219,7 +259,9 @@ def rollout_group(model, scene: Scenario, road, vocab: MotionVocabulary, cfg: Pr
     scripted = np.zeros(scene.num_tracks, bool)
     scripted[[e[0] for e in edits]] = True
     k = cfg.rollouts
-    tokens = sampled_tokens(model, [edited] * k, [road] * k, vocab, cfg.top_k, generator, [scripted] * k)
+    rule: dict | None = {} if cfg.objective == "rule" else None
+    tokens = sampled_tokens(model, [edited] * k, [road] * k, vocab, cfg.top_k, generator, [scripted] * k, excluded=rule,
+                            offroad=cfg.rule_offroad)
     kc = first_future_step(scene)
     size = _agent_shapes(scene, np.arange(scene.num_tracks))
     simulated = ~scripted & tokens[0].valid[:, kc:].any(1)
@@ -240,13 +282,13 @@ def rollout_group(model, scene: Scenario, road, vocab: MotionVocabulary, cfg: Pr
         collided, offroad = collided + int(((hit >= 0) & simulated).sum()), offroad + int((off >= 0).sum())
         last[c, bad] = kc + first[bad] // FRAMES_PER_TOKEN
     ret = token_returns(last, -cfg.progress * err, steps, cfg.discount)
-    adv = group_advantages(ret, simulated)
+    adv = list(group_advantages(ret, simulated)) if rule is None else [rule[c] & simulated[:, None, None] for c in range(k)]
     progress = float(err.sum())
-    last[last < 0] = steps
+    last[(last < 0) | (rule is not None)] = steps  # the rule is taught on every drawn token
     n = max(simulated.sum() * k, 1)
     shares = {"penalised": float((ret[..., -1] <= -1).sum() / n), "at_fault": collided / n, "offroad": offroad / n,
               "progress_error": progress / n}
-    return [edited] * k, tokens, [road] * k, list(adv), list(last), [scripted] * k, shares
+    return [edited] * k, tokens, [road] * k, adv, list(last), [scripted] * k, shares
 
 
 def token_returns(penalty_step: np.ndarray, final: np.ndarray, steps: int, discount: float) -> np.ndarray:
@@ -280,6 +322,8 @@ def _vehicles_on_road(scene: Scenario, size: np.ndarray, rows: np.ndarray, edges
 # ------------------------------------------------------------------------------ the run
 def train_prior_rl(cfg: PriorRLConfig) -> Path:
     """The run (module docstring); returns the path of the last checkpoint."""
+    if cfg.objective not in ("rl", "rule"):
+        raise ValueError(f"objective must be 'rl' or 'rule', got {cfg.objective!r}")
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     out = Path(cfg.out_dir)
@@ -318,8 +362,8 @@ def train_prior_rl(cfg: PriorRLConfig) -> Path:
         res = update_in_parts(model, ref, parts, vocab, cfg)
         grad = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
         optimizer.step()
-        row = {"iteration": it + 1, **{key: float(np.mean([sh[key] for sh in shares])) for key in shares[0]}, "pg": res["pg"], "kl": res["kl"],
-               "loss": res["loss"], "grad_norm": float(grad), "tokens": res["tokens"],
+        row = {"iteration": it + 1, **{key: float(np.mean([sh[key] for sh in shares])) for key in shares[0]}, **res,
+               "grad_norm": float(grad),
                "rollout_s": round(t1 - t0, 2), "update_s": round(time.time() - t1, 2)}
         log.write(json.dumps(row) + "\n")
         log.flush()
@@ -342,12 +386,14 @@ def update_in_parts(model, reference, parts: list[list], vocab: MotionVocabulary
     chunks = [scene_batch(sc[i:i + k], tok[i:i + k], roads[i:i + k], vocab, adv[i:i + k], last[i:i + k], scripted[i:i + k], kc)
               for i in range(0, len(sc), k)]
     total = int(sum(int(b.target_valid.sum()) for b, _ in chunks))
-    out = {"loss": 0.0, "pg": 0.0, "kl": 0.0, "tokens": total}
+    out = {"loss": 0.0, "kl": 0.0, "tokens": total}
+    out.update({"excluded_mass": 0.0, "ruled": 0.0} if cfg.objective == "rule" else {"pg": 0.0})
     for batch, weight in chunks:
-        res = rl_loss(model, reference, batch, weight, cfg.beta, total=total)
+        res = (rule_loss(model, reference, batch, weight, total=total, anchor=cfg.rule_anchor) if cfg.objective == "rule"
+               else rl_loss(model, reference, batch, weight, cfg.beta, total=total))
         res["loss"].backward()
-        for key in ("loss", "pg", "kl"):
-            out[key] += float(res[key].detach())
+        for key in out.keys() - {"tokens"}:
+            out[key] += float(res[key].detach()) / (len(chunks) if key == "excluded_mass" else 1)
     return out
 
 

@@ -82,14 +82,20 @@ def test_sampled_rollouts_draw_from_the_top_k_and_scripted_tracks_follow_their_l
     assert checked > 100
 
 
-def test_the_batch_trains_the_drawn_tokens_up_to_the_collision_and_the_loss_raises_a_rewarded_token(
-        sample_scenes, sample_vocab, tiny_smart, road_vocab, one_torch_thread):
+def _one_rollout(sample_scenes, sample_vocab, tiny_smart, road_vocab):
+    """A tiny model, a frozen copy (the reference), sample scene 3, its road, one top-3 rollout of it, its first drawn step."""
     model, ref = tiny_smart(sample_vocab).eval(), tiny_smart(sample_vocab).eval()
     ref.load_state_dict(model.state_dict())
     sc = sample_scenes[3]
     road = scene_road(sc, road_vocab)
     mt = sampled_tokens(model, [sc], [road], sample_vocab, 3, torch.Generator().manual_seed(0))[0]
     kc = first_future_step(sc)
+    return model, ref, sc, road, mt, kc
+
+
+def test_the_batch_trains_the_drawn_tokens_up_to_the_collision_and_the_loss_raises_a_rewarded_token(
+        sample_scenes, sample_vocab, tiny_smart, road_vocab, one_torch_thread):
+    model, ref, sc, road, mt, kc = _one_rollout(sample_scenes, sample_vocab, tiny_smart, road_vocab)
     keep = np.flatnonzero(mt.valid.any(1))
     adv = np.zeros(sc.num_tracks, np.float32)
     adv[keep[0]], adv[keep[1]] = 1.0, -1.0
@@ -259,3 +265,117 @@ def test_the_update_in_parts_sums_to_the_gradient_of_the_whole_batch(sample_scen
     assert got["loss"] == pytest.approx(float(whole["loss"].detach()), rel=1e-4, abs=1e-6)
     for a, b in zip(in_parts, [p.grad for p in model.parameters() if p.grad is not None]):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+
+
+def test_the_rule_recorded_beside_a_plain_draw_takes_out_the_tokens_into_a_braking_leader(sample_scenes, sample_vocab, tiny_smart,
+                                                                                          road_vocab, one_torch_thread):
+    """``sampled_tokens(excluded=...)`` records, at every drawn step, the tokens the simulator's collision rule
+    would not have let each track draw; the draw itself stays the plain one."""
+    from smart_marl.braking import brake_along_log, leader_follower_pairs
+
+    sc0 = sample_scenes[2]
+    leader, follower, _ = leader_follower_pairs(sc0)[0]
+    sc = brake_along_log(sc0, leader, sc0.current_frame + 1, 8.0)
+    model, road = tiny_smart(sample_vocab), scene_road(sc, road_vocab)
+    scripted = np.zeros(sc.num_tracks, bool)
+    scripted[leader] = True
+    rule: dict = {}
+    got = sampled_tokens(model, [sc, sc], [road, road], sample_vocab, 6, torch.Generator().manual_seed(3), [scripted] * 2,
+                         excluded=rule)
+    plain = sampled_tokens(model, [sc, sc], [road, road], sample_vocab, 6, torch.Generator().manual_seed(3), [scripted] * 2)
+    kc = first_future_step(sc)
+    vmax = max(v.size for v in sample_vocab.types.values())
+    assert sorted(rule) == [0, 1]
+    hits = 0
+    for c in (0, 1):
+        np.testing.assert_array_equal(got[c].ids, plain[c].ids)  # recording changes no draw
+        ex = rule[c]
+        assert ex.shape == (sc.num_tracks, got[c].num_steps, vmax)
+        assert not ex[:, :kc].any() and not ex[leader].any()  # the history and the scripted leader: nothing
+        assert not ex[~got[c].valid.any(1)].any()
+        # where the plain draw runs the follower into its stopped leader (their centres within 1.5 m): the rule had
+        # taken out the token it drew the step before, and left it others
+        gap = np.linalg.norm(got[c].start_pose[follower, kc:, :2] - got[c].start_pose[leader, kc:, :2], axis=-1)
+        if gap.min() >= 1.5:
+            continue
+        hit = kc + int(np.argmax(gap < 1.5))
+        assert hit > kc
+        drawn = got[c].ids[follower, hit - 1]
+        assert ex[follower, hit - 1, drawn] and not ex[follower, hit - 1].all()
+        hits += 1
+    assert hits >= 1  # (seed 3: the first rollout)
+
+
+def test_the_rule_loss_is_minus_the_log_of_the_allowed_mass_and_a_step_lowers_the_excluded_mass(sample_scenes, sample_vocab,
+                                                                                                tiny_smart, road_vocab,
+                                                                                                one_torch_thread):
+    from smart_marl.prior_rl import rule_loss
+
+    model, ref, sc, road, mt, kc = _one_rollout(sample_scenes, sample_vocab, tiny_smart, road_vocab)
+    vmax = max(v.size for v in sample_vocab.types.values())
+    keep = np.flatnonzero(mt.valid.any(1))
+    ex = np.zeros((sc.num_tracks, mt.num_steps, vmax), bool)
+    ex[keep[0], kc + 1, :10] = True  # a row with tokens taken out (row kc of the batch: token kc + 1)
+    ex[keep[1], kc + 2] = True  # everything taken out: the row is left out
+    last = np.full(sc.num_tracks, mt.num_steps, np.int64)
+    batch, excluded = scene_batch([sc], [mt], [road], sample_vocab, [ex], [last], [np.zeros(sc.num_tracks, bool)], kc)
+    assert excluded.dtype == torch.bool and excluded[0, 0, kc, :10].all() and excluded.sum() == 10 + vmax
+    res = rule_loss(model, ref, batch, excluded)
+    with torch.no_grad():
+        feats, _ = model(batch)
+    t = int(batch.agent_type[0, 0])
+    p = torch.softmax(model.motion_heads[t](feats[0, 0, kc]).detach().float(), -1)
+    mass = float(p[:10].sum())
+    m = int(batch.target_valid.sum())
+    # the same weights: KL(q || p) of the one row is -log(1 - excluded mass), every other row's is 0
+    assert float(res["kl"]) == pytest.approx(-np.log(1 - mass) / m, rel=1e-3)
+    assert float(res["excluded_mass"]) == pytest.approx(mass, rel=1e-4) and float(res["ruled"]) == 1
+    opt = torch.optim.SGD(model.parameters(), lr=20.0)
+    opt.zero_grad()
+    res["loss"].backward()
+    opt.step()
+    with torch.no_grad():
+        after = rule_loss(model, ref, batch, excluded)
+        assert float(after["excluded_mass"]) < mass
+        # the rows where nothing is excluded have moved off the reference too; ``anchor`` weighs them
+        assert float(after["loss"]) == pytest.approx(float(after["kl"]))
+        ruled_only = rule_loss(model, ref, batch, excluded, anchor=0.0)
+        half = rule_loss(model, ref, batch, excluded, anchor=0.5)
+    assert 0 < float(ruled_only["loss"]) < float(half["loss"]) < float(after["loss"])
+    assert float(half["loss"]) == pytest.approx((float(ruled_only["loss"]) + float(after["loss"])) / 2, rel=1e-4)
+
+
+def test_the_rule_with_offroad_also_takes_out_the_tokens_that_end_a_vehicle_off_the_road(sample_scenes, sample_vocab, tiny_smart,
+                                                                                         road_vocab, one_torch_thread):
+    from smart_marl.catk import _agent_shapes
+    from smart_marl.geometry import box_distance_to_road_edge
+    from smart_marl.geometry_torch import scene_road_edges
+    from smart_marl.scenario import AgentType
+
+    sc = sample_scenes[2]
+    model, road = tiny_smart(sample_vocab), scene_road(sc, road_vocab)
+    runs = []
+    for offroad in (False, True):
+        rule: dict = {}
+        mt = sampled_tokens(model, [sc], [road], sample_vocab, 6, torch.Generator().manual_seed(5), excluded=rule, offroad=offroad)[0]
+        runs.append((mt, rule[0]))
+    (mt, plain), (mt2, both) = runs
+    np.testing.assert_array_equal(mt.ids, mt2.ids)  # the draw is plain either way
+    edges, size = scene_road_edges(sc.road_map), _agent_shapes(sc, np.arange(sc.num_tracks))
+    vv = sample_vocab.types[AgentType.VEHICLE]
+    cf = sc.current_frame
+    off = []
+    for row, k in zip(*np.nonzero((both & ~plain).any(-1))):
+        assert sc.tracks.types[row] == int(AgentType.VEHICLE)
+        if both[row, k, : vv.size].all():
+            continue  # an agent with no free token keeps them all
+        x0, y0, h0 = mt.start_pose[row, k]
+        for tok in np.flatnonzero(both[row, k, : vv.size] & ~plain[row, k, : vv.size]):
+            dx, dy, dh = vv.poses[tok, -1]  # the token's end in its start frame
+            x, y = x0 + dx * np.cos(h0) - dy * np.sin(h0), y0 + dx * np.sin(h0) + dy * np.cos(h0)
+            d = box_distance_to_road_edge(np.array([x]), np.array([y]), np.array([sc.tracks.position[row, cf, 2]]),
+                                          size[row, 0], size[row, 1], size[row, 2], np.array([h0 + dh]), edges)
+            off.append(d[0])
+    # off the road (within the few cm of the two searches' float32 corners), but for a few that collide: where
+    # tokens fail the road test the search goes further down the list and meets collisions the first did not reach
+    assert len(off) >= 50 and np.mean(np.array(off) > -0.05) > 0.95
