@@ -28,10 +28,8 @@ from typing import Sequence
 
 import torch
 
-from smart_marl.geometry_torch import boxes_off_road
 from smart_marl.rollout import RolloutState
-from smart_marl.rollout.avoidance import excluded_tokens
-from smart_marl.rollout.frames import compose_torch
+from smart_marl.rollout.avoidance import excluded_tokens, off_road_test
 from smart_marl.scenario import AgentType
 
 from ._scene_batch import SceneBatch
@@ -63,16 +61,11 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
 
 def _offroad_test(scenes: SceneBatch, scene: torch.Tensor, track: torch.Tensor, pose: torch.Tensor, token_ends: torch.Tensor):
     """``also`` of :func:`~smart_marl.rollout.avoidance.excluded_tokens` for agents ``track`` [M] of scenes ``scene``
-    [M] (ascending) at ``pose`` [M, 3], their type's token ends ``token_ends`` [M, V, 3] in their own frame:
-    ``test(r [R], tokens [R, c]) -> bool [R, c]``, a vehicle's token that ends with a bottom corner of its box
-    beyond a road edge (:func:`~smart_marl.geometry_torch.boxes_off_road`, the reward's offroad event)."""
+    [M] (ascending) at ``pose`` [M, 3], their type's token ends ``token_ends`` [M, V, 3] in their own frame: a
+    vehicle's token that ends with a bottom corner of its box beyond a road edge
+    (:func:`~smart_marl.rollout.avoidance.off_road_test`, the reward's offroad event)."""
     vehicle = scenes.types[scene, track] == int(AgentType.VEHICLE)
-    size, z = scenes.box_size[scene, track], scenes.z[scene, track]
-
-    def test(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
-        end = compose_torch(pose[r][:, None], token_ends[r].gather(1, tok[..., None].expand(-1, -1, 3)))  # [R, c, 3]
-        return vehicle[r][:, None] & boxes_off_road(scenes.edges, scene[r], end[..., :2], end[..., 2], size[r], z[r])
-    return test
+    return off_road_test(scenes.edges, scene, pose, token_ends, scenes.box_size[scene, track], scenes.z[scene, track], vehicle)
 
 
 __all__ = ["SHIELD_CHECKS", "unsafe_tokens"]

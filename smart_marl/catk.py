@@ -37,8 +37,7 @@ from .model.batch import RoadArrays
 from .model.motionnet import NUM_MOTION_TYPES
 from .model.smart import RoadInputs
 from .geometry_torch import RoadEdgeTensors, boxes_off_road, scene_road_edges
-from .rollout.avoidance import excluded_tokens
-from .rollout.frames import compose_torch
+from .rollout.avoidance import excluded_tokens, off_road_test
 from .rollout.sampling import sample_tokens
 from .scenario import AgentType, Scenario
 from .tokens import FRAMES_PER_TOKEN, MOTION_TYPES, MotionTokens, MotionVocabulary, token_boundaries, tokenize_tracks
@@ -214,20 +213,12 @@ class _GapKeeper:
         self.on_road[rows] = vehicle & ~off & torch.from_numpy(self.log_valid[:, cf]).to(self.device)
 
     def _off_road(self, rows: torch.Tensor):
-        """``also`` of :func:`excluded_tokens` for slots ``rows`` (:meth:`keep_on_road`)."""
-        pose = self.state[0].reshape(-1, 3)
+        """``also`` of :func:`excluded_tokens` for slots ``rows`` [Q] (ascending, as the model's step gives them;
+        :meth:`keep_on_road`)."""
         n = self.agent_type.shape[1]
-
-        def test(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
-            slot = rows[r]
-            order = torch.argsort(slot // n, stable=True)
-            slot, tok_o = slot[order], tok[order]
-            ends = self.token_poses[self.agent_type.reshape(-1)[slot]][:, :, -1]  # [R, V, 3]
-            end = compose_torch(pose[slot][:, None], ends.gather(1, tok_o[..., None].expand(-1, -1, 3)))
-            off = boxes_off_road(self.edges, slot // n, end[..., :2], end[..., 2], self.agent_shape.reshape(-1, 3)[slot],
-                                 self.z[slot]) & self.on_road[slot][:, None]
-            return torch.empty_like(off).index_copy_(0, order, off)
-        return test
+        ends = self.token_poses[self.agent_type.reshape(-1)[rows], :, -1]  # [Q, V, 3]
+        return off_road_test(self.edges, rows // n, self.state[0].reshape(-1, 3)[rows], ends, self.agent_shape.reshape(-1, 3)[rows],
+                             self.z[rows], self.on_road[rows])
 
     def _excluded(self, logits: torch.Tensor, rows: torch.Tensor, top_k: int) -> torch.Tensor:
         pose, prev, present, known_frames, known = self.state

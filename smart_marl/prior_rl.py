@@ -392,8 +392,10 @@ def update_in_parts(model, reference, parts: list[list], vocab: MotionVocabulary
         res = (rule_loss(model, reference, batch, weight, total=total, anchor=cfg.rule_anchor) if cfg.objective == "rule"
                else rl_loss(model, reference, batch, weight, cfg.beta, total=total))
         res["loss"].backward()
-        for key in out.keys() - {"tokens"}:
-            out[key] += float(res[key].detach()) / (len(chunks) if key == "excluded_mass" else 1)
+        for key in out.keys() - {"tokens"}:  # the excluded mass weighted by its rows, divided below
+            out[key] += float(res[key].detach()) * (float(res["ruled"]) if key == "excluded_mass" else 1)
+    if "excluded_mass" in out:
+        out["excluded_mass"] /= max(out["ruled"], 1)
     return out
 
 

@@ -37,9 +37,9 @@ from typing import Callable
 
 import torch
 
-from ..geometry_torch import bound_length, boxes_overlap, loose
+from ..geometry_torch import RoadEdgeTensors, bound_length, boxes_off_road, boxes_overlap, loose
 from ..tokens import FRAMES_PER_TOKEN
-from .frames import token_frames
+from .frames import compose_torch, token_frames
 from .sampling import any_rows
 
 NEIGHBOURS = 16
@@ -156,6 +156,19 @@ def constant_velocity_pose(pose: torch.Tensor, previous_pose: torch.Tensor) -> t
     (heading held); an agent with no previous pose (NaN) stays where it is."""
     prev = torch.where(torch.isnan(previous_pose), pose, previous_pose)
     return torch.cat([2 * pose[..., :2] - prev[..., :2], pose[..., 2:]], -1)
+
+
+def off_road_test(edges: RoadEdgeTensors, scene: torch.Tensor, pose: torch.Tensor, token_ends: torch.Tensor, size: torch.Tensor,
+                  z: torch.Tensor, applies: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    """An ``also`` of :func:`excluded_tokens` for its M rows, in scenes ``scene`` [M] (ascending) of ``edges``, at
+    ``pose`` [M, 3], their type's token ends ``token_ends`` [M, V, 3] in their own frame, boxes ``size`` [M, 3]
+    at height ``z`` [M]: ``test(r [R], tokens [R, c]) -> bool [R, c]``, a token that ends with a bottom corner of
+    the row's box beyond a road edge (:func:`~smart_marl.geometry_torch.boxes_off_road`, the offroad event's test),
+    for the rows where ``applies`` [M] (the shield's vehicles, the vehicles on the road now)."""
+    def test(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
+        end = compose_torch(pose[r][:, None], token_ends[r].gather(1, tok[..., None].expand(-1, -1, 3)))  # [R, c, 3]
+        return applies[r][:, None] & boxes_off_road(edges, scene[r], end[..., :2], end[..., 2], size[r], z[r])
+    return test
 
 
 def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor, previous_pose: torch.Tensor,
