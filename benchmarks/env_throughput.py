@@ -24,9 +24,12 @@ Prints one JSON line per configuration:
 Actions: each controlled agent takes its prior's most likely token; ``terminate_on=()`` so that an
 episode runs its full horizon. Scenes: ``--scenes`` (default: the shared real scenes with a moving
 vehicle to control, ../shared/data), cycled to fill the batch. Prior: ``--prior`` (default the
-embedded one). Medians of ``--repeats`` timed runs.
+embedded one). Medians of ``--repeats`` timed runs. ``--traffic-control both``: every configuration with the
+background's traffic control (the envs' default) and without, interleaved; each line carries ``traffic_control`` and
+its speed-up is against the PettingZoo env with the same setting, the "on" lines ``agent_steps_per_s_vs_off``.
 
     .venv/bin/python benchmarks/env_throughput.py [--num-scenes 1,8,32,128] [--steps 32] [--threads 2] [--device cpu]
+        [--traffic-control on|off|both]
 """
 
 from __future__ import annotations
@@ -165,8 +168,11 @@ def main() -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--device", default="cpu")
     p.add_argument("--shield", action="store_true", help="the controlled agents' shield (envs._shield), checked to the top 3")
-    p.add_argument("--stop-lines", action="store_true", help="the background stops at red lights and stop signs "
-                   "(smart_marl.rollout.stop_lines)")
+    p.add_argument("--traffic-control", default="on", choices=("on", "off", "both"),
+                   help="the background's traffic control (stop_lines=True, lights='log': the envs' defaults) or none "
+                        "(stop_lines=False, lights='current'); both: side by side in one run, each against the PettingZoo env "
+                        "with the same setting (default on)")
+    p.add_argument("--stop-lines", dest="traffic_control", action="store_const", const="on", help=argparse.SUPPRESS)
     args = p.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -176,10 +182,12 @@ def main() -> int:
 
     scenes = load_scenes(args.scenes) if args.scenes else real_scenes()
     model, vocab = load_prior(args.prior, args.device)
+    settings = {"on": dict(stop_lines=True, lights="log"), "off": dict(stop_lines=False, lights="current")}
+    chosen = ["on", "off"] if args.traffic_control == "both" else [args.traffic_control]
     kw = dict(prior=model, motion_vocab=vocab, controlled=args.controlled, max_agents=args.max_agents, background=args.background,
               horizon_steps=args.horizon, terminate_on=(), device=args.device,
-              stop_lines=args.stop_lines, **(dict(shield=True, reference_top_k=3) if args.shield else {}))
-    common = dict(benchmark="env_throughput", background=args.background, shield=args.shield, stop_lines=args.stop_lines,
+              **(dict(shield=True, reference_top_k=3) if args.shield else {}))
+    common = dict(benchmark="env_throughput", background=args.background, shield=args.shield,
                   prior=args.prior, controlled=args.controlled,
                   max_agents=args.max_agents, horizon_steps=args.horizon, torch_threads=args.threads, device=args.device,
                   cpu=platform.processor() or platform.machine(), scenes=len(scenes))
@@ -187,41 +195,51 @@ def main() -> int:
         common["gpu"] = torch.cuda.get_device_name(args.device)
 
     # the PettingZoo env: one scene at a time, the scenes with an agent to control
-    pz = smart_traffic_v0.parallel_env(scenarios=scenes, observation="dict", **kw)
+    pz = {c: smart_traffic_v0.parallel_env(scenarios=scenes, observation="dict", **kw, **settings[c]) for c in chosen}
     usable = []
     for i in range(len(scenes)):
         try:
-            pz.reset(seed=0, options={"scene_index": i})
+            pz[chosen[0]].reset(seed=0, options={"scene_index": i})
             usable.append(i)
         except Exception:  # noqa: BLE001 - no agent to control in this scene
             pass
-    pz.PRIOR_STATE_CACHE = pz.core.prior_cache_size = len(usable)  # keep every scene's prior, as the batched env does
-    time_pettingzoo(pz, usable, len(usable) * args.horizon)  # warm-up: every scene's prior started once
+    for env in pz.values():
+        env.PRIOR_STATE_CACHE = env.core.prior_cache_size = len(usable)  # keep every scene's prior, as the batched env does
+        time_pettingzoo(env, usable, len(usable) * args.horizon)  # warm-up: every scene's prior started once
     pool = [scenes[i] for i in usable]
     sizes = [int(x) for x in args.num_scenes.split(",")]
     batched = {}
-    for b in sizes:
-        env = smart_traffic_batched_v0.SmartTrafficBatchedEnv(scenarios=pool, num_scenes=b, scene_order="sequential", **kw)
-        time_batched(env, max(args.horizon, len(pool) * args.horizon // b))  # warm-up: every scene's prior started once
-        batched[b] = env
+    for c in chosen:
+        for b in sizes:
+            env = smart_traffic_batched_v0.SmartTrafficBatchedEnv(scenarios=pool, num_scenes=b, scene_order="sequential", **kw,
+                                                                  **settings[c])
+            time_batched(env, max(args.horizon, len(pool) * args.horizon // b))  # warm-up: every scene's prior started once
+            batched[c, b] = env
     # the repeats interleave the configurations, so that a load that comes and goes weighs on all of them alike
-    runs = {"pettingzoo": [], **{b: [] for b in sizes}}
+    runs = {**{("pettingzoo", c): [] for c in chosen}, **{key: [] for key in batched}}
     # every repeat plays every scene at least once on each env (the PettingZoo env starts from the first scene each
     # time; the batched env goes on through the pool): both are timed on the same scenes, not on the first few
     every = len(usable) * args.horizon
     for _ in range(args.repeats):
-        runs["pettingzoo"].append(time_pettingzoo(pz, usable, max(args.steps, every)))
+        for c in chosen:
+            runs["pettingzoo", c].append(time_pettingzoo(pz[c], usable, max(args.steps, every)))
+            for b in sizes:
+                runs[c, b].append(time_batched(batched[c, b], max(args.steps, -(-every // b))))
+    for c in chosen:
+        rules = dict(traffic_control=c, **settings[c])
+        base = summarise(runs["pettingzoo", c])
+        print(json.dumps(dict(env="pettingzoo", num_scenes=1, **base, rss_mb=round(rss_mb()), **rules, **common)), flush=True)
         for b in sizes:
-            runs[b].append(time_batched(batched[b], max(args.steps, -(-every // b))))
-    base = summarise(runs["pettingzoo"])
-    print(json.dumps(dict(env="pettingzoo", num_scenes=1, **base, rss_mb=round(rss_mb()), **common)), flush=True)
-    for b in sizes:
-        line = dict(env="batched", num_scenes=b, **summarise(runs[b]), rss_mb=round(rss_mb()), **common)
-        line["speedup_vs_pettingzoo"] = round(line["agent_steps_per_s"] / base["agent_steps_per_s"], 2)
-        ratios = [(r["agent_steps"] / r["step_s"]) / (p["agent_steps"] / p["step_s"]) for r, p in zip(runs[b], runs["pettingzoo"])]
-        line["speedup_per_repeat"] = [round(x, 2) for x in ratios]
-        line["speedup_bound_forward_only"] = round(1e6 / base["agent_steps_per_s"] / line["forward_us_per_agent_step"], 2)
-        print(json.dumps(line), flush=True)
+            line = dict(env="batched", num_scenes=b, **summarise(runs[c, b]), rss_mb=round(rss_mb()), **rules, **common)
+            line["speedup_vs_pettingzoo"] = round(line["agent_steps_per_s"] / base["agent_steps_per_s"], 2)
+            ratios = [(r["agent_steps"] / r["step_s"]) / (p["agent_steps"] / p["step_s"])
+                      for r, p in zip(runs[c, b], runs["pettingzoo", c])]
+            line["speedup_per_repeat"] = [round(x, 2) for x in ratios]
+            line["speedup_bound_forward_only"] = round(1e6 / base["agent_steps_per_s"] / line["forward_us_per_agent_step"], 2)
+            if c == "on" and "off" in chosen:  # the rules' cost, side by side
+                off = summarise(runs["off", b])["agent_steps_per_s"]
+                line["agent_steps_per_s_vs_off"] = round(line["agent_steps_per_s"] / off, 3)
+            print(json.dumps(line), flush=True)
     return 0
 
 

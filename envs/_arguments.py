@@ -22,6 +22,7 @@ What each argument takes (the documented meanings):
 * ``render_size_px``: an integer in 16..:data:`MAX_RENDER_SIZE_PX`; ``render_radius_m`` a finite number in
   (0, :data:`MAX_RENDER_RADIUS_M`];
 * ``avoid_collisions``, ``stop_lines``: True or False (not the string "false");
+* ``lights``: "log" or "current" (:data:`smart_marl.rollout.LIGHTS`);
 * ``shield``: True (every check of :data:`envs._shield.SHIELD_CHECKS`), False / None / an empty list (none),
   or a list of check names (a bare string is one name), normalised to a tuple in ``SHIELD_CHECKS`` order;
 * ``controlled``: "sdc", "predict", "vehicles", "all", "moving_vehicles", a callable, or a list of track
@@ -40,7 +41,7 @@ from typing import Any
 
 from smart_marl.config_files import (Rule, check_value, device_problem, flag, integer, is_integer, number, one_of, optional, seed,
                                      shown)
-from smart_marl.rollout import temperature_rule
+from smart_marl.rollout import LIGHTS, temperature_rule
 
 from ._dynamics import BACKGROUNDS
 from ._observation import ObservationConfig
@@ -120,7 +121,8 @@ def _controlled(value: Any) -> Any:
 def check_env_arguments(*, background: Any, horizon_steps: Any, scene_order: Any, terminate_on: Any, render_mode: Any,
                         render_modes: Iterable[str], max_agents: Any, top_k: Any, temperature: Any, reference_top_k: Any,
                         render_size_px: Any, render_radius_m: Any, avoid_collisions: Any, reward: Any, observation: Any,
-                        controlled: Any, device: Any = "cpu", shield: Any = (), stop_lines: Any = False) -> dict[str, Any]:
+                        controlled: Any, device: Any = "cpu", shield: Any = (), stop_lines: Any = True,
+                        lights: Any = "log") -> dict[str, Any]:
     """The constructor's arguments checked and normalised (see the module docstring), as a dict of
     the same names; :class:`~envs.errors.EnvConfigError` naming the first one that is refused."""
     return {
@@ -138,6 +140,7 @@ def check_env_arguments(*, background: Any, horizon_steps: Any, scene_order: Any
                                         number(0.0, MAX_RENDER_RADIUS_M, low_open=True, why="wider than any scene"))),
         "avoid_collisions": bool(_check("avoid_collisions", avoid_collisions, flag, bool)),
         "stop_lines": bool(_check("stop_lines", stop_lines, flag, bool)),
+        "lights": _check("lights", lights, one_of(*LIGHTS), str),
         "reward": _reward(reward),
         "observation": _observation(observation),
         "controlled": _controlled(controlled),

@@ -97,7 +97,8 @@ class TrafficCore:
                  reward: RewardConfig | None = None, terminate_on: Sequence[str] = TERMINATION_EVENTS,
                  observation: ObservationConfig | None = None, top_k: int = DEFAULT_TOP_K, temperature: float = 1.0,
                  avoid_collisions: bool = True, device="cpu", dtype=torch.float32, prior_cache_size: int = 8,
-                 record: bool = False, shield: Sequence[str] = (), shield_top_k: int | None = None, stop_lines: bool = False) -> None:
+                 record: bool = False, shield: Sequence[str] = (), shield_top_k: int | None = None, stop_lines: bool = True,
+                 lights: str = "log") -> None:
         if background not in BACKGROUNDS:
             raise ValueError(f"background must be one of {BACKGROUNDS}, got {background!r}")
         self.model, self.motion_vocab, self.background = model, motion_vocab, background
@@ -107,6 +108,7 @@ class TrafficCore:
         self.obs_config = observation or ObservationConfig()
         self.top_k, self.temperature, self.avoid_collisions = int(top_k), float(temperature), bool(avoid_collisions)
         self.stop_lines = bool(stop_lines)  # the background stops at red lights and stop signs (smart_marl.rollout.stop_lines)
+        self.lights = lights  # what the prior and the stop lines see of the lights: the log's clock, or the current frame's
         self.device, self.dtype = torch.device(device), dtype
         self.shield, self.shield_top_k = tuple(shield), shield_top_k  # envs._shield: checks, and the k the policy draws from
         self._unsafe: tuple[torch.Tensor, torch.Tensor] | None = None  # (the logits it was computed on, the shield's mask)
@@ -228,7 +230,7 @@ class TrafficCore:
                 started = RolloutState.start(self.model, [scenes[i].static.scenario for i in chunk], num_rollouts=1, seed=0,
                                              top_k=self.top_k, temperature=self.temperature, device=self.device,
                                              motion_vocab=self.motion_vocab, avoid_collisions=self.avoid_collisions,
-                                             stop_lines=self.stop_lines)
+                                             stop_lines=self.stop_lines, lights=self.lights)
                 states += split_state(started) if len(chunk) > 1 else [started]
             fresh = dict(zip(first, states))
             for i, st in enumerate(out):

@@ -68,12 +68,13 @@ class SmartTrafficBatchedEnv(EnvBase):
                  motion_vocab: MotionVocabulary | None = None, top_k: int = DEFAULT_TOP_K, temperature: float = 1.0,
                  reference_top_k: int | None = None, avoid_collisions: bool = True, observation: ObservationConfig | None = None,
                  shield=(), device="cpu", prior_cache_size: int = 1024, max_loaded_scenes: int = 1024, seed: int = 0,
-                 stop_lines: bool = False) -> None:
+                 stop_lines: bool = True, lights: str = "log") -> None:
         a = check_env_arguments(background=background, horizon_steps=horizon_steps, scene_order=scene_order,
                                 terminate_on=terminate_on, render_mode=None, render_modes=(), max_agents=max_agents, top_k=top_k,
                                 temperature=temperature, reference_top_k=reference_top_k, render_size_px=400, render_radius_m=50.0,
                                 avoid_collisions=avoid_collisions, reward=reward, observation=observation or "vector",
-                                controlled=controlled, device=device, shield=shield, stop_lines=stop_lines)
+                                controlled=controlled, device=device, shield=shield, stop_lines=stop_lines,
+                                lights=lights)
         if a["max_agents"] is None:
             raise EnvConfigError("max_agents must be an integer >= 1: the batched env's agent group has that many slots per scene")
         for name, value, high in (("num_scenes", num_scenes, 1 << 16), ("prior_cache_size", prior_cache_size, 1 << 20),
@@ -97,7 +98,7 @@ class SmartTrafficBatchedEnv(EnvBase):
         self.core = TrafficCore(self.model, self.motion_vocab, self.background, self.horizon_steps, a["reward"], a["terminate_on"],
                                 self.obs_config, a["top_k"], self.temperature, a["avoid_collisions"], device=device,
                                 prior_cache_size=prior_cache_size, shield=a["shield"], shield_top_k=self.reference_top_k,
-                                stop_lines=a["stop_lines"])
+                                stop_lines=a["stop_lines"], lights=a["lights"])
         self.shield = a["shield"]
         self.scene_indices = [-1] * self.num_scenes  # the pool index each row plays
         self._seed = int(seed)

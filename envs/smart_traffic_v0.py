@@ -112,13 +112,13 @@ class SmartTrafficEnv(ParallelEnv):
                  scene_order: str = "sequential", motion_vocab: MotionVocabulary | None = None, top_k: int = DEFAULT_TOP_K,
                  temperature: float = 1.0, render_size_px: int = 400, render_radius_m: float = 50.0,
                  reference_top_k: int | None = None, avoid_collisions: bool = True, shield=(), device="cpu",
-                 stop_lines: bool = False) -> None:
+                 stop_lines: bool = True, lights: str = "log") -> None:
         a = check_env_arguments(background=background, horizon_steps=horizon_steps, scene_order=scene_order,
                                 terminate_on=terminate_on, render_mode=render_mode, render_modes=self.metadata["render_modes"],
                                 max_agents=max_agents, top_k=top_k, temperature=temperature, reference_top_k=reference_top_k,
                                 render_size_px=render_size_px, render_radius_m=render_radius_m,
                                 avoid_collisions=avoid_collisions, reward=reward, observation=observation, controlled=controlled,
-                                device=device, shield=shield, stop_lines=stop_lines)
+                                device=device, shield=shield, stop_lines=stop_lines, lights=lights)
         if render_mode == "human" and not _has_display():
             raise EnvConfigError("render_mode='human' opens a matplotlib window, but there is no display (DISPLAY and "
                                  "WAYLAND_DISPLAY are unset); use render_mode='rgb_array' (and EpisodeRecorder) instead")
@@ -139,14 +139,15 @@ class SmartTrafficEnv(ParallelEnv):
         self.terminate_on = a["terminate_on"]
         self.scene_order = a["scene_order"]
         self.top_k, self.temperature = a["top_k"], a["temperature"]
-        self.avoid_collisions, self.stop_lines = a["avoid_collisions"], a["stop_lines"]
+        self.avoid_collisions, self.stop_lines, self.lights = a["avoid_collisions"], a["stop_lines"], a["lights"]
         self.reference_top_k = a["reference_top_k"]
         self.reference = reference_name(self.reference_top_k, self.temperature)
         self.render_size_px, self.render_radius_m = a["render_size_px"], a["render_radius_m"]
         self.core = TrafficCore(self.model, self.motion_vocab, self.background, self.horizon_steps, self.reward_config,
                                 self.terminate_on, self.obs_config, self.top_k, self.temperature, self.avoid_collisions,
                                 device=self.device, dtype=torch.float64, prior_cache_size=self.PRIOR_STATE_CACHE, record=True,
-                                shield=a["shield"], shield_top_k=self.reference_top_k, stop_lines=self.stop_lines)
+                                shield=a["shield"], shield_top_k=self.reference_top_k, stop_lines=self.stop_lines,
+                                lights=self.lights)
         self.shield = a["shield"]
         self._statics: dict[int, SceneStatic] = {}
         self._obs_spaces: dict[str, spaces.Space] = {}
@@ -474,8 +475,10 @@ def parallel_env(scenarios="embedded", prior="embedded", controlled="sdc", backg
     ``scene_order`` ("sequential" or "random" with the reset seed), ``motion_vocab`` (needed with
     ``prior=None``), ``top_k``, ``temperature``, ``reference_top_k``, ``avoid_collisions`` (the prior's
     background keeps its sampled tokens out of other agents' boxes, :mod:`smart_marl.rollout.avoidance`;
-    default True), ``stop_lines`` (its vehicles stop at red lights and stop signs, :mod:`smart_marl.rollout.stop_lines`;
-    default False), ``shield`` (the same for the controlled agents' action masks, plus staying on the road:
+    default True), ``stop_lines`` (its vehicles stop at red lights and stop signs and move off again when the light
+    turns green, the sign is served or the queue ahead drives off, :mod:`smart_marl.rollout.stop_lines`; default True),
+    ``lights`` ("log": the prior and the stop lines see the log's light states at every step, held after the scene's
+    last logged frame; "current": the current frame's, held), ``shield`` (the same for the controlled agents' action masks, plus staying on the road:
     :mod:`envs._shield`; default off), ``render_size_px``, ``render_radius_m``, ``device`` (``"cuda"``: the prior and the state on the
     GPU; what a step returns is numpy as always)."""
     return SmartTrafficEnv(scenarios=scenarios, prior=prior, controlled=controlled, background=background,

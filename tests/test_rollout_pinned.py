@@ -3,8 +3,8 @@ tokens. Refactors of the model, the KV-cached step or the rollout engine must no
 
 Pinned here: 2 rollouts x 4 token steps, seed 7, top-k 5, of the embedded prior
 (``smart_marl/checkpoints/embedded``) on the real WOMD scene 637f20cafde22ff8 (skipped when
-``../shared/data`` is absent), with collision-aware sampling (the default) and without it
-("-plain"), and on the package's first SUMO sample scene (always runs). The
+``../shared/data`` is absent), with the default rules (collision-aware sampling and traffic control) and without
+any ("-plain"), and on the package's first SUMO sample scene (always runs). The
 tokens of every simulated agent are pinned exactly (a SHA-256 of the int64 array, agents in track
 order, plus the first agents' tokens written out); log-probabilities to 1e-5 (relative) and the
 agents' summed path length to 1 mm.
@@ -52,22 +52,23 @@ PINS = {  # regenerated when collision-aware sampling became the default (stage 
         "log_prob_sum": -606.4080134108663,
         "path_length_m": 938.9321361192233,
     },
-    "sumo-sample-0": {  # re-pinned 2026-11-26: knn_within went to exact distances with ties taken lowest index first
-        # (c672e82, so that a scene's neighbourhoods do not depend on the scenes batched with it; bisected to it): the
-        # first tokens are unchanged, later ones moved (+0.1 m of path over 22 agents); the WOMD pins did not move
+    "sumo-sample-0": {  # re-pinned 2026-11-29: traffic control became the default (stop_lines=True, issue 55): the
+        # first agent draws differently from its third token on, under the rule (path 44.30 -> 42.80 m over 22 agents);
+        # the WOMD pins did not move (the rule changes none of their first 4 steps' draws)
         "simulated": 22,
-        "tokens_sha256": "0a44dd2fa9fee7ef1a93dbcd76ee255819b32c33edf0df90426106a223193321",
-        "first_tokens": [[[122, 73, 138, 73], [5, 5, 5, 5], [5, 5, 5, 5], [32, 5, 5, 5]],
-                         [[122, 139, 138, 73], [5, 32, 5, 5], [5, 5, 5, 5], [5, 5, 5, 5]]],
-        "log_prob_sum": -139.78396518528461,
-        "path_length_m": 44.29867252700619,
+        "tokens_sha256": "8cbadddf31cd712fb34893b5cbd7b788028d8fc020e0b039e9aea082bb509c22",
+        "first_tokens": [[[122, 73, 146, 232], [5, 5, 5, 5], [5, 5, 5, 5], [32, 5, 5, 5]],
+                         [[122, 139, 4, 621], [5, 32, 5, 5], [5, 5, 5, 5], [5, 5, 5, 5]]],
+        "log_prob_sum": -149.41906360536814,
+        "path_length_m": 42.80118131582195,
     },
 }
 
 
 def _summary(scene, avoid_collisions: bool = True) -> dict:
-    """What is pinned of one scene's rollout (computed on one torch thread)."""
-    result = rollout(load_embedded(), scene, **SETTINGS, avoid_collisions=avoid_collisions)
+    """What is pinned of one scene's rollout (computed on one torch thread): with the default rules, or ``-plain``
+    with none (no collision-aware sampling, no traffic control: the model and the sampler alone)."""
+    result = rollout(load_embedded(), scene, **SETTINGS, avoid_collisions=avoid_collisions, stop_lines=avoid_collisions)
     sim = result.simulated[0]  # [A] the same agents are simulated in every rollout of a scene
     tokens = np.ascontiguousarray(result.tokens[:, sim], np.int64)  # [R, simulated, steps]
     return {

@@ -1,5 +1,7 @@
-"""Stopping at stop lines (smart_marl.rollout.stop_lines): which line holds a vehicle, which tokens it may not
-draw, that rollouts with the rule do not run the red lines that held them, and that batching keeps the lines."""
+"""Traffic control (smart_marl.rollout.stop_lines): which line holds a vehicle, which tokens it may not draw, that
+rollouts with the rule do not run the red lines that held them, stop signs served once per vehicle and approach, a
+green, a served sign or a leader driving off releasing a standing vehicle, and that batching keeps the lines, the
+served signs and each scene's light clock."""
 
 from __future__ import annotations
 
@@ -13,7 +15,8 @@ from smart_marl.embedded import sample_scenarios
 from smart_marl.model.checkpoint import load_prior
 from smart_marl.rollout import RolloutState
 from smart_marl.rollout.refill import replace_scenes, split_state, stack_states
-from smart_marl.rollout.stop_lines import STOP_DECEL_MPS2, line_groups, nearest_line, served_after_step, stop_line_test
+from smart_marl.rollout.stop_lines import (MIN_ADVANCE_M, STOP_DECEL_MPS2, line_groups, nearest_line, released,
+                                           served_after_step, stop_line_test)
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 
@@ -26,9 +29,10 @@ def _lines_state(**extra) -> SimpleNamespace:
     state = SimpleNamespace(
         scene_of_group=torch.tensor([0]), pose=torch.zeros(1, 2, 3), previous_pose=torch.zeros(1, 2, 3),
         stop_xy=xy, stop_dir=direction, stop_valid=torch.ones(1, 6, dtype=torch.bool), stop_group=torch.arange(6)[None],
-        stop_red=torch.tensor([[True, False, True, True, True, False]]),
+        stop_red=torch.tensor([[True, False, True, True, True, False]]), stop_go=torch.zeros(1, 6, dtype=torch.bool),
         stop_sign=torch.tensor([[False, False, False, False, False, True]]),
-        stop_served=torch.tensor([[-1, 5]]), agent_type=torch.zeros(1, 2, dtype=torch.long),
+        stop_served=torch.tensor([[[False] * 6, [False] * 5 + [True]]]), stop_stood=torch.zeros(1, 2, dtype=torch.long),
+        agent_type=torch.zeros(1, 2, dtype=torch.long),
         agent_shape=torch.tensor([[[4.0, 2.0, 1.5], [4.0, 2.0, 1.5]]]), simulated=torch.ones(1, 2, dtype=torch.bool), num_slots=2)
     for name, value in extra.items():
         setattr(state, name, value)
@@ -55,7 +59,7 @@ def test_a_red_arrow_beside_a_green_light_of_the_same_line_lets_a_vehicle_go():
     assert line_groups(np.zeros((0, 2)), np.zeros((0, 2))).tolist() == []  # a scene without lines
     state = _lines_state(stop_xy=xy, stop_dir=direction, stop_group=torch.from_numpy(groups)[None],
                          stop_valid=torch.ones(1, 4, dtype=torch.bool), stop_sign=torch.zeros(1, 4, dtype=torch.bool),
-                         stop_red=torch.tensor([[True, False, True, True]]))
+                         stop_red=torch.tensor([[True, False, True, True]]), stop_served=torch.zeros(1, 2, 4, dtype=torch.bool))
     _, line = nearest_line(state, torch.tensor([0]), torch.tensor([0]))
     assert line.tolist() == [2]  # the through lane is green: the next line, 23 m on, holds it
     state.stop_red[0, 1] = True
@@ -72,17 +76,96 @@ def test_a_held_vehicle_may_draw_only_the_tokens_after_which_it_can_stop():
     assert test(torch.tensor([0]), torch.arange(5)[None]).tolist() == [[False, False, True, True, True]]
     assert STOP_DECEL_MPS2 == 3.0
     state.stop_red[:] = False
-    state.stop_served[:] = 5
-    assert stop_line_test(state, torch.tensor([0, 1])) is None  # nothing holds either: the plain search
+    state.stop_served[..., 5] = True
+    state.pose[0, :, 0] = torch.tensor([0.0, 30.0])  # slot 0 stands, slot 1 has driven 30 m
+    state.previous_pose[0, :, 0] = torch.tensor([float("nan"), 20.0])  # and slot 0 was just placed: no motion to go on from
+    assert stop_line_test(state, torch.tensor([0, 1])) is None  # nothing holds or releases either: the plain search
 
 
 def test_a_vehicle_that_stood_at_a_stop_sign_has_served_it():
     state = _lines_state()
     state.pose = torch.tensor([[[7.5, 0.0, 0.0], [9.0, 0.0, 0.0]]])
     state.previous_pose = torch.tensor([[[7.4, 0.0, 0.0], [4.0, 0.0, 0.0]]])  # slot 0 stands, slot 1 drives on
-    assert served_after_step(state).tolist() == [[5, 5]]
-    state.stop_served = torch.tensor([[-1, -1]])
-    assert served_after_step(state).tolist() == [[5, -1]]
+    assert served_after_step(state)[0, :, 5].tolist() == [True, True]
+    state.stop_served = torch.zeros(1, 2, 6, dtype=torch.bool)
+    assert served_after_step(state)[0, :, 5].tolist() == [True, False]  # the one that drove on has not
+
+
+def test_a_stop_sign_is_served_once_per_vehicle_and_approach():
+    """Two approaches of one all-way stop (two lanes leaving the line 12 m ahead, one line; another line 30 m on) and
+    two vehicles: the first stands at the first line and has served both its lanes, and nothing else; it is then held
+    by the next sign, and the second vehicle, behind it, is still held by the first."""
+    xy = torch.tensor([[[12.0, 0.0], [12.2, 0.3], [30.0, 0.0]]])
+    direction = torch.tensor([[[1.0, 0.0], [0.9, 0.44], [1.0, 0.0]]])
+    state = _lines_state(stop_xy=xy, stop_dir=direction, stop_group=torch.from_numpy(line_groups(xy[0].double().numpy(),
+                                                                                               direction[0].double().numpy()))[None],
+                         stop_valid=torch.ones(1, 3, dtype=torch.bool), stop_sign=torch.ones(1, 3, dtype=torch.bool),
+                         stop_red=torch.zeros(1, 3, dtype=torch.bool), stop_go=torch.zeros(1, 3, dtype=torch.bool),
+                         stop_served=torch.zeros(1, 2, 3, dtype=torch.bool))
+    state.pose = torch.tensor([[[5.0, 0.0, 0.0], [-5.0, 0.0, 0.0]]])  # front 3 m before the line; the second 10 m behind
+    state.previous_pose = state.pose.clone()  # both stand
+    state.stop_served = served_after_step(state)
+    assert state.stop_served[0].tolist() == [[True, True, False], [False, False, False]]
+    _, line = nearest_line(state, torch.tensor([0, 0]), torch.tensor([0, 1]))
+    assert line.tolist() == [2, 0]  # the first: the next approach holds it; the second: this one still does
+    state.stop_served = served_after_step(state)  # standing on does not serve the next line 25 m ahead
+    assert state.stop_served[0].tolist() == [[True, True, False], [False, False, False]]
+
+
+def _released(state, slots) -> list[bool]:
+    g, s = torch.zeros(len(slots), dtype=torch.long), torch.tensor(slots)
+    dist, _ = nearest_line(state, g, s)
+    return released(state, g, s, torch.isfinite(dist)).tolist()
+
+
+def test_a_green_light_releases_a_held_vehicle_and_a_red_one_does_not():
+    """Slot 0 stands 6 m before a signal's line (the only line); slot 1 stands 20 m to the side, out of the way."""
+    state = _lines_state(stop_xy=torch.tensor([[[8.0, 0.0]]]), stop_dir=torch.tensor([[[1.0, 0.0]]]),
+                         stop_group=torch.zeros(1, 1, dtype=torch.long), stop_valid=torch.ones(1, 1, dtype=torch.bool),
+                         stop_sign=torch.zeros(1, 1, dtype=torch.bool), stop_red=torch.ones(1, 1, dtype=torch.bool),
+                         stop_go=torch.zeros(1, 1, dtype=torch.bool), stop_served=torch.zeros(1, 2, 1, dtype=torch.bool))
+    state.pose[0, 1, 1] = 20.0
+    state.previous_pose = state.pose.clone()
+    assert _released(state, [0, 1]) == [False, False]  # red: held, not released
+    state.stop_red[:], state.stop_go[:] = False, True
+    assert _released(state, [0, 1]) == [True, False]  # green: the one at the line goes, the one far aside stays
+    state.stop_go[:] = False
+    assert _released(state, [0]) == [False]  # a light that is neither (unknown, caution) releases nobody
+    state.stop_go[:] = True
+    state.previous_pose[0, 0, 0] = -2.0  # moving at 4 m/s: not standing, the prior drives
+    assert _released(state, [0]) == [False]
+    state.previous_pose[0, 0, 0] = 0.0
+    state.pose[0, 1] = torch.tensor([6.0, 0.5, 0.0])  # someone 2 m in front of its bumper: no room to go
+    state.previous_pose[0, 1] = state.pose[0, 1]
+    assert _released(state, [0]) == [False]
+    ends = (torch.tensor([[0.0, 0.1, 0.3, 2.0]]), torch.tensor([[0.0, 0.2, 0.6, 4.0]]))
+    state.pose[0, 1] = torch.tensor([0.0, 20.0, 0.0])
+    state.previous_pose[0, 1] = state.pose[0, 1]
+    state = _lines_state(**{**vars(state), "stop_token_ends": ends, "vocab_sizes": torch.tensor([4])})
+    test = stop_line_test(state, torch.tensor([0, 1]))
+    assert test(torch.tensor([0, 1]), torch.arange(4).expand(2, 4)).tolist() == [[True, True, False, False], [False] * 4]
+    assert MIN_ADVANCE_M == 0.25
+
+
+def test_a_leader_driving_off_releases_the_vehicle_behind_it():
+    """A signal's line 25 m ahead whose light is unknown (it neither holds nor releases): slot 0 stands, slot 1 is 12 m
+    ahead in its lane; a parked car (slot 2) stands beside the lane."""
+    state = _lines_state(stop_xy=torch.tensor([[[25.0, 0.0]]]), stop_dir=torch.tensor([[[1.0, 0.0]]]),
+                         stop_group=torch.zeros(1, 1, dtype=torch.long), stop_valid=torch.ones(1, 1, dtype=torch.bool),
+                         stop_sign=torch.zeros(1, 1, dtype=torch.bool), stop_red=torch.zeros(1, 1, dtype=torch.bool),
+                         stop_go=torch.zeros(1, 1, dtype=torch.bool), stop_served=torch.zeros(1, 3, 1, dtype=torch.bool),
+                         agent_type=torch.zeros(1, 3, dtype=torch.long), agent_shape=torch.tensor([[[4.0, 2.0, 1.5]] * 3]),
+                         simulated=torch.ones(1, 3, dtype=torch.bool), num_slots=3, stop_stood=torch.zeros(1, 3, dtype=torch.long))
+    state.pose = torch.tensor([[[0.0, 0.0, 0.0], [12.0, 0.2, 0.0], [5.0, -3.5, 0.0]]])
+    state.previous_pose = state.pose.clone()
+    assert _released(state, [0, 2]) == [False, False]  # the leader stands: so does the queue
+    state.previous_pose[0, 1, 0] = 10.5  # the leader drives off at 3 m/s
+    assert _released(state, [0, 2]) == [True, False]  # the follower goes, the parked car beside the lane stays
+    state.pose[0, 1, 2] = 3.0  # ... one going the other way (turned around) releases nobody
+    assert _released(state, [0]) == [False]
+    state.pose[0, 1, 2] = 0.0
+    state.stop_valid[:] = False  # away from any line (a parked row, a jam): the prior alone decides
+    assert _released(state, [0]) == [False]
 
 
 def _red_crossings(state: RolloutState, steps: int = 16) -> int:
@@ -120,13 +203,14 @@ def test_batching_keeps_each_scenes_lines_and_served_signs():
             k = part.stop_xy.shape[1]
             assert torch.equal(torch.nan_to_num(getattr(again, name)[row, :k]), torch.nan_to_num(getattr(part, name)[0]))
     one = RolloutState.start(model, scenes[0], seed=0, stop_lines=True)
-    one.stop_served = torch.full_like(one.stop_served, 3)
+    one.stop_served = torch.ones_like(one.stop_served)
     replace_scenes(both, [1], one)
-    assert (both.stop_served[1, : one.num_slots] == 3).all() and (both.stop_served[0] == -1).all()
+    k = one.stop_xy.shape[1]
+    assert both.stop_served[1, : one.num_slots, :k].all() and not both.stop_served[0].any() and not both.stop_served[1, :, k:].any()
     k = one.stop_xy.shape[1]
     assert torch.equal(both.stop_red[1, :k], one.stop_red[0]) and not both.stop_valid[1, k:].any()
     with pytest.raises(ValueError, match="stop lines"):
-        replace_scenes(both, [0], RolloutState.start(model, scenes[2], seed=0))
+        replace_scenes(both, [0], RolloutState.start(model, scenes[2], seed=0, stop_lines=False))
 
 
 def test_both_environments_take_the_rule_and_refill_with_it():
@@ -147,3 +231,64 @@ def test_both_environments_take_the_rule_and_refill_with_it():
     assert batched.core.prior.stop_lines and batched.core.prior.stop_xy.shape[0] == 2
     with pytest.raises(EnvConfigError, match="stop_lines"):
         smart_traffic_v0.parallel_env(stop_lines="false")
+
+
+def _turned_green(scene, frame: int):
+    """``scene`` with every light GO from ``frame`` on."""
+    import dataclasses
+
+    from smart_marl.scenario import SignalState, TrafficLights
+
+    tl = scene.traffic_lights
+    states, present = tl.states.copy(), tl.present.copy()
+    states[frame:], present[frame:] = int(SignalState.GO), True
+    return dataclasses.replace(scene, traffic_lights=TrafficLights(tl.lane_ids, states, present, tl.stop_points))
+
+
+def test_a_green_releases_the_vehicles_a_red_held_in_rollouts():
+    """A sample scene whose lights all turn green 2 s in: the vehicles standing at a red line at the current frame
+    move off with the log's clock (lights="log"), and stay where the current frame's lights are held."""
+    scene = sample_scenarios()[0]
+    scene = _turned_green(scene, scene.current_frame + 20)
+
+    def moving_share(**kw) -> float:
+        state = RolloutState.start("embedded", scene, num_rollouts=4, seed=0, **kw)
+        g, s = (state.simulated & (state.agent_type == 0)).nonzero(as_tuple=True)
+        dist, line = nearest_line(state, g, s)
+        b = state.scene_of_group[g]
+        front = dist - state.agent_shape[g, s, 0] / 2
+        speed = (state.pose[g, s, :2] - state.previous_pose[g, s, :2]).norm(dim=-1) / 0.5
+        at_red = torch.isfinite(dist) & ~state.stop_sign[b, line.clamp(min=0)] & (front < 8.0) & (speed < 1.0)
+        g, s = g[at_red], s[at_red]
+        assert len(g) >= 4  # standing first at the red lines
+        state.run(16)
+        return float(((state.pose[g, s, :2] - state.previous_pose[g, s, :2]).norm(dim=-1) / 0.5 > 1.0).float().mean())
+
+    assert moving_share(lights="log") >= 0.5
+    assert moving_share(lights="current") <= 0.1  # the challenge's rule: the red holds for the whole rollout
+
+
+def test_each_scene_of_a_batch_follows_its_own_light_clock_through_refills():
+    """lights="log" in a batch: a refilled scene starts at its own current frame while the others go on; the scenes
+    whose lights changed are encoded again alone, to the numbers a whole re-encoding gives."""
+    from smart_marl.model.batch import light_codes, scene_road
+    from smart_marl.rollout.engine import _dummy_road_vocab
+    from smart_marl.rollout.stop_lines import line_lights, scene_stop_lines
+
+    model, vocab = load_prior("embedded", "cpu")
+    scenes = sample_scenarios()
+    scenes = [_turned_green(scenes[0], scenes[0].current_frame + 12), _turned_green(scenes[1], scenes[1].current_frame + 7)]
+    state = stack_states([RolloutState.start(model, sc, seed=0, lights="log") for sc in scenes], seed=0)
+    state.run(3)
+    replace_scenes(state, [1], RolloutState.start(model, scenes[1], seed=0, lights="log"))
+    assert state.scene_clock.tolist() == [3, 0]
+    for b, (sc, clock) in enumerate(zip(scenes, (3, 0))):
+        index = scene_road(sc, _dummy_road_vocab(), model.config.road_settings).light_index
+        frame = sc.current_frame + 5 * clock
+        assert torch.equal(state.road_light[b, : len(index)], torch.from_numpy(light_codes(sc.traffic_lights, index, frame)))
+        red, go = line_lights(sc, scene_stop_lines(sc)[2], 5 * clock)
+        assert torch.equal(state.stop_red[b, : len(red)], torch.from_numpy(red)) and torch.equal(state.stop_go[b, : len(go)], torch.from_numpy(go))
+    signals = state.stop_valid & ~state.stop_sign
+    assert bool(state.stop_go[0][signals[0]].all())  # 1.5 s in: every light green (from 1.2 s on)
+    assert not bool(state.stop_go[1][signals[1]].all())  # refilled: its current frame's lights, before its green at 0.7 s
+    torch.testing.assert_close(state.road_x, model.encode_road(state), rtol=1e-5, atol=1e-5)

@@ -38,11 +38,13 @@ class WhatIfResult:
 
 def run_whatif(prior, scene: Scenario, whatif: WhatIf, num_rollouts: int = 8, seed: int = 0, num_steps: int = 16,
                top_k: int = DEFAULT_TOP_K, temperature: float = 1.0, device="cpu", realism: bool = True,
-               avoid_collisions: bool = True) -> WhatIfResult:
+               avoid_collisions: bool = True, stop_lines: bool = True, lights: str = "log") -> WhatIfResult:
     """The what-if and its unperturbed baseline (same seed, same number of rollouts) on one scene,
     and the comparison table (:func:`compare`). ``prior``: a SMART model, Checkpoint, checkpoint
     path, or None for the embedded prior; ``avoid_collisions=False``: the prior's agents sample
-    plainly (the weights' own answer to the what-if; scripted agents are never restricted)."""
+    plainly (the weights' own answer to the what-if; scripted agents are never restricted); ``stop_lines``
+    and ``lights``: the prior's traffic control and the light states it sees (:mod:`smart_marl.rollout.stop_lines`; by
+    default on, the log's clock: a light a script overrides holds from its step on)."""
     if isinstance(num_steps, bool) or not isinstance(num_steps, int) or not 1 <= num_steps <= MAX_STEPS:
         raise WhatIfError(whatif.path, f"num_steps must be 1..{MAX_STEPS} token steps of 0.5 s, got {num_steps!r}")
     end_s = num_steps * TOKEN_S
@@ -54,10 +56,9 @@ def run_whatif(prior, scene: Scenario, whatif: WhatIf, num_rollouts: int = 8, se
     model, vocab = load_prior(EMBEDDED if prior is None else prior, device)
     prepared = prepare(scene, whatif, vocab)  # every edit checked against the scene and the vocabulary before any rollout
     base_prep = Prepared(scene=scene, scripts=[], removals=[], lights=[], affected={}, followers={}, onset_step={})
-    baseline = simulate(model, vocab, base_prep, num_rollouts, seed, num_steps, top_k, temperature, device, scripted_on=False,
-                        avoid_collisions=avoid_collisions)
-    perturbed = simulate(model, vocab, prepared, num_rollouts, seed, num_steps, top_k, temperature, device,
-                         avoid_collisions=avoid_collisions)
+    rules = dict(avoid_collisions=avoid_collisions, stop_lines=stop_lines, lights=lights)
+    baseline = simulate(model, vocab, base_prep, num_rollouts, seed, num_steps, top_k, temperature, device, scripted_on=False, **rules)
+    perturbed = simulate(model, vocab, prepared, num_rollouts, seed, num_steps, top_k, temperature, device, **rules)
     return WhatIfResult(whatif, prepared, baseline, perturbed, compare(baseline, perturbed, prepared, realism=realism))
 
 

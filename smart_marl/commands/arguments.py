@@ -24,6 +24,7 @@ from typing import Any, Callable
 from ..config_files import (Rule, device_problem, integer, number, output_dir_problem, output_file_problem,
                             seed as seed_rule)
 from ..readers import format_names
+from ..rollout.engine import LIGHTS
 from ..rollout.sampling import temperature_rule
 from ..tokens.motion import MOTION_TYPES
 
@@ -116,11 +117,22 @@ def collision_avoidance_flag(parser: argparse.ArgumentParser, who: str = "the pr
 
 
 def stop_lines_flag(parser: argparse.ArgumentParser, who: str = "the prior") -> None:
-    """``--stop-lines`` (``args.stop_lines``, default False): the prior's vehicles stop at red lights and stop signs
-    (:mod:`smart_marl.rollout.stop_lines`)."""
-    parser.add_argument("--stop-lines", action="store_true",
-                        help=f"{who}'s vehicles do not draw tokens after which they could not stop before a red light's "
-                             "or a stop sign's line ahead (smart_marl.rollout.stop_lines; default: off)")
+    """``--no-stop-lines`` (``args.stop_lines``, default True): the one way every command that rolls out the prior
+    turns traffic control off (:mod:`smart_marl.rollout.stop_lines`: its vehicles stop at red lights and stop signs and
+    move off again when nothing holds them). ``--stop-lines`` is kept for older command lines (the default)."""
+    parser.add_argument("--no-stop-lines", dest="stop_lines", action="store_false",
+                        help=f"{who}'s vehicles ignore stop lines: no stopping at red lights and stop signs, no release "
+                             "when a light turns green (default: traffic control on, smart_marl.rollout.stop_lines)")
+    parser.add_argument("--stop-lines", dest="stop_lines", action="store_true", help=argparse.SUPPRESS)
+    parser.set_defaults(stop_lines=True)
+
+
+def lights_option(parser: argparse.ArgumentParser, default: str) -> None:
+    """``--lights current|log`` (``args.lights``): what the prior and the stop lines see of the traffic lights
+    (:data:`smart_marl.rollout.LIGHTS`)."""
+    parser.add_argument("--lights", default=default, choices=LIGHTS,
+                        help="current: the current frame's light states, held (the sim-agents challenge's rule); "
+                             f"log: the log's states at every step, held after its last frame (default: {default})")
 
 
 def output_file(text: str) -> str:
@@ -164,4 +176,4 @@ def reader_formats() -> list[str]:
 
 
 __all__ = ["checked", "numbers_list", "workers", "MAX_WORKERS", "rollouts", "MAX_ROLLOUTS", "temperature", "positive_int", "non_negative_int", "seed", "positive_number", "bounded_int", "bounded_number",
-           "positive_numbers", "output_file", "motion_types", "collision_avoidance_flag", "stop_lines_flag", "output_dir", "device", "device_or_auto", "reader_formats"]
+           "positive_numbers", "output_file", "motion_types", "collision_avoidance_flag", "stop_lines_flag", "lights_option", "output_dir", "device", "device_or_auto", "reader_formats"]

@@ -48,7 +48,7 @@ from ..readers.scene_cache import atomic_write, file_sha256
 from ..rollout import DEFAULT_TOP_K, rollout
 from ..version import __version__
 from .arguments import (collision_avoidance_flag, device, non_negative_int, output_dir, positive_int, reader_formats, rollouts, seed,
-                        stop_lines_flag, temperature)
+                        lights_option, stop_lines_flag, temperature)
 
 POLICY_CHOICES = ("constant_velocity", "log_replay", "random", "prior")
 WOSAC_ROLLOUTS = 32
@@ -93,6 +93,7 @@ def register(subparsers) -> None:
                    help="--policy prior samples from softmax(logits / T) (default 1)")
     collision_avoidance_flag(p, "--policy prior")
     stop_lines_flag(p, "--policy prior")
+    lights_option(p, "current")
     p.add_argument("--rollouts", type=rollouts, default=32, help="rollouts per scene for --policy (default 32)")
     p.add_argument("--seed", type=seed, default=0, help="random seed for --policy (default 0)")
     p.add_argument("--rules", choices=("2024", "2025"), default="2025", help="challenge rules (default 2025)")
@@ -239,20 +240,21 @@ def _rollouts_of(args, scenario, scene, submitted, models: dict):
             models["prior"] = load_prior(args.checkpoint or EMBEDDED, args.device)
         rollouts = prior_rollouts(models["prior"], scenario, args.rollouts, args.seed, args.device,
                                   DEFAULT_TOP_K if args.top_k is None else args.top_k, args.temperature or 1.0,
-                                  avoid_collisions=args.avoid_collisions, stop_lines=args.stop_lines)
+                                  avoid_collisions=args.avoid_collisions, stop_lines=args.stop_lines, lights=args.lights)
         return rollouts, f"--policy prior ({args.checkpoint or 'embedded'})"
     return policy_rollouts(args.policy, scenario, args.rollouts, args.seed), f"--policy {args.policy}"
 
 
 def prior_rollouts(prior, scenario, num_rollouts: int, seed: int, device: str = "cpu", top_k: int = DEFAULT_TOP_K,
-                   temperature: float = 1.0, avoid_collisions: bool = True, stop_lines: bool = False):
+                   temperature: float = 1.0, avoid_collisions: bool = True, stop_lines: bool = True, lights: str = "current"):
     """WOSAC rollouts of one scene by the SMART prior (top-k sampling, ``top_k`` 0: the whole
-    distribution; collision-aware unless ``avoid_collisions`` is False; ``stop_lines``: the engine's): 16 token steps (80 frames)
+    distribution; collision-aware unless ``avoid_collisions`` is False; ``stop_lines`` and ``lights``: the engine's,
+    by default traffic control with the lights known up to the current frame): 16 token steps (80 frames)
     of every agent valid at the current frame (the engine simulates vehicles, pedestrians and
     cyclists and moves agents of type OTHER at constant velocity), as
     :class:`~smart_marl.metrics.inputs.Rollouts`."""
     result = rollout(prior, scenario, num_rollouts=num_rollouts, num_steps=16, seed=seed, device=device, top_k=top_k,
-                     temperature=temperature, avoid_collisions=avoid_collisions, stop_lines=stop_lines)
+                     temperature=temperature, avoid_collisions=avoid_collisions, stop_lines=stop_lines, lights=lights)
     agents = np.flatnonzero(result.has_trajectory[0])
     return Rollouts.from_source(result.agent_ids[0, agents], result.trajectory[:, agents], scenario.frame)
 
@@ -303,7 +305,7 @@ def _run_config(args, paths: list[str], shard: Shard) -> dict:
             source.update(checkpoint={k: file_sha256(files[k]) for k in ("meta", "weights")},
                           top_k=DEFAULT_TOP_K if args.top_k is None else args.top_k,
                           temperature=args.temperature or 1.0, avoid_collisions=args.avoid_collisions,
-                          **({"stop_lines": True} if args.stop_lines else {}))
+                          stop_lines=args.stop_lines, lights=args.lights)
     return {"smart_marl": __version__, "scenes": input_digest(paths), "format": args.format, "rules": args.rules,
             "source": source, "num_shards": shard.count, "chunk_size": args.chunk_size or DEFAULT_CHUNK_SIZE,
             "keep_rollouts": bool(args.write_submission)}

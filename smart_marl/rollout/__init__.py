@@ -6,7 +6,7 @@ sampling, scenes x rollouts in one batch) and the stepping API the environment d
 """
 
 from .engine import (
-    MODES, RolloutResult, RolloutState, SceneHistory, StepOutput, TrackFrames, collect_result, rollout, scene_history,
+    LIGHTS, MODES, RolloutResult, RolloutState, SceneHistory, StepOutput, TrackFrames, collect_result, rollout, scene_history,
     track_frames,
 )
 from .sampling import (
@@ -15,7 +15,7 @@ from .sampling import (
 )
 
 __all__ = [
-    "MODES", "RolloutResult", "RolloutState", "SceneHistory", "StepOutput", "TrackFrames", "collect_result", "rollout",
+    "LIGHTS", "MODES", "RolloutResult", "RolloutState", "SceneHistory", "StepOutput", "TrackFrames", "collect_result", "rollout",
     "DEFAULT_TOP_K", "TEMPERATURE_RANGE", "has_prior_logits", "no_prior_logits", "reference_log_probs", "reference_name",
     "sample_tokens", "scene_history", "temperature_rule", "top_k_mask", "track_frames",
 ]

@@ -20,9 +20,11 @@ How a rollout runs:
 3. Every step: each simulated agent's next token is drawn from its type's distribution
    (:func:`~smart_marl.rollout.sampling.sample_tokens`: top-k with renormalised probabilities and a
    temperature; collision-aware by default: tokens whose frames would overlap another agent are not
-   drawn, :mod:`~smart_marl.rollout.avoidance`, ``avoid_collisions=False`` samples plainly; with
-   ``stop_lines=True`` a vehicle does not draw tokens after which it could not stop before a red light's or a stop
-   sign's line ahead, :mod:`~smart_marl.rollout.stop_lines`) or forced; the token's 6 poses (its contour's centre and heading) are placed at the
+   drawn, :mod:`~smart_marl.rollout.avoidance`, ``avoid_collisions=False`` samples plainly; traffic control,
+   ``stop_lines=True`` by default: a vehicle does not draw tokens after which it could not stop before a red light's
+   or an unserved stop sign's line ahead, and a standing vehicle that nothing holds any more (a green, a served sign,
+   its leader driving off) does not draw the tokens that leave it standing, :mod:`~smart_marl.rollout.stop_lines`)
+   or forced; the token's 6 poses (its contour's centre and heading) are placed at the
    agent's current pose; its last pose is where the agent is 0.5 s later (the next token starts
    there); the tokens go back in. The 10 Hz frames in between (:mod:`~smart_marl.rollout.frames`;
    ``interpolation="spline"``, the default) follow a cubic Hermite curve from the current pose to
@@ -65,13 +67,16 @@ from ..tokens.road import RoadVocabulary
 from .avoidance import excluded_tokens
 from .frames import INTERPOLATIONS, token_frames
 from .sampling import DEFAULT_TOP_K, sample_tokens
-from .stop_lines import served_after_step, stop_line_tensors, stop_line_test, token_ends
+from .stop_lines import (STOPPED_MPS, lights_at, logged_light_steps, served_after_step, stood_after_step, stop_line_tensors, stop_line_test,
+                         token_ends)
 
 MODES = ("cached", "full")
 LIGHTS = ("current", "log")
-"""What the model sees of the traffic lights in closed loop: "current" (the light states of the current frame, held
-for the whole rollout: what training showed it) or "log" (before every step, the scene's logged states of the frame
-that step starts at, held after the scene's last frame: lights that follow the clock, issue 33)."""
+"""What the model and the stop lines see of the traffic lights in closed loop: "current" (the light states of the
+current frame, held for the whole rollout: what training showed the model, and the sim-agents challenge's rule) or
+"log" (before every step, the scene's logged states of the frame that step starts at, held after the scene's last
+logged frame: lights that follow the clock; each scene of a batch on its own clock, so that a refilled scene starts
+at its own current frame)."""
 
 
 # ------------------------------------------------------------------------------ model inputs
@@ -149,6 +154,17 @@ def _pad_stack(arrays: list[np.ndarray], size: tuple[int, ...], fill=0) -> np.nd
 
 # ------------------------------------------------------------------------------------ state
 @dataclass
+class _RoadPart:
+    """Some scenes' road inputs, for :meth:`SMART.encode_road <smart_marl.model.SMART.encode_road>`."""
+
+    road_points: torch.Tensor
+    road_pose: torch.Tensor
+    road_type: torch.Tensor
+    road_light: torch.Tensor
+    road_valid: torch.Tensor
+
+
+@dataclass
 class StepOutput:
     """What one token step produced, for ``G`` groups and ``N`` agent slots.
 
@@ -187,7 +203,7 @@ class RolloutState:
     def __init__(self, model, vocab: MotionVocabulary, scenes: Sequence[Scenario], num_rollouts: int, seed: int, top_k: int,
                  temperature: float, device, mode: str, road_vocab: RoadVocabulary | None = None,
                  interpolation: str = "spline", avoid_collisions: bool = True, lights: str = "current",
-                 stop_lines: bool = False) -> None:
+                 stop_lines: bool = True) -> None:
         if lights not in LIGHTS:
             raise ValueError(f"lights must be one of {LIGHTS}, got {lights!r}")
         self.lights = lights
@@ -237,7 +253,12 @@ class RolloutState:
         self.road_points = t(_pad_stack([rd.local.astype(np.float32).reshape(-1, p, 2) for rd in roads], (rmax, p, 2)))
         self.road_type = t(_pad_stack([rd.type_id for rd in roads], (rmax,)))
         self.road_light = t(_pad_stack([rd.light for rd in roads], (rmax,)))
-        self._light_index = [rd.light_index for rd in roads] if lights == "log" else None
+        self.scene_clock = torch.zeros(len(self.scenes), dtype=torch.long, device=dev)  # token steps each scene has run
+        steps = max(logged_light_steps(sc) for sc in self.scenes) if lights == "log" else 1
+        self.road_light_steps = None  # [B, S, R] the pieces' light codes on each logged token step (lights="log")
+        if lights == "log":
+            self.road_light_steps = t(_pad_stack([np.stack([light_codes(sc.traffic_lights, rd.light_index, sc.current_frame + FRAMES_PER_TOKEN * k)
+                                                             for k in range(steps)]) for sc, rd in zip(self.scenes, roads)], (steps, rmax)))
         with torch.no_grad():  # (B, R, d), once per scene
             self.road_x = model.encode_road(self)
         # ---- token poses per type (padded to Vmax) for placing tokens
@@ -247,14 +268,21 @@ class RolloutState:
             tp[k, : vocab[tt].size] = torch.from_numpy(vocab[tt].poses)
         self.token_poses = tp.to(dev)
         # ---- stop lines (:mod:`~smart_marl.rollout.stop_lines`): per scene, and the stop sign each slot has served
-        self.stop_xy = self.stop_dir = self.stop_group = self.stop_sign = self.stop_red = self.stop_valid = None
-        self.stop_served = None
+        self.stop_xy = self.stop_dir = self.stop_group = self.stop_sign = self.stop_valid = None
+        self.stop_red = self.stop_go = self.stop_red_steps = self.stop_go_steps = None
+        self.stop_served = self.stop_stood = None
         self.stop_token_ends = None
         if self.stop_lines:
-            for name, t in stop_line_tensors(self.scenes, 0, dev).items():
+            for name, t in stop_line_tensors(self.scenes, dev, steps).items():
                 setattr(self, name, t)
-            self.stop_served = torch.full(self.track_index.shape, -1, dtype=torch.long, device=dev)
+            self.stop_served = torch.zeros(*self.track_index.shape, self.stop_xy.shape[1], dtype=torch.bool, device=dev)
+            self.stop_stood = torch.zeros(self.track_index.shape, dtype=torch.long, device=dev)  # token steps stood in a row
+            for k in range(s):  # the history's last steps stood in a row (an agent may have waited at a sign already)
+                moved = (hist_end[:, :, k, :2] - hist_start[:, :, k, :2]).norm(dim=-1) / TOKEN_S
+                stood = hist_valid[:, :, k] & (moved < STOPPED_MPS)
+                self.stop_stood = torch.where(stood, self.stop_stood + 1, torch.zeros_like(self.stop_stood))
             self.stop_token_ends = token_ends(self.token_poses, interpolation)
+            self._stop_lights_now()
         # ---- history through the model
         self.history = [hist_tokens, hist_valid, hist_start, hist_end]  # grows by one step per token step (full mode)
         self.pose = hist_end[:, :, -1].clone()  # (G, N, 3) where each slot's next token starts
@@ -274,7 +302,7 @@ class RolloutState:
     def start(cls, model, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 1, seed: int = 0, top_k: int = DEFAULT_TOP_K,
               temperature: float = 1.0, device="cpu", mode: str = "cached", motion_vocab: MotionVocabulary | None = None,
               interpolation: str = "spline", avoid_collisions: bool = True, lights: str = "current",
-              stop_lines: bool = False) -> "RolloutState":
+              stop_lines: bool = True) -> "RolloutState":
         """Tokenize the scenes' histories and run them through the model. ``model``: anything
         :func:`~smart_marl.model.checkpoint.load_prior` takes (a SMART model, a Checkpoint, a Prior, a
         checkpoint path or ``"embedded"``); ``motion_vocab`` overrides the vocabulary used to
@@ -282,8 +310,10 @@ class RolloutState:
         ``interpolation`` draws the 10 Hz frames between token ends (module docstring);
         ``avoid_collisions`` keeps sampled tokens from ending in another agent's box
         (:mod:`~smart_marl.rollout.avoidance`; False: plain top-k sampling); ``lights``: :data:`LIGHTS`;
-        ``stop_lines``: vehicles do not draw tokens after which they could not stop before a red light's or a stop
-        sign's line ahead (:mod:`~smart_marl.rollout.stop_lines`)."""
+        ``stop_lines`` (default True; False: the prior alone): vehicles do not draw tokens after which they could not
+        stop before a red light's or a stop sign's line ahead, and a standing vehicle whose light turned green, whose
+        stop sign it has served or whose leader drives off does not draw the tokens that leave it standing
+        (:mod:`~smart_marl.rollout.stop_lines`)."""
         m, vocab = load_prior(model, device)
         scenes = [scenes] if isinstance(scenes, Scenario) else list(scenes)
         if not scenes:
@@ -326,13 +356,27 @@ class RolloutState:
             self.model.motion_net.cache_road(self.cache, self.road_x)
 
     def _follow_logged_lights(self) -> None:
-        """``lights="log"``: the road pieces' codes at the frame this step starts at (re-encoded only on a change)."""
-        light = self.road_light.clone()
-        for b, (sc, index) in enumerate(zip(self.scenes, self._light_index)):
-            frame = sc.current_frame + FRAMES_PER_TOKEN * self.step_index
-            light[b, : len(index)] = torch.from_numpy(light_codes(sc.traffic_lights, index, frame)).to(light)
-        if not torch.equal(light, self.road_light):
-            self.set_road_light(light)
+        """``lights="log"``: each scene's pieces' codes at the frame its next step starts at (its own clock); the
+        scenes whose codes changed are encoded again, alone."""
+        light = lights_at(self.road_light_steps, self.scene_clock)  # [B, R]
+        changed = (light != self.road_light).any(-1).nonzero().squeeze(1)
+        if not len(changed):
+            return
+        road_light = self.road_light.clone()  # new tensors: a fork shares the old ones
+        road_light[changed] = light[changed]
+        self.road_light = road_light
+        part = _RoadPart(*(t.index_select(0, changed) for t in (self.road_points, self.road_pose, self.road_type, road_light,
+                                                                   self.road_valid)))
+        road_x = self.road_x.clone()
+        with torch.no_grad():
+            road_x[changed] = self.model.encode_road(part)
+        self.road_x = road_x
+        if self.cache is not None:
+            self.model.motion_net.cache_road(self.cache, self.road_x)
+
+    def _stop_lights_now(self) -> None:
+        """The stop lines' red and green lanes at each scene's clock (held at its last logged step)."""
+        self.stop_red, self.stop_go = lights_at(self.stop_red_steps, self.scene_clock), lights_at(self.stop_go_steps, self.scene_clock)
 
     def set_agent_pose(self, pose: torch.Tensor, mask: torch.Tensor) -> None:
         """Override the current pose [G, N, 3] of the slots where ``mask`` [G, N] is true: their next
@@ -449,12 +493,12 @@ class RolloutState:
         self.pose = new_pose
         self._logits = None
         self.step_index += 1
-        if self._light_index is not None:  # the next step's logits see the lights of the frame it starts at
+        self.scene_clock = self.scene_clock + 1
+        if self.road_light_steps is not None:  # the next step's logits see the lights of the frame it starts at
             self._follow_logged_lights()
         if self.stop_lines:
-            self.stop_served = served_after_step(self)
-            if self._light_index is not None:
-                self.stop_red = stop_line_tensors(self.scenes, FRAMES_PER_TOKEN * self.step_index, self.device)["stop_red"]
+            self.stop_served, self.stop_stood = served_after_step(self), stood_after_step(self)
+            self._stop_lights_now()
         forced = sim & (forced_tokens >= 0) if forced_tokens is not None else torch.zeros_like(sim)
         return StepOutput(logits=logits, tokens=tokens, log_probs=log_probs, poses=placed, simulated=sim.clone(), forced=forced)
 
@@ -497,7 +541,7 @@ class RolloutResult:
 def rollout(model_or_checkpoint, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 32, num_steps: int = 16,
             top_k: int = DEFAULT_TOP_K, temperature: float = 1.0, seed: int = 0, device="cpu", mode: str = "cached",
             motion_vocab: MotionVocabulary | None = None, interpolation: str = "spline",
-            avoid_collisions: bool = True, lights: str = "current", stop_lines: bool = False) -> RolloutResult:
+            avoid_collisions: bool = True, lights: str = "current", stop_lines: bool = True) -> RolloutResult:
     """Generate ``num_rollouts`` joint futures of ``num_steps`` tokens (0.5 s each) for every scene
     in one batch (see the module docstring). Same seed, same rollouts (on the CPU). ``lights``: :data:`LIGHTS`;
     ``stop_lines``: :meth:`RolloutState.start`."""

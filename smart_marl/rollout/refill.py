@@ -29,8 +29,11 @@ _PER_GROUP = {"track_index": -1, "agent_type": 0, "agent_shape": 0.0, "simulated
               "previous_pose": 0.0}
 _PER_SCENE = {"road_pose": 0.0, "road_valid": False, "road_points": 0.0, "road_type": 0, "road_light": 0, "road_x": 0.0}
 _STOP_LINES = {"stop_xy": 0.0, "stop_dir": float("nan"), "stop_group": 0, "stop_sign": False, "stop_red": False,
-               "stop_valid": False}
+               "stop_go": False, "stop_valid": False}
 """Per scene, padded to the most stop lines (states with ``stop_lines``); the slots' served signs go with the slots."""
+_STEPS = {"road_light_steps": ("road_pose", 0), "stop_red_steps": ("stop_xy", False), "stop_go_steps": ("stop_xy", False)}
+"""Per scene and logged token step [B, S, ...]: padded to the most steps by holding each scene's last one, and to the
+most road pieces / stop lines (the tensor whose second dimension gives that size) with the fill."""
 
 
 _PENDING_FILLS = (0, 0.0, 0.0, False)  # tokens, start pose, end pose, valid of the step not yet run
@@ -43,15 +46,33 @@ def _check(states: Sequence[RolloutState]) -> None:
             raise ValueError("batching rollout states needs states in mode 'cached'")
         if st.model is not first.model or st.num_rollouts != first.num_rollouts:
             raise ValueError("batching rollout states needs states of the same model and number of rollouts")
-        if getattr(st, "lights", "current") != "current":
-            raise ValueError("batching rollout states needs lights='current': lights='log' follows one clock for the whole state")
+        if st.lights != first.lights:
+            raise ValueError("batching rollout states needs states that all see the lights the same way (lights=...)")
         if st.stop_lines != first.stop_lines:
             raise ValueError("batching rollout states needs states that all stop at stop lines, or none")
 
 
 def _per_group(state: RolloutState) -> dict:
-    """The per-slot tensors of ``state`` and their padding."""
-    return {**_PER_GROUP, "stop_served": -1} if state.stop_lines else _PER_GROUP
+    """The per-slot tensors of ``state`` and their padding (``stop_served`` [G, N, L] also grows with the lines)."""
+    return {**_PER_GROUP, "stop_served": False, "stop_stood": 0} if state.stop_lines else _PER_GROUP
+
+
+def _steps(state: RolloutState) -> dict:
+    """The per-scene, per-step tensors of ``state`` (those it has) and what sizes them (:data:`_STEPS`)."""
+    return {name: how for name, how in _STEPS.items() if getattr(state, name, None) is not None}
+
+
+def _held(t: torch.Tensor, steps: int, size: int, fill) -> torch.Tensor:
+    """``t`` [B, S, K, ...] padded to ``steps`` steps by repeating its last step, then to ``size`` along K with ``fill``."""
+    if t.shape[1] < steps:
+        t = torch.cat([t, t[:, -1:].expand(-1, steps - t.shape[1], *t.shape[2:])], 1)
+    return grow(t, {2: size}, fill)
+
+
+def _sizes(name: str, states: Sequence[RolloutState]) -> tuple[int, int]:
+    """(the most steps, the most pieces or lines) of per-step tensor ``name`` among ``states``."""
+    of = _STEPS[name][0]
+    return max(getattr(st, name).shape[1] for st in states), max(getattr(st, of).shape[1] for st in states)
 
 
 def _lines(state: RolloutState) -> dict:
@@ -84,13 +105,18 @@ def stack_states(states: Sequence[RolloutState], seed: int) -> RolloutState:
     n = max(st.num_slots for st in states)
     pieces = max(st.road_pose.shape[1] for st in states)
     out = first.fork(seed)
+    lines = max(st.stop_xy.shape[1] for st in states) if first.stop_lines else 0
     for name, fill in _per_group(first).items():
-        setattr(out, name, torch.cat([grow(getattr(st, name), {1: n}, fill) for st in states]))
+        setattr(out, name, torch.cat([grow(getattr(st, name), {1: n, 2: lines} if name == "stop_served" else {1: n}, fill)
+                                      for st in states]))
     for name, fill in _PER_SCENE.items():
         setattr(out, name, torch.cat([grow(getattr(st, name), {1: pieces}, fill) for st in states]))
-    lines = max(st.stop_xy.shape[1] for st in states) if first.stop_lines else 0
     for name, fill in _lines(first).items():
         setattr(out, name, torch.cat([grow(getattr(st, name), {1: lines}, fill) for st in states]))
+    for name, (_, fill) in _steps(first).items():
+        steps, size = _sizes(name, states)
+        setattr(out, name, torch.cat([_held(getattr(st, name), steps, size, fill) for st in states]))
+    out.scene_clock = torch.cat([st.scene_clock for st in states])
     if first._logits is not None:
         out._logits = torch.cat([grow(st._logits, {1: n}, float("-inf")) for st in states])
     else:
@@ -118,6 +144,9 @@ def split_state(state: RolloutState) -> list[RolloutState]:
             setattr(one, name, getattr(state, name)[groups, :n])
         for name in [*_PER_SCENE, *_lines(state)]:
             setattr(one, name, getattr(state, name)[b : b + 1, :pieces] if name in _PER_SCENE else getattr(state, name)[b : b + 1])
+        for name in _steps(state):
+            setattr(one, name, getattr(state, name)[b : b + 1, :, :pieces] if name == "road_light_steps" else getattr(state, name)[b : b + 1])
+        one.scene_clock = state.scene_clock[b : b + 1]
         if state._logits is not None:
             one._logits = state._logits[groups, :n]
         else:
@@ -155,16 +184,22 @@ def replace_scenes(state: RolloutState, rows: Sequence[int], new: RolloutState) 
     groups = (scenes[:, None] * r + torch.arange(r, device=dev)).reshape(-1)
     n = max(state.num_slots, new.num_slots)
     pieces = max(state.road_pose.shape[1], new.road_pose.shape[1])
+    lines = max(state.stop_xy.shape[1], new.stop_xy.shape[1]) if state.stop_lines else 0
     for name, fill in _per_group(state).items():
-        setattr(state, name, grow(getattr(state, name), {1: n}, fill))
+        setattr(state, name, grow(getattr(state, name), {1: n, 2: lines} if name == "stop_served" else {1: n}, fill))
         put_rows(getattr(state, name), groups, getattr(new, name).to(dev), fill)
     for name, fill in _PER_SCENE.items():
         setattr(state, name, grow(getattr(state, name), {1: pieces}, fill))
         put_rows(getattr(state, name), scenes, getattr(new, name).to(dev), fill)
-    lines = max(state.stop_xy.shape[1], new.stop_xy.shape[1]) if state.stop_lines else 0
     for name, fill in _lines(state).items():
         setattr(state, name, grow(getattr(state, name), {1: lines}, fill))
         put_rows(getattr(state, name), scenes, getattr(new, name).to(dev), fill)
+    for name, (_, fill) in _steps(state).items():
+        steps, size = _sizes(name, [state, new])
+        setattr(state, name, _held(getattr(state, name), steps, size, fill))
+        put_rows(getattr(state, name), scenes, _held(getattr(new, name).to(dev), steps, size, fill), fill)
+    state.scene_clock = state.scene_clock.clone()
+    state.scene_clock[scenes] = new.scene_clock.to(dev)
     if state._logits is not None:
         state._logits = grow(state._logits, {1: n}, float("-inf"))
         put_rows(state._logits, groups, new._logits.to(dev), float("-inf"))

@@ -1,28 +1,40 @@
-"""Rollout stage, stopping at stop lines: the tokens a vehicle may not draw because after them it could not stop
-before a red light's or a stop sign's stop line ahead in its lane.
+"""Rollout stage, traffic control: the tokens a vehicle may not draw because of a stop line, and the ones a
+standing vehicle may not draw once nothing holds it any more.
 
 What comes in: each scene's stop lines (a signal's stop point, or the start of a lane a stop sign controls, with
-the lane's direction there), the light states of the current frame, every slot's pose and box, and each type's
-token poses. What goes out: ``bool [M, V]`` per sampling row, true on the tokens to exclude, and after each step
-the stop signs each vehicle has served.
+the lane's direction there) and their light states on every token step the scene has logged, every slot's pose,
+previous pose and box, and each type's token poses. What goes out: ``bool [M, V]`` per sampling row, true on the
+tokens to exclude, and after each step the stop signs each vehicle has served.
 
-The rule, per sampling vehicle (not pedestrians or cyclists): the nearest *active* line ahead of it, 0-40 m along
+**Stop.** Per sampling vehicle (not pedestrians or cyclists): the nearest *active* line ahead of it, 0-40 m along
 its heading, within 2 m to either side, its lane running within 45 degrees of the vehicle's heading, holds it. The
 lanes that leave one stop line (their starts within a metre of each other, running within 45 degrees of each other)
-form one line: a signal's line is active while every light of it is red (STOP, ARROW_STOP, FLASHING_STOP; a through
-lane's green beside a turn lane's red arrow lets the vehicle go; the states the model sees: the current frame's,
-held, or the log's at every step with ``lights="log"``); a stop sign's line until the vehicle has stood (under
-1 m/s) with its front within 8 m of it, after which that line no longer holds it (stop, then go). With the
-front bumper ``d`` metres before the line, a token whose end lies ``x`` metres ahead and whose end speed is ``v``
-needs ``v^2 / (2 (d - x))`` of deceleration after it; tokens needing more than :data:`STOP_DECEL_MPS2`, or than
-the row's least demanding token plus 1 m/s2 where none is that gentle, are excluded, and a token that puts the
-bumper more than half a metre past the line needs an infinite one. A row whose every token is excluded keeps
-them all, as in collision-aware sampling.
+form one line (an *approach*): a signal's line is active while every light of it is red (STOP, ARROW_STOP,
+FLASHING_STOP; a through lane's green beside a turn lane's red arrow lets the vehicle go); a stop sign's line until
+the vehicle has stood (under 1 m/s) with its front within 8 m of it, after which that approach no longer holds
+that vehicle (served per vehicle and per approach: serving one sign does not serve the next, and one vehicle's
+stop serves no other). With the front bumper ``d`` metres before the line, a token whose end lies ``x`` metres
+ahead and whose end speed is ``v`` needs ``v^2 / (2 (d - x))`` of deceleration after it; tokens needing more than
+:data:`STOP_DECEL_MPS2`, or than the row's least demanding token plus 1 m/s2 where none is that gentle, are
+excluded, and a token that puts the bumper more than half a metre past the line needs an infinite one.
+
+**Go.** A vehicle that stands (under 1 m/s over its last token), is not held, and has room ahead (no agent within
+:data:`CLEAR_GAP_M` of its front in its path, 1.75 m to either side of its heading) is *released* when the reason
+it stands has gone: the nearest line ahead of it (in the window above) is a green light (GO, ARROW_GO) or a stop
+sign it has served and stood at for :data:`SIGN_WAIT_STEPS` (2 s), or, queued before a line that does not hold it, the vehicle ahead of it in its path (within
+30 m, heading within 30 degrees) drives off (faster than 2 m/s). A released vehicle does not draw the tokens that leave it standing (ending less than
+:data:`MIN_ADVANCE_M` ahead). Parked cars stand beside the lanes, away from stop lines and out of the moving
+traffic's path, and are not released.
+
+A row whose every token is excluded keeps them all, as in collision-aware sampling. Light states: the current
+frame's, held (``lights="current"``, the sim-agents challenge's rule) or the log's at every step, held after the
+scene's last logged frame (``lights="log"``: each scene of a batch on its own clock).
 
 Why: the prior does not start a slowing for a light or sign it has not reached (on 320 generated held-out scenes
 the vehicles whose log slows for a red light keep 2.1x its speed at 7-8 s; docs/experiments/2026-11-27-why-traffic-
-slows.md). Like collision-aware sampling it changes what is drawn, not the model: logits, log-probabilities and
-the KL reference stay the model's. Off by default (``stop_lines=False``).
+slows.md), and it rarely starts a standing vehicle again by itself (departures started in 6-13% of rollouts:
+docs/experiments/2026-11-29-traffic-control.md). Like collision-aware sampling it changes what is drawn, not the
+model: logits, log-probabilities and the KL reference stay the model's. On by default (``stop_lines=True``).
 """
 
 from __future__ import annotations
@@ -45,10 +57,22 @@ ALIGNED_COS = math.cos(math.radians(45.0))
 STOPPED_MPS, SERVED_WITHIN_M = 1.0, 8.0
 """A vehicle slower than this with its front this near a stop sign's line has stopped there."""
 RED = (int(SignalState.STOP), int(SignalState.ARROW_STOP), int(SignalState.FLASHING_STOP))
+GREEN = (int(SignalState.GO), int(SignalState.ARROW_GO))
 SAME_LINE_M = 1.0
 """Lanes whose stop points lie this near each other, running within 45 degrees of each other, leave one stop line."""
 OVERRUN_M = 0.5
 """A token that puts the front bumper further past an active line than this is excluded whatever its speed."""
+CLEAR_GAP_M = 4.0
+"""A standing vehicle is released only with no agent this near its front bumper in its path."""
+PATH_SIDE_M = 1.75
+"""An agent whose centre lies this near a vehicle's heading line, ahead of it, is in its path."""
+LEADER_AHEAD_M, LEADER_MOVING_MPS = 30.0, 2.0
+"""The vehicle ahead in the path, this near (centre to centre), going this fast, releases the one behind it."""
+LEADER_ALIGNED_COS = math.cos(math.radians(30.0))
+SIGN_WAIT_STEPS = 4
+"""A vehicle goes on from a stop sign it has served after standing this many token steps (2 s) at least."""
+MIN_ADVANCE_M = 0.25
+"""A released vehicle's token must take it at least this far forward (0.5 m/s over the token's 0.5 s)."""
 
 
 def scene_stop_lines(scenario: Scenario) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -92,41 +116,54 @@ def line_groups(xy: np.ndarray, direction: np.ndarray) -> np.ndarray:
         group = new
 
 
-def stop_line_tensors(scenes: Sequence[Scenario], frame_offset: int, device) -> dict[str, torch.Tensor]:
+def logged_light_steps(scenario: Scenario, frames_per_step: int = 5) -> int:
+    """How many token steps from the current frame on (the current one included) the scene's light states are
+    logged for: at least 1 (a scene without later states holds its last one)."""
+    frames = scenario.traffic_lights.states.shape[0]
+    return max(1, (frames - 1 - scenario.current_frame) // frames_per_step + 1)
+
+
+def stop_line_tensors(scenes: Sequence[Scenario], device, steps: int = 1) -> dict[str, torch.Tensor]:
     """Every scene's lanes' stop points padded to the most [B, L]: ``stop_xy`` [B, L, 2], ``stop_dir`` [B, L, 2],
-    ``stop_group`` [B, L] (:func:`line_groups`), ``stop_sign`` [B, L] (a stop sign's), ``stop_red`` [B, L] (a signal's,
-    red at ``current frame + frame_offset``), ``stop_valid`` [B, L]."""
+    ``stop_group`` [B, L] (:func:`line_groups`), ``stop_sign`` [B, L] (a stop sign's), ``stop_valid`` [B, L], and the
+    signals' states on token steps ``0 .. steps - 1`` (frame ``current + 5 k``, the last logged frame's held beyond
+    it): ``stop_red_steps`` / ``stop_go_steps`` [B, steps, L], the lanes whose light is red / green then."""
     lines = [scene_stop_lines(sc) for sc in scenes]
     size = max([len(li[2]) for li in lines] + [1])
-    out = {"stop_xy": torch.zeros(len(scenes), size, 2), "stop_dir": torch.full((len(scenes), size, 2), float("nan")),
-           "stop_group": torch.zeros(len(scenes), size, dtype=torch.long),
-           "stop_sign": torch.zeros(len(scenes), size, dtype=torch.bool), "stop_red": torch.zeros(len(scenes), size, dtype=torch.bool),
-           "stop_valid": torch.zeros(len(scenes), size, dtype=torch.bool)}
+    b_, s_ = len(scenes), int(steps)
+    out = {"stop_xy": torch.zeros(b_, size, 2), "stop_dir": torch.full((b_, size, 2), float("nan")),
+           "stop_group": torch.zeros(b_, size, dtype=torch.long), "stop_sign": torch.zeros(b_, size, dtype=torch.bool),
+           "stop_valid": torch.zeros(b_, size, dtype=torch.bool),
+           "stop_red_steps": torch.zeros(b_, s_, size, dtype=torch.bool), "stop_go_steps": torch.zeros(b_, s_, size, dtype=torch.bool)}
     for b, ((xy, d, light), sc) in enumerate(zip(lines, scenes)):
         k = len(light)
         out["stop_xy"][b, :k], out["stop_dir"][b, :k] = torch.from_numpy(xy), torch.from_numpy(d)
         out["stop_group"][b, :k] = torch.from_numpy(line_groups(xy.astype(np.float64), d.astype(np.float64)))
         out["stop_sign"][b, :k] = torch.from_numpy(light < 0)
-        out["stop_red"][b, :k] = torch.from_numpy(red_lines(sc, light, frame_offset))
         out["stop_valid"][b, :k] = True
+        for step in range(s_):
+            red, go = line_lights(sc, light, 5 * step)
+            out["stop_red_steps"][b, step, :k], out["stop_go_steps"][b, step, :k] = torch.from_numpy(red), torch.from_numpy(go)
     return {name: t.to(device) for name, t in out.items()}
 
 
-def red_lines(scenario: Scenario, light: np.ndarray, frame_offset: int) -> np.ndarray:
-    """[L] bool: the lines of light lane indices ``light`` [L] (-1: a stop sign) whose signal is red at
-    ``current frame + frame_offset`` (held at the scene's last frame beyond it)."""
+def line_lights(scenario: Scenario, light: np.ndarray, frame_offset: int) -> tuple[np.ndarray, np.ndarray]:
+    """([L] red, [L] green): the lines of light lane indices ``light`` [L] (-1: a stop sign) whose signal is red /
+    green at ``current frame + frame_offset`` (held at the scene's last frame beyond it; neither where unknown)."""
     tl = scenario.traffic_lights
-    out = np.zeros(len(light), bool)
+    red, go = np.zeros(len(light), bool), np.zeros(len(light), bool)
     has = light >= 0
     if has.any() and tl.states.shape[0]:
         f = min(scenario.current_frame + int(frame_offset), tl.states.shape[0] - 1)
-        out[has] = np.isin(tl.states[f, light[has]], RED) & tl.present[f, light[has]]
-    return out
+        state, present = tl.states[f, light[has]], tl.present[f, light[has]]
+        red[has] = np.isin(state, RED) & present
+        go[has] = np.isin(state, GREEN) & present
+    return red, go
 
 
-def nearest_line(state, g: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(distance [M] from slots ``(g, s)``'s centres to their nearest active line ahead, inf where none; that line's
-    index [M], -1 where none), for a :class:`~smart_marl.rollout.RolloutState` with stop lines."""
+def lines_ahead(state, g: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(how far ahead of slots ``(g, s)``'s centres each line of their scene lies along their heading [M, L], whether
+    it lies where a line can hold them [M, L]: 0-40 m ahead, 2 m to either side, its lane within 45 degrees)."""
     b = state.scene_of_group[g]
     pose = state.pose[g, s]  # [M, 3]
     c, sn = pose[:, 2].cos()[:, None], pose[:, 2].sin()[:, None]
@@ -135,19 +172,75 @@ def nearest_line(state, g: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor,
     side = rel[..., 1] * c - rel[..., 0] * sn
     d = state.stop_dir[b]
     aligned = torch.where(torch.isnan(d[..., 0]), torch.ones_like(ahead, dtype=torch.bool), d[..., 0] * c + d[..., 1] * sn > ALIGNED_COS)
-    group = state.stop_group[b]  # [M, L]
-    served = state.stop_sign[b] & (group == state.stop_served[g, s][:, None])
-    active = red_line_holds(state)[b] | (state.stop_sign[b] & ~served)
-    holds = state.stop_valid[b] & active & aligned & (ahead > 0) & (ahead <= LINE_AHEAD_M) & (side.abs() <= LINE_SIDE_M)
-    dist, line = ahead.masked_fill(~holds, float("inf")).min(-1)
+    in_view = state.stop_valid[b] & aligned & (ahead > 0) & (ahead <= LINE_AHEAD_M) & (side.abs() <= LINE_SIDE_M)
+    return ahead, in_view
+
+
+def nearest_line(state, g: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(distance [M] from slots ``(g, s)``'s centres to their nearest active line ahead, inf where none; that line's
+    index [M], -1 where none), for a :class:`~smart_marl.rollout.RolloutState` with stop lines."""
+    b = state.scene_of_group[g]
+    ahead, in_view = lines_ahead(state, g, s)
+    active = red_line_holds(state)[b] | (state.stop_sign[b] & ~state.stop_served[g, s])
+    dist, line = ahead.masked_fill(~(in_view & active), float("inf")).min(-1)
     return dist, torch.where(torch.isfinite(dist), line, torch.full_like(line, -1))
+
+
+def _per_line(state, lanes: torch.Tensor) -> torch.Tensor:
+    """[B, L] whether any lane of each lane's stop line (:func:`line_groups`) is among ``lanes`` [B, L]."""
+    count = torch.zeros(lanes.shape, dtype=torch.long, device=lanes.device).scatter_add_(1, state.stop_group, lanes.long())
+    return count.gather(1, state.stop_group) > 0  # per line, by its first lane's index
 
 
 def red_line_holds(state) -> torch.Tensor:
     """[B, L] the signals' lanes whose whole stop line is red (no lane leaving it has a light that is not)."""
-    green = (state.stop_valid & ~state.stop_sign & ~state.stop_red).long()
-    any_green = torch.zeros_like(green).scatter_add_(1, state.stop_group, green) > 0  # per line, by its first lane's index
-    return state.stop_red & ~any_green.gather(1, state.stop_group)
+    return state.stop_red & ~_per_line(state, state.stop_valid & ~state.stop_sign & ~state.stop_red)
+
+
+def green_line_goes(state) -> torch.Tensor:
+    """[B, L] the signals' lanes whose stop line has a green light (one of its lanes may go)."""
+    return state.stop_valid & ~state.stop_sign & _per_line(state, state.stop_go & state.stop_valid)
+
+
+def _speed_mps(pose: torch.Tensor, previous_pose: torch.Tensor) -> torch.Tensor:
+    """[...] the speed over the last token (0.5 s) from the poses [..., 3]; 0 where there is no previous pose."""
+    return torch.nan_to_num((pose[..., :2] - previous_pose[..., :2]).norm(dim=-1) / 0.5, nan=0.0)
+
+
+def released(state, g: torch.Tensor, s: torch.Tensor, held: torch.Tensor) -> torch.Tensor:
+    """[M] the vehicles of slots ``(g, s)`` that stand, are not ``held`` [M], have room ahead and whose reason to
+    stand has gone: a green line or a served stop sign nearest ahead, or, with a line ahead that does not hold it, the
+    vehicle ahead in the path driving off."""
+    pose, b = state.pose[g, s], state.scene_of_group[g]
+    standing = (_speed_mps(pose, state.previous_pose[g, s]) < STOPPED_MPS) & ~torch.isnan(state.previous_pose[g, s, 0])
+    out = standing & ~held
+    if not bool(out.any()):
+        return out
+    ahead, in_view = lines_ahead(state, g, s)
+    dist, line = ahead.masked_fill(~in_view, float("inf")).min(-1)  # the nearest line ahead, whatever its light
+    lc = line.clamp(min=0)
+    waited = state.stop_stood[g, s] >= SIGN_WAIT_STEPS
+    lets_go = (state.stop_sign[b, lc] & state.stop_served[g, s].gather(1, lc[:, None]).squeeze(1) & waited) | green_line_goes(state)[b, lc]
+    lets_go = lets_go & torch.isfinite(dist)
+    # the others in the path (their centres 1.75 m to either side of the heading line, ahead)
+    others, before = state.pose.index_select(0, g), state.previous_pose.index_select(0, g)  # [M, N, 3]
+    c, sn = pose[:, 2].cos()[:, None], pose[:, 2].sin()[:, None]
+    rel = others[..., :2] - pose[:, None, :2]
+    fwd = rel[..., 0] * c + rel[..., 1] * sn
+    side = rel[..., 1] * c - rel[..., 0] * sn
+    there = state.simulated.index_select(0, g).clone()
+    there[torch.arange(len(g), device=g.device), s] = False
+    in_path = there & (fwd > 0) & (side.abs() < PATH_SIDE_M)
+    length = state.agent_shape.index_select(0, g)[..., 0].to(fwd.dtype)  # [M, N]
+    own_length = state.agent_shape[g, s, 0].to(fwd.dtype)
+    gap = fwd - own_length[:, None] / 2 - length / 2
+    room = ~(in_path & (gap < CLEAR_GAP_M)).any(-1)
+    lead_d, lead = fwd.masked_fill(~in_path, float("inf")).min(-1)
+    lead_pose = others[torch.arange(len(g), device=g.device), lead]
+    leaves = (torch.isfinite(dist) & torch.isfinite(lead_d) & (lead_d < LEADER_AHEAD_M)
+              & (_speed_mps(lead_pose, before[torch.arange(len(g), device=g.device), lead]) > LEADER_MOVING_MPS)
+              & ((lead_pose[:, 2] - pose[:, 2]).cos() > LEADER_ALIGNED_COS))
+    return out & room & (lets_go | leaves)
 
 
 def token_ends(token_poses: torch.Tensor, interpolation: str) -> tuple[torch.Tensor, torch.Tensor]:
@@ -160,14 +253,16 @@ def token_ends(token_poses: torch.Tensor, interpolation: str) -> tuple[torch.Ten
 
 def stop_line_test(state, rows: torch.Tensor):
     """``also`` of :func:`~smart_marl.rollout.avoidance.excluded_tokens` for sampling rows ``rows`` [M] (flat slot
-    indices) of ``state``, or None when no vehicle among them has an active line ahead."""
+    indices) of ``state``: the held vehicles' tokens after which they could not stop, the released vehicles' tokens
+    that leave them standing (module docstring); None when no vehicle among them is held or released."""
     n = state.num_slots
     g, s = rows // n, rows % n
     vehicle = (state.agent_type[g, s] == 0).nonzero().squeeze(1)  # lines hold vehicles only: the others are not measured
     dist, _ = nearest_line(state, g[vehicle], s[vehicle])
     ahead = torch.isfinite(dist)
+    go = vehicle[released(state, g[vehicle], s[vehicle], ahead)]
     held, dist = vehicle[ahead], dist[ahead]
-    if not len(held):
+    if not len(held) and not len(go):
         return None
     end_x, end_v = state.stop_token_ends
     kind = state.agent_type[g[held], s[held]]
@@ -178,9 +273,11 @@ def stop_line_test(state, rows: torch.Tensor):
     size = state.vocab_sizes.to(need.device)[kind]
     need = need.masked_fill(torch.arange(need.shape[1], device=need.device)[None] >= size[:, None], float("inf"))
     limit = torch.clamp(need.amin(-1) + 1.0, min=STOP_DECEL_MPS2)
-    bad = need > limit[:, None]  # [H, V]
+    stays = end_x[state.agent_type[g[go], s[go]]] < MIN_ADVANCE_M  # [Q, V] the released ones' standing tokens
+    bad = torch.cat([need > limit[:, None], stays])  # [H + Q, V]
     where = torch.full((len(rows),), -1, dtype=torch.long, device=rows.device)
     where[held] = torch.arange(len(held), device=rows.device)
+    where[go] = len(held) + torch.arange(len(go), device=rows.device)
 
     def test(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
         w = where[r]
@@ -193,19 +290,36 @@ def stop_line_test(state, rows: torch.Tensor):
 
 
 def served_after_step(state) -> torch.Tensor:
-    """[G, N] the stop sign's line (:func:`line_groups`) each slot has now served (:data:`STOPPED_MPS` within
-    :data:`SERVED_WITHIN_M`), else what it had served before."""
-    speed = (state.pose[..., :2] - state.previous_pose[..., :2]).norm(dim=-1) / 0.5
+    """[G, N, L] the stop signs' lanes each slot has now served: every lane of the line (:func:`line_groups`) it has
+    stood at (:data:`STOPPED_MPS` within :data:`SERVED_WITHIN_M` of its nearest unserved sign), and what it had
+    served before."""
+    speed = _speed_mps(state.pose, state.previous_pose)
     g, s = (state.simulated & (state.agent_type == 0) & (speed < STOPPED_MPS)).nonzero(as_tuple=True)
     served = state.stop_served.clone()
     if len(g):
         dist, line = nearest_line(state, g, s)
         front = dist - state.agent_shape[g, s, 0].to(dist.dtype) / 2
         b, line = state.scene_of_group[g], line.clamp(min=0)
-        at_sign = torch.isfinite(dist) & state.stop_sign[b, line] & (front < SERVED_WITHIN_M)
-        served[g[at_sign], s[at_sign]] = state.stop_group[b, line][at_sign]
+        at = (torch.isfinite(dist) & state.stop_sign[b, line] & (front < SERVED_WITHIN_M)).nonzero().squeeze(1)
+        if len(at):
+            ga, sa, ba = g[at], s[at], b[at]
+            approach = state.stop_sign[ba] & (state.stop_group[ba] == state.stop_group[ba, line[at]][:, None])  # [K, L]
+            served[ga, sa] |= approach
     return served
 
 
-__all__ = ["STOP_DECEL_MPS2", "nearest_line", "scene_stop_lines", "served_after_step", "stop_line_test", "stop_line_tensors",
+def stood_after_step(state) -> torch.Tensor:
+    """[G, N] how many token steps in a row each slot has now stood (under :data:`STOPPED_MPS`)."""
+    standing = _speed_mps(state.pose, state.previous_pose) < STOPPED_MPS
+    return torch.where(standing, state.stop_stood + 1, torch.zeros_like(state.stop_stood))
+
+
+def lights_at(steps: torch.Tensor, clock: torch.Tensor) -> torch.Tensor:
+    """[B, ...] each scene's entry of ``steps`` [B, S, ...] at its own token step ``clock`` [B] (the last held beyond S)."""
+    k = clock.clamp(max=steps.shape[1] - 1)
+    return steps[torch.arange(steps.shape[0], device=steps.device), k]
+
+
+__all__ = ["GREEN", "STOP_DECEL_MPS2", "green_line_goes", "lights_at", "line_lights", "logged_light_steps", "nearest_line",
+           "released", "scene_stop_lines", "served_after_step", "stood_after_step", "stop_line_test", "stop_line_tensors",
            "token_ends"]
