@@ -133,7 +133,7 @@ def test_prior_logits_in_infos_equal_the_full_model_forward_at_every_step(scenes
     with the same tokens is an independent computation of the same logits."""
     env = make(scenes, vocab, model, controlled="all", max_agents=None, horizon_steps=4, terminate_on=())
     obs, infos = env.reset(seed=5)
-    full = RolloutState.start(model, scenes[0], seed=5, mode="full", motion_vocab=vocab)
+    full = RolloutState.start(model, scenes[0], seed=5, mode="full", motion_vocab=vocab, lights="log")  # the env sees the log's lights
     slots = env.slot_of_track[env.ctrl_tracks]
     rng = np.random.default_rng(0)
     for step in range(4):
@@ -158,7 +158,7 @@ def test_sdc_logits_equal_the_rollout_engine_conditioned_on_its_tokens(scenes, v
     tokens give the same background samples, so the SDC's logits must match at every step."""
     env = make(scenes, vocab, model, controlled="sdc", background="prior", horizon_steps=5, terminate_on=())
     _, infos = env.reset(seed=11)
-    ref = RolloutState.start(model, scenes[0], seed=11, motion_vocab=vocab)
+    ref = RolloutState.start(model, scenes[0], seed=11, motion_vocab=vocab, lights="log")
     (a,) = env.possible_agents
     slot = env.slot_of_track[env._agent_track[a]]
     for step in range(5):
@@ -184,7 +184,8 @@ def test_prior_driven_episode_equals_the_rollout_engine_on_the_same_seed(scenes,
         tokens, _ = sample_tokens(logits, gen, top_k=DEFAULT_TOP_K, temperature=1.0)  # rollout() samples with the default
         _, _, _, _, infos = env.step(dict(zip(env.agents, tokens.tolist())))
     poses, present = env.trajectories()
-    res = rollout(model, scenes[0], num_rollouts=1, num_steps=steps, seed=seed, motion_vocab=vocab, avoid_collisions=False)
+    res = rollout(model, scenes[0], num_rollouts=1, num_steps=steps, seed=seed, motion_vocab=vocab, avoid_collisions=False,
+                  stop_lines=False, lights="log")  # the env's lights; no rules: the plain draw the env's agents took
     sc = scenes[0]
     sim = res.simulated[0]
     assert sim.sum() == len(env.possible_agents) and present[sim].all()

@@ -71,9 +71,17 @@ def test_a_held_vehicle_may_draw_only_the_tokens_after_which_it_can_stop():
     # five tokens ending 0, 2, 5, 8 and 12 m ahead at 0, 4, 10, 16 and 24 m/s; the sign's line 12 m ahead (front 10 m)
     ends = (torch.tensor([[0.0, 2.0, 5.0, 8.0, 12.0]]), torch.tensor([[0.0, 4.0, 10.0, 16.0, 24.0]]))
     state = _lines_state(stop_token_ends=ends, vocab_sizes=torch.tensor([5]))
-    test = stop_line_test(state, torch.tensor([0]))  # slot 0: held by the sign 12 m ahead
+    state.previous_pose[0, 0, 0] = -2.0  # slot 0 drives at 4 m/s, held by the sign 12 m ahead
+    test = stop_line_test(state, torch.tensor([0]))
     # needs 0, 16 / 16 = 1.0, 100 / 10 = 10, 256 / 4 = 64 m/s2 and an overrun of 2 m
     assert test(torch.tensor([0]), torch.arange(5)[None]).tolist() == [[False, False, True, True, True]]
+    state.previous_pose[0, 0, 0] = 0.0  # standing 10 m before the line (more than CREEP_FRONT_M): it pulls up
+    test = stop_line_test(state, torch.tensor([0]))
+    assert test(torch.tensor([0]), torch.arange(5)[None]).tolist() == [[True, False, True, True, True]]
+    state.pose[0, 0, 0] = state.previous_pose[0, 0, 0] = 7.5  # standing 2.5 m before it: it waits there
+    test = stop_line_test(state, torch.tensor([0]))
+    assert test(torch.tensor([0]), torch.arange(5)[None]).tolist() == [[False, True, True, True, True]]
+    state.pose[0, 0, 0] = state.previous_pose[0, 0, 0] = 0.0
     assert STOP_DECEL_MPS2 == 3.0
     state.stop_red[:] = False
     state.stop_served[..., 5] = True

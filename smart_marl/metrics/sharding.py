@@ -25,29 +25,46 @@ submission split in files (:mod:`.submission`).
   (temporary file, fsync, rename; the ``.binproto`` before the ``.json``, which marks the chunk
   done), so a killed run leaves whole chunks only and a rerun skips them without decoding their scenes.
 * **The merge** (:func:`merge_run`) checks that every shard finished with the same config and the
-  same input, that the chunks cover exactly each shard's scenes, puts the scenes back in input
-  order and aggregates them: the per-scene numbers are stored with full float precision (JSON
-  keeps every digit), so the merged numbers equal a single-process run's bit for bit.
+  same input, that the chunks cover exactly each shard's scenes, and every chunk itself (its
+  metrics finite and complete, its ``.binproto`` a non-empty submission of exactly its scenes), puts
+  the scenes back in input order and aggregates them: the per-scene numbers are stored with full
+  float precision (JSON keeps every digit), so the merged numbers equal a single-process run's bit
+  for bit. Nothing is written before every chunk has passed.
+* **Where a run writes.** Inside the run folder the user named (links resolved: a symlinked shard
+  folder or prefix leading out is refused), or at the exact path given on the command line
+  (``--write-submission``); never replacing a file the command did not create (a submission part
+  is replaced by nothing: one identical to its chunk is kept, any other file refuses the merge);
+  every file written whole (a temporary file in the same folder, then a rename or a link). The one
+  path ``run.json`` keeps, the submission prefix, is relative to the run folder; one that resolves
+  outside it (an older run's absolute prefix, an edited file) is refused naming run.json and the path.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import filecmp
 import hashlib
 import json
+import math
 import os
 import re
+import stat
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
-from ..errors import ScenarioReadError, SmartMarlError, UsageError, check_regular_file
+from ..config_files import is_integer, output_file_problem
+from ..errors import ScenarioReadError, SmartMarlError, UsageError, check_regular_file, on_kernel_file_system
 from ..readers import detect_format, read_scenarios, tfrecord
-from ..readers.scene_cache import ShardReader, atomic_write
+from ..readers.scene_cache import ShardReader
+from ..readers.submission import read_submission
 from ..readers.womd import decode_scenario
 from ..scenario import Scenario
+from .config import RULES
 from .likelihood import ScenarioMetrics
+from .submission import submission_shard_name
 
 RUN_FILE = "run.json"
 RESULT_FILE = "result.json"
@@ -59,7 +76,12 @@ _CHUNK_FILE = re.compile(r"^chunk-(\d{6})\.json$")
 
 
 class RunDirError(SmartMarlError):
-    """A run folder that does not hold what this run or this merge expects (the message names the file)."""
+    """A run folder that does not hold what this run or this merge expects, or a place it may not
+    write (the message names the file)."""
+
+
+def _file_problem(path, problem: str) -> RunDirError:  # the ``error`` of check_regular_file
+    return RunDirError(f"{path}: {problem}")
 
 
 # ------------------------------------------------------------------------------------------ shards
@@ -215,7 +237,7 @@ def _config_id(config: dict) -> str:
 
 def _read_json(path: Path) -> dict:
     try:
-        check_regular_file(path, RunDirError)
+        check_regular_file(path, _file_problem)
         data = json.loads(path.read_text())
     except RunDirError:
         raise
@@ -226,29 +248,52 @@ def _read_json(path: Path) -> dict:
     return data
 
 
-def _write_json(path: Path, data: dict) -> None:
-    atomic_write(path, [json.dumps(data, separators=(",", ":")).encode()])
-
-
-def _create_once(path: Path, payload: bytes) -> bool:
-    """Write ``path`` whole unless it exists (then False): a complete temporary file hard-linked to
-    its name, so that shards starting at the same time never read a half-written file."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    atomic_write(tmp, [payload])
+def write_whole(path: Path, payload: bytes, replace: bool = True) -> bool:
+    """Write ``path`` whole: a new temporary file in its folder (never a name that exists, so never
+    through a planted link), fsync, then a rename onto ``path`` (``replace``) or a hard link to it,
+    which never replaces a file (False when ``path`` exists). A file system without hard links gets
+    ``path`` created exclusively, then filled. A failure is a :class:`RunDirError` naming ``path``."""
+    if on_kernel_file_system(path.parent):
+        raise RunDirError(f"{path}: under /proc or /sys (a kernel file system, not a place to write results)")
     try:
-        os.link(tmp, path)
-        return True
-    except FileExistsError:
-        return False
-    except OSError:  # a file system without hard links: exclusive creation, then the content
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as exc:
+        raise RunDirError(f"{path}: cannot write it: {exc.strerror or exc}") from exc
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(payload)
+            f.flush()
+            os.fsync(f.fileno())
+        if replace:
+            os.replace(tmp, path)
+            return True
         try:
-            with open(path, "xb") as f:
-                f.write(payload)
+            os.link(tmp, path)
             return True
         except FileExistsError:
             return False
+        except OSError:  # no hard links here: exclusive creation, then the content
+            try:
+                with open(path, "xb") as f:
+                    f.write(payload)
+                return True
+            except FileExistsError:
+                return False
+    except OSError as exc:
+        raise RunDirError(f"{path}: cannot write it: {exc.strerror or exc}") from exc
     finally:
-        tmp.unlink(missing_ok=True)
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+
+
+def _json_bytes(data: dict, indent: int | None = None) -> bytes:
+    """JSON of a run file; NaN and infinities are refused (a scene's numbers are finite, see :func:`metrics_from_record`)."""
+    try:
+        return json.dumps(data, indent=indent, separators=None if indent else (",", ":"), allow_nan=False).encode()
+    except ValueError as exc:
+        raise RunDirError(f"a run file cannot hold {exc}") from exc
 
 
 def _describe_difference(mine: dict, theirs: dict, prefix: str = "") -> str:
@@ -270,6 +315,63 @@ class RunDir:
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)
 
+    # --- where the run writes
+    def within(self, folder: str | os.PathLike) -> bool:
+        """Whether ``folder`` (links followed as far as they exist) is the run folder or lies below it."""
+        real_root, real = os.path.realpath(self.root), os.path.realpath(folder)
+        return real == real_root or real.startswith(real_root.rstrip(os.sep) + os.sep)
+
+    def writable(self, path: Path) -> Path:
+        """``path``, a file of the run's layout, once checked: below the run folder (no link in the
+        folder leads out of it) and, when it exists, a regular file (a link, folder or FIFO planted
+        at one of the run's names is refused, not replaced)."""
+        if not self.within(path.parent):
+            raise RunDirError(f"{path}: lies outside the run folder {self.root} (a link leads out of it); "
+                              "a run writes only inside its folder")
+        try:
+            mode = os.lstat(path).st_mode
+        except FileNotFoundError:
+            return path
+        except OSError as exc:
+            raise RunDirError(f"{path}: {exc.strerror or exc}") from exc
+        if not stat.S_ISREG(mode):
+            raise RunDirError(f"{path}: exists and is not a regular file (a link, a folder...): the run does not replace it")
+        return path
+
+    def _mkdir(self, folder: Path) -> None:
+        if not self.within(folder):
+            raise RunDirError(f"{folder}: lies outside the run folder {self.root} (a link leads out of it); "
+                              "a run writes only inside its folder")
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise RunDirError(f"{folder}: cannot create the folder: {exc.strerror or exc}") from exc
+
+    def stored_prefix(self, prefix: str | os.PathLike) -> str | None:
+        """What run.json keeps of a ``--write-submission`` prefix: its path relative to the run
+        folder, or None when it lies outside (a merge then needs the prefix on its command line)."""
+        path = Path(prefix)
+        if not self.within(path.parent):
+            return None
+        return os.path.relpath(os.path.join(os.path.realpath(path.parent), path.name), os.path.realpath(self.root))
+
+    def submission_prefix(self, record: dict) -> Path | None:
+        """The submission prefix run.json keeps (relative to the run folder; an older run's absolute
+        one is taken when it lies inside the folder), as a path below ``root``; None when it keeps
+        none. RunDirError naming run.json and the path when it leads out of the folder."""
+        value = record.get("submission_prefix")
+        if value is None:
+            return None
+        where = self.root / RUN_FILE
+        if not isinstance(value, str) or not value or "\0" in value:
+            raise RunDirError(f"{where}: submission_prefix must be a file name below the run folder, got {value!r}")
+        path = self.root / value  # an absolute value stays absolute
+        if path.name in ("", ".", "..") or not self.within(path.parent):
+            raise RunDirError(f"{where}: submission_prefix {value!r} leads outside the run folder {self.root}; "
+                              "a merge writes only inside the run folder or where its command line says: "
+                              "give --write-submission PREFIX (or correct run.json)")
+        return self.root / os.path.relpath(os.path.join(os.path.realpath(path.parent), path.name), os.path.realpath(self.root))
+
     # --- config
     def start(self, config: dict, extra: dict | None = None) -> dict:
         """Create the folder and its ``run.json``, or check that the one there has this ``config``
@@ -277,10 +379,13 @@ class RunDir:
         fields kept in run.json but not compared (the submission prefix). Returns run.json."""
         if self.root.exists() and not self.root.is_dir():
             raise RunDirError(f"{self.root}: --out must be a folder (it is a file)")
-        self.root.mkdir(parents=True, exist_ok=True)
-        path = self.root / RUN_FILE
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise RunDirError(f"{self.root}: cannot create the run folder: {exc.strerror or exc}") from exc
+        path = self.writable(self.root / RUN_FILE)
         record = {"kind": RUN_KIND, "version": FORMAT_VERSION, "id": _config_id(config), "config": config, **(extra or {})}
-        if _create_once(path, json.dumps(record, indent=1).encode()):  # the first shard to start writes it
+        if write_whole(path, _json_bytes(record, indent=1), replace=False):  # the first shard to start writes it
             return record
         existing = self.load()
         theirs = existing["config"].get("num_shards")
@@ -306,6 +411,13 @@ class RunDir:
             raise RunDirError(f"{path}: run format version {record.get('version')!r}; this smart-marl reads version {FORMAT_VERSION}")
         if record.get("id") != _config_id(record["config"]):
             raise RunDirError(f"{path}: its id does not match its config (edited by hand?)")
+        config = record["config"]
+        for key, ok, want in (("num_shards", is_integer(config.get("num_shards")) and 1 <= config["num_shards"] <= 99999, "1..99999"),
+                              ("chunk_size", is_integer(config.get("chunk_size")) and config["chunk_size"] >= 1, "an integer >= 1"),
+                              ("rules", config.get("rules") in RULES, f"one of {sorted(RULES)}"),
+                              ("keep_rollouts", isinstance(config.get("keep_rollouts"), bool), "true or false")):
+            if not ok:
+                raise RunDirError(f"{path}: config.{key} must be {want}, got {config.get(key)!r}")
         return record
 
     # --- chunks
@@ -335,17 +447,19 @@ class RunDir:
 
     def write_chunk(self, run_id: str, shard: Shard, chunk: int, scenes: list[dict], skipped: list[dict],
                     submission: bytes | None = None) -> None:
-        """Store a finished chunk: its submission file first (when given), then the JSON that marks it done."""
-        self.shard_dir(shard).mkdir(parents=True, exist_ok=True)
+        """Store a finished chunk: its submission file first (when given), then the JSON that marks it
+        done (a ``.binproto`` left without its JSON by a killed try is this run's, and replaced)."""
+        self._mkdir(self.shard_dir(shard))
         if submission is not None:
-            atomic_write(self.chunk_path(shard, chunk, ".binproto"), [submission])
-        _write_json(self.chunk_path(shard, chunk),
-                    {"run": run_id, "shard": str(shard), "chunk": chunk, "scenes": scenes, "skipped": skipped})
+            write_whole(self.writable(self.chunk_path(shard, chunk, ".binproto")), submission)
+        write_whole(self.writable(self.chunk_path(shard, chunk)),
+                    _json_bytes({"run": run_id, "shard": str(shard), "chunk": chunk, "scenes": scenes, "skipped": skipped}))
 
     def write_done(self, run_id: str, shard: Shard, chunks: int, num_slots: int, bad_files: list[dict]) -> None:
-        self.shard_dir(shard).mkdir(parents=True, exist_ok=True)  # a shard may own no scene at all
-        _write_json(self.shard_dir(shard) / DONE_FILE, {"run": run_id, "shard": str(shard), "chunks": chunks,
-                                                        "num_slots": num_slots, "bad_files": bad_files})
+        self._mkdir(self.shard_dir(shard))  # a shard may own no scene at all
+        write_whole(self.writable(self.shard_dir(shard) / DONE_FILE),
+                    _json_bytes({"run": run_id, "shard": str(shard), "chunks": chunks, "num_slots": num_slots,
+                                 "bad_files": bad_files}))
 
     def read_done(self, run_id: str, shard: Shard) -> dict | None:
         path = self.shard_dir(shard) / DONE_FILE
@@ -365,13 +479,30 @@ def metrics_record(metrics: ScenarioMetrics) -> dict:
     return dataclasses.asdict(metrics)
 
 
-def metrics_from_record(record: dict, where: str) -> ScenarioMetrics:
+def metrics_from_record(record: dict, where: str, rules: str | None = None) -> ScenarioMetrics:
+    """A scene's metrics as a chunk stores them, checked: every field of :class:`ScenarioMetrics`,
+    every number finite (the merge averages them: one NaN would make the run's numbers NaN), and,
+    with ``rules``, those rules with a likelihood for each of their features, nothing else."""
     names = {f.name for f in dataclasses.fields(ScenarioMetrics)}
     numbers = ("meta_metric", "min_ade", "ade", "collision_rate", "offroad_rate", "num_evaluated")
     if not (isinstance(record, dict) and set(record) == names and isinstance(record["likelihoods"], dict)
-            and all(_is_number(v) for v in (*(record[k] for k in numbers), *record["likelihoods"].values()))
-            and isinstance(record["scenario_id"], str) and isinstance(record["notes"], list)):
+            and isinstance(record["scenario_id"], str) and isinstance(record["rules"], str)
+            and isinstance(record["notes"], list)):
         raise RunDirError(f"{where}: a scene's metrics are not a ScenarioMetrics record")
+    scene = f"{where}: scenario {record['scenario_id']!r}"
+    for name, value in (*((k, record[k]) for k in numbers), *((f"likelihoods.{k}", v) for k, v in record["likelihoods"].items())):
+        if not _is_number(value) or not math.isfinite(value):
+            raise RunDirError(f"{scene}: {name} is {value!r}, not a finite number")
+    if not is_integer(record["num_evaluated"]) or record["num_evaluated"] < 1:
+        raise RunDirError(f"{scene}: num_evaluated is {record['num_evaluated']!r}, not a count of agents >= 1")
+    if rules is not None:
+        if record["rules"] != rules:
+            raise RunDirError(f"{scene}: scored with the {record['rules']!r} rules, the run uses {rules!r}")
+        want = set(RULES[rules].features)
+        if set(record["likelihoods"]) != want:
+            odd = sorted(set(record["likelihoods"]) ^ want)
+            raise RunDirError(f"{scene}: its likelihoods are not the {rules} rules' features ({odd[0]} "
+                              f"{'is missing' if odd[0] in want else 'is not one'})")
     return ScenarioMetrics(**record)
 
 
@@ -442,12 +573,45 @@ class MergedRun:
     submission_chunks: list[Path]
 
 
+def check_chunk_submission(path: Path, scenario_ids: list[str], rollouts: int | None = None) -> bytes:
+    """A chunk's ``.binproto`` checked before it joins a merged submission: a regular, non-empty
+    file that parses as a ``SimAgentsChallengeSubmission`` holding the rollouts of exactly
+    ``scenario_ids`` (the scenes its ``.json`` lists, in that order), each with ``rollouts`` joint
+    scenes when given. Returns its header (the message without its rollouts, serialized), which
+    every chunk of a run shares; RunDirError naming the file otherwise."""
+    hint = "delete the chunk's .json to compute the chunk again"
+    check_regular_file(path, _file_problem)
+    if os.path.getsize(path) == 0:
+        raise RunDirError(f"{path}: empty (0 bytes), not a chunk's submission file; {hint}")
+    try:
+        message = read_submission(path)
+    except ScenarioReadError as exc:
+        raise RunDirError(f"{exc}; {hint}") from exc
+    got = [sr.scenario_id for sr in message.scenario_rollouts]
+    if got != scenario_ids:
+        i = next((i for i, (a, b) in enumerate(zip(got, scenario_ids)) if a != b), min(len(got), len(scenario_ids)))
+        what = (f"scenario {got[i]!r} where its .json has {scenario_ids[i]!r}" if i < min(len(got), len(scenario_ids))
+                else f"{len(got)} scenario(s) where its .json has {len(scenario_ids)}")
+        raise RunDirError(f"{path}: not the rollouts of its chunk's scenes ({what}); {hint}")
+    if rollouts is not None:
+        odd = next((sr for sr in message.scenario_rollouts if len(sr.joint_scenes) != rollouts), None)
+        if odd is not None:
+            raise RunDirError(f"{path}: scenario {odd.scenario_id!r} has {len(odd.joint_scenes)} rollouts, the run makes {rollouts}; {hint}")
+    message.ClearField("scenario_rollouts")
+    return message.SerializeToString(deterministic=True)
+
+
 def merge_run(run: RunDir) -> MergedRun:
-    """Check that every shard of ``run`` finished and covers its scenes, and put the results in input order."""
+    """Check that every shard of ``run`` finished and covers its scenes, and every chunk holds what
+    it should (:func:`metrics_from_record`, :func:`check_chunk_submission`), and put the results in
+    input order. Reads only: a run that fails a check has nothing written."""
     record = run.load()
     config, run_id = record["config"], record["id"]
     count = config["num_shards"]
-    keep = bool(config.get("keep_rollouts"))
+    keep = config["keep_rollouts"]
+    source = config.get("source")
+    rollouts = source.get("rollouts") if isinstance(source, dict) and is_integer(source.get("rollouts")) else None
+    header, header_file = None, None
     for p in sorted(run.root.iterdir()):
         m = _SHARD_DIR.match(p.name)
         if m and int(m.group(2)) != count:
@@ -484,7 +648,7 @@ def merge_run(run: RunDir) -> MergedRun:
             for entry in data["scenes"]:
                 if not (isinstance(entry, dict) and isinstance(entry.get("ordinal"), int)):
                     raise RunDirError(f"{where}: a scene without its number")
-                scenes.append((entry["ordinal"], metrics_from_record(entry.get("metrics"), where)))
+                scenes.append((entry["ordinal"], metrics_from_record(entry.get("metrics"), where, config["rules"])))
                 seen.append(entry["ordinal"])
             for entry in data["skipped"]:
                 if not (isinstance(entry, dict) and all(isinstance(entry.get(k), int) for k in ("ordinal", "file_index", "record"))
@@ -493,7 +657,15 @@ def merge_run(run: RunDir) -> MergedRun:
                 skipped.append(((entry["file_index"], entry["record"], 0), {k: entry[k] for k in ("path", "scenario_id", "reason")}))
                 seen.append(entry["ordinal"])
             if keep and data["scenes"]:
-                chunks_out.append(run.chunk_path(shard, c, ".binproto"))
+                part = run.chunk_path(shard, c, ".binproto")
+                ids = [entry["metrics"]["scenario_id"] for entry in data["scenes"]]
+                this = check_chunk_submission(part, ids, rollouts)
+                if header is None:
+                    header, header_file = this, part
+                elif this != header:
+                    raise RunDirError(f"{part}: its submission header differs from {header_file}'s: the chunks of a run share it; "
+                                      "delete the chunk's .json to compute the chunk again")
+                chunks_out.append(part)
         expected = list(range(i, num_slots, count))
         if sorted(seen) != expected:
             missing = sorted(set(expected) - set(seen))
@@ -506,15 +678,78 @@ def merge_run(run: RunDir) -> MergedRun:
     return MergedRun(record, [m for _, m in scenes], [s for _, s in skipped], chunks_out)
 
 
-def link_or_copy(source: Path, target: Path) -> None:
-    """``target`` becomes a copy of ``source`` (a hard link where the file system allows it), atomically."""
-    tmp = target.with_name(f".{target.name}.tmp-{os.getpid()}")
-    try:
+# ----------------------------------------------------------------------------- the merge's files
+def check_result_target(run: RunDir) -> Path:
+    """``RUN/result.json``, once checked that writing it replaces nothing but an earlier merge's result."""
+    path = run.writable(run.root / RESULT_FILE)
+    if path.exists():
         try:
-            os.link(source, tmp)
-        except OSError:
-            atomic_write(tmp, [source.read_bytes()])
-        os.replace(tmp, target)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+            old = json.loads(path.read_text())
+        except (OSError, ValueError, RecursionError):
+            old = None
+        if not (isinstance(old, dict) and {"meta_metric", "num_scenarios", "rules", "skipped"} <= set(old)):
+            raise RunDirError(f"{path}: exists and is not a merge's result; the merge does not replace a file it did not "
+                              "write (move it away)")
+    return path
+
+
+@dataclass(frozen=True)
+class SubmissionPart:
+    """File ``target`` of a merged submission, a copy of the chunk file ``chunk``; ``present``: the
+    target is already that copy (an earlier merge's link or copy), nothing to write."""
+
+    chunk: Path
+    target: Path
+    present: bool
+
+
+def plan_submission(prefix: Path, chunks: list[Path], what: str) -> list[SubmissionPart]:
+    """The files ``PREFIX-00000-of-000NN``... of a merged submission (``what``: where the prefix comes
+    from, for messages), checked before anything is written: a place a file can be written (not
+    under /proc, no file where a folder should be), and no existing file there but an identical copy
+    of its chunk, which is kept. RunDirError naming the file otherwise."""
+    if len(chunks) > 99999:
+        raise RunDirError(f"{what} {prefix}: the run has {len(chunks)} chunks; a submission is split in 99999 files at most")
+    problem = output_file_problem(os.fspath(prefix))
+    if problem:
+        raise RunDirError(f"{what} {prefix}: {problem}")
+    plan = []
+    for i, chunk in enumerate(chunks):
+        target = Path(submission_shard_name(prefix, i, len(chunks)))
+        plan.append(SubmissionPart(chunk, target, _same_file(chunk, target)))
+    return plan
+
+
+def _same_file(chunk: Path, target: Path) -> bool:
+    """Whether ``target`` holds ``chunk`` already (False: it does not exist); RunDirError when it is another file."""
+    try:
+        mode = os.lstat(target).st_mode
+    except FileNotFoundError:
+        return False
+    except OSError as exc:
+        raise RunDirError(f"{target}: {exc.strerror or exc}") from exc
+    if stat.S_ISREG(mode) and (os.path.samefile(chunk, target) or filecmp.cmp(chunk, target, shallow=False)):
+        return True
+    raise RunDirError(f"{target}: exists and is not this run's submission file (it differs from {chunk}); the merge does "
+                      "not replace a file it did not write: move it away or give another --write-submission")
+
+
+def write_submission_parts(plan: list[SubmissionPart]) -> None:
+    """Write the files of :func:`plan_submission`: each a hard link to its chunk where the file
+    system allows it, else a whole copy; never replacing a file (one that appeared meanwhile is an error)."""
+    for part in plan:
+        if part.present:
+            continue
+        try:
+            part.target.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise RunDirError(f"{part.target.parent}: cannot create the folder: {exc.strerror or exc}") from exc
+        try:
+            os.link(part.chunk, part.target)
+            continue
+        except FileExistsError:
+            written = False
+        except OSError:  # another file system, or one without hard links: a copy
+            written = write_whole(part.target, part.chunk.read_bytes(), replace=False)
+        if not written and not _same_file(part.chunk, part.target):
+            raise RunDirError(f"{part.target}: appeared while the merge ran; not replaced")
