@@ -259,8 +259,12 @@ class RolloutState:
         if lights == "log":
             self.road_light_steps = t(_pad_stack([np.stack([light_codes(sc.traffic_lights, rd.light_index, sc.current_frame + FRAMES_PER_TOKEN * k)
                                                              for k in range(steps)]) for sc, rd in zip(self.scenes, roads)], (steps, rmax)))
-        with torch.no_grad():  # (B, R, d), once per scene
-            self.road_x = model.encode_road(self)
+        self.light_config = self.light_config_steps = self.road_x_configs = None
+        if lights == "log":
+            self._encode_light_configs()
+        else:
+            with torch.no_grad():  # (B, R, d), once per scene
+                self.road_x = model.encode_road(self)
         # ---- token poses per type (padded to Vmax) for placing tokens
         vmax = int(self.vocab_sizes.max())
         tp = torch.zeros(NUM_MOTION_TYPES, vmax, FRAMES_PER_TOKEN + 1, 3)
@@ -355,22 +359,40 @@ class RolloutState:
         if self.cache is not None:
             self.model.motion_net.cache_road(self.cache, self.road_x)
 
-    def _follow_logged_lights(self) -> None:
-        """``lights="log"``: each scene's pieces' codes at the frame its next step starts at (its own clock); the
-        scenes whose codes changed are encoded again, alone."""
-        light = lights_at(self.road_light_steps, self.scene_clock)  # [B, R]
-        changed = (light != self.road_light).any(-1).nonzero().squeeze(1)
-        if not len(changed):
-            return
-        road_light = self.road_light.clone()  # new tensors: a fork shares the old ones
-        road_light[changed] = light[changed]
-        self.road_light = road_light
-        part = _RoadPart(*(t.index_select(0, changed) for t in (self.road_points, self.road_pose, self.road_type, road_light,
-                                                                   self.road_valid)))
-        road_x = self.road_x.clone()
+    def _encode_light_configs(self) -> None:
+        """``lights="log"``: each scene's road encoded once for every distinct light configuration its log goes
+        through (most scenes have one, a few up to five in 8 s): ``road_x_configs`` [B, K, R, d], the configuration of
+        each logged step ``light_config_steps`` [B, S] and the one in use ``light_config`` [B]. A change of lights in
+        closed loop is then a gather, not a RoadNet pass (one pass per scene and configuration, when the scene starts)."""
+        b_, s_ = self.road_light_steps.shape[:2]
+        configs, of_step = [], torch.zeros(b_, s_, dtype=torch.long, device=self.device)
+        for b in range(b_):
+            distinct, of_step[b] = torch.unique(self.road_light_steps[b], dim=0, return_inverse=True)  # [K_b, R], [S]
+            configs.append(distinct)
+        k_max = max(len(c) for c in configs)
         with torch.no_grad():
-            road_x[changed] = self.model.encode_road(part)
-        self.road_x = road_x
+            for b, distinct in enumerate(configs):  # one scene at a time: RoadNet's memory grows with its pieces squared
+                k = len(distinct)
+                part = _RoadPart(*(t[b : b + 1].expand(k, *t.shape[1:]) for t in (self.road_points, self.road_pose, self.road_type)),
+                                 distinct, self.road_valid[b : b + 1].expand(k, -1))
+                encoded = self.model.encode_road(part)  # [K_b, R, d]
+                if b == 0:
+                    self.road_x_configs = encoded.new_zeros(b_, k_max, *encoded.shape[1:])
+                self.road_x_configs[b, :k] = encoded
+        self.light_config_steps, self.light_config = of_step, of_step[:, 0].clone()
+        self.road_light = lights_at(self.road_light_steps, self.scene_clock)
+        self.road_x = self.road_x_configs[torch.arange(b_, device=self.device), self.light_config]
+
+    def _follow_logged_lights(self) -> None:
+        """``lights="log"``: each scene's pieces' codes at the frame its next step starts at (its own clock), and their
+        road encodings (:meth:`_encode_light_configs`) where they changed."""
+        config = lights_at(self.light_config_steps, self.scene_clock)  # [B]
+        if torch.equal(config, self.light_config):
+            return
+        rows = torch.arange(len(config), device=self.device)
+        self.light_config = config
+        self.road_light = lights_at(self.road_light_steps, self.scene_clock)  # new tensors: a fork shares the old ones
+        self.road_x = self.road_x_configs[rows, config]
         if self.cache is not None:
             self.model.motion_net.cache_road(self.cache, self.road_x)
 

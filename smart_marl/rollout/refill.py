@@ -31,9 +31,12 @@ _PER_SCENE = {"road_pose": 0.0, "road_valid": False, "road_points": 0.0, "road_t
 _STOP_LINES = {"stop_xy": 0.0, "stop_dir": float("nan"), "stop_group": 0, "stop_sign": False, "stop_red": False,
                "stop_go": False, "stop_valid": False}
 """Per scene, padded to the most stop lines (states with ``stop_lines``); the slots' served signs go with the slots."""
-_STEPS = {"road_light_steps": ("road_pose", 0), "stop_red_steps": ("stop_xy", False), "stop_go_steps": ("stop_xy", False)}
+_STEPS = {"road_light_steps": ("road_pose", 0), "stop_red_steps": ("stop_xy", False), "stop_go_steps": ("stop_xy", False),
+          "light_config_steps": (None, 0)}
 """Per scene and logged token step [B, S, ...]: padded to the most steps by holding each scene's last one, and to the
 most road pieces / stop lines (the tensor whose second dimension gives that size) with the fill."""
+_CLOCKS = ("scene_clock", "light_config")
+"""Per scene [B]: its token steps so far, and (lights="log") the light configuration its road encodings are of."""
 
 
 _PENDING_FILLS = (0, 0.0, 0.0, False)  # tokens, start pose, end pose, valid of the step not yet run
@@ -62,17 +65,23 @@ def _steps(state: RolloutState) -> dict:
     return {name: how for name, how in _STEPS.items() if getattr(state, name, None) is not None}
 
 
-def _held(t: torch.Tensor, steps: int, size: int, fill) -> torch.Tensor:
+def _held(t: torch.Tensor, steps: int, size: int | None, fill) -> torch.Tensor:
     """``t`` [B, S, K, ...] padded to ``steps`` steps by repeating its last step, then to ``size`` along K with ``fill``."""
     if t.shape[1] < steps:
         t = torch.cat([t, t[:, -1:].expand(-1, steps - t.shape[1], *t.shape[2:])], 1)
-    return grow(t, {2: size}, fill)
+    return t if size is None else grow(t, {2: size}, fill)
 
 
-def _sizes(name: str, states: Sequence[RolloutState]) -> tuple[int, int]:
-    """(the most steps, the most pieces or lines) of per-step tensor ``name`` among ``states``."""
+def _sizes(name: str, states: Sequence[RolloutState]) -> tuple[int, int | None]:
+    """(the most steps, the most pieces or lines, None for [B, S]) of per-step tensor ``name`` among ``states``."""
     of = _STEPS[name][0]
-    return max(getattr(st, name).shape[1] for st in states), max(getattr(st, of).shape[1] for st in states)
+    return (max(getattr(st, name).shape[1] for st in states),
+            None if of is None else max(getattr(st, of).shape[1] for st in states))
+
+
+def _configs_size(states: Sequence[RolloutState]) -> dict[int, int]:
+    """The budgets of ``road_x_configs`` [B, K, R, d] among ``states``: the most configurations and road pieces."""
+    return {1: max(st.road_x_configs.shape[1] for st in states), 2: max(st.road_pose.shape[1] for st in states)}
 
 
 def _lines(state: RolloutState) -> dict:
@@ -116,7 +125,12 @@ def stack_states(states: Sequence[RolloutState], seed: int) -> RolloutState:
     for name, (_, fill) in _steps(first).items():
         steps, size = _sizes(name, states)
         setattr(out, name, torch.cat([_held(getattr(st, name), steps, size, fill) for st in states]))
-    out.scene_clock = torch.cat([st.scene_clock for st in states])
+    if first.road_x_configs is not None:
+        sizes = _configs_size(states)
+        out.road_x_configs = torch.cat([grow(st.road_x_configs, sizes, 0.0) for st in states])
+    for name in _CLOCKS:
+        if getattr(first, name) is not None:
+            setattr(out, name, torch.cat([getattr(st, name) for st in states]))
     if first._logits is not None:
         out._logits = torch.cat([grow(st._logits, {1: n}, float("-inf")) for st in states])
     else:
@@ -146,7 +160,11 @@ def split_state(state: RolloutState) -> list[RolloutState]:
             setattr(one, name, getattr(state, name)[b : b + 1, :pieces] if name in _PER_SCENE else getattr(state, name)[b : b + 1])
         for name in _steps(state):
             setattr(one, name, getattr(state, name)[b : b + 1, :, :pieces] if name == "road_light_steps" else getattr(state, name)[b : b + 1])
-        one.scene_clock = state.scene_clock[b : b + 1]
+        if state.road_x_configs is not None:
+            one.road_x_configs = state.road_x_configs[b : b + 1, :, :pieces]
+        for name in _CLOCKS:
+            if getattr(state, name) is not None:
+                setattr(one, name, getattr(state, name)[b : b + 1])
         if state._logits is not None:
             one._logits = state._logits[groups, :n]
         else:
@@ -198,8 +216,14 @@ def replace_scenes(state: RolloutState, rows: Sequence[int], new: RolloutState) 
         steps, size = _sizes(name, [state, new])
         setattr(state, name, _held(getattr(state, name), steps, size, fill))
         put_rows(getattr(state, name), scenes, _held(getattr(new, name).to(dev), steps, size, fill), fill)
-    state.scene_clock = state.scene_clock.clone()
-    state.scene_clock[scenes] = new.scene_clock.to(dev)
+    if state.road_x_configs is not None:
+        sizes = _configs_size([state, new])
+        state.road_x_configs = grow(state.road_x_configs, sizes, 0.0)
+        put_rows(state.road_x_configs, scenes, new.road_x_configs.to(dev), 0.0)
+    for name in _CLOCKS:
+        if getattr(state, name) is not None:
+            setattr(state, name, getattr(state, name).clone())
+            getattr(state, name)[scenes] = getattr(new, name).to(dev)
     if state._logits is not None:
         state._logits = grow(state._logits, {1: n}, float("-inf"))
         put_rows(state._logits, groups, new._logits.to(dev), float("-inf"))
