@@ -115,9 +115,11 @@ def test_merged_shards_give_exactly_the_single_process_numbers(scene_dir, plain,
 
 
 def test_merged_submission_files_hold_exactly_the_plain_rollouts(scene_dir, plain, tmp_path):
-    prefix = tmp_path / "sub" / "submission.binproto"
+    """The prefix inside the run folder: run.json keeps it (relative to the folder) and ``--merge RUN`` writes there."""
+    prefix = tmp_path / "run" / "sub" / "submission.binproto"
     merged = _sharded(scene_dir, tmp_path / "run", 2, "--chunk-size", "1", "--write-submission", str(prefix))
     assert merged == plain[0]
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["submission_prefix"] == "sub/submission.binproto"
     files = submission_files(prefix)
     assert [Path(f).name for f in files] == [f"submission.binproto-{i:05d}-of-00004" for i in range(4)]
     reader = open_submission(prefix)

@@ -38,17 +38,18 @@ from ..metrics import SceneNotScorableError, aggregate, logged_scene, score_roll
 from ..metrics.baselines import policy_rollouts
 from ..metrics.config import get_rules
 from ..metrics.inputs import RolloutError, Rollouts
-from ..metrics.sharding import (RESULT_FILE, RunDir, RunDirError, Shard, input_digest, link_or_copy, merge_run,
-                                metrics_record, parse_shard, run_shard, scene_slots, shard_from_torchrun)
+from ..metrics.sharding import (RunDir, RunDirError, Shard, check_result_target, input_digest, merge_run, metrics_record,
+                                parse_shard, plan_submission, run_shard, scene_slots, shard_from_torchrun, write_submission_parts,
+                                write_whole)
 from ..metrics.submission import (ScenarioRolloutArrays, build_submission, check_against_scene, open_submission,
-                                  submission_files, submission_shard_name, write_rollouts)
+                                  submission_files, write_rollouts)
 from ..model.checkpoint import EMBEDDED, checkpoint_paths, load_prior, resolve_checkpoint_path
 from ..readers import expand_paths, read_scenarios
-from ..readers.scene_cache import atomic_write, file_sha256
+from ..readers.scene_cache import file_sha256
 from ..rollout import DEFAULT_TOP_K, rollout
 from ..version import __version__
-from .arguments import (collision_avoidance_flag, device, non_negative_int, output_dir, positive_int, reader_formats, rollouts, seed,
-                        lights_option, stop_lines_flag, temperature)
+from .arguments import (collision_avoidance_flag, device, non_negative_int, output_dir, output_file, positive_int, reader_formats,
+                        rollouts, seed, lights_option, stop_lines_flag, temperature)
 
 POLICY_CHOICES = ("constant_velocity", "log_replay", "random", "prior")
 WOSAC_ROLLOUTS = 32
@@ -98,9 +99,10 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=seed, default=0, help="random seed for --policy (default 0)")
     p.add_argument("--rules", choices=("2024", "2025"), default="2025", help="challenge rules (default 2025)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--write-submission", metavar="OUT",
+    p.add_argument("--write-submission", metavar="OUT", type=output_file,
                    help="with --policy: also write the rollouts as a submission file; with --out (and --merge): the "
-                        "submission in files OUT-00000-of-000NN..., one per chunk")
+                        "submission in files OUT-00000-of-000NN..., one per chunk (RUN/run.json keeps OUT when it lies "
+                        "inside RUN; one outside is given again to --merge)")
     p.add_argument("--format", default=None, choices=reader_formats(), help="force a scene reader instead of detecting the format")
     p.add_argument("--skip-bad", action="store_true", help="skip scene files that cannot be read, with a warning (default: stop)")
     p.add_argument("--any-rollout-count", action="store_true",
@@ -321,8 +323,11 @@ def run_sharded(args) -> int:
     run = RunDir(args.out)
     if args.chunk_size is None and (run.root / "run.json").exists():  # a rerun or another shard: the run's chunk size
         args.chunk_size = run.load()["config"].get("chunk_size")
-    record = run.start(_run_config(args, paths, shard),
-                       extra={"submission_prefix": os.path.abspath(args.write_submission)} if args.write_submission else None)
+    prefix = run.stored_prefix(args.write_submission) if args.write_submission else None
+    record = run.start(_run_config(args, paths, shard), extra={"submission_prefix": prefix} if prefix else None)
+    if args.write_submission and prefix is None and shard.count > 1 and shard_from_torchrun() is None:
+        _warn(f"--write-submission {args.write_submission} lies outside the run folder {run.root}, and a run keeps only "
+              f"paths inside it: merge with `smart-marl eval --merge {run.root} --write-submission {args.write_submission}`")
     run_id, chunk_size = record["id"], record["config"]["chunk_size"]
     submitted = open_submission(args.submission) if args.submission else None
     models: dict = {}
@@ -394,7 +399,9 @@ stay on disk; ``--merge`` merges them later)."""
 
 def merge_command(args, run: RunDir | None = None) -> int:
     """``--merge RUN``: the numbers of a finished run (printed as a single-process run prints them,
-    and kept in RUN/result.json) and, when its rollouts were kept, the submission in files."""
+    and kept in RUN/result.json) and, when its rollouts were kept, the submission in files: at the
+    ``--write-submission`` prefix of this command line, else at the one run.json keeps (inside RUN).
+    Every chunk and every file to write is checked first: a refusal leaves everything as it was."""
     run = run or RunDir(args.merge)
     merged = merge_run(run)
     config = merged.record["config"]
@@ -402,19 +409,24 @@ def merge_command(args, run: RunDir | None = None) -> int:
         print(f"smart-marl eval: error: no scene of the run {run.root} could be scored ({len(merged.skipped)} skipped)",
               file=sys.stderr)
         return 1
-    if args.write_submission and not config.get("keep_rollouts"):
+    if args.write_submission and not config["keep_rollouts"]:
         raise RunDirError(f"{run.root / 'run.json'}: this run did not keep its rollouts (run it with --write-submission)")
     out = aggregate(merged.metrics, config["rules"])
     result = result_json(out, merged.skipped)
-    atomic_write(run.root / RESULT_FILE, [strict_json(result).encode() + b"\n"])
-    prefix = args.write_submission or merged.record.get("submission_prefix")
-    if config.get("keep_rollouts") and prefix:
-        count = len(merged.submission_chunks)
-        for i, chunk in enumerate(merged.submission_chunks):
-            target = Path(submission_shard_name(prefix, i, count))
-            target.parent.mkdir(parents=True, exist_ok=True)
-            link_or_copy(chunk, target)
-        print(f"smart-marl eval: wrote the submission of {len(merged.metrics)} scenario(s) in {count} file(s) "
-              f"{submission_shard_name(prefix, 0, count)} ...", file=sys.stderr)
+    result_path = check_result_target(run)
+    parts = []
+    if config["keep_rollouts"]:
+        if args.write_submission:
+            parts = plan_submission(Path(args.write_submission), merged.submission_chunks, "--write-submission")
+        elif (prefix := run.submission_prefix(merged.record)) is not None:
+            parts = plan_submission(prefix, merged.submission_chunks, f"the submission prefix of {run.root / 'run.json'}")
+        else:
+            _warn(f"the submission was not written: its prefix lies outside the run folder {run.root}, which run.json does "
+                  f"not keep; give `--merge {run.root} --write-submission PREFIX`")
+    write_whole(result_path, strict_json(result).encode() + b"\n")
+    if parts:
+        write_submission_parts(parts)
+        print(f"smart-marl eval: wrote the submission of {len(merged.metrics)} scenario(s) in {len(parts)} file(s) "
+              f"{parts[0].target} ...", file=sys.stderr)
     print_result(args, out, merged.skipped)
     return 0

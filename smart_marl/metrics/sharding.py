@@ -289,11 +289,8 @@ def write_whole(path: Path, payload: bytes, replace: bool = True) -> bool:
 
 
 def _json_bytes(data: dict, indent: int | None = None) -> bytes:
-    """JSON of a run file; NaN and infinities are refused (a scene's numbers are finite, see :func:`metrics_from_record`)."""
-    try:
-        return json.dumps(data, indent=indent, separators=None if indent else (",", ":"), allow_nan=False).encode()
-    except ValueError as exc:
-        raise RunDirError(f"a run file cannot hold {exc}") from exc
+    """JSON of a run file (a scene's non-finite number is kept as Python writes it: the merge refuses it, naming it)."""
+    return json.dumps(data, indent=indent, separators=None if indent else (",", ":")).encode()
 
 
 def _describe_difference(mine: dict, theirs: dict, prefix: str = "") -> str:
@@ -338,7 +335,8 @@ class RunDir:
             raise RunDirError(f"{path}: exists and is not a regular file (a link, a folder...): the run does not replace it")
         return path
 
-    def _mkdir(self, folder: Path) -> None:
+    def make_dir(self, folder: Path) -> None:
+        """Create ``folder`` (and the folders above it) below the run folder; RunDirError when a link leads it out."""
         if not self.within(folder):
             raise RunDirError(f"{folder}: lies outside the run folder {self.root} (a link leads out of it); "
                               "a run writes only inside its folder")
@@ -411,10 +409,11 @@ class RunDir:
             raise RunDirError(f"{path}: run format version {record.get('version')!r}; this smart-marl reads version {FORMAT_VERSION}")
         if record.get("id") != _config_id(record["config"]):
             raise RunDirError(f"{path}: its id does not match its config (edited by hand?)")
-        config = record["config"]
-        for key, ok, want in (("num_shards", is_integer(config.get("num_shards")) and 1 <= config["num_shards"] <= 99999, "1..99999"),
-                              ("chunk_size", is_integer(config.get("chunk_size")) and config["chunk_size"] >= 1, "an integer >= 1"),
-                              ("rules", config.get("rules") in RULES, f"one of {sorted(RULES)}"),
+        config = record["config"]  # the fields the merge computes with: a hand-made run.json gets an error, not a traceback
+        count, size, rules = config.get("num_shards"), config.get("chunk_size"), config.get("rules")
+        for key, ok, want in (("num_shards", is_integer(count) and 1 <= count <= 99999, "an integer in 1..99999"),
+                              ("chunk_size", is_integer(size) and size >= 1, "an integer >= 1"),
+                              ("rules", isinstance(rules, str) and rules in RULES, f"one of {sorted(RULES)}"),
                               ("keep_rollouts", isinstance(config.get("keep_rollouts"), bool), "true or false")):
             if not ok:
                 raise RunDirError(f"{path}: config.{key} must be {want}, got {config.get(key)!r}")
@@ -449,14 +448,14 @@ class RunDir:
                     submission: bytes | None = None) -> None:
         """Store a finished chunk: its submission file first (when given), then the JSON that marks it
         done (a ``.binproto`` left without its JSON by a killed try is this run's, and replaced)."""
-        self._mkdir(self.shard_dir(shard))
+        self.make_dir(self.shard_dir(shard))
         if submission is not None:
             write_whole(self.writable(self.chunk_path(shard, chunk, ".binproto")), submission)
         write_whole(self.writable(self.chunk_path(shard, chunk)),
                     _json_bytes({"run": run_id, "shard": str(shard), "chunk": chunk, "scenes": scenes, "skipped": skipped}))
 
     def write_done(self, run_id: str, shard: Shard, chunks: int, num_slots: int, bad_files: list[dict]) -> None:
-        self._mkdir(self.shard_dir(shard))  # a shard may own no scene at all
+        self.make_dir(self.shard_dir(shard))  # a shard may own no scene at all
         write_whole(self.writable(self.shard_dir(shard) / DONE_FILE),
                     _json_bytes({"run": run_id, "shard": str(shard), "chunks": chunks, "num_slots": num_slots,
                                  "bad_files": bad_files}))
@@ -520,8 +519,8 @@ def run_shard(run: RunDir, run_id: str, shard: Shard, slots: Iterable[SceneSlot]
     the chunk's submission bytes (None when rollouts are not kept). Returns counts of the work done
     (``computed`` / ``resumed`` scenes, ``chunks``, ``num_slots``: the scenes of the whole input);
     the caller writes ``done.json``, since it knows the stream's bad files."""
-    done_before = {int(m.group(1)) for p in (run.shard_dir(shard).iterdir() if run.shard_dir(shard).is_dir() else ())
-                   if (m := _CHUNK_FILE.match(p.name))}
+    run.make_dir(run.shard_dir(shard))  # a shard folder linked out of the run folder: refused before any work
+    done_before = {int(m.group(1)) for p in run.shard_dir(shard).iterdir() if (m := _CHUNK_FILE.match(p.name))}
     for c in sorted(done_before):
         run.read_chunk(run_id, shard, c, pack is not None)  # refuse a foreign or broken chunk before any work
     computed = resumed = 0
@@ -596,7 +595,8 @@ def check_chunk_submission(path: Path, scenario_ids: list[str], rollouts: int | 
     if rollouts is not None:
         odd = next((sr for sr in message.scenario_rollouts if len(sr.joint_scenes) != rollouts), None)
         if odd is not None:
-            raise RunDirError(f"{path}: scenario {odd.scenario_id!r} has {len(odd.joint_scenes)} rollouts, the run makes {rollouts}; {hint}")
+            raise RunDirError(f"{path}: scenario {odd.scenario_id!r} has {len(odd.joint_scenes)} rollouts, "
+                              f"the run makes {rollouts}; {hint}")
     message.ClearField("scenario_rollouts")
     return message.SerializeToString(deterministic=True)
 
@@ -663,8 +663,8 @@ def merge_run(run: RunDir) -> MergedRun:
                 if header is None:
                     header, header_file = this, part
                 elif this != header:
-                    raise RunDirError(f"{part}: its submission header differs from {header_file}'s: the chunks of a run share it; "
-                                      "delete the chunk's .json to compute the chunk again")
+                    raise RunDirError(f"{part}: its submission header differs from {header_file}'s: the chunks of a run "
+                                      "share it; delete the chunk's .json to compute the chunk again")
                 chunks_out.append(part)
         expected = list(range(i, num_slots, count))
         if sorted(seen) != expected:
@@ -730,7 +730,7 @@ def _same_file(chunk: Path, target: Path) -> bool:
         raise RunDirError(f"{target}: {exc.strerror or exc}") from exc
     if stat.S_ISREG(mode) and (os.path.samefile(chunk, target) or filecmp.cmp(chunk, target, shallow=False)):
         return True
-    raise RunDirError(f"{target}: exists and is not this run's submission file (it differs from {chunk}); the merge does "
+    raise RunDirError(f"{target}: exists and is not this run's submission file (not a copy of {chunk}); the merge does "
                       "not replace a file it did not write: move it away or give another --write-submission")
 
 
@@ -752,4 +752,4 @@ def write_submission_parts(plan: list[SubmissionPart]) -> None:
         except OSError:  # another file system, or one without hard links: a copy
             written = write_whole(part.target, part.chunk.read_bytes(), replace=False)
         if not written and not _same_file(part.chunk, part.target):
-            raise RunDirError(f"{part.target}: appeared while the merge ran; not replaced")
+            raise RunDirError(f"{part.target}: changed while the merge ran; not replaced")

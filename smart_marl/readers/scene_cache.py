@@ -20,6 +20,7 @@ import math
 import mmap
 import os
 import struct
+import tempfile
 import time
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Sequence
@@ -42,10 +43,12 @@ _ALIGN = 64
 # ------------------------------------------------------------------------------------ shard files
 def atomic_write(path: Path, chunks: Iterable[bytes]) -> None:
     """Write ``path`` so that it either holds all of ``chunks`` or does not exist/keeps its old
-    content: a temporary file in the same folder, fsync, rename."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    content: a new temporary file in the same folder (``mkstemp``: a name that did not exist, so never written
+    through a link planted at a guessable name), fsync, rename."""
+    fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    tmp = Path(name)
     try:
-        with open(tmp, "wb") as f:
+        with os.fdopen(fd, "wb") as f:
             for chunk in chunks:
                 f.write(chunk)
             f.flush()
