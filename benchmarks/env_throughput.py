@@ -172,7 +172,8 @@ def main() -> int:
                    help="the background's traffic control (stop_lines=True, lights='log': the envs' defaults) or none "
                         "(stop_lines=False, lights='current'); both: side by side in one run, each against the PettingZoo env "
                         "with the same setting (default on)")
-    p.add_argument("--stop-lines", dest="traffic_control", action="store_const", const="on", help=argparse.SUPPRESS)
+    p.add_argument("--stop-lines", dest="traffic_control", action="store_const", const="on",
+                   help="--traffic-control on (kept for older command lines)")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -11,20 +10,15 @@ import torch
 
 from smart_marl.scenario import AgentType
 
+from helpers import load_benchmark
+
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_drop_parked_leaves_out_exactly_the_vehicles_that_stand_all_log(sample_scenes):
     """prior_speed_drift --drop-parked: the parked vehicles (on every frame, < 0.5 m over the log) go, every
     other track stays as it was, the self-driving car included."""
-    drift = _load("prior_speed_drift")
+    drift = load_benchmark("prior_speed_drift")
     scene = sample_scenes[0]  # sumo-7-000000-00: 22 tracks, most of its vehicles stand at lights or parked
     tr = scene.tracks
     out = drift.without_parked(scene)
@@ -45,7 +39,7 @@ def test_speed_groups_by_horizon_match_the_log_when_the_rollouts_are_the_log(sam
     group's logged speed at 8 s is below its speed at 0.5 s (the rows are the groups' own speeds)."""
     from types import SimpleNamespace
 
-    drift = _load("prior_speed_drift")
+    drift = load_benchmark("prior_speed_drift")
     sums = drift.SpeedSums.zeros()
     for scene in sample_scenes:
         tr, cf, f = scene.tracks, scene.current_frame, drift.NUM_FRAMES
@@ -71,7 +65,7 @@ def test_speed_groups_by_horizon_match_the_log_when_the_rollouts_are_the_log(sam
 
 def test_past_trend_groups_by_the_speed_change_before_the_current_frame():
     """prior_speed_drift's past groups: more than 10% up, within 10%, more than 10% down (PAST_TRENDS order)."""
-    drift = _load("prior_speed_drift")
+    drift = load_benchmark("prior_speed_drift")
     earlier = np.array([10.0, 10.0, 10.0, 10.0, 10.0])
     recent = np.array([11.5, 10.9, 10.0, 9.2, 8.5])
     assert [drift.PAST_TRENDS[g] for g in drift.past_trend(recent, earlier)] == [
@@ -81,7 +75,7 @@ def test_past_trend_groups_by_the_speed_change_before_the_current_frame():
 def test_speed_change_calibration_rows_read_the_slope_and_the_bins():
     """prior_speed_drift's teacher_forced_dv rows: logged changes half the predicted ones give slope 0.5, and each
     quantile bin holds its share of the rows with the means of its own rows."""
-    drift = _load("prior_speed_drift")
+    drift = load_benchmark("prior_speed_drift")
     predicted = np.linspace(-2.0, 2.0, 1001)
     rows = drift.dv_calibration_rows(predicted, 0.5 * predicted + 0.1)
     assert rows[0]["bin"] == "slope" and rows[0]["slope"] == 0.5 and rows[0]["rows"] == 1001
@@ -101,7 +95,7 @@ def test_scene_pack_round_trips_the_sample_scenes_within_its_grids(tmp_path):
     order, with every metric array within half a grid step and everything else equal."""
     from envs._pool import ScenePool
 
-    pack = _load("scene_pack")
+    pack = load_benchmark("scene_pack")
     info = pack.pack(["embedded"], str(tmp_path / "s.npz.xz"), count=None)
     assert pack.unpack(str(tmp_path / "s.npz.xz"), str(tmp_path / "cache")) == {"scenes": info["scenes"]}
     before, after = ScenePool("embedded"), ScenePool(str(tmp_path / "cache"))
@@ -125,7 +119,7 @@ def test_gpu_scripts_unpack_a_scene_set_once_and_leave_no_marker_on_failure(tmp_
     import subprocess
     import sys
 
-    pack = _load("scene_pack")
+    pack = load_benchmark("scene_pack")
     pack.pack(["embedded"], str(tmp_path / "s.npz.xz"), count=2)
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
 
@@ -148,7 +142,7 @@ def test_log_steps_replays_the_tokenized_log_before_the_prior_drives(sample_scen
     each rollout, and its speeds within tokenization error of the logged ones); forced for 0, the prior's own draws."""
     from smart_marl.model.checkpoint import load_checkpoint
 
-    drift = _load("prior_speed_drift")
+    drift = load_benchmark("prior_speed_drift")
     ck = load_checkpoint("embedded")
     scene = sample_scenes[2]  # 14 moving vehicles
     full = drift.rollout_speeds(ck, scene, 2, 6, 1.0, 0, log_steps=16)[AgentType.VEHICLE]
@@ -174,7 +168,7 @@ def test_log_steps_for_some_tracks_only(sample_scenes):
     which everyone does), the others are drawn; slowing_causes.queue_leaders names simulated leaders only."""
     from smart_marl.model.checkpoint import load_checkpoint
 
-    drift, causes = _load("prior_speed_drift"), _load("slowing_causes")
+    drift, causes = load_benchmark("prior_speed_drift"), load_benchmark("slowing_causes")
     ck = load_checkpoint("embedded")
     scene = sample_scenes[2]
     cf = scene.current_frame
@@ -195,7 +189,7 @@ def test_departures_count_the_standing_vehicles_that_drive_off_and_read_a_replay
     time is the first frame above 1 m/s, or 8 s."""
     from smart_marl.model.checkpoint import load_checkpoint
 
-    drift, dep = _load("prior_speed_drift"), _load("departures")
+    drift, dep = load_benchmark("prior_speed_drift"), load_benchmark("departures")
     assert dep.first_moving_s(np.array([[0.0, 0.5, 1.5, 3.0], [0.0, 0.0, 0.2, 0.9]])).tolist() == [0.3, 0.4]
     scene = sample_scenes[1]  # 13 vehicles stand at the current frame, 9 of them drive off in the log
     ck = load_checkpoint("embedded")
@@ -210,7 +204,7 @@ def test_departures_count_the_standing_vehicles_that_drive_off_and_read_a_replay
 def test_map_view_measures_the_nearest_pieces_the_model_takes(sample_scenes):
     """benchmarks/map_view.py: on a straight road of pieces every 2 m along a moving vehicle's heading, taking its 8
     nearest within 30 m it sees 7 m around it and 7 m ahead; taking 100, the radius binds (29 m, the last piece)."""
-    view = _load("map_view")
+    view = load_benchmark("map_view")
     scene = sample_scenes[0]
     tr, cf = scene.tracks, scene.current_frame
     moving = view.vehicle_views(scene, np.zeros((0, 3)), 8, 30.0)
@@ -231,7 +225,7 @@ def test_room_ahead_is_the_nearest_agent_ahead_in_the_lane(sample_scenes):
 
     from smart_marl.braking import leader_follower_pairs
 
-    room_ahead = _load("speed_by_space_ahead").room_ahead
+    room_ahead = load_benchmark("speed_by_space_ahead").room_ahead
     sc = sample_scenes[2]
     pairs = leader_follower_pairs(sc)
     assert pairs

@@ -8,8 +8,6 @@ byte for byte what it was, with the same modification time."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import os
 import shutil
@@ -17,25 +15,16 @@ from pathlib import Path
 
 import pytest
 
-from smart_marl.cli import main
 from smart_marl.embedded import sample_scenarios
 from smart_marl.metrics.submission import ScenarioRolloutArrays, open_submission, write_rollouts
 from smart_marl.readers.scene_cache import write_shard
+
+from helpers import run_eval
 
 POLICY = ["--policy", "random", "--rollouts", "2", "--seed", "3", "--json"]
 PREFIX = Path("sub") / "submission.binproto"  # inside the run folder: run.json keeps it relative
 PARTS = [f"submission.binproto-{i:05d}-of-00002" for i in range(2)]
 CHUNK0 = Path("shard-00000-of-00002") / "chunk-000000"
-
-
-def _eval(argv: list[str]) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main(["eval", *argv])
-        except SystemExit as exc:  # argparse's own checks
-            code = exc.code
-    return code, out.getvalue(), err.getvalue()
 
 
 def _snapshot(folder: Path) -> dict[str, tuple]:
@@ -71,10 +60,10 @@ def original(scenes, tmp_path_factory) -> Path:
     """A finished and merged run of 2 shards, 1 scene per chunk, its submission inside it (sub/)."""
     run = tmp_path_factory.mktemp("original") / "run"
     for i in range(2):
-        code, _, err = _eval(["--scenes", str(scenes), *POLICY, "--out", str(run), "--shard", f"{i}/2", "--chunk-size", "1",
+        code, _, err = run_eval(["--scenes", str(scenes), *POLICY, "--out", str(run), "--shard", f"{i}/2", "--chunk-size", "1",
                               "--write-submission", str(run / PREFIX)])
         assert code == 0, err
-    code, out, err = _eval(["--merge", str(run), "--json"])
+    code, out, err = run_eval(["--merge", str(run), "--json"])
     assert code == 0, err
     assert sorted(p.name for p in (run / "sub").iterdir()) == PARTS
     return run
@@ -93,7 +82,7 @@ def run(original, tmp_path) -> Path:
 def _refused(argv: list[str], says: str, *folders: Path, code: int = 1) -> None:
     """The command exits with ``code`` naming ``says``, and nothing in ``folders`` changed."""
     before = [_snapshot(f) for f in folders]
-    got, _, err = _eval(argv)
+    got, _, err = run_eval(argv)
     assert got == code and says in err, err
     assert "Traceback" not in err
     assert [_snapshot(f) for f in folders] == before
@@ -102,7 +91,7 @@ def _refused(argv: list[str], says: str, *folders: Path, code: int = 1) -> None:
 # ------------------------------------------------------------------------------ where a merge writes
 def test_a_copied_run_folder_merges_into_the_copy_and_leaves_the_original_untouched(original, run):
     untouched = _snapshot(original)
-    code, out, err = _eval(["--merge", str(run), "--json"])
+    code, out, err = run_eval(["--merge", str(run), "--json"])
     assert code == 0, err
     assert json.loads(out) == json.loads((original / "result.json").read_text())
     assert sorted(p.name for p in (run / "sub").iterdir()) == PARTS
@@ -111,7 +100,7 @@ def test_a_copied_run_folder_merges_into_the_copy_and_leaves_the_original_untouc
     assert _snapshot(original) == untouched
     # merged again: its parts are its own, kept as they are
     parts = _snapshot(run / "sub")
-    assert _eval(["--merge", str(run), "--json"])[0] == 0
+    assert run_eval(["--merge", str(run), "--json"])[0] == 0
     assert _snapshot(run / "sub") == parts and _snapshot(original) == untouched
 
 
@@ -122,7 +111,7 @@ def test_an_older_runs_absolute_prefix_is_read_only_inside_the_run_folder(origin
     _refused(["--merge", str(run)], f"{run / 'run.json'}: submission_prefix {str(original / PREFIX)!r} leads outside the run "
                                     f"folder {run}", original, run)
     _edit_run_json(run, submission_prefix=str(run / PREFIX))
-    assert _eval(["--merge", str(run), "--json"])[0] == 0
+    assert run_eval(["--merge", str(run), "--json"])[0] == 0
     assert sorted(p.name for p in (run / "sub").iterdir()) == PARTS
 
 
@@ -164,20 +153,20 @@ def test_an_existing_file_at_a_submission_path_is_not_replaced(run, tmp_path):
 def test_a_prefix_outside_the_run_folder_is_written_only_when_the_merge_names_it(scenes, tmp_path):
     run, prefix = tmp_path / "run", tmp_path / "upload" / "submission.binproto"
     for i in range(2):
-        code, _, err = _eval(["--scenes", str(scenes), *POLICY, "--out", str(run), "--shard", f"{i}/2", "--chunk-size", "1",
+        code, _, err = run_eval(["--scenes", str(scenes), *POLICY, "--out", str(run), "--shard", f"{i}/2", "--chunk-size", "1",
                               "--write-submission", str(prefix)])
         assert code == 0 and "lies outside the run folder" in err, err
     assert "submission_prefix" not in json.loads((run / "run.json").read_text())
-    code, _, err = _eval(["--merge", str(run), "--json"])
+    code, _, err = run_eval(["--merge", str(run), "--json"])
     assert code == 0 and "the submission was not written" in err and not prefix.parent.exists()
-    assert _eval(["--merge", str(run), "--json", "--write-submission", str(prefix)])[0] == 0
+    assert run_eval(["--merge", str(run), "--json", "--write-submission", str(prefix)])[0] == 0
     assert sorted(open_submission(prefix)) == sorted(s.scenario_id for s in sample_scenarios()[:2])
 
 
 def test_a_shard_folder_linked_out_of_the_run_folder_is_not_written_through(scenes, tmp_path):
     run, elsewhere = tmp_path / "run", tmp_path / "elsewhere"
     argv = ["--scenes", str(scenes), *POLICY, "--out", str(run), "--chunk-size", "1"]
-    assert _eval([*argv, "--shard", "0/2"])[0] == 0
+    assert run_eval([*argv, "--shard", "0/2"])[0] == 0
     elsewhere.mkdir()
     (run / "shard-00001-of-00002").symlink_to(elsewhere)
     _refused([*argv, "--shard", "1/2"], "lies outside the run folder", elsewhere)

@@ -7,8 +7,6 @@ merged numbers are exactly (bit for bit, the JSON compared as a whole) those of 
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import os
 import shutil
@@ -21,7 +19,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from smart_marl.cli import main
 from smart_marl.embedded import sample_scenarios
 from smart_marl.errors import ScenarioReadError
 from smart_marl.metrics.sharding import Shard, parse_shard, scene_slots, shard_from_torchrun
@@ -31,22 +28,14 @@ from smart_marl.readers import expand_paths, read_scenarios
 from smart_marl.readers.scene_cache import write_shard
 from smart_marl.readers.womd import write_womd_tfrecord
 
+from helpers import run_eval
+
 ROOT = Path(__file__).resolve().parents[1]
 POLICY = ["--policy", "random", "--rollouts", "2", "--seed", "3", "--json"]
 
 
-def _eval(argv: list[str]) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main(["eval", *argv])
-        except SystemExit as exc:  # argparse's own checks
-            code = exc.code
-    return code, out.getvalue(), err.getvalue()
-
-
 def _ok(argv: list[str]) -> dict | None:
-    code, out, err = _eval(argv)
+    code, out, err = run_eval(argv)
     assert code == 0, err
     return json.loads(out) if out.strip() else None
 
@@ -173,7 +162,7 @@ def test_a_failed_run_resumes_from_its_finished_chunks_and_ends_as_an_uninterrup
     run = tmp_path / "run"
     argv = ["--scenes", str(scene_dir), *POLICY, "--out", str(run), "--chunk-size", "2"]
     with pytest.raises(RuntimeError, match="injected failure"):
-        _eval(argv)
+        run_eval(argv)
     shard_dir = run / "shard-00000-of-00001"
     assert sorted(p.name for p in shard_dir.iterdir()) == ["chunk-000000.json"]
     calls.clear()
@@ -245,23 +234,23 @@ def test_prior_rollouts_do_not_depend_on_the_split(tiny_prior, tmp_path, one_tor
     (["--chunk-size", "0", "--out", "R"], "--chunk-size"),
 ])
 def test_bad_scale_arguments_exit_2_naming_the_argument(argv, says, scene_dir):
-    code, _, err = _eval(["--scenes", str(scene_dir), *POLICY, *argv])
+    code, _, err = run_eval(["--scenes", str(scene_dir), *POLICY, *argv])
     assert code == 2 and says in err
 
 
 def test_merge_takes_nothing_but_its_run(capsys):
-    code, _, err = _eval(["--merge", "R", "--scenes", "x", "--policy", "random"])
+    code, _, err = run_eval(["--merge", "R", "--scenes", "x", "--policy", "random"])
     assert code == 2 and "--merge takes the scenes and options from RUN/run.json: leave out --scenes, --policy" in err
-    code, _, err = _eval(["--merge", "/nonexistent/run"])
+    code, _, err = run_eval(["--merge", "/nonexistent/run"])
     assert code == 1 and "/nonexistent/run: no such run folder" in err
 
 
 def test_torchrun_without_out_or_with_another_shard_is_refused(scene_dir, monkeypatch, tmp_path):
     monkeypatch.setenv("RANK", "1")
     monkeypatch.setenv("WORLD_SIZE", "2")
-    code, _, err = _eval(["--scenes", str(scene_dir), *POLICY])
+    code, _, err = run_eval(["--scenes", str(scene_dir), *POLICY])
     assert code == 2 and "launched by torchrun as rank 1 of 2: give --out RUN" in err
-    code, _, err = _eval(["--scenes", str(scene_dir), *POLICY, "--out", str(tmp_path / "r"), "--shard", "0/2"])
+    code, _, err = run_eval(["--scenes", str(scene_dir), *POLICY, "--out", str(tmp_path / "r"), "--shard", "0/2"])
     assert code == 2 and "--shard 0/2 but torchrun made this process rank 1 of 2" in err
 
 
@@ -270,14 +259,14 @@ def test_a_run_folder_refuses_another_config_split_or_foreign_chunk(scene_dir, t
     base = ["--scenes", str(scene_dir), *POLICY, "--out", str(run), "--chunk-size", "1"]
     _ok([*base, "--shard", "0/2"])
     # another seed: another run
-    code, _, err = _eval(["--scenes", str(scene_dir), "--policy", "random", "--rollouts", "2", "--seed", "4", "--json",
+    code, _, err = run_eval(["--scenes", str(scene_dir), "--policy", "random", "--rollouts", "2", "--seed", "4", "--json",
                           "--out", str(run), "--shard", "1/2"])
     assert code == 1 and f"{run / 'run.json'}: this folder holds another run (source.seed is 3 there, 4 here)" in err
     # another split
-    code, _, err = _eval([*base, "--shard", "1/3"])
+    code, _, err = run_eval([*base, "--shard", "1/3"])
     assert code == 1 and "this run is split in 2 shard(s), not 3" in err
     # merging before every shard is done names the missing shard and the command that finishes it
-    code, _, err = _eval(["--merge", str(run)])
+    code, _, err = run_eval(["--merge", str(run)])
     assert code == 1 and "shard-00001-of-00002: shard 1/2 has not finished (0 chunk(s) done)" in err and "--shard 1/2" in err
     # a chunk copied in from another run is refused, naming it
     other = tmp_path / "other"
@@ -285,15 +274,15 @@ def test_a_run_folder_refuses_another_config_split_or_foreign_chunk(scene_dir, t
          "--chunk-size", "1", "--shard", "1/2"])
     (run / "shard-00001-of-00002").mkdir()
     shutil.copy(other / "shard-00001-of-00002" / "chunk-000000.json", run / "shard-00001-of-00002" / "chunk-000000.json")
-    code, _, err = _eval([*base, "--shard", "1/2"])
+    code, _, err = run_eval([*base, "--shard", "1/2"])
     assert code == 1 and "shard-00001-of-00002/chunk-000000.json: a chunk of another run" in err
     # a shard folder of another split beside this run's shards
     shutil.rmtree(run / "shard-00001-of-00002")
     _ok([*base, "--shard", "1/2"])
-    code, _, err = _eval(["--merge", str(run), "--write-submission", str(tmp_path / "sub.binproto")])
+    code, _, err = run_eval(["--merge", str(run), "--write-submission", str(tmp_path / "sub.binproto")])
     assert code == 1 and "this run did not keep its rollouts (run it with --write-submission)" in err
     (run / "shard-00000-of-00003").mkdir()
-    code, _, err = _eval(["--merge", str(run)])
+    code, _, err = run_eval(["--merge", str(run)])
     assert code == 1 and "shard-00000-of-00003: a shard of a 3-way split, but this run is split 2 ways" in err
 
 

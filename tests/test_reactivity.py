@@ -5,9 +5,7 @@ running a red light (the 2025 rules' traffic-light violation)."""
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,15 +13,12 @@ import pytest
 from smart_marl.metrics.inputs import logged_scene, simulated_agent_indices
 from smart_marl.scenario import AgentType
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+from helpers import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def reactivity():
-    spec = importlib.util.spec_from_file_location("reactivity", BENCHMARKS / "reactivity.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("reactivity")
 
 
 def test_leader_follower_pairs_find_the_lane_of_the_whatif_scene(reactivity, womd_scenes):
@@ -183,10 +178,7 @@ def _braking(v0: float, until: float, start: int = 15, decel: float = 3.0) -> np
 
 
 def test_slowing_causes_split_a_stop_at_a_stop_sign_from_a_queue_behind_a_braking_car():
-    import importlib.util
-    spec = importlib.util.spec_from_file_location("slowing_causes", BENCHMARKS / "slowing_causes.py")
-    sc = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(sc)
+    sc = load_benchmark("slowing_causes")
     # a car that stops at a stop sign 60 m ahead; a car in the next lane that keeps its speed
     scene = _straight_road_scene([(0.0, 0.0, _braking(10.0, 0.0)), (0.0, 3.5, np.full(91, 10.0))], stop_sign_x=62.0)
     slowing = sc.slowing_vehicles(scene, np.ones(2, bool))

@@ -149,8 +149,10 @@ def test_same_seed_same_rollouts_other_seed_differs(model, vocab, scenes):
 
 
 def test_sampled_tokens_are_inside_the_top_k_with_unclipped_log_probs(model, vocab, scenes):
-    # plain top-k (collision-aware sampling may go below the top k: tests/test_avoidance.py)
-    state = _start(model, vocab, scenes[:2], num_rollouts=8, seed=5, top_k=3, temperature=0.7, avoid_collisions=False)
+    # plain top-k (collision-aware sampling and traffic control may go below the top k: tests/test_avoidance.py,
+    # tests/test_stop_lines.py)
+    state = _start(model, vocab, scenes[:2], num_rollouts=8, seed=5, top_k=3, temperature=0.7, avoid_collisions=False,
+                   stop_lines=False)
     for _ in range(3):
         out = state.step()
         sim = out.simulated
@@ -229,12 +231,13 @@ def test_hermite_frames_continue_steady_motion_and_wrap_headings():
 def test_spline_frames_keep_the_closed_loop_and_smooth_the_speed(scenes):
     """The interpolation only draws the frames between token ends: same tokens, same token-end
     poses as the contour frames; the 10 Hz speed changes less across token boundaries (the
-    embedded prior on a sample scene: realistic tokens). Plain sampling: collision-aware sampling
-    checks candidate tokens along the frames the rollout draws, so its tokens may differ."""
+    embedded prior on a sample scene: realistic tokens). Plain sampling: collision-aware sampling and traffic control
+    check candidate tokens along the frames the rollout draws (or its end speed), so their tokens may differ."""
     prior = load_embedded()
     scene = scenes[2]  # 26 agents faster than 2 m/s
-    spline = rollout(prior, scene, num_rollouts=2, num_steps=6, seed=4, avoid_collisions=False)
-    contour = rollout(prior, scene, num_rollouts=2, num_steps=6, seed=4, interpolation="contour", avoid_collisions=False)
+    spline = rollout(prior, scene, num_rollouts=2, num_steps=6, seed=4, avoid_collisions=False, stop_lines=False)
+    contour = rollout(prior, scene, num_rollouts=2, num_steps=6, seed=4, interpolation="contour", avoid_collisions=False,
+                      stop_lines=False)
     np.testing.assert_array_equal(spline.tokens, contour.tokens)
     np.testing.assert_allclose(spline.trajectory[:, :, 4::5], contour.trajectory[:, :, 4::5], atol=1e-4)
     assert not np.allclose(spline.trajectory, contour.trajectory, atol=1e-3)

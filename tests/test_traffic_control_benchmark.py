@@ -5,9 +5,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib.util
 import inspect
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -17,17 +15,15 @@ from smart_marl.rollout import RolloutState
 from smart_marl.rollout.stop_lines import line_groups
 from smart_marl.scenario import SignalState
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+from helpers import load_benchmark
+
 F = 81  # frames cf .. cf + 80
 STOP, GO, UNKNOWN = int(SignalState.STOP), int(SignalState.GO), int(SignalState.UNKNOWN)
 
 
 @pytest.fixture(scope="module")
 def tc():
-    spec = importlib.util.spec_from_file_location("traffic_control", BENCHMARKS / "traffic_control.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("traffic_control")
 
 
 def _lines(tc, xy, direction, sign, red):

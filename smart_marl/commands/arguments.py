@@ -123,7 +123,8 @@ def stop_lines_flag(parser: argparse.ArgumentParser, who: str = "the prior") -> 
     parser.add_argument("--no-stop-lines", dest="stop_lines", action="store_false",
                         help=f"{who}'s vehicles ignore stop lines: no stopping at red lights and stop signs, no release "
                              "when a light turns green (default: traffic control on, smart_marl.rollout.stop_lines)")
-    parser.add_argument("--stop-lines", dest="stop_lines", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--stop-lines", dest="stop_lines", action="store_true",
+                        help="traffic control on (the default; kept for older command lines)")
     parser.set_defaults(stop_lines=True)
 
 

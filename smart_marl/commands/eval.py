@@ -38,9 +38,9 @@ from ..metrics import SceneNotScorableError, aggregate, logged_scene, score_roll
 from ..metrics.baselines import policy_rollouts
 from ..metrics.config import get_rules
 from ..metrics.inputs import RolloutError, Rollouts
-from ..metrics.sharding import (RunDir, RunDirError, Shard, check_result_target, input_digest, merge_run, metrics_record,
-                                parse_shard, plan_submission, run_shard, scene_slots, shard_from_torchrun, write_submission_parts,
-                                write_whole)
+from ..metrics.run_files import RunDirError, metrics_record, plan_submission, write_submission_parts, write_whole
+from ..metrics.sharding import (RunDir, Shard, check_result_target, input_digest, merge_run, parse_shard, run_shard, scene_slots,
+                                shard_from_torchrun)
 from ..metrics.submission import (ScenarioRolloutArrays, build_submission, check_against_scene, open_submission,
                                   submission_files, write_rollouts)
 from ..model.checkpoint import EMBEDDED, checkpoint_paths, load_prior, resolve_checkpoint_path

@@ -6,9 +6,9 @@ sampling, scenes x rollouts in one batch) and the stepping API the environment d
 """
 
 from .engine import (
-    LIGHTS, MODES, RolloutResult, RolloutState, SceneHistory, StepOutput, TrackFrames, collect_result, rollout, scene_history,
-    track_frames,
+    LIGHTS, MODES, RolloutResult, RolloutState, StepOutput, TrackFrames, collect_result, rollout, track_frames,
 )
+from .history import SceneHistory, scene_history
 from .sampling import (
     DEFAULT_TOP_K, TEMPERATURE_RANGE, has_prior_logits, no_prior_logits, reference_log_probs, reference_name, sample_tokens,
     temperature_rule, top_k_mask,

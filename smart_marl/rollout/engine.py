@@ -50,7 +50,6 @@ at the current frame has a trajectory. z is carried from each agent's last valid
 from __future__ import annotations
 
 import copy
-import warnings
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -61,14 +60,14 @@ from ..model.batch import light_codes, scene_road
 from ..model.checkpoint import load_prior
 from ..model.motionnet import NUM_MOTION_TYPES
 from ..scenario import DT_S, Scenario
-from ..tokens import FRAMES_PER_TOKEN, MOTION_TYPES, TOKEN_S, MotionVocabulary, token_boundaries, tokenize_tracks
-from ..tokens.motion import match_token_ends
+from ..tokens import FRAMES_PER_TOKEN, MOTION_TYPES, MotionVocabulary
 from ..tokens.road import RoadVocabulary
 from .avoidance import excluded_tokens
 from .frames import INTERPOLATIONS, token_frames
+from .history import scene_history
 from .sampling import DEFAULT_TOP_K, sample_tokens
-from .stop_lines import (STOPPED_MPS, lights_at, logged_light_steps, served_after_step, stood_after_step, stop_line_tensors, stop_line_test,
-                         token_ends)
+from .stop_lines import (lights_at, logged_light_steps, served_after_step, stood_after_step, stood_in_history, stop_line_tensors,
+                         stop_line_test, token_ends)
 
 MODES = ("cached", "full")
 LIGHTS = ("current", "log")
@@ -83,66 +82,6 @@ at its own current frame)."""
 def _dummy_road_vocab() -> RoadVocabulary:
     """Rollouts do not read road token ids (RoadNet embeds the pieces' points): a 1-token stand-in."""
     return RoadVocabulary(points=np.zeros((1, 11, 2), np.float32), tolerance_m=0.0, requested_size=1)
-
-
-@dataclass
-class SceneHistory:
-    """One scene's model inputs up to the current frame (numpy), ``N`` slots x ``S`` history steps."""
-
-    track_index: np.ndarray  # [N] int64, the slot's track in the scene
-    tokens: np.ndarray  # [N, S] int64
-    valid: np.ndarray  # [N, S] bool
-    start_pose: np.ndarray  # [N, S, 3] float32
-    end_pose: np.ndarray  # [N, S, 3] float32
-    agent_type: np.ndarray  # [N] int64, 0..2
-    agent_shape: np.ndarray  # [N, 3] float32
-    simulated: np.ndarray  # [N] bool, valid at the current frame
-
-
-def scene_history(scenario: Scenario, vocab: MotionVocabulary) -> SceneHistory:
-    """Tokenize a scene's history (frames up to the current one only; see the module docstring)."""
-    tr = scenario.tracks
-    cf = scenario.current_frame
-    bounds = token_boundaries(cf, cf + 1)  # ends at the current frame
-    mt = tokenize_tracks(tr.position[:, : cf + 1], tr.heading[:, : cf + 1], tr.valid[:, : cf + 1], tr.types, vocab, bounds)
-    s = max(mt.num_steps, 1)
-    ids, valid = np.zeros((tr.num_tracks, s), np.int64), np.zeros((tr.num_tracks, s), bool)
-    start, end = np.zeros((tr.num_tracks, s, 3), np.float32), np.zeros((tr.num_tracks, s, 3), np.float32)
-    if mt.num_steps:
-        ids[:], valid[:], start[:], end[:] = mt.ids, mt.valid, mt.start_pose, mt.reached[:, 1:]
-    is_motion = np.isin(tr.types, [int(t) for t in vocab.types])
-    sim = is_motion & tr.valid[:, cf]
-    keep = np.flatnonzero(is_motion & (valid.any(1) | sim))
-    ids, valid, start, end, sim = ids[keep], valid[keep], start[keep], end[keep], sim[keep]
-    types = tr.types[keep].astype(np.int64)
-    cur = np.concatenate([tr.position[keep, cf, :2], tr.heading[keep, cf, None]], -1).astype(np.float64)  # [N, 3]
-    # agents that appeared less than a token ago: a synthetic last token matching the logged velocity
-    late = sim & ~valid[:, -1]
-    if late.any():
-        c, sn = np.cos(cur[late, 2]), np.sin(cur[late, 2])
-        vel = tr.velocity[keep[late], cf].astype(np.float64)
-        target = np.stack([c * vel[:, 0] + sn * vel[:, 1], -sn * vel[:, 0] + c * vel[:, 1]], -1) * TOKEN_S
-        rows = np.flatnonzero(late)
-        for t in np.unique(types[late]):  # per type present (at most 3), vectorised over agents
-            sel = types[late] == t
-            ends = vocab[int(t)].poses[:, -1].astype(np.float64)  # [V, 3]
-            tok = match_token_ends(ends, target[sel])
-            le = ends[tok]
-            h0 = cur[late][sel, 2] - le[:, 2]
-            start_xy = cur[late][sel, :2] - np.stack([np.cos(h0) * le[:, 0] - np.sin(h0) * le[:, 1],
-                                                      np.sin(h0) * le[:, 0] + np.cos(h0) * le[:, 1]], -1)
-            r = rows[sel]
-            ids[r, -1] = tok
-            start[r, -1] = np.concatenate([start_xy, h0[:, None]], -1)
-            valid[r, -1] = True
-    end[sim, -1] = cur[sim]  # re-anchor at the logged current pose
-    hist = np.where(tr.valid[keep, : cf + 1, None], tr.size[keep, : cf + 1], np.nan)
-    with np.errstate(all="ignore"):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            shape = np.nan_to_num(np.nanmedian(hist, axis=1)).astype(np.float32)
-    return SceneHistory(track_index=keep.astype(np.int64), tokens=ids, valid=valid, start_pose=start.astype(np.float32),
-                        end_pose=end.astype(np.float32), agent_type=types, agent_shape=shape.reshape(-1, 3), simulated=sim)
 
 
 def _pad_stack(arrays: list[np.ndarray], size: tuple[int, ...], fill=0) -> np.ndarray:
@@ -280,11 +219,7 @@ class RolloutState:
             for name, t in stop_line_tensors(self.scenes, dev, steps).items():
                 setattr(self, name, t)
             self.stop_served = torch.zeros(*self.track_index.shape, self.stop_xy.shape[1], dtype=torch.bool, device=dev)
-            self.stop_stood = torch.zeros(self.track_index.shape, dtype=torch.long, device=dev)  # token steps stood in a row
-            for k in range(s):  # the history's last steps stood in a row (an agent may have waited at a sign already)
-                moved = (hist_end[:, :, k, :2] - hist_start[:, :, k, :2]).norm(dim=-1) / TOKEN_S
-                stood = hist_valid[:, :, k] & (moved < STOPPED_MPS)
-                self.stop_stood = torch.where(stood, self.stop_stood + 1, torch.zeros_like(self.stop_stood))
+            self.stop_stood = stood_in_history(hist_valid, hist_start, hist_end)  # token steps stood in a row
             self.stop_token_ends = token_ends(self.token_poses, interpolation)
             self._stop_lights_now()
         # ---- history through the model

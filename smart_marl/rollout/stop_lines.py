@@ -56,7 +56,10 @@ LINE_AHEAD_M, LINE_SIDE_M = 40.0, 2.0
 ALIGNED_COS = math.cos(math.radians(45.0))
 """... and its lane runs within 45 degrees of the vehicle's heading."""
 STOPPED_MPS, SERVED_WITHIN_M = 1.0, 8.0
-"""A vehicle slower than this with its front this near a stop sign's line has stopped there."""
+"""A vehicle slower than this stands; one slower than :data:`SERVED_BELOW_MPS` with its front this near a stop sign's
+line has served it."""
+SERVED_BELOW_MPS = 1.0
+"""A stop sign is served below this speed (m/s, over the last token) near its line: a full stop."""
 RED = (int(SignalState.STOP), int(SignalState.ARROW_STOP), int(SignalState.FLASHING_STOP))
 GREEN = (int(SignalState.GO), int(SignalState.ARROW_GO))
 SAME_LINE_M = 1.0
@@ -317,10 +320,10 @@ def stop_line_test(state, rows: torch.Tensor):
 
 def served_after_step(state) -> torch.Tensor:
     """[G, N, L] the stop signs' lanes each slot has now served: every lane of the line (:func:`line_groups`) it has
-    stood at (:data:`STOPPED_MPS` within :data:`SERVED_WITHIN_M` of its nearest unserved sign), and what it had
+    stood at (:data:`SERVED_BELOW_MPS` within :data:`SERVED_WITHIN_M` of its nearest unserved sign), and what it had
     served before."""
     speed = _speed_mps(state.pose, state.previous_pose)
-    g, s = (state.simulated & (state.agent_type == 0) & (speed < STOPPED_MPS)).nonzero(as_tuple=True)
+    g, s = (state.simulated & (state.agent_type == 0) & (speed < SERVED_BELOW_MPS)).nonzero(as_tuple=True)
     served = state.stop_served.clone()
     if len(g):
         dist, line = nearest_line(state, g, s)
@@ -340,12 +343,22 @@ def stood_after_step(state) -> torch.Tensor:
     return torch.where(standing, state.stop_stood + 1, torch.zeros_like(state.stop_stood))
 
 
+def stood_in_history(valid: torch.Tensor, start: torch.Tensor, end: torch.Tensor) -> torch.Tensor:
+    """[G, N] how many of the history's last token steps in a row each slot stood (an agent may have waited at a sign
+    before the current frame already), from its steps' ``valid`` [G, N, S] and start / end poses [G, N, S, 3]."""
+    stood = torch.zeros(valid.shape[:2], dtype=torch.long, device=valid.device)
+    for k in range(valid.shape[2]):
+        standing = valid[:, :, k] & (_speed_mps(end[:, :, k], start[:, :, k]) < STOPPED_MPS)
+        stood = torch.where(standing, stood + 1, torch.zeros_like(stood))
+    return stood
+
+
 def lights_at(steps: torch.Tensor, clock: torch.Tensor) -> torch.Tensor:
     """[B, ...] each scene's entry of ``steps`` [B, S, ...] at its own token step ``clock`` [B] (the last held beyond S)."""
     k = clock.clamp(max=steps.shape[1] - 1)
     return steps[torch.arange(steps.shape[0], device=steps.device), k]
 
 
-__all__ = ["GREEN", "STOP_DECEL_MPS2", "green_line_goes", "lights_at", "line_lights", "logged_light_steps", "nearest_line",
-           "creeping", "released", "scene_stop_lines", "served_after_step", "stood_after_step", "stop_line_test", "stop_line_tensors",
-           "token_ends"]
+__all__ = ["GREEN", "STOP_DECEL_MPS2", "creeping", "green_line_goes", "lights_at", "line_lights", "logged_light_steps",
+           "nearest_line", "released", "scene_stop_lines", "served_after_step", "stood_after_step", "stood_in_history",
+           "stop_line_test", "stop_line_tensors", "token_ends"]
