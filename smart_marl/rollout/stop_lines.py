@@ -21,11 +21,14 @@ excluded, and a token that puts the bumper more than half a metre past the line 
 **Go.** A vehicle that stands (under 1 m/s over its last token), is not held, and has room ahead (no agent within
 :data:`CLEAR_GAP_M` of its front in its path, 1.75 m to either side of its heading) is *released* when the reason
 it stands has gone: the nearest line ahead of it (in the window above) is a green light (GO, ARROW_GO) or a stop
-sign it has served and stood at for :data:`SIGN_WAIT_STEPS` (4 s), or, queued before a line that does not hold it, the vehicle ahead of it in its path (within
-30 m, heading within 30 degrees) drives off (faster than 2 m/s). A released vehicle does not draw the tokens that leave it standing (ending less than
-:data:`MIN_ADVANCE_M` ahead), nor does a held one that stands more than :data:`CREEP_FRONT_M` before its line with
-room ahead (it pulls up to the line, as queued drivers do, and a stop sign is served only near its line). Parked cars stand beside the lanes, away from stop lines and out of the moving
-traffic's path, and are not released.
+sign it has served and stood at for :data:`SIGN_WAIT_STEPS` (4 s), or, queued before a line that does not hold it,
+the vehicle ahead of it in its path (within 30 m, heading within 30 degrees) drives off (faster than 2 m/s). A
+released vehicle does not draw the tokens that leave it standing (ending less than :data:`MIN_ADVANCE_M` ahead).
+Parked cars stand beside the lanes, away from stop lines and out of the moving traffic's path, and are not released.
+
+**Pull up.** A held vehicle that stands more than :data:`CREEP_FRONT_M` before its line with room ahead does not
+draw the tokens that leave it standing either: it pulls up to the line, as queued drivers do (and a stop sign is
+served only near its line).
 
 A row whose every token is excluded keeps them all, as in collision-aware sampling. Light states: the current
 frame's, held (``lights="current"``, the sim-agents challenge's rule) or the log's at every step, held after the
