@@ -30,21 +30,40 @@ reference; :class:`envs._core.TrafficCore` underneath both) with tensors instead
   ``prior_cache_size`` freshly started prior states are kept in memory.
 
 ``device="cuda"``: the prior, the state and every tensor the environment returns stay on the device.
+
+What it refuses (:mod:`envs.errors`), by the PettingZoo env's rules: the constructor's arguments as
+:mod:`envs._arguments` checks them, ``max_agents`` in 1..:data:`MAX_AGENT_SLOTS`, ``num_scenes`` in
+1..:data:`MAX_SCENES`, ``scenarios`` of another type than the ones above (an ``EnvConfigError``, an
+``EnvConfigTypeError`` for a wrong type, naming the argument). Every step, once and vectorised
+(:func:`check_actions`: no loop over agents, one ``.any()`` the only host sync): a missing
+``("agents", "action")``, one of another shape than [B, A] or [B, A, 1], of a dtype that is neither
+integer nor float (a bool tensor is refused: ``True`` is not token 1), or a live agent's entry that is
+not a token id 0..V-1 (negative, ``>= V``, NaN, inf, a fraction: a float tensor is taken where its
+live entries are whole numbers, as ``smart_traffic_v0`` takes 3.0): an ``ActionError`` (an
+``ActionTypeError`` for the dtype) naming the key, the scene row, the agent slot and the value.
+Entries of padded and done agent slots are ignored, NaN included. A ``"_reset"`` (:func:`check_reset_mask`)
+must be a bool tensor of shape [B] or [B, 1]; anything else (0.5, NaN, -1, 7, 0/1 integers, which
+TorchRL's own reset would read as row indices) is an ``EnvConfigError`` and no row is restarted.
+A refused step or reset leaves the state as it was.
 """
 
 from __future__ import annotations
 
-from typing import Sequence
+import math
+import os
+from collections.abc import Iterable, Mapping
+from typing import Any, Sequence
 
+import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from smart_marl.config_files import check_value, integer
+from smart_marl.config_files import check_value, integer, is_integer, shown
 from smart_marl.config_files import seed as seed_rule
 from smart_marl.rollout import DEFAULT_TOP_K, reference_name
-from smart_marl.scenario import AgentType
+from smart_marl.scenario import AgentType, Scenario
 from smart_marl.tokens import MotionVocabulary
 
 from ._arguments import check_env_arguments
@@ -53,10 +72,24 @@ from ._observation import ObservationConfig, observation_size
 from ._pool import ScenePool, next_scenes
 from ._reward import REWARD_TERMS, TERMINATION_EVENTS
 from ._setup import load_env_prior
-from .errors import EnvConfigError
+from .errors import ActionError, ActionTypeError, EnvConfigError, EnvConfigTypeError, EnvStateError
 
 GROUP = "agents"
+ACTION_KEY = (GROUP, "action")
 INFO_KEYS = ("collision", "offroad", "goal_reached", "route_progress_m", "action_log_prob")
+MAX_AGENT_SLOTS = 1024
+"""The most agent slots per scene (``max_agents``): no scene the project reads or makes holds more agents (a generated
+scene at most 1,024, :mod:`smart_marl.sources.sumo_config`; a real WOMD one a few hundred tracks), so more slots would
+only stay padded, and each slot costs about 6 KB a scene in every step's TensorDict (the prior's 1,024 float32
+logits and the 473-value observation): ``max_agents=10**9`` asked terabytes."""
+MAX_SCENES = 8192
+"""The most scenes stepped together (``num_scenes``): a scene takes about 13 MB of the device's memory (its prior's
+KV cache, constants and state: 54 GB at 4,096 generated scenes on an H200, docs/scale.md), so 8,192 take about
+110 GB, what the largest GPU the project runs on (an H200, 141 GB) holds; the earlier bound, 65,536, would ask
+~860 GB. On a CPU the machine's memory is the limit, and may be lower."""
+INTEGER_DTYPES = (torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64, torch.uint16, torch.uint32, torch.uint64)
+FLOAT_DTYPES = (torch.float16, torch.bfloat16, torch.float32, torch.float64)
+"""The dtypes an action tensor may have: token ids as integers, or as floats that are whole numbers."""
 
 
 class SmartTrafficBatchedEnv(EnvBase):
@@ -77,10 +110,14 @@ class SmartTrafficBatchedEnv(EnvBase):
                                 lights=lights)
         if a["max_agents"] is None:
             raise EnvConfigError("max_agents must be an integer >= 1: the batched env's agent group has that many slots per scene")
-        for name, value, high in (("num_scenes", num_scenes, 1 << 16), ("prior_cache_size", prior_cache_size, 1 << 20),
-                                  ("max_loaded_scenes", max_loaded_scenes, 1 << 20)):
-            check_value(name, value, integer(1, high), EnvConfigError)
+        for name, value, high, why in (("max_agents", a["max_agents"], MAX_AGENT_SLOTS, "the most agents of a scene"),
+                                       ("num_scenes", num_scenes, MAX_SCENES, "~13 MB of device memory a scene: ~110 GB"),
+                                       ("prior_cache_size", prior_cache_size, 1 << 20, ""),
+                                       ("max_loaded_scenes", max_loaded_scenes, 1 << 20, "")):
+            check_value(name, value, integer(1, high, why), EnvConfigError if is_integer(value) else EnvConfigTypeError)
         check_value("seed", seed, seed_rule, EnvConfigError)
+        if not isinstance(scenarios, ScenePool):
+            scenarios = scenario_sources(scenarios)
         device = a["device"]
         super().__init__(device=device, batch_size=torch.Size([int(num_scenes)]), allow_done_after_reset=True)
         self.model, self.motion_vocab = load_env_prior(prior, motion_vocab, device)
@@ -138,13 +175,15 @@ class SmartTrafficBatchedEnv(EnvBase):
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         reset = None if tensordict is None else tensordict.get("_reset", None)
+        if reset is not None:
+            reset = check_reset_mask(reset, self.num_scenes)  # refused before any row is touched
         if reset is None or self.core.scenes is None:
             picked, scenes = self._next_scenes(self.num_scenes)
             self.core.reset(scenes, self._seed, num_agents=self.max_agents)
             self.scene_indices = picked
             self._last: CoreStep | None = None
         else:
-            rows = reset.reshape(self.num_scenes).nonzero().squeeze(1).tolist()
+            rows = reset.nonzero().squeeze(1).tolist()
             if rows:
                 picked, scenes = self._next_scenes(len(rows))
                 self.core.refill(rows, scenes)
@@ -153,7 +192,9 @@ class SmartTrafficBatchedEnv(EnvBase):
         return self._output(None)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        actions = tensordict.get((GROUP, "action")).reshape(self.num_scenes, self.max_agents)
+        if self.core.scenes is None:
+            raise EnvStateError("step() before reset(): call reset() to start the scenes")
+        actions = check_actions(tensordict.get(ACTION_KEY, None), self.core.live, self.vocab_size)  # [B, A] long
         return self._output(self.core.step(actions))
 
     def _output(self, step: CoreStep | None) -> TensorDictBase:
@@ -186,9 +227,103 @@ class SmartTrafficBatchedEnv(EnvBase):
                            "truncated": scene_truncated}, batch_size=[b], device=self.device)
 
 
+# ------------------------------------------------------------------------------ input checks
+def scenario_sources(value: Any) -> Any:
+    """``scenarios`` as :class:`~envs._pool.ScenePool` takes it (a path, ``"embedded"``, a Scenario, or a list of
+    these); :class:`~envs.errors.EnvConfigTypeError` naming the argument (and the entry of a list) for another type."""
+    kinds = "a path, 'embedded', a Scenario, a list of these or a ScenePool"
+    if isinstance(value, (str, os.PathLike, Scenario)):
+        return value
+    if isinstance(value, (bytes, Mapping)) or not isinstance(value, Iterable):
+        raise EnvConfigTypeError(f"scenarios must be {kinds}, got {shown(value)} ({type(value).__name__})")
+    sources = list(value)
+    for i, source in enumerate(sources):
+        if not isinstance(source, (str, os.PathLike, Scenario)):
+            raise EnvConfigTypeError(f"scenarios[{i}] must be a path, 'embedded' or a Scenario, got {shown(source)} "
+                                     f"({type(source).__name__})")
+    return sources
+
+
+def check_actions(actions: Any, live: torch.Tensor, vocab_size: int) -> torch.Tensor:
+    """[B, A] long: the token ids of ``actions`` (a step's ``("agents", "action")``) for the live agents ``live``
+    [B, A] bool, 0 in the slots of padded and done agents whatever they hold (NaN there is ignored).
+
+    The PettingZoo env's rules, vectorised (no loop over agents; the one host sync is the ``.any()``): a tensor of
+    shape [B, A] or [B, A, 1], of an integer dtype or a float one whose live entries are whole numbers (3.0 is
+    token 3); every live entry in 0..``vocab_size`` - 1. :class:`~envs.errors.ActionTypeError` for another
+    type or dtype (a bool tensor: ``True`` is not token 1); :class:`~envs.errors.ActionError` for a missing
+    action, another shape, or a live entry that is not a token id (negative, ``>= V``, NaN, inf, a fraction),
+    naming the first such entry's scene row, agent slot and value."""
+    b, a = live.shape
+    ids = f"token ids 0..{vocab_size - 1}"
+    if actions is None:
+        raise ActionError(f"step: no {ACTION_KEY} in the TensorDict: every step needs a [B, A] = [{b}, {a}] tensor of {ids} "
+                          f"(entries of padded and done agent slots are ignored)")
+    if not isinstance(actions, torch.Tensor):
+        raise ActionTypeError(f"{ACTION_KEY} must be a tensor of {ids}, got {type(actions).__name__}")
+    if actions.dtype not in INTEGER_DTYPES + FLOAT_DTYPES:
+        raise ActionTypeError(f"{ACTION_KEY} must hold integer {ids}, got a {actions.dtype} tensor"
+                              + (" (True is not token 1)" if actions.dtype == torch.bool else ""))
+    if tuple(actions.shape) not in ((b, a), (b, a, 1)):
+        raise ActionError(f"{ACTION_KEY} must have shape [B, A] = [{b}, {a}] (or [{b}, {a}, 1]): one token id per scene row "
+                          f"and agent slot, got {list(actions.shape)}")
+    raw = actions.reshape(b, a).to(live.device)
+    if raw.dtype.is_floating_point:
+        tokens = raw
+        ok = (raw >= 0) & (raw < vocab_size) & (raw == raw.trunc())  # NaN fails every comparison, inf the bound
+    else:
+        tokens = raw.to(torch.int64)  # a uint8's comparison with 1024 would wrap, unsigned 16-64 bits have none
+        ok = (tokens >= 0) & (tokens < vocab_size)
+    bad = live & ~ok  # [B, A]
+    if bool(bad.any()):
+        raise ActionError(_refused_action(raw, bad, vocab_size))
+    return tokens.masked_fill(~live, 0).to(torch.long)
+
+
+def _refused_action(raw: torch.Tensor, bad: torch.Tensor, vocab_size: int) -> str:
+    """The message of a step whose live agents' entries ``bad`` [B, A] of ``raw`` [B, A] are refused (the first named)."""
+    rows, slots = bad.nonzero(as_tuple=True)
+    r, s = int(rows[0]), int(slots[0])
+    value = raw[r, s].item()
+    shown_value = str(np.float32(value)) if raw.dtype in FLOAT_DTYPES[:3] else repr(value)  # 3.7, not 3.700000047683716
+    if isinstance(value, float) and not math.isfinite(value):
+        why = "NaN and infinities are not token ids"
+    elif isinstance(value, float) and not value.is_integer():
+        why = "a fraction is not a token id"
+    elif value < 0:
+        why = "a negative id is not an action"
+    else:
+        why = "beyond the vocabulary"
+    more = f" ({len(rows) - 1} more live agent(s) with a refused entry)" if len(rows) > 1 else ""
+    return (f"{ACTION_KEY} of the live agent in scene row {r}, agent slot {s} is {shown_value}: {why}; token ids are "
+            f"0..{vocab_size - 1}{more}")
+
+
+def check_reset_mask(reset: Any, num_scenes: int) -> torch.Tensor:
+    """[B] bool: the scene rows a ``"_reset"`` entry marks for a restart. It must be a bool tensor of shape [B] or
+    [B, 1] (what TorchRL's collectors send); :class:`~envs.errors.EnvConfigTypeError` for another type or dtype
+    (0/1 integers included: TorchRL's own reset, after this one, reads a non-bool ``"_reset"`` as row indices),
+    :class:`~envs.errors.EnvConfigError` for another shape, naming the first row that holds neither 0 nor 1."""
+    b = num_scenes
+    if not isinstance(reset, torch.Tensor):
+        raise EnvConfigTypeError(f"'_reset' must be a bool tensor of shape [{b}] or [{b}, 1] marking the scene rows to "
+                                 f"restart, got {type(reset).__name__}")
+    if tuple(reset.shape) not in ((b,), (b, 1)):
+        raise EnvConfigError(f"'_reset' must have shape [{b}] or [{b}, 1] (one flag per scene row), got {list(reset.shape)}")
+    if reset.dtype != torch.bool:
+        flags = reset.detach().reshape(b).cpu()
+        values = (flags.to(torch.float64) if flags.dtype.is_floating_point else flags).tolist()  # float8 has no tolist
+        odd = next(((i, v) for i, v in enumerate(values) if v not in (0, 1)), None)  # NaN is neither
+        what = f"scene row {odd[0]} holds {odd[1]!r}" if odd else "0/1 values: pass mask.bool()"
+        raise EnvConfigTypeError(f"'_reset' must be a bool tensor (True: restart that scene row), got {reset.dtype} ({what}); "
+                                 f"TorchRL reads a '_reset' of another dtype as row indices, not as a mask")
+    return reset.reshape(b)
+
+
 def batched_env(**kwargs) -> SmartTrafficBatchedEnv:
     """The batched TorchRL environment (:class:`SmartTrafficBatchedEnv`; module docstring)."""
     return SmartTrafficBatchedEnv(**kwargs)
 
 
-__all__ = ["GROUP", "INFO_KEYS", "SmartTrafficBatchedEnv", "batched_env"]
+__all__ = ["ACTION_KEY", "GROUP", "INFO_KEYS", "MAX_AGENT_SLOTS", "MAX_SCENES", "SmartTrafficBatchedEnv", "batched_env",
+           "check_actions", "check_reset_mask", "scenario_sources"]
