@@ -80,8 +80,8 @@ from .finetune_config import (MAX_EVAL_EPISODES, FinetuneConfig, FinetuneConfigE
                               network_differences)
 from .kl_ppo import PriorKLPPOLoss
 from .policy import (Critic, ExpertTensorPolicy, FinetunedTensorPolicy, PolicyError, PolicyLogits, PriorTensorPolicy,
-                     TensorPolicy, actor_from_weights, expert_within_top_k, prior_digest, read_policy, save_policy,
-                     token_motion_features)
+                     TensorPolicy, actor_from_weights, check_policy_tensors, expert_within_top_k, policy_files,
+                     policy_tensor_shapes, prior_digest, read_policy, save_policy, token_motion_features)
 from .prior_policy import kl_to_prior
 
 OBS_KEY = (GROUP, "observation", "observation")
@@ -197,19 +197,35 @@ def build_modules(cfg: FinetuneConfig, obs_dim: int, vocab_size: int, n_agents: 
 def load_policy(path: str | Path = "embedded") -> tuple[FinetuneConfig, PolicyLogits, dict]:
     """(config, actor logits net with its weights, meta) of a policy checkpoint (NAME or NAME.json), or of
     the package's fine-tuned policy (``"embedded"``: trained against the embedded prior, see
-    docs/policy_card.md). A policy saved with the digest of its prior (``prior_sha256``) is refused
-    when its config's prior is another one."""
+    docs/policy_card.md). The file is checked whole before use, each problem a :class:`FinetuneError`
+    naming the file and the field or tensor: its sizes and tensors (:func:`agents.policy.read_policy`),
+    its config by the fine-tuning config's rules (``n_agents`` its ``max_agents``), and exactly the
+    tensors, with the shapes, of the networks its config builds
+    (:func:`agents.policy.check_policy_tensors`). A policy saved with the digest of its prior
+    (``prior_sha256``) is refused when its config's prior is another one."""
     try:
+        jpath, wpath = policy_files(path)
         meta, weights = read_policy(path)
     except PolicyError as exc:
         raise FinetuneError(str(exc)) from exc
     known = {f.name for f in dataclasses.fields(FinetuneConfig)}
-    config = {k: v for k, v in meta.get("config", {}).items() if k in known}
+    config = {k: v for k, v in meta["config"].items() if k in known}
     config.setdefault("reference_top_k", None)  # policies saved before the top-k reference were trained on the full softmax
     if path == "embedded":
         config["prior"] = "embedded"  # the package's policy goes with the package's prior
     config["device"] = "cpu"  # where it trained is no promise of where it runs: the weights load on the CPU
-    cfg = load_finetune_config(config)
+    try:
+        cfg = load_finetune_config(config)
+    except FinetuneError as exc:
+        raise FinetuneError(f"{jpath}: {exc}") from exc
+    if meta["n_agents"] != cfg.max_agents:
+        raise FinetuneError(f"{jpath}: n_agents {meta['n_agents']} is not its config's max_agents {cfg.max_agents}")
+    network = {k: getattr(cfg, k) for k in ("hidden", "depth", "residual", "actor_head", "critic")}
+    try:
+        check_policy_tensors(weights, policy_tensor_shapes(meta, **network), wpath,
+                             ", ".join(f"{k}={v!r}" for k, v in network.items()))
+    except PolicyError as exc:
+        raise FinetuneError(str(exc)) from exc
     want = meta.get("prior_sha256")
     if want is not None:
         model, _ = load_prior(cfg.prior)

@@ -159,6 +159,9 @@ def _scenes_rule(value) -> str | None:
 
 MAX_EVAL_EPISODES = 1024
 """The most evaluation rollouts (seeds) per held-out scene (WOSAC uses 32)."""
+MAX_LR = 1.0
+"""The largest learning rate: Adam moves every weight by about ``lr`` each step, so a rate above 1 throws
+the weights (which start near 0.1) off by more than their size at every step and training diverges."""
 POLICY_NETWORK_FIELDS = ("hidden", "depth", "residual", "actor_head", "obs_scale", "temperature", "reference_top_k", "max_agents")
 """The FinetuneConfig fields a saved policy's network is built with: fixed by its checkpoint."""
 
@@ -181,7 +184,8 @@ _FINETUNE_RULES = {
     "actor_head": one_of(*ACTOR_HEADS), "hidden": integer(1, 4096, "16x the default"), "depth": integer(1, 16),
     "obs_scale": number(0.0, low_open=True), "critic": text, "beta": number(0.0), "imitation": number(0.0), "gamma": number(0.0, 1.0),
     "lmbda": number(0.0, 1.0), "clip_epsilon": number(0.0, low_open=True), "entropy_coeff": number(0.0),
-    "critic_coeff": number(0.0), "normalize_advantage": flag, "lr": number(0.0, low_open=True), "max_grad_norm": number(0.0),
+    "critic_coeff": number(0.0), "normalize_advantage": flag,
+    "lr": number(0.0, MAX_LR, low_open=True, why="Adam moves every weight by about lr a step"), "max_grad_norm": number(0.0),
     "frames_per_batch": integer(1, 10**6, "a million env steps per iteration"), "iterations": integer(1, 10**6),
     "time_limit_s": number(0.0),
     "ppo_epochs": integer(1, 1000), "minibatch_size": integer(1),
@@ -193,5 +197,6 @@ _FINETUNE_RULES = {
 """What each FinetuneConfig field takes (the env checks ``controlled``, ``background`` and the reward terms by name)."""
 
 
-__all__ = ["CONFIG_DIR", "FinetuneConfig", "FinetuneConfigError", "FinetuneError", "MAX_EVAL_EPISODES", "POLICY_NETWORK_FIELDS", "network_differences",
+__all__ = ["CONFIG_DIR", "FinetuneConfig", "FinetuneConfigError", "FinetuneError", "MAX_EVAL_EPISODES", "MAX_LR", "POLICY_NETWORK_FIELDS",
+           "network_differences",
            "load_finetune_config", "named_configs"]

@@ -26,13 +26,21 @@ from torch import nn
 from torchrl.modules import MultiAgentMLP
 
 from envs._observation import ObservationConfig, observation_layout
+from envs.smart_traffic_batched_v0 import MAX_AGENT_SLOTS
+from smart_marl.config_files import check_value, integer, optional, shown
 from smart_marl.errors import SmartMarlError, check_regular_file
+from smart_marl.model.smart import MAX_VOCAB_SIZE
 from smart_marl.rollout import reference_log_probs, reference_name, sample_tokens, top_k_mask
 from smart_marl.scenario import AgentType
 
 from .scripted import log_following_tokens
 
 ACTOR_HEADS = ("per_token", "motion")
+MOTION_FEATURE_SIZE = 6
+"""P, the features per token of :func:`token_motion_features` (the ``"motion"`` head's last layer width)."""
+MAX_OBS_DIM = 65_536
+"""The widest observation a policy checkpoint may declare (the default layout's is 473 numbers; every
+observation option at its limit stays far below)."""
 EMBEDDED_POLICY_DIR = Path(__file__).resolve().parent / "checkpoints"
 """Where the package's fine-tuned policy lives (``load_policy("embedded")``; its card: docs/policy_card.md)."""
 
@@ -83,7 +91,7 @@ def token_motion_features(vocab, vocab_size: int) -> torch.Tensor:
     (:func:`token_end_poses`) and the squares (a weight on both can favour a band: -a (x - c)^2), each
     standardised over the type's tokens; zeros for a type not in the group."""
     ends, types = token_end_poses(vocab, vocab_size)
-    out = torch.zeros(3, vocab_size, 6)
+    out = torch.zeros(3, vocab_size, MOTION_FEATURE_SIZE)
     for t in types:
         feat = torch.cat([ends[t], ends[t].square()], -1)
         out[t] = (feat - feat.mean(0)) / feat.std(0).clamp(min=1e-6)
@@ -165,12 +173,38 @@ def save_policy(path: Path, config: dict, net: PolicyLogits, critic: nn.Module, 
     return path.with_name(path.name + ".json")
 
 
-def read_policy(path: str | Path) -> tuple[dict, dict[str, torch.Tensor]]:
-    """(meta, weights) of a policy checkpoint (``NAME``, ``NAME.json`` or ``NAME.safetensors``, or
-    ``"embedded"``: the package's)."""
+def policy_files(path: str | Path) -> tuple[Path, Path]:
+    """(``NAME.json``, ``NAME.safetensors``) of a policy checkpoint given as ``NAME``, either file, or
+    ``"embedded"`` (the package's)."""
     p = resolve_policy_path(path)
     stem = p.with_suffix("") if p.suffix in (".json", ".safetensors") else p
-    jpath, wpath = stem.with_name(stem.name + ".json"), stem.with_name(stem.name + ".safetensors")
+    return stem.with_name(stem.name + ".json"), stem.with_name(stem.name + ".safetensors")
+
+
+def _sha256_rule(value) -> str | None:
+    ok = isinstance(value, str) and len(value) == 64 and all(c in "0123456789abcdef" for c in value)
+    return None if ok else f"must be a sha256 digest (64 lowercase hex digits), got {shown(value)}"
+
+
+_POLICY_META_RULES = {
+    "obs_dim": integer(1, MAX_OBS_DIM, "wider than any observation layout"),
+    "vocab_size": integer(1, MAX_VOCAB_SIZE, "the largest vocabulary"),
+    "n_agents": integer(1, MAX_AGENT_SLOTS, "the batched env's most agent slots"),
+    "prior_sha256": optional(_sha256_rule),
+    "config": lambda v: None if isinstance(v, dict) and all(isinstance(k, str) for k in v)
+    else f"must be a mapping of fine-tuning config fields, got {shown(v)}",
+}
+"""What the JSON half of a policy checkpoint holds besides ``format`` (its ``config`` is checked by the
+fine-tuning config's rules when it is loaded, :func:`agents.finetune.load_policy`)."""
+
+
+def read_policy(path: str | Path) -> tuple[dict, dict[str, torch.Tensor]]:
+    """(meta, weights) of a policy checkpoint (``NAME``, ``NAME.json`` or ``NAME.safetensors``, or
+    ``"embedded"``: the package's). Checked before anything uses it: the meta's sizes bounded
+    (:data:`_POLICY_META_RULES`), every tensor floating point and finite; a problem is a
+    :class:`PolicyError` naming the file and the field or tensor. Which tensors with which shapes the
+    network of its config needs is :func:`check_policy_tensors`."""
+    jpath, wpath = policy_files(path)
     if not jpath.is_file() or not wpath.is_file():
         raise PolicyError(f"{path}: not a policy checkpoint (needs {jpath.name} and {wpath.name})")
     for f in (jpath, wpath):  # FIFOs, devices and /proc files are refused before they are read
@@ -181,14 +215,49 @@ def read_policy(path: str | Path) -> tuple[dict, dict[str, torch.Tensor]]:
         raise PolicyError(f"{jpath}: not a readable policy checkpoint ({exc})") from exc
     if not isinstance(meta, dict) or meta.get("format") != "smart-marl-policy":
         raise PolicyError(f"{jpath}: not a smart-marl policy checkpoint (format {meta.get('format') if isinstance(meta, dict) else None!r})")
-    for key in ("obs_dim", "vocab_size", "n_agents"):
-        if not isinstance(meta.get(key), int) or meta[key] < 1:
-            raise PolicyError(f"{jpath}: {key} must be a positive integer, got {meta.get(key)!r}")
+    meta.setdefault("config", {})
+    for key, rule in _POLICY_META_RULES.items():
+        check_value(key, meta.get(key), rule, PolicyError, str(jpath))
     try:
         weights = load_file(str(wpath))
     except Exception as exc:  # noqa: BLE001 - safetensors raises several kinds for a damaged file
         raise PolicyError(f"{wpath}: not a readable safetensors file ({exc})") from exc
+    for name, t in sorted(weights.items()):
+        if not t.is_floating_point():
+            raise PolicyError(f"{wpath}: tensor {name} is {str(t.dtype).removeprefix('torch.')}; a policy's tensors are floating point")
+        if not bool(torch.isfinite(t).all()):
+            raise PolicyError(f"{wpath}: tensor {name} holds NaN or infinite values")
     return meta, weights
+
+
+def policy_tensor_shapes(meta: dict, hidden: int, depth: int, residual: bool, actor_head: str, critic: str) -> dict[str, tuple[int, ...]]:
+    """{tensor name: shape} of every tensor a policy checkpoint of this network holds (``actor.*`` and
+    ``critic.*``, as :func:`save_policy` writes them): the networks built on the meta device (no memory,
+    no weights) from the checkpoint's sizes (``meta``: obs_dim, vocab_size, n_agents, already bounded by
+    :func:`read_policy`) and its config's fields."""
+    with torch.device("meta"):
+        features = torch.zeros(3, meta["vocab_size"], MOTION_FEATURE_SIZE) if actor_head == "motion" else None
+        net = PolicyLogits(meta["obs_dim"], meta["vocab_size"], meta["n_agents"], hidden, depth, residual, motion_features=features)
+        value = Critic(meta["obs_dim"], meta["n_agents"], hidden, depth, centralized=critic == "mappo")
+    shapes = {f"actor.{k}": tuple(v.shape) for k, v in net.state_dict().items()}
+    shapes.update({f"critic.{k}": tuple(v.shape) for k, v in value.state_dict().items()})
+    return shapes
+
+
+def check_policy_tensors(weights: dict[str, torch.Tensor], shapes: dict[str, tuple[int, ...]], path, network: str = "") -> None:
+    """A :class:`PolicyError` naming ``path`` and the tensor unless ``weights`` holds exactly the tensors
+    of ``shapes`` (:func:`policy_tensor_shapes`), each with its shape: none missing (a layer would keep
+    its random start), none extra, none of another shape. ``network``: the config fields it was built
+    with, for the message."""
+    its = f"the network of its config{f' ({network})' if network else ''}"
+    missing, extra = sorted(set(shapes) - set(weights)), sorted(set(weights) - set(shapes))
+    if missing:
+        raise PolicyError(f"{path}: tensor {missing[0]} is missing ({len(missing)} of the {len(shapes)} tensors of {its})")
+    if extra:
+        raise PolicyError(f"{path}: tensor {extra[0]} is not a tensor of {its} ({len(extra)} extra)")
+    for name, want in shapes.items():
+        if tuple(weights[name].shape) != want:
+            raise PolicyError(f"{path}: tensor {name} has shape {list(weights[name].shape)}, {its} needs {list(want)}")
 
 
 def actor_from_weights(meta: dict, weights: dict, hidden: int, depth: int, residual: bool, obs_scale: float, temperature: float,
@@ -296,5 +365,6 @@ class ExpertWithinTopK(TensorPolicy):
 
 
 __all__ = ["ACTOR_HEADS", "Critic", "ExpertTensorPolicy", "ExpertWithinTopK", "FinetunedTensorPolicy", "PolicyError",
-           "PolicyLogits", "PriorTensorPolicy", "TensorPolicy", "actor_from_weights", "expert_within_top_k", "read_policy",
-           "save_policy", "token_end_poses", "token_motion_features"]
+           "MAX_OBS_DIM", "MOTION_FEATURE_SIZE", "PolicyLogits", "PriorTensorPolicy", "TensorPolicy", "actor_from_weights",
+           "check_policy_tensors", "expert_within_top_k", "policy_files", "policy_tensor_shapes", "read_policy", "save_policy",
+           "token_end_poses", "token_motion_features"]

@@ -20,7 +20,7 @@ What each argument takes (the documented meanings):
 * ``reward``: None, a RewardConfig or a dict of weights, every weight a finite number, ``goal_radius_m`` >= 0;
 * ``observation``: "vector", "dict" or an ObservationConfig with sizes in range;
 * ``render_size_px``: an integer in 16..:data:`MAX_RENDER_SIZE_PX`; ``render_radius_m`` a finite number in
-  (0, :data:`MAX_RENDER_RADIUS_M`];
+  [:data:`MIN_RENDER_RADIUS_M`, :data:`MAX_RENDER_RADIUS_M`];
 * ``avoid_collisions``, ``stop_lines``: True or False (not the string "false");
 * ``lights``: "log" or "current" (:data:`smart_marl.rollout.LIGHTS`);
 * ``shield``: True (every check of :data:`envs._shield.SHIELD_CHECKS`), False / None / an empty list (none),
@@ -41,6 +41,7 @@ from typing import Any
 
 from smart_marl.config_files import (Rule, check_value, device_problem, flag, integer, is_integer, number, one_of, optional, seed,
                                      shown)
+from smart_marl.render.bev import MIN_VIEW_RADIUS_M
 from smart_marl.rollout import LIGHTS, temperature_rule
 
 from ._dynamics import BACKGROUNDS
@@ -56,6 +57,9 @@ MAX_RENDER_SIZE_PX = 4096
 """The largest rendered frame's side (a 4096 x 4096 RGB frame is 50 MB)."""
 MAX_RENDER_RADIUS_M = 10_000.0
 """The widest view (metres around the self-driving car), far wider than any scene."""
+MIN_RENDER_RADIUS_M = MIN_VIEW_RADIUS_M
+"""The narrowest view, 1 m: the renderer's own limit (:data:`smart_marl.render.bev.MIN_VIEW_RADIUS_M`; line
+widths scale with the zoom, and a radius of 1e-10 m makes one frame take forever)."""
 CONTROLLED_NAMES = SELECTIONS  # "sdc", "predict", "vehicles", "all", "moving_vehicles"
 OBSERVATION_RULES: dict[str, Rule] = {
     "kind": one_of("vector", "dict"), "num_agents": integer(0, 1024, "agents in one observation"),
@@ -137,7 +141,7 @@ def check_env_arguments(*, background: Any, horizon_steps: Any, scene_order: Any
         "reference_top_k": None if reference_top_k is None else int(_check("reference_top_k", reference_top_k, integer(1))),
         "render_size_px": int(_check("render_size_px", render_size_px, integer(16, MAX_RENDER_SIZE_PX, "a 50 MB frame"))),
         "render_radius_m": float(_check("render_radius_m", render_radius_m,
-                                        number(0.0, MAX_RENDER_RADIUS_M, low_open=True, why="wider than any scene"))),
+                                        number(MIN_RENDER_RADIUS_M, MAX_RENDER_RADIUS_M, why="wider than any scene"))),
         "avoid_collisions": bool(_check("avoid_collisions", avoid_collisions, flag, bool)),
         "stop_lines": bool(_check("stop_lines", stop_lines, flag, bool)),
         "lights": _check("lights", lights, one_of(*LIGHTS), str),
@@ -190,5 +194,5 @@ def check_reset_arguments(seed_value: Any, options: Any, num_scenes: int) -> tup
     return seed_value, int(index)
 
 
-__all__ = ["MAX_HORIZON_STEPS", "MAX_RENDER_SIZE_PX", "MAX_RENDER_RADIUS_M", "OBSERVATION_RULES", "REWARD_RULES",
-           "check_env_arguments", "check_reset_arguments", "shield_checks"]
+__all__ = ["MAX_HORIZON_STEPS", "MAX_RENDER_SIZE_PX", "MAX_RENDER_RADIUS_M", "MIN_RENDER_RADIUS_M", "OBSERVATION_RULES",
+           "REWARD_RULES", "check_env_arguments", "check_reset_arguments", "shield_checks"]

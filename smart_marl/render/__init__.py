@@ -12,7 +12,7 @@ RGB images ``[H, W, 3] uint8``, GIFs and MP4s; it never changes a scene.
 matplotlib, imageio and imageio-ffmpeg (the ``render`` extra) are imported only when used.
 """
 
-from .bev import BevRenderer, box_outlines, render_scenario_frame
+from .bev import MIN_VIEW_RADIUS_M, BevRenderer, box_outlines, render_scenario_frame
 from .record import FRAME_FPS, TOKEN_STEP_FPS, EpisodeRecorder, render_log_replay
 from .style import (
     AGENT_COLORS, BACKGROUND, EGO_COLOR, LIGHT_GREEN, LIGHT_RED, LIGHT_UNKNOWN, LIGHT_YELLOW, ROAD_EDGE_COLOR,
@@ -20,7 +20,7 @@ from .style import (
 )
 
 __all__ = [
-    "BevRenderer", "box_outlines", "render_scenario_frame", "FRAME_FPS", "TOKEN_STEP_FPS", "EpisodeRecorder",
+    "BevRenderer", "MIN_VIEW_RADIUS_M", "box_outlines", "render_scenario_frame", "FRAME_FPS", "TOKEN_STEP_FPS", "EpisodeRecorder",
     "render_log_replay", "AGENT_COLORS", "BACKGROUND", "EGO_COLOR", "LIGHT_GREEN", "LIGHT_RED", "LIGHT_UNKNOWN",
     "LIGHT_YELLOW", "ROAD_EDGE_COLOR", "color_uint8",
 ]

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..config_files import check_value, number
+from ..errors import UsageError
 from ..scenario import AgentType, LaneType, MapFeatureType, RoadLineType, Scenario, SignalState
 from .style import (
     AGENT_COLORS, AGENT_EDGE_COLOR, BACKGROUND, BIKE_LANE_COLOR, BROKEN_LINES, CROSSWALK_FACE, CROSSWALK_HATCH,
@@ -58,6 +60,12 @@ def _offset_polyline(points: np.ndarray, offset_m: float) -> np.ndarray:
     d = d / np.where(norm > 1e-9, norm, 1.0)
     return points + offset_m * np.stack([-d[:, 1], d[:, 0]], axis=1)
 
+MIN_VIEW_RADIUS_M = 1.0
+"""The narrowest view (metres from the centre to an edge). Line widths, dashes and markers scale with
+the zoom (pixels per metre): at a radius of 1e-10 m a road edge is a line millions of kilometres wide
+in points that matplotlib's Agg stroker never finishes, and at 1e-300 m the zoom overflows. 1 m (a
+view 2 m across, narrower than a car) keeps every frame finite and fast."""
+
 
 class BevRenderer:
     """Renders frames of one scene seen from above.
@@ -65,7 +73,8 @@ class BevRenderer:
     ``center`` picks the view: ``"sdc"`` follows the ego agent (the scene's self-driving car, or
     ``ego_index`` given to :meth:`render`) frame by frame; ``"agents"`` is a fixed view on the
     middle of every logged valid agent position of the scene; ``(x, y)`` is a fixed view on that
-    local point. The view is a square of side ``2 * view_radius_m`` rendered at ``size_px`` pixels.
+    local point. The view is a square of side ``2 * view_radius_m`` rendered at ``size_px`` pixels
+    (``view_radius_m`` a finite number >= :data:`MIN_VIEW_RADIUS_M`, else a :class:`UsageError`).
 
     How it stays fast: the static map is rasterised once per *tile* (a square of 1.5 view widths on
     a global pixel grid, kept in a small cache) by a second, off-screen figure; a frame copies its
@@ -84,7 +93,8 @@ class BevRenderer:
 
         self.scenario = scenario
         self.size_px = int(size_px)
-        self.view_radius_m = float(view_radius_m)
+        self.view_radius_m = float(check_value("view_radius_m", view_radius_m, number(MIN_VIEW_RADIUS_M),
+                                               UsageError, "BevRenderer"))
         self.dpi = float(dpi)
         if isinstance(center, str):
             if center not in ("sdc", "agents"):
