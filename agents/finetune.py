@@ -403,9 +403,6 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     torch.manual_seed(cfg.seed + rank)
     np.random.seed(cfg.seed + rank)
     out_dir = Path(cfg.out_dir)
-    if rank == 0:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
 
     # 1. env: the training scenes, num_envs at a time (each process its own order of them)
     model, vocab = load_prior(cfg.prior, device)
@@ -414,6 +411,9 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     env.set_seed(cfg.seed + rank)
     # 2-3. actor, critic, loss
     learner = _learner(cfg, env, model, vocab, device, world)
+    if rank == 0:  # only now: a run refused above (its prior, scenes, starting policy) writes nothing
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
     # 4. collector, PPO epochs, logging, checkpoints
     steps_per_env = max(1, cfg.frames_per_batch // cfg.num_envs)
     frames_per_batch = steps_per_env * cfg.num_envs

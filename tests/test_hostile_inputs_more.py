@@ -58,3 +58,17 @@ def test_demo_without_the_render_extra_prints_its_table_and_names_the_extra(tmp_
     assert "matplotlib" in captured.err and "realism meta-metric" in captured.out
     assert not list(out_dir.glob("*_rollout.*"))
     assert set(json.loads((out_dir / "realism.json").read_text())) == {"prior", "constant_velocity", "log_replay"}
+
+
+def test_a_refused_fine_tuning_run_writes_nothing(tmp_path):
+    """A run refused while it sets up (here its scenes: a folder without any) leaves no OUT folder or OUT/config.json."""
+    from agents.finetune import finetune
+    from agents.finetune_config import load_finetune_config
+    from smart_marl.errors import SmartMarlError
+
+    empty, out = tmp_path / "no_scenes", tmp_path / "out"
+    empty.mkdir()
+    cfg = load_finetune_config("tiny", {"scenes": str(empty), "out_dir": str(out), "eval_episodes": 0, "tensorboard": False})
+    with pytest.raises(SmartMarlError):
+        finetune(cfg)
+    assert not out.exists()
