@@ -116,3 +116,57 @@ def test_the_learning_rate_is_bounded_in_the_fine_tuning_config():
     for lr in (1e18, 1.5, 0.0, -1e-3):
         with pytest.raises(FinetuneConfigError, match=r"fine-tuning config: lr must be"):
             load_finetune_config("tiny", {"lr": lr})
+
+
+# ---------------------------------------------------------------------------------------- properties
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+JSON_VALUES = st.recursive(st.none() | st.booleans() | st.integers(-10**15, 10**15) | st.floats(allow_nan=True)
+                           | st.text(max_size=8), lambda inner: st.lists(inner, max_size=3)
+                           | st.dictionaries(st.text(max_size=5), inner, max_size=3), max_leaves=6)
+DTYPES = st.sampled_from([torch.float32, torch.float16, torch.float64, torch.int64, torch.int32, torch.bool, torch.uint8])
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(key=st.sampled_from(["obs_dim", "vocab_size", "n_agents", "prior_sha256", "config", "format", "extra"]), value=JSON_VALUES)
+def test_any_meta_value_loads_or_is_refused_by_name(copy, key, value):
+    """Whatever a field of the JSON half holds, loading either gives the policy or a FinetuneError; never another
+    exception."""
+    jpath, meta, _ = copy
+    changed = dict(meta, **{key: value})
+    jpath.write_text(json.dumps(changed))
+    try:
+        load_policy(jpath)
+    except FinetuneError:
+        pass
+    jpath.write_text(json.dumps(meta))
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(index=st.integers(0, 10**6), dtype=DTYPES, shape_change=st.sampled_from(["keep", "shorter", "longer"]),
+       fill=st.sampled_from([None, float("nan"), float("inf"), -float("inf"), 1e30]))
+def test_any_tensor_tampering_loads_only_when_the_tensor_is_still_valid(copy, index, dtype, shape_change, fill):
+    """One tensor of the weights changed in shape, content or dtype: the policy loads exactly when that tensor still
+    has its shape and is floating point and finite, and is otherwise refused with a FinetuneError naming the file;
+    never another exception."""
+    jpath, _, weights = copy
+    name = sorted(weights)[index % len(weights)]
+    t = weights[name].clone()
+    if shape_change == "shorter" and t.dim() > 0 and t.shape[0] > 1:
+        t = t[:-1]
+    elif shape_change == "longer":
+        t = torch.cat([t, t[:1]]) if t.dim() > 0 else t.reshape(1)
+    if fill is not None:
+        t = t.float().fill_(fill)
+    if dtype.is_floating_point or torch.isfinite(t.float()).all():  # a non-finite float has no integer value
+        t = t.to(dtype)
+    valid = t.shape == weights[name].shape and t.is_floating_point() and bool(torch.isfinite(t.float()).all())
+    wpath = jpath.with_suffix(".safetensors")
+    save_file({**weights, name: t.contiguous()}, str(wpath))
+    try:
+        load_policy(jpath)
+        assert valid, f"{name} {t.dtype} {tuple(t.shape)} loaded"
+    except FinetuneError as exc:
+        assert not valid and str(wpath) in str(exc), str(exc)
+    save_file(weights, str(wpath))
