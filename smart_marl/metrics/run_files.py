@@ -166,14 +166,22 @@ def plan_submission(prefix: Path, chunks: list[Path], what: str) -> list[Submiss
     return plan
 
 
+def file_mode(path: Path) -> int | None:
+    """``os.lstat(path).st_mode`` (links not followed), None where nothing is there; RunDirError naming ``path`` when
+    it cannot be looked at."""
+    try:
+        return os.lstat(path).st_mode
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        raise RunDirError(f"{path}: {exc.strerror or exc}") from exc
+
+
 def _same_file(chunk: Path, target: Path) -> bool:
     """Whether ``target`` holds ``chunk`` already (False: it does not exist); RunDirError when it is another file."""
-    try:
-        mode = os.lstat(target).st_mode
-    except FileNotFoundError:
+    mode = file_mode(target)
+    if mode is None:
         return False
-    except OSError as exc:
-        raise RunDirError(f"{target}: {exc.strerror or exc}") from exc
     if stat.S_ISREG(mode) and (os.path.samefile(chunk, target) or filecmp.cmp(chunk, target, shallow=False)):
         return True
     raise RunDirError(f"{target}: exists and is not this run's submission file (not a copy of {chunk}); the merge does "
@@ -201,5 +209,5 @@ def write_submission_parts(plan: list[SubmissionPart]) -> None:
             raise RunDirError(f"{part.target}: changed while the merge ran; not replaced")
 
 
-__all__ = ["RunDirError", "SubmissionPart", "file_problem", "check_chunk_submission", "metrics_from_record", "metrics_record",
+__all__ = ["RunDirError", "SubmissionPart", "file_mode", "file_problem", "check_chunk_submission", "metrics_from_record", "metrics_record",
            "plan_submission", "write_submission_parts", "write_whole"]

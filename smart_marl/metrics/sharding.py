@@ -60,7 +60,7 @@ from ..readers.womd import decode_scenario
 from ..scenario import Scenario
 from .config import RULES
 from .likelihood import ScenarioMetrics
-from .run_files import RunDirError, file_problem, check_chunk_submission, metrics_from_record, write_whole
+from .run_files import RunDirError, check_chunk_submission, file_mode, file_problem, metrics_from_record, write_whole
 
 RUN_FILE = "run.json"
 RESULT_FILE = "result.json"
@@ -272,12 +272,9 @@ class RunDir:
         if not self.within(path.parent):
             raise RunDirError(f"{path}: lies outside the run folder {self.root} (a link leads out of it); "
                               "a run writes only inside its folder")
-        try:
-            mode = os.lstat(path).st_mode
-        except FileNotFoundError:
+        mode = file_mode(path)
+        if mode is None:
             return path
-        except OSError as exc:
-            raise RunDirError(f"{path}: {exc.strerror or exc}") from exc
         if not stat.S_ISREG(mode):
             raise RunDirError(f"{path}: exists and is not a regular file (a link, a folder...): the run does not replace it")
         return path
