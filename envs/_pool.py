@@ -67,7 +67,9 @@ def _open(source) -> object:
     if isinstance(source, (str, os.PathLike)):
         path = Path(source)
         if path.is_dir() and is_cache_dir(path):
-            return SceneCache(path)
+            cache = SceneCache(path)
+            cache.check_shards()  # what can be checked before a run: every shard there, as long as its manifest says
+            return cache
         if path.is_file() and path.suffix == ".smsc":
             return _Shard(path)
         scenes = list(read_scenarios(path))

@@ -66,6 +66,18 @@ class SceneCache:
     def shard_paths(self) -> list[Path]:
         return [self.root / shard["file"] for shard in self.manifest["shards"]]
 
+    def check_shards(self) -> None:
+        """Open every shard's header (no scene decoded, no checksum computed) and check that it holds as many scenes
+        as the manifest lists: a missing, truncated or mismatched shard is a :class:`ScenarioReadError` now, not at
+        the first read that reaches it (a scene pool read lazily may reach it hours into a run)."""
+        for k, shard in enumerate(self.manifest["shards"]):
+            reader = ShardReader(self.root / shard["file"])
+            try:
+                if len(reader) != len(shard["scenes"]):
+                    raise ScenarioReadError(reader.path, f"holds {len(reader)} scenes, the manifest lists {len(shard['scenes'])}")
+            finally:
+                reader.close()
+
     def __len__(self) -> int:
         return len(self._locations)
 

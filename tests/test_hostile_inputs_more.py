@@ -72,3 +72,20 @@ def test_a_refused_fine_tuning_run_writes_nothing(tmp_path):
     with pytest.raises(SmartMarlError):
         finetune(cfg)
     assert not out.exists()
+
+
+def test_a_scene_pool_refuses_a_cache_whose_manifest_lists_fewer_scenes_than_its_shard_when_it_is_built(tmp_path):
+    """Checked when the pool is made, not at the first refill that reaches the shard (hours into a run)."""
+    from envs._pool import ScenePool
+    from smart_marl.errors import ScenarioReadError
+    from smart_marl.readers.scene_cache import scene_entry, write_manifest, write_shard
+
+    scenes = sample_scenarios()[:3]
+    for name, listed in (("whole", scenes), ("short", scenes[:2])):
+        folder = tmp_path / name
+        folder.mkdir()
+        write_shard(folder / "a.smsc", scenes)
+        write_manifest(folder, [{"file": "a.smsc", "input": "samples", "scenes": [scene_entry(sc, "a.smsc") for sc in listed]}])
+    assert len(ScenePool(str(tmp_path / "whole"))) == 3
+    with pytest.raises(ScenarioReadError, match="holds 3 scenes, the manifest lists 2"):
+        ScenePool(str(tmp_path / "short"))
