@@ -11,8 +11,8 @@ ScenarioNet scene: frame 0) gets frame 10 as its current frame (1 s of history, 
 counted in every row (``scenes_skipped``: ``unreadable`` files, ``not_10hz``, ``short_log``, ``no_moving_vehicle``;
 ``scenes`` counts the scenes rolled out, at most ``--max-scenes``). Each scene is rolled
 out ``--rollouts`` times for 8 s with ``prior_speed_drift.rollout_from_log`` (its arguments:
-``prior_speed_drift.vehicle_rollout_arguments``; ``--no-stop-lines`` turns the engine's traffic control off,
-``--stop-lines`` on, neither leaves the engine's own default, which the rows report as ``stop_lines``).
+``prior_speed_drift.vehicle_rollout_arguments``; ``--no-stop-lines`` turns the engine's traffic control off, on by
+default as the engine's, and the rows report it as ``stop_lines``).
 
 What goes out (stdout, one JSON object per line, flushed), per set, every row with ``benchmark``, ``set``,
 ``scenes``, ``scenes_skipped``, ``seed``, ``rollouts``, ``prior``, ``top_k``, ``sampling``, ``lights``,
@@ -92,7 +92,6 @@ from __future__ import annotations
 
 import argparse
 import glob
-import inspect
 import json
 import sys
 from pathlib import Path
@@ -107,7 +106,6 @@ import prior_speed_drift as drift  # noqa: E402
 import slowing_causes as slowing  # noqa: E402
 
 from smart_marl.readers import read_scenarios  # noqa: E402
-from smart_marl.rollout import RolloutState  # noqa: E402
 from smart_marl.rollout.stop_lines import ALIGNED_COS, RED, STOPPED_MPS, line_groups, scene_stop_lines  # noqa: E402
 from smart_marl.scenario import DT_S, AgentType, SignalState, wrap_angle  # noqa: E402
 
@@ -523,29 +521,12 @@ def summarise(records: dict[str, list], common: dict) -> list[dict]:
 
 # ------------------------------------------------------------------------------------------------ command line
 
-def stop_lines_switch(ap: argparse.ArgumentParser) -> None:
-    """``--stop-lines`` / ``--no-stop-lines`` (the shared flag's, plus ``--no-stop-lines`` where it lacks one);
-    neither: None, the engine's default (:func:`engine_stop_lines`)."""
-    try:
-        ap.add_argument("--no-stop-lines", dest="stop_lines", action="store_false", help="the prior's vehicles ignore stop lines")
-    except argparse.ArgumentError:  # the shared flag has it already
-        pass
-    ap.set_defaults(stop_lines=None)
-
-
-def engine_stop_lines(choice: bool | None) -> bool:
-    """``choice``, or where None the rollout engine's default for ``stop_lines``."""
-    return bool(inspect.signature(RolloutState.start).parameters["stop_lines"].default) if choice is None else bool(choice)
-
-
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     drift.vehicle_rollout_arguments(ap, rollouts=8)
     next(a for a in ap._actions if a.dest == "sets").help = ("a named set of scenes; repeatable (default: every shared real scene "
                                                              "that qualifies, module docstring)")
-    stop_lines_switch(ap)
     args = ap.parse_args(argv)
-    args.stop_lines = engine_stop_lines(args.stop_lines)
     model, _, rollout_kwargs, fields = drift.vehicle_rollout_sets(args)  # its own sets (read again below) are not used
     specs = args.sets or [f"real={','.join(default_paths())}"]
     for spec in specs:

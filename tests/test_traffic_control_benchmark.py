@@ -214,12 +214,10 @@ def test_scenes_need_8_s_of_log_at_10_hz_and_a_moving_vehicle(tc, shared_data, t
 def test_stop_lines_default_is_the_engines_and_both_switches_work(tc):
     ap = argparse.ArgumentParser()
     tc.drift.vehicle_rollout_arguments(ap, rollouts=8)
-    tc.stop_lines_switch(ap)
-    assert ap.parse_args([]).stop_lines is None
+    engine = inspect.signature(RolloutState.start).parameters["stop_lines"].default
+    assert ap.parse_args([]).stop_lines is engine is True
     assert ap.parse_args(["--no-stop-lines"]).stop_lines is False
     assert ap.parse_args(["--stop-lines"]).stop_lines is True
-    engine = inspect.signature(RolloutState.start).parameters["stop_lines"].default
-    assert tc.engine_stop_lines(None) is bool(engine) and tc.engine_stop_lines(False) is False
 
 
 def test_rollouts_that_replay_the_log_score_as_the_log(tc, shared_data):

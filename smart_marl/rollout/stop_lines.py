@@ -189,11 +189,12 @@ def lines_ahead(state, g: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, 
     return ahead, in_view
 
 
-def nearest_line(state, g: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def nearest_line(state, g: torch.Tensor, s: torch.Tensor, view=None) -> tuple[torch.Tensor, torch.Tensor]:
     """(distance [M] from slots ``(g, s)``'s centres to their nearest active line ahead, inf where none; that line's
-    index [M], -1 where none), for a :class:`~smart_marl.rollout.RolloutState` with stop lines."""
+    index [M], -1 where none), for a :class:`~smart_marl.rollout.RolloutState` with stop lines. ``view``: their
+    :func:`lines_ahead`, where the caller has it."""
     b = state.scene_of_group[g]
-    ahead, in_view = lines_ahead(state, g, s)
+    ahead, in_view = lines_ahead(state, g, s) if view is None else view
     active = red_line_holds(state)[b] | (state.stop_sign[b] & ~state.stop_served[g, s])
     dist, line = ahead.masked_fill(~(in_view & active), float("inf")).min(-1)
     return dist, torch.where(torch.isfinite(dist), line, torch.full_like(line, -1))
@@ -249,15 +250,15 @@ def _path_ahead(state, g: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, 
     return room, leaves
 
 
-def released(state, g: torch.Tensor, s: torch.Tensor, held: torch.Tensor) -> torch.Tensor:
+def released(state, g: torch.Tensor, s: torch.Tensor, held: torch.Tensor, view=None) -> torch.Tensor:
     """[M] the vehicles of slots ``(g, s)`` that stand, are not ``held`` [M], have room ahead and whose reason to
     stand has gone: a green line or a served stop sign (stood at for :data:`SIGN_WAIT_STEPS`) nearest ahead, or, with
-    a line ahead that does not hold it, the vehicle ahead in the path driving off."""
+    a line ahead that does not hold it, the vehicle ahead in the path driving off. ``view``: as :func:`nearest_line`'s."""
     out = _standing(state, g, s) & ~held
     if not bool(out.any()):
         return out
     b = state.scene_of_group[g]
-    ahead, in_view = lines_ahead(state, g, s)
+    ahead, in_view = lines_ahead(state, g, s) if view is None else view
     dist, line = ahead.masked_fill(~in_view, float("inf")).min(-1)  # the nearest line ahead, whatever its light
     lc = line.clamp(min=0)
     waited = state.stop_stood[g, s] >= SIGN_WAIT_STEPS
@@ -289,9 +290,10 @@ def stop_line_test(state, rows: torch.Tensor):
     n = state.num_slots
     g, s = rows // n, rows % n
     vehicle = (state.agent_type[g, s] == 0).nonzero().squeeze(1)  # lines hold vehicles only: the others are not measured
-    dist, _ = nearest_line(state, g[vehicle], s[vehicle])
+    view = lines_ahead(state, g[vehicle], s[vehicle])  # one look at the lines for both rules
+    dist, _ = nearest_line(state, g[vehicle], s[vehicle], view)
     ahead = torch.isfinite(dist)
-    go = vehicle[released(state, g[vehicle], s[vehicle], ahead)]
+    go = vehicle[released(state, g[vehicle], s[vehicle], ahead, view)]
     held, dist = vehicle[ahead], dist[ahead]
     if not len(held) and not len(go):
         return None
