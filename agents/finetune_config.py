@@ -10,15 +10,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from envs._arguments import MAX_HORIZON_STEPS, shield_checks
+from envs._arguments import MAX_AGENT_SLOTS, MAX_HORIZON_STEPS, REWARD_RULES, TOP_K_WHY, shield_checks
 from envs._reward import RewardConfig
 from envs._setup import MOVING_MIN_ROUTE_M
 from envs._shield import SHIELD_CHECKS
 from envs.errors import EnvConfigError
-from smart_marl.config_files import (apply_overrides, check_fields, device_problem, flag, integer, number, one_of, optional,
-                                     output_dir_problem, read_config_file, text)
+from envs.smart_traffic_batched_v0 import MAX_CACHED_SCENES
+from smart_marl.config_files import (MAX_DISTANCE_M, MAX_GRAD_NORM, MAX_LOSS_WEIGHT, MAX_SCENE_COUNT, MAX_TIME_LIMIT_S,
+                                     apply_overrides, check_fields, device_problem, flag, integer, number, one_of, optional,
+                                     output_dir_problem, read_config_file, shown, text)
 from smart_marl.config_files import seed as seed_rule
 from smart_marl.errors import SmartMarlError, UsageError
+from smart_marl.model.smart import MAX_VOCAB_SIZE
 from smart_marl.rollout import DEFAULT_TOP_K, temperature_rule
 
 from .policy import ACTOR_HEADS
@@ -157,11 +160,33 @@ def _scenes_rule(value) -> str | None:
     return f"must be a path, a list of paths or 'embedded', got {value!r}"
 
 
+def _reward_rule(value) -> str | None:
+    """Reward weights by term: each within the env's bounds (:data:`envs._arguments.REWARD_RULES`); unknown terms are
+    named by :meth:`envs._reward.RewardConfig.from_any`."""
+    if not isinstance(value, dict):
+        return f"must map reward terms to finite weights, got {shown(value)}"
+    return next((f"term {k!r} {problem}" for k, w in value.items() if (problem := REWARD_RULES.get(k, number())(w))), None)
+
+
 MAX_EVAL_EPISODES = 1024
 """The most evaluation rollouts (seeds) per held-out scene (WOSAC uses 32)."""
+MAX_EVAL_SCENES = 100_000
+"""The most held-out scenes an evaluation takes (``eval_num_scenes``): all of them are read and held at once
+(a scene's arrays, ~0.3 MB: ~30 GB) and each is rolled out ``eval_episodes`` times for each policy; twice WOSAC's
+validation split (44,097 scenes)."""
+MAX_ITERATIONS = 10**6
+"""The most PPO iterations of a run (a million: four months at the shield config's 11 s an iteration on the CPU), and
+so the longest ``checkpoint_every`` (a longer period saves only the last policy)."""
 MAX_LR = 1.0
 """The largest learning rate: Adam moves every weight by about ``lr`` each step, so a rate above 1 throws
 the weights (which start near 0.1) off by more than their size at every step and training diverges."""
+MAX_CLIP_EPSILON = 1.0
+"""The widest PPO clip: TorchRL clips the log of the policy ratio at ``log(1 - clip_epsilon)``, which is NaN
+above 1 (and with it every loss); 1 leaves the ratio unclipped below."""
+MAX_OBS_SCALE = 1e3
+"""The largest observation scale, 10,000x the default 0.1: the observation (metres and m/s, up to a few hundred)
+enters the MLPs at 1e5 and beyond, where one Adam step (every weight moved by about ``lr``) moves a hidden unit by
+tens: the policy's logits jump by more than the prior's whole range at every step."""
 POLICY_NETWORK_FIELDS = ("hidden", "depth", "residual", "actor_head", "obs_scale", "temperature", "reference_top_k", "max_agents")
 """The FinetuneConfig fields a saved policy's network is built with: fixed by its checkpoint."""
 
@@ -172,31 +197,42 @@ def network_differences(cfg: FinetuneConfig, saved: Mapping[str, Any]) -> list[s
     return [f"{k}={getattr(cfg, k)!r} (the checkpoint's: {saved[k]!r})" for k in POLICY_NETWORK_FIELDS
             if k in saved and saved[k] != getattr(cfg, k)]
 
+
+_LOSS_WEIGHT = number(0.0, MAX_LOSS_WEIGHT, why="1,000x the PPO objective's")
 _FINETUNE_RULES = {
-    "scenes": _scenes_rule, "num_scenes": optional(integer(1)), "prior": text, "init": optional(text), "num_envs": integer(1, 4096, "scenes in one batch"),
-    "controlled": text, "moving_min_route_m": number(0.0), "max_agents": integer(1, 1024),
-    "background": text, "horizon_steps": integer(1, MAX_HORIZON_STEPS, "the env's longest episode"),
-    "reward": lambda v: None if isinstance(v, dict) and all(number()(w) is None for w in v.values())
-    else f"must map reward terms to finite weights, got {v!r}",
+    "scenes": _scenes_rule, "num_scenes": optional(integer(1, MAX_SCENE_COUNT, "20x WOMD's training split")), "prior": text,
+    "init": optional(text), "num_envs": integer(1, 4096, "scenes in one batch"), "controlled": text,
+    "moving_min_route_m": number(0.0, MAX_DISTANCE_M, why="metres, farther than any scene reaches"),
+    "max_agents": integer(1, MAX_AGENT_SLOTS, "the batched env's most agent slots"),
+    "background": text, "horizon_steps": integer(1, MAX_HORIZON_STEPS, "the env's longest episode"), "reward": _reward_rule,
     "terminate_on": lambda v: None if isinstance(v, tuple) and all(isinstance(e, str) for e in v) else f"must be a list of event names, got {v!r}",
-    "top_k": optional(integer(1)), "temperature": temperature_rule, "reference_top_k": optional(integer(1)), "residual": flag,
+    "top_k": optional(integer(1, MAX_VOCAB_SIZE, TOP_K_WHY)), "temperature": temperature_rule,
+    "reference_top_k": optional(integer(1, MAX_VOCAB_SIZE, TOP_K_WHY)), "residual": flag,
     "shield": lambda v: None if isinstance(v, tuple) and set(v) <= set(SHIELD_CHECKS) else f"must be a list of {list(SHIELD_CHECKS)}, got {v!r}",
-    "actor_head": one_of(*ACTOR_HEADS), "hidden": integer(1, 4096, "16x the default"), "depth": integer(1, 16),
-    "obs_scale": number(0.0, low_open=True), "critic": text, "beta": number(0.0), "imitation": number(0.0), "gamma": number(0.0, 1.0),
-    "lmbda": number(0.0, 1.0), "clip_epsilon": number(0.0, low_open=True), "entropy_coeff": number(0.0),
-    "critic_coeff": number(0.0), "normalize_advantage": flag,
-    "lr": number(0.0, MAX_LR, low_open=True, why="Adam moves every weight by about lr a step"), "max_grad_norm": number(0.0),
-    "frames_per_batch": integer(1, 10**6, "a million env steps per iteration"), "iterations": integer(1, 10**6),
-    "time_limit_s": number(0.0),
-    "ppo_epochs": integer(1, 1000), "minibatch_size": integer(1),
-    "eval_episodes": integer(0, MAX_EVAL_EPISODES), "eval_seed": seed_rule, "eval_scenes": lambda v: None if v is None else _scenes_rule(v),
-    "eval_num_scenes": integer(1), "eval_rules": lambda v: None if v in ("2024", "2025") else f"must be '2024' or '2025', got {v!r}",
-    "out_dir": lambda v: text(v) or output_dir_problem(v), "checkpoint_every": integer(1), "seed": seed_rule, "device": device_problem,
-    "tensorboard": flag, "torch_threads": integer(0, 1024), "prior_cache_size": integer(1, 10**6),
+    "actor_head": one_of(*ACTOR_HEADS), "hidden": integer(1, 4096, "16x the default"), "depth": integer(1, 16, "8x the default"),
+    "obs_scale": number(0.0, MAX_OBS_SCALE, low_open=True, why="10,000x the default"), "critic": text, "beta": _LOSS_WEIGHT,
+    "imitation": _LOSS_WEIGHT, "gamma": number(0.0, 1.0), "lmbda": number(0.0, 1.0),
+    "clip_epsilon": number(0.0, MAX_CLIP_EPSILON, low_open=True, why="log(1 - clip_epsilon) is NaN above"),
+    "entropy_coeff": _LOSS_WEIGHT, "critic_coeff": _LOSS_WEIGHT, "normalize_advantage": flag,
+    "lr": number(0.0, MAX_LR, low_open=True, why="Adam moves every weight by about lr a step"),
+    # max_grad_norm > 0: clip_grad_norm_ at 0 scales every gradient to 0, a run that silently never learns
+    "max_grad_norm": number(0.0, MAX_GRAD_NORM, low_open=True, why="a larger clip never clips"),
+    "frames_per_batch": integer(1, 10**6, "a million env steps per iteration"),
+    "iterations": integer(1, MAX_ITERATIONS, "a million iterations"),
+    "time_limit_s": number(0.0, MAX_TIME_LIMIT_S, why="30 days; 0: no limit"),
+    "ppo_epochs": integer(1, 1000, "passes over one batch"), "minibatch_size": integer(1, 10**6, "frames_per_batch's largest"),
+    "eval_episodes": integer(0, MAX_EVAL_EPISODES, "32x WOSAC's 32"), "eval_seed": seed_rule, "eval_scenes": lambda v: None if v is None else _scenes_rule(v),
+    "eval_num_scenes": integer(1, MAX_EVAL_SCENES, "scenes held at once"),
+    "eval_rules": lambda v: None if v in ("2024", "2025") else f"must be '2024' or '2025', got {v!r}",
+    "out_dir": lambda v: text(v) or output_dir_problem(v), "checkpoint_every": integer(1, MAX_ITERATIONS, "the most iterations"),
+    "seed": seed_rule, "device": device_problem, "tensorboard": flag, "torch_threads": integer(0, 1024, "threads of one process"),
+    "prior_cache_size": integer(1, MAX_CACHED_SCENES, "~1-2 MB a scene: ~130 GB"),
 }
-"""What each FinetuneConfig field takes (the env checks ``controlled``, ``background`` and the reward terms by name)."""
+"""What each FinetuneConfig field takes (the env checks ``controlled``, ``background`` and the reward terms by name); each
+number bounded on both sides (issue 56), its upper bound named with what breaks above it."""
 
 
-__all__ = ["CONFIG_DIR", "FinetuneConfig", "FinetuneConfigError", "FinetuneError", "MAX_EVAL_EPISODES", "MAX_LR", "POLICY_NETWORK_FIELDS",
+__all__ = ["CONFIG_DIR", "FinetuneConfig", "FinetuneConfigError", "FinetuneError", "MAX_CLIP_EPSILON", "MAX_EVAL_EPISODES",
+           "MAX_EVAL_SCENES", "MAX_ITERATIONS", "MAX_LR", "MAX_OBS_SCALE", "POLICY_NETWORK_FIELDS",
            "network_differences",
            "load_finetune_config", "named_configs"]

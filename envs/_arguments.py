@@ -12,12 +12,14 @@ and what is allowed, through the project's one set of value rules (:mod:`smart_m
 What each argument takes (the documented meanings):
 
 * ``horizon_steps``: an integer in 1..:data:`MAX_HORIZON_STEPS` (not 2.7, not True, not "16");
-* ``max_agents``: None (every controllable agent) or an integer >= 1;
-* ``top_k``: an integer >= 0, or None; 0 and None: the background samples from the whole distribution;
+* ``max_agents``: None (every controllable agent) or an integer in 1..:data:`MAX_AGENT_SLOTS`;
+* ``top_k``: an integer in 0..:data:`~smart_marl.model.smart.MAX_VOCAB_SIZE`, or None; 0 and None: the background
+  samples from the whole distribution;
 * ``temperature``: a finite number in :data:`smart_marl.rollout.TEMPERATURE_RANGE`;
-* ``reference_top_k``: None (the full softmax) or an integer >= 1;
+* ``reference_top_k``: None (the full softmax) or an integer in 1..:data:`~smart_marl.model.smart.MAX_VOCAB_SIZE`;
 * ``terminate_on``: a list, tuple or set of event names (a bare string is refused);
-* ``reward``: None, a RewardConfig or a dict of weights, every weight a finite number, ``goal_radius_m`` >= 0;
+* ``reward``: None, a RewardConfig or a dict of weights, every weight a finite number within +-:data:`MAX_REWARD_WEIGHT`,
+  ``goal_radius_m`` in [0, :data:`~smart_marl.config_files.MAX_DISTANCE_M`];
 * ``observation``: "vector", "dict" or an ObservationConfig with sizes in range;
 * ``render_size_px``: an integer in 16..:data:`MAX_RENDER_SIZE_PX`; ``render_radius_m`` a finite number in
   [:data:`MIN_RENDER_RADIUS_M`, :data:`MAX_RENDER_RADIUS_M`];
@@ -39,8 +41,9 @@ import numbers
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from smart_marl.config_files import (Rule, check_value, device_problem, flag, integer, is_integer, number, one_of, optional, seed,
-                                     shown)
+from smart_marl.config_files import (MAX_DISTANCE_M, Rule, check_value, device_problem, flag, integer, is_integer, number, one_of,
+                                     optional, seed, shown)
+from smart_marl.model.smart import MAX_VOCAB_SIZE
 from smart_marl.render.bev import MIN_VIEW_RADIUS_M
 from smart_marl.rollout import LIGHTS, temperature_rule
 
@@ -60,15 +63,27 @@ MAX_RENDER_RADIUS_M = 10_000.0
 MIN_RENDER_RADIUS_M = MIN_VIEW_RADIUS_M
 """The narrowest view, 1 m: the renderer's own limit (:data:`smart_marl.render.bev.MIN_VIEW_RADIUS_M`; line
 widths scale with the zoom, and a radius of 1e-10 m makes one frame take forever)."""
+MAX_AGENT_SLOTS = 1024
+"""The most controlled agents (``max_agents``; the batched env's agent slots per scene): no scene the project reads or
+makes holds more agents (a generated scene at most 1,024, :mod:`smart_marl.sources.sumo_config`; a real WOMD one a few
+hundred tracks), so more slots would only stay padded, and each slot costs about 6 KB a scene in every step's
+TensorDict (the prior's 1,024 float32 logits and the 473-value observation): ``max_agents=10**9`` asked terabytes."""
+MAX_REWARD_WEIGHT = 1e3
+"""The largest reward weight, either sign: a term weighted 1,000x the goal's (1) already drowns every other one, and a
+weight such as 1e300 makes a step's float32 reward inf (the returns, the critic's loss and the gradients NaN)."""
+TOP_K_WHY = "the largest vocabulary: a larger k is every token"
+"""Why a top-k (``top_k``, ``reference_top_k``, fine-tuning's and training's) stops at :data:`~smart_marl.model.smart.MAX_VOCAB_SIZE`."""
 CONTROLLED_NAMES = SELECTIONS  # "sdc", "predict", "vehicles", "all", "moving_vehicles"
 OBSERVATION_RULES: dict[str, Rule] = {
     "kind": one_of("vector", "dict"), "num_agents": integer(0, 1024, "agents in one observation"),
     "num_road_points": integer(0, 4096, "road points in one observation"),
-    "num_lights": integer(0, 256, "traffic lights in one observation"), "light_radius_m": number(0.0, MAX_RENDER_RADIUS_M),
+    "num_lights": integer(0, 256, "traffic lights in one observation"), "light_radius_m": number(0.0, MAX_DISTANCE_M, why="metres, farther than any scene reaches"),
 }
 """What each ObservationConfig field takes."""
-REWARD_RULES: dict[str, Rule] = {**{f.name: number() for f in dataclasses.fields(RewardConfig)}, "goal_radius_m": number(0.0)}
-"""What each RewardConfig field takes: finite weights, a goal radius >= 0."""
+REWARD_RULES: dict[str, Rule] = {
+    **{f.name: number(-MAX_REWARD_WEIGHT, MAX_REWARD_WEIGHT, why="1,000x the goal's") for f in dataclasses.fields(RewardConfig)},
+    "goal_radius_m": number(0.0, MAX_DISTANCE_M, why="metres, farther than any scene reaches")}
+"""What each RewardConfig field takes: weights within +-:data:`MAX_REWARD_WEIGHT`, a goal radius in [0, 10 km]."""
 
 
 def _check(name: str, value: Any, rule: Rule, kind: type | tuple = numbers.Real) -> Any:
@@ -135,10 +150,12 @@ def check_env_arguments(*, background: Any, horizon_steps: Any, scene_order: Any
         "scene_order": _check("scene_order", scene_order, one_of("sequential", "random"), str),
         "terminate_on": _terminate_on(terminate_on),
         "render_mode": _check("render_mode", render_mode, optional(one_of(*render_modes)), str),
-        "max_agents": None if max_agents is None else int(_check("max_agents", max_agents, integer(1))),
-        "top_k": 0 if top_k is None else int(_check("top_k", top_k, integer(0))),
+        "max_agents": None if max_agents is None else int(_check("max_agents", max_agents,
+                                                                 integer(1, MAX_AGENT_SLOTS, "the most agents of a scene"))),
+        "top_k": 0 if top_k is None else int(_check("top_k", top_k, integer(0, MAX_VOCAB_SIZE, TOP_K_WHY))),
         "temperature": float(_check("temperature", temperature, temperature_rule)),
-        "reference_top_k": None if reference_top_k is None else int(_check("reference_top_k", reference_top_k, integer(1))),
+        "reference_top_k": None if reference_top_k is None else int(_check("reference_top_k", reference_top_k,
+                                                                            integer(1, MAX_VOCAB_SIZE, TOP_K_WHY))),
         "render_size_px": int(_check("render_size_px", render_size_px, integer(16, MAX_RENDER_SIZE_PX, "a 50 MB frame"))),
         "render_radius_m": float(_check("render_radius_m", render_radius_m,
                                         number(MIN_RENDER_RADIUS_M, MAX_RENDER_RADIUS_M, why="wider than any scene"))),
@@ -194,5 +211,5 @@ def check_reset_arguments(seed_value: Any, options: Any, num_scenes: int) -> tup
     return seed_value, int(index)
 
 
-__all__ = ["MAX_HORIZON_STEPS", "MAX_RENDER_SIZE_PX", "MAX_RENDER_RADIUS_M", "MIN_RENDER_RADIUS_M", "OBSERVATION_RULES",
-           "REWARD_RULES", "check_env_arguments", "check_reset_arguments", "shield_checks"]
+__all__ = ["MAX_AGENT_SLOTS", "MAX_HORIZON_STEPS", "MAX_REWARD_WEIGHT", "MAX_RENDER_SIZE_PX", "MAX_RENDER_RADIUS_M",
+           "MIN_RENDER_RADIUS_M", "OBSERVATION_RULES", "REWARD_RULES", "TOP_K_WHY", "check_env_arguments", "check_reset_arguments", "shield_checks"]

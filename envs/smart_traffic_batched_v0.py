@@ -32,9 +32,10 @@ reference; :class:`envs._core.TrafficCore` underneath both) with tensors instead
 ``device="cuda"``: the prior, the state and every tensor the environment returns stay on the device.
 
 What it refuses (:mod:`envs.errors`), by the PettingZoo env's rules: the constructor's arguments as
-:mod:`envs._arguments` checks them, ``max_agents`` in 1..:data:`MAX_AGENT_SLOTS`, ``num_scenes`` in
-1..:data:`MAX_SCENES`, ``scenarios`` of another type than the ones above (an ``EnvConfigError``, an
-``EnvConfigTypeError`` for a wrong type, naming the argument). Every step, once and vectorised
+:mod:`envs._arguments` checks them, ``max_agents`` in 1..:data:`~envs._arguments.MAX_AGENT_SLOTS`, ``num_scenes`` in
+1..:data:`MAX_SCENES`, ``prior_cache_size`` and ``max_loaded_scenes`` in 1..:data:`MAX_CACHED_SCENES`, ``scenarios``
+of another type than the ones above (an ``EnvConfigError``, an ``EnvConfigTypeError`` for a wrong type, naming the
+argument). Every step, once and vectorised
 (:func:`check_actions`: no loop over agents, one ``.any()`` the only host sync): a missing
 ``("agents", "action")``, one of another shape than [B, A] or [B, A, 1], of a dtype that is neither
 integer nor float (a bool tensor is refused: ``True`` is not token 1), or a live agent's entry that is
@@ -66,7 +67,7 @@ from smart_marl.rollout import DEFAULT_TOP_K, reference_name
 from smart_marl.scenario import AgentType, Scenario
 from smart_marl.tokens import MotionVocabulary
 
-from ._arguments import check_env_arguments
+from ._arguments import MAX_AGENT_SLOTS, check_env_arguments
 from ._core import CoreScene, CoreStep, TrafficCore
 from ._observation import ObservationConfig, observation_size
 from ._pool import ScenePool, next_scenes
@@ -77,16 +78,15 @@ from .errors import ActionError, ActionTypeError, EnvConfigError, EnvConfigTypeE
 GROUP = "agents"
 ACTION_KEY = (GROUP, "action")
 INFO_KEYS = ("collision", "offroad", "goal_reached", "route_progress_m", "action_log_prob")
-MAX_AGENT_SLOTS = 1024
-"""The most agent slots per scene (``max_agents``): no scene the project reads or makes holds more agents (a generated
-scene at most 1,024, :mod:`smart_marl.sources.sumo_config`; a real WOMD one a few hundred tracks), so more slots would
-only stay padded, and each slot costs about 6 KB a scene in every step's TensorDict (the prior's 1,024 float32
-logits and the 473-value observation): ``max_agents=10**9`` asked terabytes."""
 MAX_SCENES = 8192
 """The most scenes stepped together (``num_scenes``): a scene takes about 13 MB of the device's memory (its prior's
 KV cache, constants and state: 54 GB at 4,096 generated scenes on an H200, docs/scale.md), so 8,192 take about
 110 GB, what the largest GPU the project runs on (an H200, 141 GB) holds; the earlier bound, 65,536, would ask
 ~860 GB. On a CPU the machine's memory is the limit, and may be lower."""
+MAX_CACHED_SCENES = 65_536
+"""The most scenes whose freshly started prior state (``prior_cache_size``, ~1-2 MB each) or constants
+(``max_loaded_scenes``) are kept: up to ~130 GB of prior states, what an H200 (141 GB) holds; the earlier bound,
+2**20, let a cache grow to 1-2 TB."""
 INTEGER_DTYPES = (torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64, torch.uint16, torch.uint32, torch.uint64)
 FLOAT_DTYPES = (torch.float16, torch.bfloat16, torch.float32, torch.float64)
 """The dtypes an action tensor may have: token ids as integers, or as floats that are whole numbers."""
@@ -112,8 +112,8 @@ class SmartTrafficBatchedEnv(EnvBase):
             raise EnvConfigError("max_agents must be an integer >= 1: the batched env's agent group has that many slots per scene")
         for name, value, high, why in (("max_agents", a["max_agents"], MAX_AGENT_SLOTS, "the most agents of a scene"),
                                        ("num_scenes", num_scenes, MAX_SCENES, "~13 MB of device memory a scene: ~110 GB"),
-                                       ("prior_cache_size", prior_cache_size, 1 << 20, ""),
-                                       ("max_loaded_scenes", max_loaded_scenes, 1 << 20, "")):
+                                       ("prior_cache_size", prior_cache_size, MAX_CACHED_SCENES, "~1-2 MB a scene: ~130 GB"),
+                                       ("max_loaded_scenes", max_loaded_scenes, MAX_CACHED_SCENES, "scenes held in memory")):
             check_value(name, value, integer(1, high, why), EnvConfigError if is_integer(value) else EnvConfigTypeError)
         check_value("seed", seed, seed_rule, EnvConfigError)
         if not isinstance(scenarios, ScenePool):
@@ -325,5 +325,5 @@ def batched_env(**kwargs) -> SmartTrafficBatchedEnv:
     return SmartTrafficBatchedEnv(**kwargs)
 
 
-__all__ = ["ACTION_KEY", "GROUP", "INFO_KEYS", "MAX_AGENT_SLOTS", "MAX_SCENES", "SmartTrafficBatchedEnv", "batched_env",
-           "check_actions", "check_reset_mask", "scenario_sources"]
+__all__ = ["ACTION_KEY", "GROUP", "INFO_KEYS", "MAX_AGENT_SLOTS", "MAX_CACHED_SCENES", "MAX_SCENES", "SmartTrafficBatchedEnv",
+           "batched_env", "check_actions", "check_reset_mask", "scenario_sources"]

@@ -3,7 +3,8 @@
 rules :func:`integer`, :func:`number`, :func:`seed`, :func:`text`, :func:`flag`, :func:`optional`,
 :func:`one_of`, :func:`sequence`, :func:`interval`, :func:`probabilities` (and :func:`check_value` for a single value), and the
 problems of a device name (:func:`device_problem`) or an output folder (:func:`output_dir_problem`),
-which the command line's argument types use too."""
+which the command line's argument types use too; and the limits several configs share (:data:`MAX_TIME_LIMIT_S`,
+:data:`MAX_GRAD_NORM`, :data:`MAX_LOSS_WEIGHT`, :data:`MAX_SCENE_COUNT`, :data:`MAX_DISTANCE_M`)."""
 
 from __future__ import annotations
 
@@ -121,6 +122,23 @@ def apply_command_flags(cfg, args) -> None:
 # what-if edits) and the command line's argument types (smart_marl.commands.arguments) use these rules.
 MAX_SEED = 2**63 - 1
 """The largest seed taken anywhere (numpy, torch and Python generators all accept 0..2**63 - 1)."""
+# The limits several configs share (issue 56: every number a run divides, loops or multiplies by is bounded on both sides).
+MAX_TIME_LIMIT_S = 30 * 24 * 3600.0
+"""The longest ``time_limit_s`` of a training or fine-tuning run: 30 days. A longer limit is no limit (the project's
+longest runs took hours), so a value such as 1e18 is a slip; ask for none with 0 (fine-tuning) or null (training)."""
+MAX_GRAD_NORM = 1e6
+"""The largest gradient-norm clip (fine-tuning ``max_grad_norm``, training ``grad_clip``): a run whose gradients reach a
+norm of a million has already diverged, so a larger clip never clips; 1e300 is a slip, not a setting."""
+MAX_LOSS_WEIGHT = 1e3
+"""The largest weight of a loss term (fine-tuning ``beta``, ``imitation``, ``entropy_coeff``, ``critic_coeff``, training
+``speed_trend_weights``): a term 1,000x the objective it is added to already drowns it, and a weight such as 1e300
+overflows float32 (3.4e38): inf losses and NaN gradients."""
+MAX_SCENE_COUNT = 10**7
+"""The most scenes a config may ask for by count (fine-tuning ``num_scenes``, training ``vocab_scenes``, ``val_scenes``):
+20x WOMD's training split (487,002 scenes), the largest data set the project reads; each is a pass of a loop."""
+MAX_DISTANCE_M = 10_000.0
+"""The longest distance in metres a config gives (a goal radius, a route length, a drift): 10 km, farther than any
+scene reaches (a WOMD scene spans a few hundred metres; 20 s at 200 km/h is 1.1 km)."""
 
 
 def is_integer(value: Any) -> bool:

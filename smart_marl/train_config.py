@@ -12,11 +12,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from .config_files import (apply_overrides, check_fields, device_problem, flag, integer, number, optional, output_dir_problem,
-                           read_config_file, text)
+from .config_files import (MAX_DISTANCE_M, MAX_GRAD_NORM, MAX_LOSS_WEIGHT, MAX_SCENE_COUNT, MAX_TIME_LIMIT_S, apply_overrides,
+                           check_fields, device_problem, flag, integer, number, optional, output_dir_problem, read_config_file,
+                           text)
 from .config_files import seed as seed_rule
 from .errors import SmartMarlError, UsageError
-from .model.smart import NAMED_CONFIGS, ModelConfigError, SmartConfig, get_config
+from .model.smart import MAX_VOCAB_SIZE, NAMED_CONFIGS, ModelConfigError, SmartConfig, get_config
 
 
 class TrainError(SmartMarlError, ValueError):
@@ -109,8 +110,9 @@ def load_train_config(config: str | Mapping[str, Any] | None = None, overrides: 
 def _trend_weights(value) -> str | None:
     if value is None:
         return None
-    if not (isinstance(value, (list, tuple)) and len(value) == 3) or any(number(0.0)(w) for w in value):
-        return f"must be three numbers >= 0 (speeds up, keeps its speed, slows) or null, got {value!r}"
+    if not (isinstance(value, (list, tuple)) and len(value) == 3) or any(number(0.0, MAX_LOSS_WEIGHT)(w) for w in value):
+        return (f"must be three numbers in [0, {MAX_LOSS_WEIGHT:g}] (speeds up, keeps its speed, slows; loss weights) or null, "
+                f"got {value!r}")
     return None
 
 
@@ -137,7 +139,7 @@ def _betas(value) -> str | None:
     return None
 
 
-ROAD_KEEP_RADIUS_RULE = lambda v: (number(-1.0, 10_000.0)(v)  # noqa: E731
+ROAD_KEEP_RADIUS_RULE = lambda v: (number(-1.0, MAX_DISTANCE_M)(v)  # noqa: E731
                                    or (None if v == -1 or v >= 0 else f"must be -1 (lossless) or >= 0, got {v}"))
 """What ``road_keep_radius_m`` (and ``pretokenize --road-keep-radius``) takes: -1 (the lossless radius of the
 model config) or a finite distance >= 0 in metres."""
@@ -147,28 +149,38 @@ MAX_STEPS = 10**9
 """The most optimizer steps a run takes."""
 MAX_WORKERS = 4 * (os.cpu_count() or 1)
 """The most DataLoader workers: 4 per CPU of this machine (more only wait for a CPU)."""
-
+MAX_CACHE_SCENES = 100_000
+"""The most scenes a data worker keeps (``cache_scenes``): ~0.2 MB of road arrays and tokens a scene, ~20 GB in
+each worker."""
+_TOP_K = integer(0, MAX_VOCAB_SIZE, "the largest vocabulary: a larger k is every token")
+_EVERY = integer(0, MAX_STEPS, "the most steps: a longer period never comes")
 _TRAIN_RULES = {
     "model_overrides": lambda v: None if isinstance(v, dict) else f"must be a mapping, got {v!r}",
     "data": text, "val_data": optional(text), "extra_data": optional(text),
     "extra_data_share": number(0.0, 1.0, low_open=True, high_open=True), "out_dir": lambda v: text(v) or output_dir_problem(v),
-    "motion_vocab": optional(text), "road_vocab": optional(text), "vocab_scenes": integer(1), "vocab_seed": seed_rule,
+    "motion_vocab": optional(text), "road_vocab": optional(text),
+    "vocab_scenes": integer(1, MAX_SCENE_COUNT, "20x WOMD's training split"), "vocab_seed": seed_rule,
     "batch_size": integer(1, MAX_BATCH_SIZE, "scenes per step a machine holds"),
     "num_workers": integer(0, MAX_WORKERS, "4 processes per CPU of this machine"),
     "max_steps": integer(1, MAX_STEPS, "a billion steps"),
-    "time_limit_s": optional(number(0.0, low_open=True)), "lr": number(0.0, 1.0, low_open=True, why="larger diverges at once"),
-    "weight_decay": number(0.0, 10.0), "betas": _betas, "warmup_steps": integer(0, MAX_STEPS), "grad_clip": number(0.0),
+    "time_limit_s": optional(number(0.0, MAX_TIME_LIMIT_S, low_open=True, why="30 days; null: no limit")),
+    "lr": number(0.0, 1.0, low_open=True, why="larger diverges at once"),
+    "weight_decay": number(0.0, 10.0, why="AdamW shrinks every weight by lr x weight_decay a step"), "betas": _betas,
+    "warmup_steps": integer(0, MAX_STEPS, "a billion steps"),
+    "grad_clip": number(0.0, MAX_GRAD_NORM, why="a larger clip never clips; 0: no clip"),
     "dropout": number(0.0, 1.0, high_open=True), "label_smoothing": number(0.0, 1.0, high_open=True),
     "speed_trend_weights": _trend_weights, "train_only": _prefixes, "lr_scale": _lr_scale,
-    "token_noise_topk": integer(0), "catk_top_k": integer(0), "catk_avoid": flag, "brake_leaders": number(0.0, 1.0),
-    "catk_max_drift_m": optional(number(0.0, low_open=True)),
-    "cache_scenes": integer(0), "road_mask_prob": number(0.0, 1.0),
+    "token_noise_topk": _TOP_K, "catk_top_k": _TOP_K, "catk_avoid": flag, "brake_leaders": number(0.0, 1.0),
+    "catk_max_drift_m": optional(number(0.0, MAX_DISTANCE_M, low_open=True, why="metres, farther than any scene reaches")),
+    "cache_scenes": integer(0, MAX_CACHE_SCENES, "~0.2 MB a scene: ~20 GB a worker"), "road_mask_prob": number(0.0, 1.0),
     "road_keep_radius_m": optional(ROAD_KEEP_RADIUS_RULE),
-    "log_every": integer(1), "val_every": integer(0), "val_scenes": integer(0), "ckpt_every": integer(0), "seed": seed_rule,
+    "log_every": integer(1, MAX_STEPS, "the most steps: a longer period never comes"), "val_every": _EVERY,
+    "val_scenes": integer(0, MAX_SCENE_COUNT, "20x WOMD's training split"), "ckpt_every": _EVERY, "seed": seed_rule,
     "device": lambda v: None if v == "auto" else device_problem(v), "amp": flag, "init": optional(text),
     "tensorboard": flag, "progress": flag,
 }
-"""What each TrainConfig field takes (``model`` is checked against the named configs)."""
+"""What each TrainConfig field takes (``model`` is checked against the named configs); each number bounded on both
+sides (issue 56), its upper bound named with what breaks above it."""
 
 
 def check_train_config(cfg: TrainConfig) -> None:

@@ -110,7 +110,7 @@ def test_an_output_folder_below_a_file_or_under_proc_is_refused(tmp_path):
     (["train", "--config", "smart-1m", "--out", "OUT", "--seed", "1", "--nope"], "unrecognized arguments: --nope"),
     (["finetune", "--config", "tiny", "temperature=0", "--print-config"], "temperature must be >= 0.001, got 0"),
     (["finetune", "--config", "tiny", "hidden=1000000000", "--print-config"], "hidden must be at most 4096"),
-    (["finetune", "--config", "tiny", "reward.collision=NaN", "--print-config"], "reward must map reward terms to finite"),
+    (["finetune", "--config", "tiny", "reward.collision=NaN", "--print-config"], "reward term 'collision' must be a finite number"),
     (["whatif", "SRC", "--script", "SRC", "--out", "OUT", "--seed", "abc"], "--seed: 'abc' is not an integer"),
 ], ids=lambda a: " ".join(a) if isinstance(a, list) else None)
 def test_the_issues_bad_arguments_exit_2_with_one_error_line_naming_them(argv, names, tmp_path, capsys):

@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import sys
 
-from smart_marl.commands.arguments import device, output_dir, positive_int, seed
+from smart_marl.commands.arguments import device, output_dir, rollouts, seed
 from smart_marl.config_files import apply_command_flags, strict_json
 
 
@@ -37,7 +37,7 @@ def register(subparsers) -> None:
     p.add_argument("--device", default=None, type=device, help="torch device for the policy and its updates (default: the config's, cpu)")
     p.add_argument("--seed", type=seed, default=None, help="random seed (default: the config's); with --evaluate, the first evaluation seed")
     p.add_argument("--evaluate", default=None, metavar="CHECKPOINT", help="evaluate this policy checkpoint next to the expert and the prior on held-out scenes and exit")
-    p.add_argument("--episodes", type=positive_int, default=None, help="with --evaluate: rollouts (seeds) per held-out scene (default: the config's eval_episodes)")
+    p.add_argument("--episodes", type=rollouts, default=None, help="with --evaluate: rollouts (seeds) per held-out scene (default: the config's eval_episodes)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     p.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
     p.set_defaults(func=run)

@@ -14,15 +14,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from smart_marl.config_files import check_value, integer
 from smart_marl.geometry import colliding, min_box_distance
 from smart_marl.metrics import Rollouts, score_scenario
 from smart_marl.metrics.config import CURRENT_STEP, NUM_SIMULATION_STEPS, NUM_STEPS
 from smart_marl.model.checkpoint import EMBEDDED, load_prior
-from smart_marl.rollout import DEFAULT_TOP_K
+from smart_marl.model.smart import MAX_VOCAB_SIZE
+from smart_marl.rollout import DEFAULT_TOP_K, temperature_rule
 from smart_marl.scenario import AgentType, Scenario
 from smart_marl.tokens import FRAMES_PER_TOKEN, TOKEN_S
 
-from .edits import KIND_OF, MAX_STEPS, WhatIf, WhatIfError
+from .edits import KIND_OF, MAX_ROLLOUTS, MAX_STEPS, WhatIf, WhatIfError
 from .prepare import Prepared, prepare
 from .simulate import SimRollouts, simulate
 
@@ -47,6 +49,10 @@ def run_whatif(prior, scene: Scenario, whatif: WhatIf, num_rollouts: int = 8, se
     default on, the log's clock: a light a script overrides holds from its step on)."""
     if isinstance(num_steps, bool) or not isinstance(num_steps, int) or not 1 <= num_steps <= MAX_STEPS:
         raise WhatIfError(whatif.path, f"num_steps must be 1..{MAX_STEPS} token steps of 0.5 s, got {num_steps!r}")
+    for name, value, rule in (("num_rollouts", num_rollouts, integer(1, MAX_ROLLOUTS, "32x WOSAC's 32")),
+                              ("top_k", top_k, integer(0, MAX_VOCAB_SIZE, "the largest vocabulary: a larger k is every token")),
+                              ("temperature", temperature, temperature_rule)):
+        check_value(name, value, rule, lambda problem: WhatIfError(whatif.path, problem))
     end_s = num_steps * TOKEN_S
     for i, edit in enumerate(whatif.edits):  # an onset after the rollout's end would be found only after simulating
         at_s = getattr(edit, "at_s", 0.0)

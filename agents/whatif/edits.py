@@ -13,9 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence, Union
 
-import numpy as np
-
-from smart_marl.config_files import integer, is_integer, is_number, number, optional
+from smart_marl.config_files import integer, is_integer, is_number, number, optional, shown
 from smart_marl.model.smart import MAX_VOCAB_SIZE
 from smart_marl.errors import SmartMarlError, check_regular_file
 from smart_marl.scenario import SignalState
@@ -154,6 +152,8 @@ KIND_OF = {cls: kind for kind, cls in KINDS.items()}
 
 MAX_STEPS = 64
 """Most token steps (0.5 s each: 32 s) a what-if rolls out; ``smart-marl whatif --steps`` refuses more."""
+MAX_ROLLOUTS = 1024
+"""Most rollouts a what-if and its baseline each take (32x WOSAC's 32); ``smart-marl whatif --rollouts`` refuses more."""
 MAX_SCRIPT_BYTES = 1_000_000
 """The largest what-if script file."""
 MAX_SCRIPT_NODES = 100_000
@@ -234,11 +234,10 @@ def _choice(*options):
 
 
 def _lanes(v):
-    if v == "all" or (isinstance(v, (int, np.integer)) and not isinstance(v, bool)):
+    lane = lambda x: is_integer(x) and abs(x) <= MAX_TRACK_ID  # noqa: E731 - ids are int64
+    if v == "all" or lane(v) or (isinstance(v, (list, tuple)) and v and len(v) <= MAX_POINTS and all(map(lane, v))):
         return None
-    if isinstance(v, (list, tuple)) and v and all(isinstance(x, (int, np.integer)) and not isinstance(x, bool) for x in v):
-        return None
-    return f"must be 'all' or lane ids (integers), got {v!r}"
+    return f"must be 'all' or lane ids (integers within +-{MAX_TRACK_ID}, at most {MAX_POINTS}), got {shown(v)}"
 
 
 _SIGNAL_NAMES = tuple(s.name.lower() for s in SignalState)

@@ -3,8 +3,8 @@
 
 Each is :func:`checked`: the text parsed, then a rule of :mod:`smart_marl.config_files`, the one way
 every value is checked. ``type=positive_int`` (``--workers``, ``--scenes-per-shard``...),
-``type=non_negative_int`` (``--top-k``: 0 means none), ``type=seed`` (``--seed``: 0..2**63 - 1),
-``bounded_int(low, high)`` / ``bounded_number(...)`` (a size with its limit named),
+``type=non_negative_int``, ``type=top_k`` (``--top-k``: 0..8192, 0 means every token), ``type=seed``
+(``--seed``: 0..2**63 - 1), ``bounded_int(low, high)`` / ``bounded_number(...)`` (a size with its limit named),
 ``type=workers`` (``--workers``: 1..4 per CPU), ``type=positive_number``, ``type=positive_numbers``
 (``--speed-limits 30,50``: comma-separated numbers > 0), ``type=motion_types`` (``--types
 pedestrian,cyclist``: agent types that have motion tokens), ``type=output_dir`` (``--out``:
@@ -23,6 +23,7 @@ from typing import Any, Callable
 
 from ..config_files import (Rule, device_problem, integer, number, output_dir_problem, output_file_problem,
                             seed as seed_rule)
+from ..model.smart import MAX_VOCAB_SIZE
 from ..readers import format_names
 from ..rollout.engine import LIGHTS
 from ..rollout.sampling import temperature_rule
@@ -92,6 +93,8 @@ rollouts = bounded_int(1, MAX_ROLLOUTS, "32x WOSAC's 32")
 """``--rollouts``: an integer in 1..:data:`MAX_ROLLOUTS`."""
 temperature = checked(temperature_rule, float, "a number", "temperature")
 """``--temperature``: a finite number in :data:`smart_marl.rollout.TEMPERATURE_RANGE`."""
+top_k = bounded_int(0, MAX_VOCAB_SIZE, "the largest vocabulary: a larger k is every token")
+"""``--top-k``: an integer in 0..:data:`~smart_marl.model.smart.MAX_VOCAB_SIZE` (0: every token)."""
 
 MAX_WORKERS = 4 * (os.cpu_count() or 1)
 """The most worker processes a command starts: 4 per CPU of this machine (more only wait for a CPU)."""
@@ -176,5 +179,5 @@ def reader_formats() -> list[str]:
     return format_names()
 
 
-__all__ = ["checked", "numbers_list", "workers", "MAX_WORKERS", "rollouts", "MAX_ROLLOUTS", "temperature", "positive_int", "non_negative_int", "seed", "positive_number", "bounded_int", "bounded_number",
+__all__ = ["checked", "numbers_list", "workers", "MAX_WORKERS", "rollouts", "MAX_ROLLOUTS", "temperature", "top_k", "positive_int", "non_negative_int", "seed", "positive_number", "bounded_int", "bounded_number",
            "positive_numbers", "output_file", "motion_types", "collision_avoidance_flag", "stop_lines_flag", "lights_option", "output_dir", "device", "device_or_auto", "reader_formats"]

@@ -48,8 +48,8 @@ from ..readers import expand_paths, read_scenarios
 from ..readers.scene_cache import file_sha256
 from ..rollout import DEFAULT_TOP_K, rollout
 from ..version import __version__
-from .arguments import (collision_avoidance_flag, device, non_negative_int, output_dir, output_file, positive_int, reader_formats,
-                        rollouts, seed, lights_option, stop_lines_flag, temperature)
+from .arguments import (bounded_int, collision_avoidance_flag, device, output_dir, output_file, reader_formats, rollouts, seed,
+                        lights_option, stop_lines_flag, temperature, top_k)
 
 POLICY_CHOICES = ("constant_velocity", "log_replay", "random", "prior")
 WOSAC_ROLLOUTS = 32
@@ -57,6 +57,9 @@ WOSAC_ROLLOUTS = 32
 DEFAULT_CHUNK_SIZE = 64
 """Scenes per chunk of an ``--out`` run: the unit of resuming, and of the submission's files (about
 2 MB of rollouts per WOMD scene with 32 rollouts: ~130 MB files, far below protobuf's 2 GiB)."""
+MAX_CHUNK_SIZE = 1000
+"""The most scenes per chunk (``--chunk-size``): a chunk's submission file is one protobuf message, which cannot exceed
+2 GiB, and 1,000 WOMD scenes' 32 rollouts take about 2 GB."""
 
 SCALE_HELP = """\
 at challenge scale (a run folder; docs/evaluation_at_scale.md):
@@ -88,7 +91,7 @@ def register(subparsers) -> None:
     src.add_argument("--policy", choices=POLICY_CHOICES, help="generate rollouts with a baseline policy")
     p.add_argument("--checkpoint", metavar="C", help="model checkpoint for --policy prior (default: the embedded prior)")
     p.add_argument("--device", default="cpu", type=device, help="torch device for --policy prior (default cpu)")
-    p.add_argument("--top-k", type=non_negative_int, default=None, metavar="K",
+    p.add_argument("--top-k", type=top_k, default=None, metavar="K",
                    help=f"--policy prior samples among its K most likely tokens (default {DEFAULT_TOP_K}; 0: all of them)")
     p.add_argument("--temperature", type=temperature, default=None, metavar="T",
                    help="--policy prior samples from softmax(logits / T) (default 1)")
@@ -113,9 +116,9 @@ def register(subparsers) -> None:
     scale.add_argument("--shard", type=parse_shard, metavar="I/N",
                        help="with --out: score shard I of N (I from 0; scene k goes to shard k mod N); default: "
                             "RANK/WORLD_SIZE under torchrun, else 0/1")
-    scale.add_argument("--chunk-size", type=positive_int, default=None, metavar="K",
+    scale.add_argument("--chunk-size", type=bounded_int(1, MAX_CHUNK_SIZE, "a 2 GB submission file"), default=None, metavar="K",
                        help=f"with --out: scenes per chunk, the unit of resuming and of the submission files "
-                            f"(default {DEFAULT_CHUNK_SIZE})")
+                            f"(default {DEFAULT_CHUNK_SIZE}, at most {MAX_CHUNK_SIZE})")
     scale.add_argument("--merge", metavar="RUN", help="merge a finished --out run: print its numbers, write RUN/result.json "
                                                       "and the submission files")
     p.set_defaults(func=run)

@@ -10,11 +10,18 @@ from ..sources.sumo import SumoConfig, SumoUnavailableError, generate_to_dir
 from ..sources.sumo_net import JUNCTION_TYPES
 from ..sources.sumo_sim import MAX_SPEED_LIMIT_MPS, MIN_SPEED_LIMIT_MPS
 from ..config_files import number
-from .arguments import bounded_int, bounded_number, numbers_list, output_dir, positive_int, positive_numbers, seed, workers
+from .arguments import bounded_int, bounded_number, numbers_list, output_dir, seed, workers
 
 speed_limits_kmh = numbers_list(number(round(MIN_SPEED_LIMIT_MPS * 3.6), round(MAX_SPEED_LIMIT_MPS * 3.6),
                                        why="km/h; netgenerate fails on limits near 0"), "speed_limits_kmh")
 """``--speed-limits``: comma-separated km/h, each within the limits a SUMO network takes (5-200)."""
+MAX_SCENES = 10**6
+"""The most scenes one ``generate-sumo`` makes (``--scenes``): ~290 KB a scene in a scene cache, ~290 GB."""
+MAX_RELATIVE_WEIGHT = 1e6
+"""The largest ``--speed-weights`` / ``--junction-weights`` entry: the weights are divided by their sum, which overflows
+to inf (every probability 0) with entries near 1e308; a million to one already makes the rarest never drawn."""
+relative_weights = numbers_list(number(0.0, MAX_RELATIVE_WEIGHT, low_open=True, why="a million to one"), "relative_weights")
+"""Comma-separated weights, each in (0, :data:`MAX_RELATIVE_WEIGHT`] (normalised by their sum)."""
 _DEFAULT_JUNCTION_WEIGHTS = SumoConfig.__dataclass_fields__["junction_weights"].default
 
 
@@ -24,7 +31,8 @@ def register(subparsers) -> None:
         description="Simulate random road networks with varied traffic (cars, trucks, buses, bicycles, pedestrians) "
                     "in SUMO and cut 9.1 s scenes (91 frames at 10 Hz, current frame 10) around moving vehicles, "
                     "written straight into a scene cache (default) or as WOMD TFRecords. Same seed, same scenes.")
-    p.add_argument("--scenes", type=positive_int, required=True, help="number of scenes to generate")
+    p.add_argument("--scenes", type=bounded_int(1, MAX_SCENES, "~290 GB of scene cache"), required=True,
+                   help=f"number of scenes to generate (at most {MAX_SCENES:,})")
     p.add_argument("--out", required=True, type=output_dir, help="output folder (created if missing)")
     p.add_argument("--workers", type=workers, default=max(1, min(4, os.cpu_count() or 1)),
                    help="parallel processes, one SUMO simulation each")
@@ -44,7 +52,7 @@ def register(subparsers) -> None:
                    help="multiplies the traffic demand (default: the config's, 2.5 for the tuned traffic, 1 with --legacy)")
     p.add_argument("--speed-limits", type=speed_limits_kmh, default=None, metavar="KMH[,KMH...]",
                    help="the networks' speed limits to draw from, km/h, each 5-200 (default: the config's, 30-70 km/h)")
-    p.add_argument("--speed-weights", type=positive_numbers, default=None, metavar="W[,W...]",
+    p.add_argument("--speed-weights", type=relative_weights, default=None, metavar="W[,W...]",
                    help="their probabilities, one per limit (normalised; default: the config's with the default "
                         "limits, uniform with --speed-limits)")
     p.add_argument("--straight-walkers", action="store_true",
@@ -53,7 +61,7 @@ def register(subparsers) -> None:
     p.add_argument("--no-parked-cars", action="store_true",
                    help="no parked cars beside the kerbs (the tuned generator parks cars on 20-90%% of the kerb, drawn "
                         "per simulation, as real scenes have them; --legacy implies none)")
-    p.add_argument("--junction-weights", type=positive_numbers, default=None, metavar="W,W,W,W,W",
+    p.add_argument("--junction-weights", type=relative_weights, default=None, metavar="W,W,W,W,W",
                    help="how often each junction kind is drawn, one weight per kind of " + ", ".join(JUNCTION_TYPES)
                         + " (normalised; default: the config's, " + ", ".join(map(str, _DEFAULT_JUNCTION_WEIGHTS))
                         + " for the tuned traffic)")
