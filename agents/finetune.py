@@ -5,8 +5,9 @@ top to bottom (CleanRL style); every knob is a field of :class:`FinetuneConfig`.
 What comes in: scenes (a scene pool: scene-cache folders of any size, any path ``read_scenarios``
 reads, ``"embedded"``, or a list of them), a SMART checkpoint (the prior, which also drives the
 background agents) and the config. What goes out, in ``out_dir``: ``finetune.csv`` (one row per
-iteration), ``tensorboard/``, ``config.json``, and policy checkpoints
-``checkpoints/policy_NNNN.{safetensors,json}`` (+ ``policy_last``), which :func:`load_policy` reads.
+iteration), ``tensorboard/``, ``config.json``, policy checkpoints
+``checkpoints/policy_NNNN.{safetensors,json}`` (+ ``policy_last``), which :func:`load_policy` reads, and
+the state a run started again in the same ``out_dir`` resumes from (``checkpoints/resume.*``).
 
 The pipeline:
 
@@ -14,7 +15,8 @@ The pipeline:
    scenes (the first ``num_scenes`` of ``scenes``), ``num_envs`` scenes stepped together, one agent
    group ``"agents"`` of ``max_agents`` slots with a mask; a scene that finishes is refilled in
    place with the pool's next one (random order, a new permutation per pass), so every batch is
-   full and the policy sees scene after scene;
+   full and the policy sees scene after scene; every iteration starts from a full reset, so that a
+   run resumes exactly (:mod:`agents.finetune_state`);
 2. actor and critic (:mod:`agents.policy`): logits ``prior_logits / T + f(obs)`` (residual, starting
    exactly at the reference) restricted to the reference's support, a ``ProbabilisticActor`` with a
    Categorical; a ``MultiAgentMLP`` value, centralised (``critic="mappo"``) or per agent (``"ippo"``);
@@ -44,6 +46,7 @@ evaluation does not, so that every controlled agent drives the 8 s the realism m
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import time
 import warnings
@@ -76,6 +79,7 @@ from smart_marl.scenario import AgentType
 from smart_marl.train import init_distributed, leave_distributed, resolve_device
 
 from .evaluate import evaluate_policies
+from .finetune_state import Progress, episode_seed, load_run_state, logged_rows, save_run_state
 from .finetune_config import (MAX_EVAL_EPISODES, FinetuneConfig, FinetuneConfigError, FinetuneError, load_finetune_config,
                               network_differences)
 from .kl_ppo import PriorKLPPOLoss
@@ -411,30 +415,39 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
     env.set_seed(cfg.seed + rank)
     # 2-3. actor, critic, loss
     learner = _learner(cfg, env, model, vocab, device, world)
-    if rank == 0:  # only now: a run refused above (its prior, scenes, starting policy) writes nothing
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
-    # 4. collector, PPO epochs, logging, checkpoints
+    # 4. collector (every iteration from a full reset: agents.finetune_state), PPO epochs, logging, checkpoints
     steps_per_env = max(1, cfg.frames_per_batch // cfg.num_envs)
     frames_per_batch = steps_per_env * cfg.num_envs
+    done = {"iterations": 0}  # iterations finished: the next one's sampler seed
     collector = Collector(env, learner.actor, frames_per_batch=frames_per_batch, total_frames=frames_per_batch * cfg.iterations,
-                          policy_device=device, env_device=device, storing_device=device,
+                          policy_device=device, env_device=device, storing_device=device, reset_at_each_iter=True,
+                          pre_collect_hook=lambda: env.set_episode_seed(episode_seed(cfg.seed, rank, done["iterations"] + 1), forget_starts=True),
                           auto_register_policy_transforms=False)  # a feed-forward policy: no InitTracker
-    log = RunLog(out_dir, {"finetune": COLUMNS}, "iteration", tensorboard=cfg.tensorboard) if rank == 0 else None
-    history: list[dict] = []
+    # after the collector's first reset (which draws nothing the next iteration's reset does not overwrite)
+    progress = load_run_state(out_dir, rank, world, cfg, learner.loss, learner.optimizer, env.pool) or Progress()
+    done["iterations"] = progress.iteration
+    collector.update_policy_weights_()
+    if rank == 0:  # only now: a run refused above (its prior, scenes, starting policy, saved state) writes nothing
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
+    if progress.iteration:
+        print(f"finetune: resuming {out_dir} after iteration {progress.iteration} of {cfg.iterations}", flush=True)
+    log = (RunLog(out_dir, {"finetune": COLUMNS}, "iteration", resume_step=progress.iteration, tensorboard=cfg.tensorboard)
+           if rank == 0 else None)
+    history: list[dict] = logged_rows(out_dir, progress.iteration) if rank == 0 else []
     ckpt_dir = out_dir / "checkpoints"
-    start = time.perf_counter()
-    frames, seen = 0, set()
-    for it, batch in enumerate(collector, start=1):
-        frames += batch.numel() * world
-        seen.update(env.scene_indices)
+    start = time.perf_counter() - progress.seconds
+    for it, batch in enumerate(itertools.islice(collector, max(cfg.iterations - progress.iteration, 0)), start=progress.iteration + 1):
+        progress.frames += batch.numel() * world
+        progress.seen.update(env.scene_indices)
         stats = batch_stats(batch, cfg.temperature, cfg.reference_top_k)
         losses = _ppo_update(cfg, learner, batch, device, world)
         collector.update_policy_weights_()
-        row = {"iteration": it, "frames": frames, "seconds": time.perf_counter() - start, "scenes_seen": len(seen), **stats, **losses}
+        row = {"iteration": it, "frames": progress.frames, "seconds": time.perf_counter() - start, "scenes_seen": len(progress.seen),
+               **stats, **losses}
         if world > 1:
             row = _mean_over_ranks(row, world, device)
-            row["iteration"], row["frames"] = it, frames
+            row["iteration"], row["frames"] = it, progress.frames
         history.append(row)
         if rank == 0:
             log.write("finetune", row)
@@ -442,6 +455,8 @@ def _finetune(cfg: FinetuneConfig, on_iteration=None) -> FinetuneResult:
                 on_iteration(row)
             if it % max(cfg.checkpoint_every, 1) == 0 or it == cfg.iterations:
                 save_policy(ckpt_dir / f"policy_{it:04d}", cfg.to_dict(), learner.net, learner.critic.module, learner.dims, it, stats)
+        progress.iteration, progress.seconds, done["iterations"] = it, row["seconds"], it
+        save_run_state(out_dir, rank, world, cfg, learner.loss, learner.optimizer, env.pool, progress)
         if cfg.time_limit_s and row["seconds"] >= cfg.time_limit_s:  # every rank sees the same (averaged) seconds
             break
     collector.shutdown()

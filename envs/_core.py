@@ -215,6 +215,10 @@ class TrafficCore:
         start = gather_tracks(self.pose, self.ctrl_track)[..., :2]
         self.progress_m[idx] = route_progress_m(sb, self.ctrl_track, start)[idx].to(self.dtype)
 
+    def forget_starts(self) -> None:
+        """Drop the prior's started states kept for scenes played before (``prior_cache_size``)."""
+        self._pristine.clear()
+
     def _prior_starts(self, scenes: Sequence[CoreScene]) -> list[RolloutState]:
         """A freshly started prior state per scene: kept ones for known keys, the others started
         together (one batch) and kept."""

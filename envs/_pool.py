@@ -130,6 +130,27 @@ class ScenePool:
         self._rng = np.random.default_rng(int(seed))
         self._queue: list[int] = []
 
+    def order_state(self) -> dict:
+        """Where the pool is in its order, as JSON values (the random generator's state, the scenes left of
+        this pass), for :meth:`set_order_state`: a resumed run takes the same scenes next."""
+        rng = self._rng.bit_generator.state
+        return {"bit_generator": rng["bit_generator"], "state": {k: str(v) for k, v in rng["state"].items()},
+                "has_uint32": int(rng["has_uint32"]), "uinteger": int(rng["uinteger"]), "queue": [int(i) for i in self._queue]}
+
+    def set_order_state(self, state: dict) -> None:
+        """Continue the order from :meth:`order_state`'s ``state``; :class:`ValueError` (or ``KeyError``,
+        ``TypeError``) for a state that is not one of this pool's (another generator, indices outside it)."""
+        queue = [int(i) for i in state["queue"]]
+        if any(not 0 <= i < len(self) for i in queue):
+            raise ValueError(f"the saved order names scenes outside this pool's {len(self)}")
+        if state["bit_generator"] != self._rng.bit_generator.state["bit_generator"]:
+            raise ValueError(f"the saved order is of a {state['bit_generator']!r} generator")
+        rng = np.random.default_rng()
+        rng.bit_generator.state = {"bit_generator": state["bit_generator"],
+                                   "state": {k: int(v) for k, v in state["state"].items()},
+                                   "has_uint32": int(state["has_uint32"]), "uinteger": int(state["uinteger"])}
+        self._rng, self._queue = rng, queue
+
     def scenario(self, i: int) -> Scenario:
         """Scene ``i`` of the pool, read from its source."""
         j = self._index[int(i)]

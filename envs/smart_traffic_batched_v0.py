@@ -173,6 +173,17 @@ class SmartTrafficBatchedEnv(EnvBase):
         self._seed = int(seed) if seed is not None else 0
         self.pool.seed(self._seed)
 
+    def set_episode_seed(self, seed: int, forget_starts: bool = False) -> None:
+        """The seed of the prior's sampler at the next full reset (``reset()`` without ``_reset``), without
+        restarting the scene order as ``set_seed`` does: a trainer that starts every batch from a reset
+        gives each batch its own draws. ``forget_starts``: also drop the prior's started scenes kept from
+        earlier episodes (``prior_cache_size``), so that what follows depends on the seed and the scene order
+        alone (a scene started in another batch of scenes can differ in the last bit of a float)."""
+        check_value("seed", seed, seed_rule, EnvConfigError)
+        self._seed = int(seed)
+        if forget_starts:
+            self.core.forget_starts()
+
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         reset = None if tensordict is None else tensordict.get("_reset", None)
         if reset is not None:

@@ -33,7 +33,25 @@ def check_train_state(state: Mapping[str, Any], optimizer: torch.optim.Optimizer
     if not 0 <= step <= max_steps:
         raise CheckpointError(path, f"the training state is at step {step}, outside this run's 0..max_steps={max_steps} "
                                     f"(raise max_steps to train on, or start a new out_dir)")
-    groups, saved = optimizer.param_groups, state["optimizer"]
+    check_optimizer_state(state["optimizer"], optimizer, path)
+    groups = optimizer.param_groups
+    sched = state["scheduler"]
+    last = sched.get("last_epoch")
+    if not (isinstance(last, int) and not isinstance(last, bool) and 0 <= last <= max(step, 0) + 1):
+        raise CheckpointError(path, f"the scheduler state's last_epoch {last!r} does not match the state's step {step}")
+    for key in ("base_lrs", "_last_lr"):
+        if key in sched and not (_finite_numbers(sched[key]) and len(sched[key]) == len(groups)):
+            raise CheckpointError(path, f"the scheduler state's {key} {sched.get(key)!r} is not one finite learning rate "
+                                        f"per parameter group")
+    if "base_lrs" not in sched:
+        raise CheckpointError(path, "the scheduler state has no base_lrs (not a LambdaLR state)")
+
+
+def check_optimizer_state(saved: Mapping[str, Any], optimizer: torch.optim.Optimizer, path: Path) -> None:
+    """A saved optimizer ``state_dict`` fits ``optimizer`` (as many parameter groups and parameters, moment
+    tensors of the parameters' shapes, finite learning rates and moments); else :class:`CheckpointError`
+    naming the file ``path`` and what is off."""
+    groups = optimizer.param_groups
     saved_groups = saved["param_groups"]
     if len(saved_groups) != len(groups) or not all(isinstance(g, dict) for g in saved_groups):
         raise CheckpointError(path, f"the optimizer state has {len(saved_groups)} parameter group(s), this run's optimizer "
@@ -64,16 +82,6 @@ def check_train_state(state: Mapping[str, Any], optimizer: torch.optim.Optimizer
                                             f"the parameter {list(shapes[i])}")
             if value.is_floating_point() and not bool(torch.isfinite(value).all()):
                 raise CheckpointError(path, f"the optimizer state's {name} of parameter {i} holds NaN or infinite values")
-    sched = state["scheduler"]
-    last = sched.get("last_epoch")
-    if not (isinstance(last, int) and not isinstance(last, bool) and 0 <= last <= max(step, 0) + 1):
-        raise CheckpointError(path, f"the scheduler state's last_epoch {last!r} does not match the state's step {step}")
-    for key in ("base_lrs", "_last_lr"):
-        if key in sched and not (_finite_numbers(sched[key]) and len(sched[key]) == len(groups)):
-            raise CheckpointError(path, f"the scheduler state's {key} {sched.get(key)!r} is not one finite learning rate "
-                                        f"per parameter group")
-    if "base_lrs" not in sched:
-        raise CheckpointError(path, "the scheduler state has no base_lrs (not a LambdaLR state)")
 
 
 def rng_state() -> dict[str, Any]:

@@ -342,7 +342,7 @@ def test_policy_checkpoint_round_trips_and_evaluate_command_prints_the_table(tin
 
 def test_a_short_run_collects_its_first_batch_at_the_prior_and_writes_its_files(shared_data, prior_path, tmp_path):
     """Two small iterations: the first batch is collected by the zero-initialised residual actor,
-    so its KL to the prior is 0; the update moves it; CSV, config and checkpoints are written."""
+    so its KL to the prior is 0; the update moves it; CSV, config, checkpoints and the resume state are written."""
     cfg = load_finetune_config("tiny", tiny(shared_data, prior_path, tmp_path, iterations=2, frames_per_batch=32,
                                             minibatch_size=32, ppo_epochs=1, eval_episodes=0, checkpoint_every=1, critic="ippo",
                                             tensorboard=True))
@@ -351,7 +351,7 @@ def test_a_short_run_collects_its_first_batch_at_the_prior_and_writes_its_files(
     assert result.history[0]["kl_to_prior"] < 1e-6 < result.history[1]["kl_to_prior"]
     assert result.history[1]["frames"] == 64
     names = sorted(p.name for p in (tmp_path / "checkpoints").iterdir())
-    assert names == [f"{n}.{ext}" for n in ("policy_0001", "policy_0002", "policy_last") for ext in ("json", "safetensors")]
+    assert names == [f"{n}.{ext}" for n in ("policy_0001", "policy_0002", "policy_last", "resume") for ext in ("json", "safetensors")]
     assert json.loads((tmp_path / "config.json").read_text())["critic"] == "ippo"
     assert len((tmp_path / "finetune.csv").read_text().splitlines()) == 3
     try:

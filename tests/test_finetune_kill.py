@@ -1,11 +1,8 @@
 """A fine-tuning run (``smart-marl finetune``) killed with SIGKILL in the middle of an iteration, then
-started again with the same command, ends at the same policy, bit for bit, as the run that was never
-interrupted, and leaves the same log (one row per iteration, the same numbers).
-
-What "resume" means here: ``smart-marl finetune`` keeps no training state besides the policy
-checkpoints (no optimizer, RNG or env state), so the second start trains again from iteration 1 into
-the same folder, over the killed run's checkpoints and log; what this pins is that the run is
-deterministic across processes and that a killed run's leftovers cannot change the result.
+started again with the same command, resumes after the last iteration it finished (it does not train the
+earlier ones again) and ends at the same policy, bit for bit, as the run that was never interrupted, with
+the same log (one row per iteration, the same numbers). What it resumes from: ``OUT/checkpoints/resume.*``
+(agents.finetune_state), written after every iteration.
 
 Slow (about 40 s on the shared 2-core CPU: three short runs of the ``tiny`` config): ``.ci/run`` runs it
 with ``-m slow``."""
@@ -13,6 +10,7 @@ with ``-m slow``."""
 from __future__ import annotations
 
 import csv
+import json
 import signal
 import subprocess
 import sys
@@ -46,18 +44,23 @@ def log_rows(out_dir: Path) -> list[dict]:
 def test_a_run_killed_inside_an_iteration_and_started_again_ends_at_the_uninterrupted_runs_policy(tmp_path):
     """The uninterrupted run, then the same command killed (SIGKILL) once iteration ``KILLED_IN - 1``'s checkpoint
     is written plus half of an iteration's duration (so inside iteration ``KILLED_IN``: its checkpoint and log row
-    are not there yet), then the same command again: every checkpoint's tensors equal the uninterrupted run's."""
+    are not there yet), then the same command again: it resumes after iteration ``KILLED_IN - 1`` and every
+    checkpoint's tensors equal the uninterrupted run's."""
     whole, killed = tmp_path / "whole", tmp_path / "killed"
     subprocess.run(finetune_command(whole), check=True, capture_output=True, text=True, timeout=600)
     rows = log_rows(whole)
     assert [int(r["iteration"]) for r in rows] == list(range(1, ITERATIONS + 1))
     iteration_s = float(rows[KILLED_IN - 1]["seconds"]) - float(rows[KILLED_IN - 2]["seconds"])
 
-    before = killed / "checkpoints" / f"policy_{KILLED_IN - 1:04d}.json"  # written last of a checkpoint's two files
+    state = killed / "checkpoints" / "resume.json"  # written (renamed into place) last of an iteration's files
+
+    def state_iteration() -> int:
+        return json.loads(state.read_text())["iteration"] if state.is_file() else 0
+
     proc = subprocess.Popen(finetune_command(killed), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 300
-        while not before.is_file():
+        while state_iteration() < KILLED_IN - 1:
             assert proc.poll() is None, f"the run ended ({proc.returncode}) before iteration {KILLED_IN - 1}'s checkpoint"
             assert time.monotonic() < deadline, "no checkpoint after 300 s"
             time.sleep(0.02)
@@ -71,7 +74,11 @@ def test_a_run_killed_inside_an_iteration_and_started_again_ends_at_the_uninterr
     assert not (killed / "checkpoints" / f"policy_{KILLED_IN:04d}.json").exists(), "killed too late: between iterations"
     assert [int(r["iteration"]) for r in log_rows(killed)] == list(range(1, KILLED_IN))
 
-    subprocess.run(finetune_command(killed), check=True, capture_output=True, text=True, timeout=600)
+    kept = {i: (killed / "checkpoints" / f"policy_{i:04d}.safetensors").stat().st_mtime_ns for i in range(1, KILLED_IN)}
+    again = subprocess.run(finetune_command(killed), check=True, capture_output=True, text=True, timeout=600)
+    assert f"resuming {killed} after iteration {KILLED_IN - 1} of {ITERATIONS}" in again.stdout
+    assert all((killed / "checkpoints" / f"policy_{i:04d}.safetensors").stat().st_mtime_ns == t for i, t in kept.items()), \
+        "the started-again run trained the finished iterations again"
 
     names = [f"policy_{i:04d}" for i in range(1, ITERATIONS + 1)] + ["policy_last"]
     for name in names:

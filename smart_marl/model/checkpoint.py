@@ -285,13 +285,13 @@ def _checked_train_state(p: Path, state: Any) -> dict[str, Any]:
         except (ValueError, TypeError, KeyError, OverflowError) as exc:
             raise CheckpointError(p, f"the training state's RNG states are malformed: {exc}") from exc
         state = {**state, "rng": rng}
-    problem = _rng_problem(rng)
+    problem = rng_problem(rng)
     if problem:
         raise CheckpointError(p, f"the training state's RNG states are malformed: {problem}")
     return state
 
 
-def _rng_problem(rng: dict) -> str | None:
+def rng_problem(rng: dict) -> str | None:
     torch_state, numpy_state, python_state = rng.get("torch"), rng.get("numpy"), rng.get("python")
     if not (isinstance(torch_state, torch.Tensor) and torch_state.dtype == torch.uint8 and torch_state.dim() == 1):
         return "torch: expected a byte tensor"
