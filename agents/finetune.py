@@ -176,7 +176,8 @@ def training_env(cfg: FinetuneConfig, pool: ScenePool, model, vocab, seed: int) 
         scenarios=pool.subset(range(len(pool)), order="random", seed=seed), prior=model, motion_vocab=vocab, num_scenes=cfg.num_envs,
         controlled=controlled_selection(cfg), max_agents=cfg.max_agents, background=cfg.background, horizon_steps=cfg.horizon_steps,
         reward=dict(cfg.reward) or None, terminate_on=tuple(cfg.terminate_on), top_k=cfg.top_k, temperature=cfg.temperature,
-        reference_top_k=cfg.reference_top_k, shield=cfg.shield, device=cfg.device, prior_cache_size=cfg.prior_cache_size, seed=seed)
+        reference_top_k=cfg.reference_top_k, shield=cfg.shield, device=cfg.device, prior_cache_size=cfg.prior_cache_size, seed=seed,
+        precision=cfg.precision)
 
 
 def build_modules(cfg: FinetuneConfig, obs_dim: int, vocab_size: int, n_agents: int, vocab=None):
@@ -512,7 +513,8 @@ def evaluation_core(cfg: FinetuneConfig, model, vocab, num_scenes: int) -> Traff
     """The core the evaluation runs on: the run's background and prior, no termination, recorded."""
     return TrafficCore(model, vocab, cfg.background, cfg.horizon_steps, RewardConfig.from_any(dict(cfg.reward) or None),
                        terminate_on=(), top_k=cfg.top_k, temperature=cfg.temperature, device=cfg.device,
-                       prior_cache_size=max(num_scenes, 1), record=True, shield=cfg.shield, shield_top_k=cfg.reference_top_k)
+                       prior_cache_size=max(num_scenes, 1), record=True, shield=cfg.shield, shield_top_k=cfg.reference_top_k,
+                       precision=cfg.precision)
 
 
 def evaluate_finetuned(cfg: FinetuneConfig, net: PolicyLogits | None, training: Sequence[str] | None = None, model=None,

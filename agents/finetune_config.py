@@ -21,6 +21,7 @@ from smart_marl.config_files import (MAX_DISTANCE_M, MAX_GRAD_NORM, MAX_LOSS_WEI
                                      output_dir_problem, read_config_file, shown, text)
 from smart_marl.config_files import seed as seed_rule
 from smart_marl.errors import SmartMarlError, UsageError
+from smart_marl.model.precision import precision_problem
 from smart_marl.model.smart import MAX_VOCAB_SIZE
 from smart_marl.rollout import DEFAULT_TOP_K, temperature_rule
 
@@ -101,6 +102,8 @@ class FinetuneConfig:
     checkpoint_every: int = 10  # iterations (the last one is always saved)
     seed: int = 0
     device: str = "cpu"  # the env (prior, state) and the policy
+    precision: str = "float32"  # the prior's arithmetic in the env and the evaluation: "float32" or "bfloat16"
+    # (smart_marl.model.precision; the policy, its loss and the prior's logits stay float32)
     tensorboard: bool = True
     torch_threads: int = 0  # 0: leave torch's default
     prior_cache_size: int = 1024  # scenes whose freshly started prior state is kept (memory: ~1-2 MB each)
@@ -226,7 +229,7 @@ _FINETUNE_RULES = {
     "eval_rules": lambda v: None if v in ("2024", "2025") else f"must be '2024' or '2025', got {v!r}",
     "out_dir": lambda v: text(v) or output_dir_problem(v), "checkpoint_every": integer(1, MAX_ITERATIONS, "the most iterations"),
     "seed": seed_rule, "device": device_problem, "tensorboard": flag, "torch_threads": integer(0, 1024, "threads of one process"),
-    "prior_cache_size": integer(1, MAX_CACHED_SCENES, "~1-2 MB a scene: ~130 GB"),
+    "prior_cache_size": integer(1, MAX_CACHED_SCENES, "~1-2 MB a scene: ~130 GB"), "precision": precision_problem,
 }
 """What each FinetuneConfig field takes (the env checks ``controlled``, ``background`` and the reward terms by name); each
 number bounded on both sides (issue 56), its upper bound named with what breaks above it."""

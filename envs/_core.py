@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from smart_marl.cpu_memory import keep_freed_memory
+from smart_marl.model.precision import inference_model
 from smart_marl.padding import grow
 from smart_marl.rollout import DEFAULT_TOP_K, RolloutState
 from smart_marl.rollout.refill import replace_scenes, split_state, stack_states
@@ -98,10 +99,12 @@ class TrafficCore:
                  observation: ObservationConfig | None = None, top_k: int = DEFAULT_TOP_K, temperature: float = 1.0,
                  avoid_collisions: bool = True, device="cpu", dtype=torch.float32, prior_cache_size: int = 8,
                  record: bool = False, shield: Sequence[str] = (), shield_top_k: int | None = None, stop_lines: bool = True,
-                 lights: str = "log") -> None:
+                 lights: str = "log", precision: str = "float32") -> None:
         if background not in BACKGROUNDS:
             raise ValueError(f"background must be one of {BACKGROUNDS}, got {background!r}")
-        self.model, self.motion_vocab, self.background = model, motion_vocab, background
+        # the prior at its precision (smart_marl.model.precision: a bfloat16 copy is made once and kept)
+        self.model = None if model is None else inference_model(model, precision)
+        self.motion_vocab, self.background, self.precision = motion_vocab, background, precision
         self.horizon_steps = int(horizon_steps)
         self.reward_config = reward or RewardConfig()
         self.terminate_on = frozenset(terminate_on)

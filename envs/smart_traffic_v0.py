@@ -112,13 +112,13 @@ class SmartTrafficEnv(ParallelEnv):
                  scene_order: str = "sequential", motion_vocab: MotionVocabulary | None = None, top_k: int = DEFAULT_TOP_K,
                  temperature: float = 1.0, render_size_px: int = 400, render_radius_m: float = 50.0,
                  reference_top_k: int | None = None, avoid_collisions: bool = True, shield=(), device="cpu",
-                 stop_lines: bool = True, lights: str = "log") -> None:
+                 stop_lines: bool = True, lights: str = "log", precision: str = "float32") -> None:
         a = check_env_arguments(background=background, horizon_steps=horizon_steps, scene_order=scene_order,
                                 terminate_on=terminate_on, render_mode=render_mode, render_modes=self.metadata["render_modes"],
                                 max_agents=max_agents, top_k=top_k, temperature=temperature, reference_top_k=reference_top_k,
                                 render_size_px=render_size_px, render_radius_m=render_radius_m,
                                 avoid_collisions=avoid_collisions, reward=reward, observation=observation, controlled=controlled,
-                                device=device, shield=shield, stop_lines=stop_lines, lights=lights)
+                                device=device, shield=shield, stop_lines=stop_lines, lights=lights, precision=precision)
         if render_mode == "human" and not _has_display():
             raise EnvConfigError("render_mode='human' opens a matplotlib window, but there is no display (DISPLAY and "
                                  "WAYLAND_DISPLAY are unset); use render_mode='rgb_array' (and EpisodeRecorder) instead")
@@ -147,7 +147,7 @@ class SmartTrafficEnv(ParallelEnv):
                                 self.terminate_on, self.obs_config, self.top_k, self.temperature, self.avoid_collisions,
                                 device=self.device, dtype=torch.float64, prior_cache_size=self.PRIOR_STATE_CACHE, record=True,
                                 shield=a["shield"], shield_top_k=self.reference_top_k, stop_lines=self.stop_lines,
-                                lights=self.lights)
+                                lights=self.lights, precision=a["precision"])
         self.shield = a["shield"]
         self._statics: dict[int, SceneStatic] = {}
         self._obs_spaces: dict[str, spaces.Space] = {}
@@ -478,7 +478,8 @@ def parallel_env(scenarios="embedded", prior="embedded", controlled="sdc", backg
     default True), ``stop_lines`` (its vehicles stop at red lights and stop signs and move off again when the light
     turns green, the sign is served or the queue ahead drives off, :mod:`smart_marl.rollout.stop_lines`; default True),
     ``lights`` ("log": the prior and the stop lines see the log's light states at every step, held after the scene's
-    last logged frame; "current": the current frame's, held), ``shield`` (the same for the controlled agents' action masks, plus staying on the road:
+    last logged frame; "current": the current frame's, held), ``precision`` (the prior's arithmetic: "float32", the
+    default, or "bfloat16", :mod:`smart_marl.model.precision`), ``shield`` (the same for the controlled agents' action masks, plus staying on the road:
     :mod:`envs._shield`; default off), ``render_size_px``, ``render_radius_m``, ``device`` (``"cuda"``: the prior and the state on the
     GPU; what a step returns is numpy as always)."""
     return SmartTrafficEnv(scenarios=scenarios, prior=prior, controlled=controlled, background=background,

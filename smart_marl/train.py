@@ -48,6 +48,7 @@ from .model.batch import SmartBatch, collate_scenes
 from .model.checkpoint import (CheckpointError, VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
                                save_checkpoint)
 from .model.losses import NextTokenLoss, summarise
+from .model.precision import autocast
 from .model.smart import SMART, SmartConfig, get_config
 from .runlog import RunLog
 from .scenario import Scenario
@@ -172,7 +173,7 @@ def make_scheduler(optimizer: torch.optim.Optimizer, cfg: TrainConfig) -> torch.
 
 
 def train_step(loss_module: torch.nn.Module, optimizer: torch.optim.Optimizer, scheduler, batch: SmartBatch, grad_clip: float,
-               info: DistInfo, device: torch.device, amp: bool) -> dict[str, float]:
+               info: DistInfo, device: torch.device, amp: bool, precision: str = "float32") -> dict[str, float]:
     """One optimizer step on one (per-rank) batch; returns summed metric counts and losses of this rank.
 
     Losses are normalised by the global number of target tokens / world size, so the gradient DDP
@@ -182,7 +183,7 @@ def train_step(loss_module: torch.nn.Module, optimizer: torch.optim.Optimizer, s
     if info.enabled:
         dist.all_reduce(counts)
     norms = (counts / info.world_size).clamp(min=1.0 / info.world_size)
-    with torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=amp and device.type == "cuda"):
+    with autocast(precision, device, amp):  # smart_marl.model.precision decides
         out = loss_module(batch, motion_normaliser=norms[0], road_normaliser=norms[1])
     optimizer.zero_grad(set_to_none=True)
     out["loss"].backward()
@@ -208,7 +209,8 @@ def _road_targets(batch: SmartBatch) -> int:
 
 
 @torch.no_grad()
-def evaluate_sums(model: SMART, batches, device: torch.device, label_smoothing: float = 0.0, amp: bool = True) -> dict[str, float]:
+def evaluate_sums(model: SMART, batches, device: torch.device, label_smoothing: float = 0.0, amp: bool = True,
+                  precision: str = "float32") -> dict[str, float]:
     """Summed teacher-forced losses and counts over batches (combine ranks by adding them)."""
     was = model.training
     model.eval()
@@ -218,7 +220,7 @@ def evaluate_sums(model: SMART, batches, device: torch.device, label_smoothing: 
     sums: dict[str, float] = dict.fromkeys(keys, 0.0)  # the same keys on every rank, even one without a batch
     for batch in batches:
         batch = batch.to(device)
-        with torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=amp and device.type == "cuda"):
+        with autocast(precision, device, amp):
             out = module(batch, motion_normaliser=1.0, road_normaliser=1.0)  # sums, not means
         for k, v in out.items():
             sums[k] = sums.get(k, 0.0) + float(v)
@@ -451,7 +453,7 @@ def _checked_step(wrapped, optimizer, scheduler, batch: SmartBatch, cfg: TrainCo
                   out_dir: Path, last: Path, step: int) -> dict[str, float]:
     """:func:`train_step`; a non-finite loss names the run, the step and the last good checkpoint."""
     try:
-        return train_step(wrapped, optimizer, scheduler, batch, cfg.grad_clip, info, device, cfg.amp)
+        return train_step(wrapped, optimizer, scheduler, batch, cfg.grad_clip, info, device, cfg.amp, cfg.precision)
     except NonFiniteLossError as exc:
         kept = checkpoint_paths(last)["meta"]
         raise NonFiniteLossError(f"{out_dir}: step {step + 1}: {exc}; the run stopped before the optimizer took that "
@@ -480,7 +482,7 @@ def _train_row(acc: Mapping[str, float], n_acc: int, scenes_acc: int, t0: float,
 def _validate(model: SMART, val_set, val_keys: list, cfg: TrainConfig, info: DistInfo, device: torch.device, step: int) -> dict[str, float]:
     """The validation row at ``step``: teacher-forced metrics of the validation items, summed over the ranks."""
     batches = (collate_scenes([val_set[k] for k in val_keys[i : i + cfg.batch_size]]) for i in range(0, len(val_keys), cfg.batch_size))
-    sums = evaluate_sums(model, batches, device, label_smoothing=cfg.label_smoothing, amp=cfg.amp)
+    sums = evaluate_sums(model, batches, device, label_smoothing=cfg.label_smoothing, amp=cfg.amp, precision=cfg.precision)
     if info.enabled:
         keys = sorted(sums)
         t = torch.tensor([sums[k] for k in keys], dtype=torch.float64, device=device)

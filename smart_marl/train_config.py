@@ -17,6 +17,7 @@ from .config_files import (MAX_DISTANCE_M, MAX_GRAD_NORM, MAX_LOSS_WEIGHT, MAX_S
                            text)
 from .config_files import seed as seed_rule
 from .errors import SmartMarlError, UsageError
+from .model.precision import precision_problem
 from .model.smart import MAX_VOCAB_SIZE, NAMED_CONFIGS, ModelConfigError, SmartConfig, get_config
 
 
@@ -76,7 +77,8 @@ class TrainConfig:
     ckpt_every: int = 500
     seed: int = 0
     device: str = "auto"  # auto: cuda when available
-    amp: bool = True  # bf16 autocast on CUDA (never on CPU)
+    amp: bool = True  # bf16 autocast on CUDA (the older switch; precision="bfloat16" autocasts on any device)
+    precision: str = "float32"  # "bfloat16": the forward autocast to bfloat16 on CPU and GPU (smart_marl.model.precision)
     init: str | None = None  # checkpoint whose weights start the run (fine-tuning)
     tensorboard: bool = True
     progress: bool = True
@@ -176,7 +178,7 @@ _TRAIN_RULES = {
     "road_keep_radius_m": optional(ROAD_KEEP_RADIUS_RULE),
     "log_every": integer(1, MAX_STEPS, "the most steps: a longer period never comes"), "val_every": _EVERY,
     "val_scenes": integer(0, MAX_SCENE_COUNT, "20x WOMD's training split"), "ckpt_every": _EVERY, "seed": seed_rule,
-    "device": lambda v: None if v == "auto" else device_problem(v), "amp": flag, "init": optional(text),
+    "device": lambda v: None if v == "auto" else device_problem(v), "amp": flag, "precision": precision_problem, "init": optional(text),
     "tensorboard": flag, "progress": flag,
 }
 """What each TrainConfig field takes (``model`` is checked against the named configs); each number bounded on both

@@ -23,6 +23,7 @@ from typing import Any, Callable
 
 from ..config_files import (Rule, device_problem, integer, number, output_dir_problem, output_file_problem,
                             seed as seed_rule)
+from ..model.precision import PRECISIONS
 from ..model.smart import MAX_VOCAB_SIZE
 from ..readers import format_names
 from ..rollout.engine import LIGHTS
@@ -139,6 +140,14 @@ def lights_option(parser: argparse.ArgumentParser, default: str) -> None:
                              f"log: the log's states at every step, held after its last frame (default: {default})")
 
 
+def precision_option(parser: argparse.ArgumentParser, who: str = "the prior") -> None:
+    """``--precision float32|bfloat16`` (``args.precision``, default float32): the arithmetic ``who`` runs in
+    (:mod:`smart_marl.model.precision`)."""
+    parser.add_argument("--precision", default="float32", choices=PRECISIONS,
+                        help=f"{who}'s arithmetic: float32, or bfloat16 (weights and activations; logits, sampling and "
+                             "geometry stay float32; default: float32)")
+
+
 def output_file(text: str) -> str:
     """A file (or checkpoint name) to write: not a folder, in a folder that exists or can be created."""
     problem = output_file_problem(text)
@@ -180,4 +189,4 @@ def reader_formats() -> list[str]:
 
 
 __all__ = ["checked", "numbers_list", "workers", "MAX_WORKERS", "rollouts", "MAX_ROLLOUTS", "temperature", "top_k", "positive_int", "non_negative_int", "seed", "positive_number", "bounded_int", "bounded_number",
-           "positive_numbers", "output_file", "motion_types", "collision_avoidance_flag", "stop_lines_flag", "lights_option", "output_dir", "device", "device_or_auto", "reader_formats"]
+           "positive_numbers", "output_file", "motion_types", "collision_avoidance_flag", "stop_lines_flag", "lights_option", "precision_option", "output_dir", "device", "device_or_auto", "reader_formats"]

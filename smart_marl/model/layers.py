@@ -89,7 +89,7 @@ class FourierEmbedding(nn.Module):
             if rows is not None:
                 h = h.new_zeros(valid.numel(), self.hidden_dim).index_copy(0, rows, h)
             return h.reshape(*lead, self.hidden_dim)
-        h = x.new_zeros(x.shape[0] if rows is None else valid.numel(), self.hidden_dim)
+        h = x.new_zeros(x.shape[0] if rows is None else valid.numel(), self.hidden_dim, dtype=self.out[-1].weight.dtype)
         ends = [x.shape[0] * i // parts for i in range(parts + 1)]  # nearly equal blocks
         for lo, hi in zip(ends[:-1], ends[1:]):
             part = self._embed(x[lo:hi], None if cat is None else cat[lo:hi], repeated_dims)
@@ -156,7 +156,8 @@ class _FourierTrunk(torch.autograd.Function):
             torch.cos(ang, out=feat[:, :nf])
             torch.sin(ang, out=feat[:, nf:2 * nf])
             feat[:, 2 * nf] = col
-            z = torch.addmm(b1[d], feat, w1[d])  # (U, H)
+            # the phases and their cos/sin in float32 (x's), the products at the weights' precision (.precision)
+            z = torch.addmm(b1[d], feat.to(w1.dtype), w1[d])  # (U, H)
             y, mean, rstd = torch.native_layer_norm(z, [hdim], ln_w, ln_b, eps)
             y.relu_()
             if inverse is None:
@@ -197,12 +198,20 @@ class _FourierTrunk(torch.autograd.Function):
         return None, stack["freqs"], stack["w1"], stack["b1"], g_lnw, g_lnb, stack["w2"], g_b2, None, None, None
 
 
-def mlp(in_dim: int, hidden_dim: int, out_dim: int, layers: int = 2) -> nn.Sequential:
+class MLP(nn.Sequential):
+    """Linear -> (LayerNorm, ReLU, Linear) x (layers - 1), run at its weights' precision: an input in another
+    float format (geometry in float32 into a bfloat16 model, :mod:`.precision`) is cast once on the way in."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return super().forward(x.to(self[0].weight.dtype))
+
+
+def mlp(in_dim: int, hidden_dim: int, out_dim: int, layers: int = 2) -> MLP:
     """Linear -> (LayerNorm, ReLU, Linear) x (layers - 1)."""
     mods: list[nn.Module] = [nn.Linear(in_dim, hidden_dim if layers > 1 else out_dim)]
     for i in range(1, layers):
         mods += [nn.LayerNorm(hidden_dim), nn.ReLU(inplace=True), nn.Linear(hidden_dim, hidden_dim if i < layers - 1 else out_dim)]
-    return nn.Sequential(*mods)
+    return MLP(*mods)
 
 
 # ------------------------------------------------------------------------------ neighbourhoods

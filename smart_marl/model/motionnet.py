@@ -209,7 +209,7 @@ class MotionNet(nn.Module):
             token_table=self.token_table(contours),  # (3, Vmax, d)
             road_pose=road_pose[scene_of_group], road_valid=road_valid[scene_of_group], road_pose_flat=road_pose.reshape(-1, 3),
             road_rows=road_x.new_zeros(0),
-            src=[torch.zeros(g * n, w, cfg.hidden_dim, device=dev) for _ in range(cfg.num_agent_blocks)],
+            src=[road_x.new_zeros(g * n, w, cfg.hidden_dim) for _ in range(cfg.num_agent_blocks)],  # at the model's precision
             pose=torch.zeros(g * n, w, 3, device=dev), valid=torch.zeros(g * n, w, dtype=torch.bool, device=dev),
             speed=torch.zeros(g * n, device=dev),
         )
@@ -291,7 +291,7 @@ class MotionNet(nn.Module):
 
         # push this step into the cache (newest first; the oldest step falls out of the window)
         for blk, own in enumerate(new_rows):
-            src_new = torch.zeros(g * n, 1, own.shape[-1], device=dev).index_copy_(0, rows, own[:, None])
+            src_new = own.new_zeros(g * n, 1, own.shape[-1]).index_copy_(0, rows, own[:, None])
             cache.src[blk] = torch.cat([src_new, cache.src[blk][:, : w - 1]], 1)
         cache.pose = torch.cat([end_flat[:, None], cache.pose[:, : w - 1]], 1)
         cache.valid = torch.cat([valid_flat[:, None], cache.valid[:, : w - 1]], 1)

@@ -230,14 +230,14 @@ class SMART(nn.Module):
     @torch.no_grad()
     def next_token_logits(self, features: torch.Tensor, agent_type: torch.Tensor) -> torch.Tensor:
         """Each row's next-token logits under its own type's head: features [Q, d], agent_type [Q]
-        (0..2) -> [Q, Vmax], ``-inf`` beyond the row's type's vocabulary size."""
+        (0..2) -> [Q, Vmax] float32, ``-inf`` beyond the row's type's vocabulary size."""
         sizes = [int(v) for v in self.config.motion_vocab_sizes]
         out = torch.full((agent_type.shape[0], max(sizes)), float("-inf"), device=agent_type.device)
         for t, head in enumerate(self.motion_heads):
             sel = agent_type == t
             logits = head(features[sel])  # (Q_t, V_t)
             if logits.shape[0]:
-                out[sel, : sizes[t]] = logits
+                out[sel, : sizes[t]] = logits.float()  # float32 from here on, whatever the model's precision
         return out
 
 

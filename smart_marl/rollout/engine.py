@@ -59,6 +59,7 @@ import torch
 from ..model.batch import light_codes, scene_road
 from ..model.checkpoint import load_prior
 from ..model.motionnet import NUM_MOTION_TYPES
+from ..model.precision import check_precision, inference_model
 from ..scenario import DT_S, Scenario
 from ..tokens import FRAMES_PER_TOKEN, MOTION_TYPES, MotionVocabulary
 from ..tokens.road import RoadVocabulary
@@ -241,19 +242,20 @@ class RolloutState:
     def start(cls, model, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 1, seed: int = 0, top_k: int = DEFAULT_TOP_K,
               temperature: float = 1.0, device="cpu", mode: str = "cached", motion_vocab: MotionVocabulary | None = None,
               interpolation: str = "spline", avoid_collisions: bool = True, lights: str = "current",
-              stop_lines: bool = True) -> "RolloutState":
+              stop_lines: bool = True, precision: str = "float32") -> "RolloutState":
         """Tokenize the scenes' histories and run them through the model. ``model``: anything
-        :func:`~smart_marl.model.checkpoint.load_prior` takes (a SMART model, a Checkpoint, a Prior, a
-        checkpoint path or ``"embedded"``); ``motion_vocab`` overrides the vocabulary used to
-        tokenize the history and place tokens (by default the checkpoint's, or the model's contours);
-        ``interpolation`` draws the 10 Hz frames between token ends (module docstring);
-        ``avoid_collisions`` keeps sampled tokens from ending in another agent's box
+        :func:`~smart_marl.model.checkpoint.load_prior` takes (a SMART model, a Checkpoint, a Prior, a checkpoint path or
+        ``"embedded"``); ``motion_vocab`` overrides the vocabulary used to tokenize the history and place tokens (by
+        default the checkpoint's, or the model's contours); ``interpolation`` draws the 10 Hz frames between token ends
+        (module docstring); ``avoid_collisions`` keeps sampled tokens from ending in another agent's box
         (:mod:`~smart_marl.rollout.avoidance`; False: plain top-k sampling); ``lights``: :data:`LIGHTS`;
         ``stop_lines`` (default True; False: the prior alone): vehicles do not draw tokens after which they could not
         stop before a red light's or a stop sign's line ahead, and a standing vehicle whose light turned green, whose
         stop sign it has served or whose leader drives off does not draw the tokens that leave it standing
-        (:mod:`~smart_marl.rollout.stop_lines`)."""
+        (:mod:`~smart_marl.rollout.stop_lines`); ``precision``: ``"float32"`` or ``"bfloat16"`` (:mod:`~smart_marl.model.precision`)."""
+        check_precision(precision)
         m, vocab = load_prior(model, device)
+        m = inference_model(m, precision)  # the model itself in float32, its bfloat16 copy (made once) in bfloat16
         scenes = [scenes] if isinstance(scenes, Scenario) else list(scenes)
         if not scenes:
             raise ValueError("no scenes to roll out")
@@ -497,15 +499,14 @@ class RolloutResult:
 
 def rollout(model_or_checkpoint, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 32, num_steps: int = 16,
             top_k: int = DEFAULT_TOP_K, temperature: float = 1.0, seed: int = 0, device="cpu", mode: str = "cached",
-            motion_vocab: MotionVocabulary | None = None, interpolation: str = "spline",
-            avoid_collisions: bool = True, lights: str = "current", stop_lines: bool = True) -> RolloutResult:
+            motion_vocab: MotionVocabulary | None = None, interpolation: str = "spline", avoid_collisions: bool = True,
+            lights: str = "current", stop_lines: bool = True, precision: str = "float32") -> RolloutResult:
     """Generate ``num_rollouts`` joint futures of ``num_steps`` tokens (0.5 s each) for every scene
     in one batch (see the module docstring). Same seed, same rollouts (on the CPU). ``lights``: :data:`LIGHTS`;
-    ``stop_lines``: :meth:`RolloutState.start`."""
-    state = RolloutState.start(model_or_checkpoint, scenes, num_rollouts=num_rollouts, seed=seed, top_k=top_k,
-                               temperature=temperature, device=device, mode=mode, motion_vocab=motion_vocab,
-                               interpolation=interpolation, avoid_collisions=avoid_collisions, lights=lights,
-                               stop_lines=stop_lines)
+    ``stop_lines``, ``precision``: :meth:`RolloutState.start`."""
+    state = RolloutState.start(model_or_checkpoint, scenes, num_rollouts=num_rollouts, seed=seed, top_k=top_k, temperature=temperature,
+                               device=device, mode=mode, motion_vocab=motion_vocab, interpolation=interpolation,
+                               avoid_collisions=avoid_collisions, lights=lights, stop_lines=stop_lines, precision=precision)
     outs = state.run(num_steps)
     return collect_result(state, outs)
 
