@@ -7,7 +7,12 @@ package's embedded checkpoint unless ``--checkpoint`` names another). Prints a t
 per feature and category plus the meta-metric and minADE, or one JSON object with ``--json``;
 ``--write-submission OUT`` saves policy rollouts as an uploadable submission file.
 
-A scene the metrics cannot score (not 91 frames with the current frame at 10, no evaluated agent)
+Every scene is scored through a 91-frame, 10 Hz window (``--window``, :mod:`smart_marl.metrics.windows`):
+``current`` (default) the one at the scene's own current frame (the nearest that fits when it does not),
+``all`` every window that fits with an agent to evaluate (each its own scenario ``SCENEID@FRAME``), or an
+integer current frame;
+scenes at other rates are resampled to 10 Hz. A scene the metrics cannot score (no window fits, a
+rate that cannot be resampled, no evaluated agent)
 is skipped with a warning naming the file and the scene, and listed under ``skipped`` in the JSON;
 a file that cannot be read stops the job (exit 1) unless ``--skip-bad``, which skips it the same
 way. A submission must hold WOSAC's 32 rollouts per scenario (exit 1 otherwise) unless
@@ -34,13 +39,14 @@ from tqdm import tqdm
 
 from ..config_files import strict_json
 from ..errors import ScenarioReadError, UsageError
-from ..metrics import SceneNotScorableError, aggregate, logged_scene, score_rollouts
+from ..metrics import SceneNotScorableError, aggregate, score_rollouts
 from ..metrics.baselines import policy_rollouts
 from ..metrics.config import get_rules
 from ..metrics.inputs import RolloutError, Rollouts
+from ..metrics.windows import EVALUATED_RULE, Window, parse_window, scene_windows
 from ..metrics.run_files import RunDirError, metrics_record, plan_submission, write_submission_parts, write_whole
-from ..metrics.sharding import (RunDir, Shard, check_result_target, input_digest, merge_run, parse_shard, run_shard, scene_slots,
-                                shard_from_torchrun)
+from ..metrics.sharding import (RunDir, SceneSlot, Shard, check_result_target, input_digest, merge_run, parse_shard, run_shard,
+                                scene_slots, shard_from_torchrun)
 from ..metrics.submission import (ScenarioRolloutArrays, build_submission, check_against_scene, open_submission,
                                   submission_files, write_rollouts)
 from ..model.checkpoint import EMBEDDED, checkpoint_paths, load_prior, resolve_checkpoint_path
@@ -83,7 +89,8 @@ def register(subparsers) -> None:
                     "(same numbers as the official package). Rollouts come from --submission FILE or are\n"
                     "generated with --policy.",
         epilog=SCALE_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scenes", metavar="PATH", help="scene file, folder or glob (91-step WOMD-like scenes); required but with --merge")
+    p.add_argument("--scenes", metavar="PATH", help="scene file, folder or glob (any length and rate; see --window); required "
+                                                    "but with --merge")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--submission", metavar="FILE",
                      help="a SimAgentsChallengeSubmission file (.binproto), or a submission split in files: their prefix "
@@ -102,6 +109,13 @@ def register(subparsers) -> None:
     p.add_argument("--rollouts", type=rollouts, default=32, help="rollouts per scene for --policy (default 32)")
     p.add_argument("--seed", type=seed, default=0, help="random seed for --policy (default 0)")
     p.add_argument("--rules", choices=("2024", "2025"), default="2025", help="challenge rules (default 2025)")
+    p.add_argument("--window", type=parse_window, default=None, metavar="current|all|FRAME",
+                   help="the 91-frame 10 Hz window of each scene that is scored (1.1 s of history, 8 s of future): "
+                        "current (default) at the scene's own current frame, or the nearest window that fits when that "
+                        "frame lacks history or future (then named SCENEID@FRAME); all: every window that fits and has "
+                        "an agent to evaluate, each scored as its own scenario SCENEID@FRAME; FRAME: the window whose current frame is FRAME (>= 10, "
+                        "10 Hz frames). Scenes at 2 Hz, 5 Hz, 20 Hz... are resampled to 10 Hz first. Scenes without "
+                        "tracks to predict evaluate " + EVALUATED_RULE.replace("%", "%%") + " (docs/metrics.md)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--write-submission", metavar="OUT", type=output_file,
                    help="with --policy: also write the rollouts as a submission file; with --out (and --merge): the "
@@ -182,16 +196,14 @@ def run(args) -> int:
     results, written, skipped = [], [], []
     models: dict = {}
     for path, scenario in tqdm(_scenes(args, skipped), desc="eval", unit="scene", file=sys.stderr, disable=None):
-        try:
-            scene = logged_scene(scenario)
-        except SceneNotScorableError as exc:
-            _warn(f"{path}: skipped: {exc}")
-            skipped.append({"path": path, "scenario_id": scenario.scenario_id, "reason": str(exc)})
-            continue
-        rollouts, where = _rollouts_of(args, scenario, scene, submitted, models)
-        if args.policy and args.write_submission:
-            written.append(_submission_arrays(scenario, rollouts))
-        results.append(score_rollouts(scene, rollouts, args.rules, where=where))
+        for window, scene, problem in _logged_windows(args, path, scenario):
+            if problem is not None:
+                skipped.append({"path": path, "scenario_id": window, "reason": problem})
+                continue
+            rollouts, where = _rollouts_of(args, window, scene, submitted, models)
+            if args.policy and args.write_submission:
+                written.append(_submission_arrays(window, rollouts))
+            results.append(score_rollouts(scene, rollouts, args.rules, where=where))
     if not results:
         print(f"smart-marl eval: error: no scene in {args.scenes} could be scored ({len(skipped)} skipped)", file=sys.stderr)
         return 1
@@ -199,6 +211,32 @@ def run(args) -> int:
         write_rollouts(args.write_submission, written, description=_submission_description(args.policy))
     print_result(args, aggregate(results, args.rules), skipped)
     return 0
+
+
+def _windows(args, scenario) -> list[Window]:
+    """The scoring windows ``--window`` asks for (:class:`SceneNotScorableError` when the scene has none)."""
+    return scene_windows(scenario, args.window or "current")
+
+
+def _logged_windows(args, path: str, scenario, windows: list[Window] | None = None):
+    """``(window Scenario, its LoggedScene, None)`` for every window of a scene to score, or ``(scenario id,
+    None, reason)`` for a scene or window the metrics cannot score (warned about here)."""
+    try:
+        windows = _windows(args, scenario) if windows is None else windows
+    except SceneNotScorableError as exc:
+        _warn(f"{path}: skipped: {exc}")
+        yield scenario.scenario_id, None, str(exc)
+        return
+    for window in windows:
+        if window.shifted and not getattr(args, "_warned_shift", False):
+            args._warned_shift = True
+            _warn(f"{path}: scenario {scenario.scenario_id}: {window.shifted} (said once per run; such windows' ids "
+                  "carry @FRAME)")
+        try:
+            yield window.scenario, window.logged(), None
+        except SceneNotScorableError as exc:
+            _warn(f"{path}: skipped: {exc}")
+            yield window.scenario.scenario_id, None, str(exc)
 
 
 def result_json(out: dict, skipped: list[dict]) -> dict:
@@ -274,7 +312,8 @@ def _scale_problem(args) -> str | None:
     """What is wrong with the combination of --scenes / --policy / --submission / --out / --shard / --merge, or None."""
     if args.merge:
         given = [flag for flag, value in (("--scenes", args.scenes), ("--policy", args.policy), ("--submission", args.submission),
-                                          ("--out", args.out), ("--shard", args.shard), ("--chunk-size", args.chunk_size))
+                                          ("--out", args.out), ("--shard", args.shard), ("--chunk-size", args.chunk_size),
+                                          ("--window", args.window))
                  if value is not None]
         if given:
             return f"--merge takes the scenes and options from RUN/run.json: leave out {', '.join(given)}"
@@ -318,9 +357,12 @@ def _run_config(args, paths: list[str], shard: Shard) -> dict:
                           stop_lines=args.stop_lines, lights=args.lights)
             if args.precision != "float32":  # absent in float32: runs started before the option keep their identity
                 source["precision"] = args.precision
-    return {"smart_marl": __version__, "scenes": input_digest(paths), "format": args.format, "rules": args.rules,
-            "source": source, "num_shards": shard.count, "chunk_size": args.chunk_size or DEFAULT_CHUNK_SIZE,
-            "keep_rollouts": bool(args.write_submission)}
+    config = {"smart_marl": __version__, "scenes": input_digest(paths), "format": args.format, "rules": args.rules,
+              "source": source, "num_shards": shard.count, "chunk_size": args.chunk_size or DEFAULT_CHUNK_SIZE,
+              "keep_rollouts": bool(args.write_submission)}
+    if (args.window or "current") != "current":  # absent by default: runs started before the option keep their identity
+        config["window"] = args.window
+    return config
 
 
 def run_sharded(args) -> int:
@@ -355,17 +397,17 @@ def run_sharded(args) -> int:
 
     def score(slot):
         try:
-            scenario = slot.load()
+            loaded = slot.load()
         except ScenarioReadError as exc:
             if not args.skip_bad:
                 raise
             _warn(f"skipped a bad scene of {slot.path}: {exc}")
             return None, skip(slot, None, str(exc)), None
-        try:
-            scene = logged_scene(scenario)
-        except SceneNotScorableError as exc:
-            _warn(f"{slot.path}: skipped: {exc}")
-            return None, skip(slot, scenario.scenario_id, str(exc)), None
+        # one window per slot: --window current or FRAME gives one per scene, `all` slots are windows (_window_slots)
+        given = [loaded] if isinstance(loaded, Window) else None
+        [(scenario, scene, problem)] = _logged_windows(args, slot.path, loaded.scenario if given else loaded, given)
+        if problem is not None:
+            return None, skip(slot, scenario, problem), None
         rollouts, where = _rollouts_of(args, scenario, scene, submitted, models)
         metrics = score_rollouts(scene, rollouts, args.rules, where=where)
         kept = _submission_arrays(scenario, rollouts) if args.write_submission else None
@@ -375,6 +417,8 @@ def run_sharded(args) -> int:
         return build_submission(kept, description=_submission_description(args.policy)).SerializeToString()
 
     slots = scene_slots(paths, args.format, on_bad_file)
+    if args.window == "all":
+        slots = _window_slots(args, slots)
     started = time.perf_counter()
     counts = run_shard(run, run_id, shard, slots, chunk_size, score, pack if args.write_submission else None,
                        progress=lambda it: tqdm(it, desc=f"eval {shard}", unit="scene", file=sys.stderr, disable=None))
@@ -388,6 +432,23 @@ def run_sharded(args) -> int:
         return _merge_after_torchrun(args, run)
     print(f"smart-marl eval: when all {shard.count} shards are done: smart-marl eval --merge {run.root}", file=sys.stderr)
     return 0
+
+
+def _window_slots(args, slots):
+    """``--window all`` at scale: one slot per window, numbered over the whole input, so that the shards split
+    windows (not scenes) and the merge orders them as a single-process run does. Every shard reads every scene
+    to count its windows; a scene that cannot be read or has no window keeps one slot, which is scored (skipped)
+    as before."""
+    ordinal = 0
+    for slot in slots:
+        try:
+            windows = _windows(args, slot.load())
+        except (ScenarioReadError, SceneNotScorableError):
+            windows = None
+        for window in windows or [None]:
+            load = slot.load if window is None else (lambda w=window: w)
+            yield SceneSlot(ordinal, slot.file_index, slot.path, slot.record, load)
+            ordinal += 1
 
 
 def _merge_after_torchrun(args, run: RunDir) -> int:

@@ -37,9 +37,10 @@ class RolloutError(SmartMarlError, ValueError):
 
 class SceneNotScorableError(RolloutError):
     """A scene the realism metrics cannot score, whatever the rollouts: not 91 frames with the
-    current frame at 10, or no evaluated agent (no self-driving car and no track to predict), or an
-    evaluated agent not valid at the current frame. ``smart-marl eval`` skips such a scene with a
-    warning naming it."""
+    current frame at 10 (``smart-marl eval`` first cuts every scene to such a window,
+    :mod:`smart_marl.metrics.windows`, and raises this when none fits or the rate cannot be resampled), or no
+    evaluated agent (no self-driving car and no track to predict), or an evaluated agent not valid at the
+    current frame. ``smart-marl eval`` skips such a scene with a warning naming it."""
 
 
 @dataclass(frozen=True)
