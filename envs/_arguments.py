@@ -19,7 +19,8 @@ What each argument takes (the documented meanings):
 * ``reference_top_k``: None (the full softmax) or an integer in 1..:data:`~smart_marl.model.smart.MAX_VOCAB_SIZE`;
 * ``terminate_on``: a list, tuple or set of event names (a bare string is refused);
 * ``reward``: None, a RewardConfig or a dict of weights, every weight a finite number within +-:data:`MAX_REWARD_WEIGHT`,
-  ``goal_radius_m`` in [0, :data:`~smart_marl.config_files.MAX_DISTANCE_M`];
+  ``goal_radius_m`` in [0, :data:`~smart_marl.config_files.MAX_DISTANCE_M`], ``headway_s`` in (0, :data:`MAX_HEADWAY_S`],
+  ``ttc_s`` in (0, :data:`MAX_TTC_S`];
 * ``observation``: "vector", "dict" or an ObservationConfig with sizes in range;
 * ``render_size_px``: an integer in 16..:data:`MAX_RENDER_SIZE_PX`; ``render_radius_m`` a finite number in
   [:data:`MIN_RENDER_RADIUS_M`, :data:`MAX_RENDER_RADIUS_M`];
@@ -82,10 +83,19 @@ OBSERVATION_RULES: dict[str, Rule] = {
     "num_lights": integer(0, 256, "traffic lights in one observation"), "light_radius_m": number(0.0, MAX_DISTANCE_M, why="metres, farther than any scene reaches"),
 }
 """What each ObservationConfig field takes."""
+MAX_HEADWAY_S = 10.0
+"""The longest time headway the ``headway`` term asks for (``headway_s``): 10 s is 280 m at 100 km/h, five times the
+2 s of the driving-school rule and beyond what any observation or scene of the project reaches."""
+MAX_TTC_S = 30.0
+"""The longest time to collision the ``ttc`` term penalises (``ttc_s``): 30 s, ten times the 3 s of common
+forward-collision warnings, longer than the 8 s episodes and the prior's horizon."""
 REWARD_RULES: dict[str, Rule] = {
     **{f.name: number(-MAX_REWARD_WEIGHT, MAX_REWARD_WEIGHT, why="1,000x the goal's") for f in dataclasses.fields(RewardConfig)},
-    "goal_radius_m": number(0.0, MAX_DISTANCE_M, why="metres, farther than any scene reaches")}
-"""What each RewardConfig field takes: weights within +-:data:`MAX_REWARD_WEIGHT`, a goal radius in [0, 10 km]."""
+    "goal_radius_m": number(0.0, MAX_DISTANCE_M, why="metres, farther than any scene reaches"),
+    "headway_s": number(0.0, MAX_HEADWAY_S, low_open=True, why="seconds, five times the 2 s rule"),
+    "ttc_s": number(0.0, MAX_TTC_S, low_open=True, why="seconds, longer than an episode")}
+"""What each RewardConfig field takes: weights within +-:data:`MAX_REWARD_WEIGHT`, a goal radius in [0, 10 km], the gap
+terms' thresholds in (0, :data:`MAX_HEADWAY_S`] and (0, :data:`MAX_TTC_S`] seconds."""
 
 
 def _check(name: str, value: Any, rule: Rule, kind: type | tuple = numbers.Real) -> Any:
@@ -214,5 +224,5 @@ def check_reset_arguments(seed_value: Any, options: Any, num_scenes: int) -> tup
     return seed_value, int(index)
 
 
-__all__ = ["MAX_AGENT_SLOTS", "MAX_HORIZON_STEPS", "MAX_REWARD_WEIGHT", "MAX_RENDER_SIZE_PX", "MAX_RENDER_RADIUS_M",
-           "MIN_RENDER_RADIUS_M", "OBSERVATION_RULES", "REWARD_RULES", "TOP_K_WHY", "check_env_arguments", "check_reset_arguments", "shield_checks"]
+__all__ = ["MAX_AGENT_SLOTS", "MAX_HEADWAY_S", "MAX_HORIZON_STEPS", "MAX_REWARD_WEIGHT", "MAX_TTC_S", "MAX_RENDER_SIZE_PX",
+           "MAX_RENDER_RADIUS_M", "MIN_RENDER_RADIUS_M", "OBSERVATION_RULES", "REWARD_RULES", "TOP_K_WHY", "check_env_arguments", "check_reset_arguments", "shield_checks"]

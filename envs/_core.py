@@ -77,7 +77,7 @@ class CoreStep:
     offroad: torch.Tensor  # [B, C] bool
     goal_reached: torch.Tensor  # [B, C] bool
     progress_m: torch.Tensor  # [B, C] route progress after the step
-    terms: torch.Tensor  # [B, C, 6] reward terms (REWARD_TERMS order)
+    terms: torch.Tensor  # [B, C, 8] reward terms (REWARD_TERMS order)
     action_log_prob: torch.Tensor  # [B, C] the prior's full-softmax log-probability of the token taken
 
 

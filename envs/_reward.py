@@ -18,8 +18,28 @@ Reward terms (``REWARD_TERMS`` order, also ``infos[agent]["reward_terms"]``): ``
 (metres gained along the logged route this step), ``goal_reached`` (1 the step the goal is
 reached), ``collision`` (1), ``offroad`` (1), ``comfort`` (mean jerk magnitude over the step's
 frames, m/s^3: give it a negative weight), ``prior_log_likelihood`` (log-probability of the
-chosen token under the prior, 0 without a prior). The reward is the dot product with
-:class:`RewardConfig`'s weights.
+chosen token under the prior, 0 without a prior), ``headway`` and ``ttc`` (the gaps kept to the
+car ahead, below). The reward is the dot product with :class:`RewardConfig`'s weights.
+
+The gap terms (off by default: weight 0; give them a negative weight), from where every track is at the
+step's last frame and its velocity over the step's last frame (as the env's state keeps it):
+
+* the **leader** of a controlled agent is the nearest other present track in its path: centre ahead
+  along its heading, and close enough sideways that the two boxes would touch if the agent drove
+  straight on (its half width plus the other's half extent across its heading; a straight corridor,
+  no lanes: on a bend a leader far ahead falls out of it, and a car crossing the path counts while
+  it is in it). The **gap** is bumper to bumper along the heading (centre distance ahead less the
+  agent's half length and the other's half extent along the heading; 0 when they overlap);
+* ``headway``: the time headway ``gap / speed`` (the agent's speed along its heading) below
+  ``headway_s``, as the fraction below: ``max(0, 1 - headway / headway_s)`` (0 at ``headway_s`` or
+  more, 1 at no gap); 0 without a leader or when the agent does not move forward;
+* ``ttc``: the time to collision ``gap / closing speed`` (the agent's speed along its heading less the
+  leader's velocity along it) below ``ttc_s``, as ``max(0, 1 - ttc / ttc_s)``; 0 without a leader or
+  when the gap opens or holds (closing speed <= 0).
+
+So a follower with a 10 m gap at 20 m/s has a headway of 0.5 s (``headway`` 0.5 at ``headway_s`` 1), and
+closing at 5 m/s a time to collision of 2 s (``ttc`` 1/3 at ``ttc_s`` 3). :func:`time_gaps` gives the
+seconds themselves.
 """
 
 from __future__ import annotations
@@ -37,13 +57,14 @@ from smart_marl.tokens import FRAMES_PER_TOKEN
 from ._scene_batch import SceneBatch, gather_tracks
 from .errors import EnvConfigError, EnvConfigTypeError
 
-REWARD_TERMS = ("progress", "goal_reached", "collision", "offroad", "comfort", "prior_log_likelihood")
+REWARD_TERMS = ("progress", "goal_reached", "collision", "offroad", "comfort", "prior_log_likelihood", "headway", "ttc")
 TERMINATION_EVENTS = ("collision", "offroad", "goal")
 
 
 @dataclass(frozen=True)
 class RewardConfig:
-    """Weights of the reward terms (see the module docstring) and the goal radius."""
+    """Weights of the reward terms (see the module docstring), the goal radius and the gap terms' thresholds
+    (seconds: a time headway below ``headway_s``, a time to collision below ``ttc_s`` is penalised)."""
 
     progress: float = 0.1
     goal_reached: float = 1.0
@@ -51,7 +72,11 @@ class RewardConfig:
     offroad: float = -1.0
     comfort: float = 0.0
     prior_log_likelihood: float = 0.0
+    headway: float = 0.0
+    ttc: float = 0.0
     goal_radius_m: float = 2.0
+    headway_s: float = 1.0
+    ttc_s: float = 3.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -153,6 +178,49 @@ def mean_jerk(positions: torch.Tensor, valid: torch.Tensor, new_frames: int) -> 
     return torch.where(ok.any(-1), (mag * ok).sum(-1) / ok.sum(-1).clamp(min=1), torch.zeros_like(mag[..., 0]))
 
 
+def time_gaps(ctrl_track: torch.Tensor, live: torch.Tensor, frames: torch.Tensor, present: torch.Tensor,
+              box_size: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """([B, C] time headway, [B, C] time to collision), in seconds, of each live controlled track to its
+    leader at the step's last frame (the module docstring's definitions); ``inf`` where there is none:
+    no leader, not moving forward (headway), a gap that opens or holds (time to collision), a slot that
+    is not live. ctrl_track [B, C], live [B, C], frames [B, N, F, 3] every track's poses over the step
+    (F >= 2), present [B, N] bool, box_size [B, N, 2+] length, width. Every pair at once, no loop."""
+    n = frames.shape[1]
+    last = frames[:, :, -1]  # [B, N, 3]
+    velocity = (frames[:, :, -1, :2] - frames[:, :, -2, :2]) / DT_S  # [B, N, 2], as the env's state keeps it
+    mine = gather_tracks(last, ctrl_track)  # [B, C, 3]
+    cos, sin = torch.cos(mine[..., 2]), torch.sin(mine[..., 2])
+    forward, left = torch.stack([cos, sin], -1), torch.stack([-sin, cos], -1)  # [B, C, 2]
+    rel = last[:, None, :, :2] - mine[:, :, None, :2]  # [B, C, N, 2] the others seen from each agent
+    ahead, side = (rel * forward[:, :, None]).sum(-1), (rel * left[:, :, None]).sum(-1)  # [B, C, N]
+    turn = last[:, None, :, 2] - mine[..., None, 2]  # [B, C, N] the others' headings in the agent's frame
+    c, s = torch.cos(turn).abs(), torch.sin(turn).abs()
+    half = box_size[..., :2].to(last.dtype) / 2  # [B, N, 2]
+    along = half[:, None, :, 0] * c + half[:, None, :, 1] * s  # the others' half extents along the heading
+    across = half[:, None, :, 0] * s + half[:, None, :, 1] * c  # and across it
+    my_half = gather_tracks(half, ctrl_track)  # [B, C, 2]
+    other = torch.arange(n, device=frames.device)[None, None] != ctrl_track[..., None]
+    in_path = other & present[:, None] & live[..., None] & (ahead > 0) & (side.abs() < my_half[..., 1:2] + across)
+    inf = float("inf")
+    gap, leader = (ahead - my_half[..., :1] - along).clamp(min=0.0).masked_fill(~in_path, inf).min(-1)  # [B, C]
+    has = torch.isfinite(gap)
+    speed = (gather_tracks(velocity, ctrl_track) * forward).sum(-1)  # [B, C] along the heading
+    closing = speed - (velocity.gather(1, leader[..., None].expand(-1, -1, 2)) * forward).sum(-1)
+    tiny = torch.finfo(last.dtype).tiny
+    headway = (gap / speed.clamp(min=tiny)).masked_fill(~(has & (speed > 0)), inf)
+    ttc = (gap / closing.clamp(min=tiny)).masked_fill(~(has & (closing > 0)), inf)
+    return headway, ttc
+
+
+def gap_terms(ctrl_track: torch.Tensor, live: torch.Tensor, frames: torch.Tensor, present: torch.Tensor, box_size: torch.Tensor,
+              headway_s: float, ttc_s: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``headway`` and ``ttc`` terms [B, C] in [0, 1] (module docstring) of :func:`time_gaps`'
+    seconds against the thresholds ``headway_s`` and ``ttc_s`` (> 0): ``max(0, 1 - t / threshold)``,
+    0 where :func:`time_gaps` is ``inf``."""
+    headway, ttc = time_gaps(ctrl_track, live, frames, present, box_size)
+    return (1 - headway / float(headway_s)).clamp(min=0.0), (1 - ttc / float(ttc_s)).clamp(min=0.0)
+
+
 @dataclass
 class StepReward:
     """One step's outcome for the controlled agents [B, C] (zeros / False for those not live)."""
@@ -161,7 +229,7 @@ class StepReward:
     offroad: torch.Tensor  # [B, C] bool
     goal_reached: torch.Tensor  # [B, C] bool, reached this step (the first time)
     progress_m: torch.Tensor  # [B, C] route progress after the step
-    terms: torch.Tensor  # [B, C, 6] the reward terms, REWARD_TERMS order
+    terms: torch.Tensor  # [B, C, 8] the reward terms, REWARD_TERMS order
     reward: torch.Tensor  # [B, C] terms . weights
     terminated: torch.Tensor  # [B, C] bool, an event of ``terminate_on`` happened
 
@@ -181,9 +249,10 @@ def step_reward(scenes: SceneBatch, config: RewardConfig, terminate_on, ctrl_tra
     progress = torch.where(live, route_progress_m(scenes, ctrl_track, last[..., :2]), progress_m)
     goal = live & goal_reached(scenes, ctrl_track, last[..., :2], config.goal_radius_m) & ~goal_done
     jerk = mean_jerk(hist_pose[..., :2], hist_valid, FRAMES_PER_TOKEN)
+    headway, ttc = gap_terms(ctrl_track, live, frames, present, scenes.box_size, config.headway_s, config.ttc_s)
     dtype = torch.float64
     terms = torch.stack([(progress - progress_m).to(dtype), goal.to(dtype), coll.to(dtype), off.to(dtype), jerk.to(dtype),
-                         action_log_prob.to(dtype)], -1) * live[..., None]
+                         action_log_prob.to(dtype), headway.to(dtype), ttc.to(dtype)], -1) * live[..., None]
     term = torch.zeros_like(live)
     for event, happened in (("collision", coll), ("offroad", off), ("goal", goal)):
         if event in terminate_on:
@@ -192,5 +261,5 @@ def step_reward(scenes: SceneBatch, config: RewardConfig, terminate_on, ctrl_tra
                       reward=terms @ config.weights().to(terms.device), terminated=term)
 
 
-__all__ = ["REWARD_TERMS", "RewardConfig", "StepReward", "TERMINATION_EVENTS", "collisions", "goal_reached",
-           "mean_jerk", "offroad", "route_progress_m", "step_reward"]
+__all__ = ["REWARD_TERMS", "RewardConfig", "StepReward", "TERMINATION_EVENTS", "collisions", "gap_terms", "goal_reached",
+           "mean_jerk", "offroad", "route_progress_m", "step_reward", "time_gaps"]

@@ -15,7 +15,7 @@ reference; :class:`envs._core.TrafficCore` underneath both) with tensors instead
   "action")`` [B, A] (a token id, Categorical(V)), ``("agents", "reward")``, ``("agents", "done" /
   "terminated" / "truncated")`` [B, A, 1] (true at the step an agent finishes), ``("agents",
   "info", ...)`` (``collision``, ``offroad``, ``goal_reached``, ``route_progress_m``,
-  ``action_log_prob``, ``reward_terms`` [B, A, 6]), and the scene's ``"done"`` / ``"terminated"`` /
+  ``action_log_prob``, ``reward_terms`` [B, A, 8]), and the scene's ``"done"`` / ``"terminated"`` /
   ``"truncated"`` [B, 1] (every agent of the scene has finished);
 * controlled agents are those of ``controlled`` (default ``"moving_vehicles"``) whose type's
   vocabulary has the group's size ``V`` (the vehicle vocabulary's: the group shares one action

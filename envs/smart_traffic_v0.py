@@ -53,7 +53,7 @@ taken out of its prior logits (``-inf``), so out of the action mask and the refe
 agent's *next* token (zeros once it is done), ``reference_top_k`` (the reference's k, 0 for the
 full softmax), ``action_log_prob`` (the prior's full-softmax log-probability of the token just taken),
 ``collision``, ``offroad``, ``goal_reached`` (this step), ``route_progress_m`` and
-``reward_terms`` [6] (see :mod:`envs._reward`). Without a prior the three prior keys are absent.
+``reward_terms`` [8] (see :mod:`envs._reward`). Without a prior the three prior keys are absent.
 
 Errors: every argument of the constructor and of ``reset`` is checked before any state is built
 (:mod:`envs._arguments`: its type, range and integrality, an ``EnvConfigError`` naming it); an
