@@ -33,7 +33,9 @@ The pipeline:
 5. evaluation on held-out scenes (:func:`evaluate_finetuned`, :mod:`agents.evaluate`): the expert
    (log-following), the prior top-k, the prior's full softmax and the fine-tuned policy on the same
    scenes and seeds, full horizon, no termination, many scenes at once; rates, progress, KL, who hit
-   whom, and the controlled agents' realism.
+   whom, and the controlled agents' realism. Rows compare in one environment: with the shield, the
+   table leads with the shielded prior at the policy's top-k and at top-3, and ends with those two
+   with the shield off, labelled as another environment.
 
 Logged per iteration (CSV and TensorBoard, names say what they are): ``return_per_agent_episode``,
 ``goal_rate``, ``collision_rate``, ``offroad_rate`` (per agent-episode that ended in the batch),
@@ -78,7 +80,7 @@ from smart_marl.runlog import RunLog
 from smart_marl.scenario import AgentType
 from smart_marl.train import init_distributed, leave_distributed, resolve_device
 
-from .evaluate import evaluate_policies
+from .evaluate import evaluate_policies, same_environment_policies
 from .finetune_state import Progress, episode_seed, load_run_state, logged_rows, save_run_state
 from .finetune_config import (MAX_EVAL_EPISODES, FinetuneConfig, FinetuneConfigError, FinetuneError, load_finetune_config,
                               network_differences)
@@ -499,14 +501,17 @@ def held_out_scenes(cfg: FinetuneConfig, vocab, training: Sequence[str]) -> list
 
 def evaluation_policies(cfg: FinetuneConfig, net: PolicyLogits | None) -> dict[str, TensorPolicy]:
     """The evaluation's rows: the expert (log-following), the prior at the reference's top-k (and at
-    the background's, when it differs), the prior's full softmax and, with ``net``, the fine-tuned policy."""
+    the background's, when it differs), the prior's full softmax and, with ``net``, the fine-tuned policy.
+    With the shield (``cfg.shield``), in one environment: the shielded prior at the reference's top-k and
+    at top-3 first, and those two with the shield off last, as rows of another environment
+    (:func:`agents.evaluate.same_environment_policies`)."""
     policies: dict[str, TensorPolicy] = {ExpertTensorPolicy.name: ExpertTensorPolicy()}
     for k in dict.fromkeys((cfg.reference_top_k, cfg.top_k, None)):
         p = PriorTensorPolicy(top_k=k, temperature=cfg.temperature)
         policies[p.name] = p
     if net is not None:
         policies[FinetunedTensorPolicy.name] = FinetunedTensorPolicy(net)
-    return policies
+    return same_environment_policies(policies, cfg.shield, cfg.reference_top_k, cfg.temperature)
 
 
 def evaluation_core(cfg: FinetuneConfig, model, vocab, num_scenes: int) -> TrafficCore:
