@@ -339,6 +339,8 @@ RUN_BY = [
       ("tests/test_train.py::test_train_only_trains_the_named_parameters_and_freezes_the_rest", "train_only"),
       ("tests/test_train.py::test_a_run_records_the_mixed_in_data_and_rejects_a_bad_share", "extra_data")]),
     (r"smart-marl pretokenize data/sumo", [("tests/test_token_cache.py::test_cli_pretokenize", '"pretokenize"')]),
+    (r"smart-marl pretokenize data/scaling_train",
+     [("tests/test_scaling.py::test_the_scaling_command_runs_a_tiny_grid_and_resumes_without_training_again", '"pretokenize"')]),
     (r"smart-marl eval --scenes (\.\./shared\S*|DIR) --policy prior",
      [("tests/test_avoidance.py::test_eval_hands_the_flag_to_the_rollouts", '"eval"'),
       ("tests/test_metrics_submission.py::test_eval_policy_prior_scores_the_rollout_engines_rollouts", '"eval"')]),
