@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-PRECISIONS = ("float32", "bfloat16")
+from smart_marl.model.precision import PRECISIONS  # noqa: E402  (after the path set-up)
 
 
 def emit(**row) -> None:

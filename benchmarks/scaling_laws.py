@@ -184,6 +184,7 @@ def plot(rows: list[dict], fits: list[dict], path: Path) -> None:
 
 def main() -> int:
     from smart_marl.model.checkpoint import checkpoint_paths, embedded_checkpoint_path
+    from smart_marl.model.precision import PRECISIONS
     from smart_marl.scaling import PAPER_EXPONENT, fit_power_law, fit_pure_power_law
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -201,7 +202,7 @@ def main() -> int:
     p.add_argument("--realism", default=None, help="scenes to score each run's realism on (e.g. data/real7)")
     p.add_argument("--rollouts", type=int, default=8)
     p.add_argument("--device", default="cpu")
-    p.add_argument("--precision", default="float32", choices=("float32", "bfloat16"))
+    p.add_argument("--precision", default="float32", choices=PRECISIONS)
     p.add_argument("--threads", type=int, default=2)
     args = p.parse_args()
     torch.set_num_threads(args.threads)
