@@ -70,20 +70,46 @@ def test_bad_arguments_exit_2_with_one_error_line_before_any_work(argv, names, t
 
 
 # ----------------------------------------------------------------- eval over a folder
-def _scene_without_evaluated_agents(scenario):
+def _scene_without_evaluated_agents(scenario, scenario_id="no-evaluated-agent", frozen=False):
+    """``scenario`` without a self-driving car or tracks to predict; ``frozen``: every track also stands at its
+    current-frame position all along, so no agent moves the 2 m the windows' rule asks for."""
     from smart_marl.scenario import Scenario
 
     arrays, meta = scenario.to_arrays()
     arrays = {**arrays, "predict_indices": np.zeros(0, np.int64), "predict_difficulty": np.zeros(0, np.int8)}
-    return Scenario.from_arrays(arrays, {**meta, "sdc_index": -1, "scenario_id": "no-evaluated-agent"})
+    if frozen:
+        position = arrays["tracks.position"]
+        arrays = {**arrays, "tracks.position": np.repeat(position[:, 10:11], position.shape[1], axis=1)}
+    return Scenario.from_arrays(arrays, {**meta, "sdc_index": -1, "scenario_id": scenario_id})
 
 
 def test_metrics_name_a_scene_without_evaluated_agents_instead_of_returning_nan(sample_scenes):
+    """Without an SDC or tracks to predict: eval's window scores the scene around an anchor; the plain inputs, and a
+    window where no agent moves 2 m, name it instead."""
     from smart_marl.metrics import SceneNotScorableError, logged_scene
+    from smart_marl.metrics.windows import scene_windows
 
     scene = _scene_without_evaluated_agents(sample_scenes[0])
     with pytest.raises(SceneNotScorableError, match="no-evaluated-agent: no agent to evaluate"):
-        logged_scene(scene)
+        logged_scene(scene)  # the plain inputs evaluate exactly the SDC and the tracks to predict: none here
+    # eval's window evaluates the agent that moves farthest (ties: the lower id) and up to 8 more nearest to it, each
+    # a vehicle, pedestrian or cyclist valid now and on >= 40 of the 80 future frames that moves >= 2 m
+    [window] = scene_windows(scene)
+    tr = window.scenario.tracks
+    now = tr.position[:, 10, :2].astype(np.float64)
+    travel = np.where(tr.valid, np.linalg.norm(tr.position[..., :2] - now[:, None], axis=-1), 0.0).max(axis=1)
+    eligible = np.flatnonzero(np.isin(tr.types, [0, 1, 2]) & tr.valid[:, 10] & (tr.valid[:, 11:].sum(axis=1) >= 40)
+                              & (travel >= 2.0))
+    assert len(eligible) > 9  # enough for the cap to bite
+    anchor = min(eligible, key=lambda i: (-travel[i], tr.ids[i]))
+    others = sorted((i for i in eligible if i != anchor), key=lambda i: (np.linalg.norm(now[i] - now[anchor]), tr.ids[i]))[:8]
+    logged = window.logged()
+    assert sorted(logged.evaluated_ids.tolist()) == sorted(int(tr.ids[i]) for i in [anchor, *others])
+    assert len(logged.evaluated_ids) == 9
+    frozen = _scene_without_evaluated_agents(sample_scenes[0], frozen=True)
+    with pytest.raises(SceneNotScorableError, match="no-evaluated-agent: no agent to evaluate: no self-driving car, no track "
+                                                    "to predict, and no agent for the rule to anchor on"):
+        scene_windows(frozen)[0].logged()
 
 
 def test_eval_over_a_folder_skips_unscorable_scenes_by_name_and_averages_the_rest(sample_scenes, tmp_path, capsys):
@@ -92,18 +118,21 @@ def test_eval_over_a_folder_skips_unscorable_scenes_by_name_and_averages_the_res
     folder.mkdir()
     write_shard(folder / "a.smsc", [scenario])
     write_shard(folder / "short.smsc", [scenario.window(0, 11)])  # an 11-frame scene
-    write_shard(folder / "none.smsc", [_scene_without_evaluated_agents(scenario)])
+    write_shard(folder / "anchored.smsc", [_scene_without_evaluated_agents(scenario, "anchored")])  # scored by the rule
+    write_shard(folder / "none.smsc", [_scene_without_evaluated_agents(scenario, frozen=True)])  # no one moves: skipped
     code, out, err = _run(["eval", "--scenes", str(folder), "--policy", "constant_velocity", "--rollouts", "2", "--json"],
                           capsys)
     assert code == 0, err
     result = json.loads(out)
-    assert result["num_scenarios"] == 1 and math.isfinite(result["meta_metric"])
+    assert result["num_scenarios"] == 2 and math.isfinite(result["meta_metric"])
     skipped = {entry["scenario_id"]: entry for entry in result["skipped"]}
     assert set(skipped) == {scenario.scenario_id, "no-evaluated-agent"}
     assert "need 91 frames" in skipped[scenario.scenario_id]["reason"] and skipped[scenario.scenario_id]["path"].endswith("short.smsc")
-    assert "no agent to evaluate" in skipped["no-evaluated-agent"]["reason"]
+    assert "no agent to evaluate: no self-driving car, no track to predict" in skipped["no-evaluated-agent"]["reason"]
+    assert skipped["no-evaluated-agent"]["path"].endswith("none.smsc")
     warnings = [line for line in err.splitlines() if "warning:" in line]
     assert any("short.smsc: skipped" in w for w in warnings) and any("none.smsc: skipped" in w for w in warnings)
+    assert not any("anchored" in w for w in warnings)
 
 
 def test_eval_stops_on_an_unreadable_file_unless_skip_bad(sample_scene_file, tmp_path, capsys):

@@ -3,7 +3,10 @@
 
 Pinned here: a WOMD scene scored through its own window gives exactly its plain score; the cut, the list
 of windows and the resampling are right on synthetic scenes; the shared Argoverse 2 and nuScenes scenes
-are scored; ``--window all`` at scale merges to the single-process numbers; bad values exit 2."""
+are scored; a scene with neither a self-driving car nor tracks to predict is scored around an anchor (the
+agent that moves farthest, ties by id) and its nearest neighbours, up to 9 (the shared Nocturne and
+GPUDrive scenes), while a scene with a self-driving car keeps it as the anchor; ``--window all`` at scale
+merges to the single-process numbers; bad values exit 2."""
 
 from __future__ import annotations
 
@@ -15,11 +18,13 @@ import pytest
 
 from smart_marl.metrics import aggregate, logged_scene, score_rollouts
 from smart_marl.metrics.baselines import policy_rollouts
-from smart_marl.metrics.windows import (EVALUATED_MAX_TRACKS, ResampleError, WindowError, cut_window, evaluated_tracks,
-                                        frame_step_s, scene_windows, to_10hz, window_frames)
+from smart_marl.metrics import SceneNotScorableError
+from smart_marl.metrics.windows import (EVALUATED_BY, EVALUATED_MAX_TRACKS, ResampleError, WindowError, anchor_track,
+                                        cut_window, evaluated_by, evaluated_tracks, frame_step_s, rule_tracks,
+                                        scene_windows, to_10hz, window_frames)
 from smart_marl.readers import read_scenarios
 from smart_marl.readers.scene_cache import write_shard
-from smart_marl.scenario import Scenario, Tracks
+from smart_marl.scenario import AgentType, Scenario, Tracks
 from smart_marl.synthetic import synthetic_scenario
 
 from helpers import run_eval
@@ -97,8 +102,12 @@ def test_window_lists_all_current_and_frame():
     gap = dataclasses.replace(scene, tracks=dataclasses.replace(scene.tracks, valid=valid))
     assert [w.frame for w in scene_windows(gap, "all")] == [10, 12, 13, 14]
     nobody = dataclasses.replace(scene, sdc_index=-1, predict_indices=np.zeros(0, np.int64), predict_difficulty=None)
-    with pytest.raises(WindowError, match="no agent to evaluate in any of its 5 windows"):
-        scene_windows(nobody, "all")
+    anchored = scene_windows(nobody, "all")  # no SDC, no tracks to predict: the rule around the farthest mover
+    assert [w.frame for w in anchored] == [10, 11, 12, 13, 14]
+    assert {evaluated_by(w) for w in anchored} == {EVALUATED_BY[2]}
+    frozen = _frozen(nobody)  # ... and when no agent moves 2 m, no one to evaluate anywhere
+    with pytest.raises(WindowError, match="no agent to evaluate in any of its 5 windows .* nor an agent for the rule to anchor on"):
+        scene_windows(frozen, "all")
 
 
 def test_evaluated_agents_are_wosacs_where_the_scene_has_tracks_to_predict_else_the_rule():
@@ -115,6 +124,134 @@ def test_evaluated_agents_are_wosacs_where_the_scene_has_tracks_to_predict_else_
         assert tr.valid[i, 10] and tr.valid[i, 11:].sum() >= 40
         assert np.linalg.norm(tr.position[i, tr.valid[i], :2] - tr.position[i, 10, :2], axis=-1).max() >= 2.0
     assert sorted(logged_scene(window, chosen).evaluated_ids) == sorted(tr.ids[chosen].tolist())
+
+
+# ------------------------------------------------------------------ the rule's anchor without an SDC
+def _frozen(scene: Scenario) -> Scenario:
+    """``scene`` with every track standing at its current-frame position all along (no one moves)."""
+    tr = scene.tracks
+    position = np.repeat(tr.position[:, scene.current_frame:scene.current_frame + 1], scene.num_frames, axis=1)
+    return dataclasses.replace(scene, tracks=dataclasses.replace(tr, position=position))
+
+
+def _straight_scene(at, steps, types=None, ids=None, sdc=-1, future_frames=None) -> Scenario:
+    """A 91-frame scene (current frame 10), no tracks to predict: track k at ``at[k]`` (x, y) at the current frame,
+    moving ``steps[k]`` m a frame along +x (multiples of 1/8 m: every distance exact in float32), valid on every
+    frame, or up to frame ``10 + future_frames[k]``; vehicles unless ``types``; ids 1.. unless ``ids``."""
+    base = synthetic_scenario(seed=11)
+    n, t = len(at), 91
+    at, steps = np.asarray(at, np.float64), np.asarray(steps, np.float64)
+    position = np.zeros((n, t, 3), np.float32)
+    position[:, :, 0] = at[:, :1] + steps[:, None] * (np.arange(t) - 10)
+    position[:, :, 1] = at[:, 1:2]
+    valid = np.ones((n, t), bool)
+    for k, count in enumerate(future_frames or [80] * n):
+        valid[k, 11 + count:] = False
+    tracks = Tracks(ids=np.asarray(ids if ids is not None else np.arange(1, n + 1), np.int64),
+                    types=np.asarray(types if types is not None else [AgentType.VEHICLE] * n, np.int8),
+                    position=position, heading=np.zeros((n, t), np.float32), velocity=np.zeros((n, t, 2), np.float32),
+                    size=np.tile(np.array([4.5, 2.0, 1.5], np.float32), (n, t, 1)), valid=valid)
+    return dataclasses.replace(base, scenario_id="straight", tracks=tracks, sdc_index=sdc,
+                               predict_indices=np.zeros(0, np.int64), predict_difficulty=None)
+
+
+def _ids(scene: Scenario, chosen) -> list[int]:
+    return sorted(int(i) for i in scene.tracks.ids[np.asarray(chosen, np.int64)])
+
+
+def test_without_sdc_or_tracks_to_predict_the_anchor_is_the_eligible_agent_that_moves_farthest_ties_by_id():
+    # ids 1..6: an OTHER and a vehicle logged on 39 future frames move farthest but may not anchor; 3 and 5 tie
+    at = [(0, 0), (10, 0), (20, 0), (30, 0), (40, 0), (50, 0)]
+    steps = [1.0, 1.0, 0.375, 0.25, 0.375, 0.125]  # 80 m, 80 m, 30 m, 20 m, 30 m, 10 m over the 80 future frames
+    types = [AgentType.OTHER, *[AgentType.VEHICLE] * 5]
+    scene = _straight_scene(at, steps, types=types, future_frames=[80, 39, 80, 80, 80, 80])
+    assert anchor_track(scene) == 2  # id 3: travels 30 m like id 5, the lower id
+    assert _ids(scene, evaluated_tracks(scene, own=True)) == [3, 4, 5, 6]  # ids 1 and 2 are not eligible at all
+    [window] = scene_windows(scene)
+    assert evaluated_by(window) == EVALUATED_BY[2] and window.logged().evaluated_ids.tolist() == [3, 4, 5, 6]
+    farther = _straight_scene(at, [*steps[:4], 0.5, steps[5]], types=types, future_frames=[80, 39, 80, 80, 80, 80])
+    assert anchor_track(farther) == 4  # id 5 now travels 40 m
+    on_40 = _straight_scene(at, steps, types=types, future_frames=[80, 40, 80, 80, 80, 80])
+    assert anchor_track(on_40) == 1  # logged on 40 of the 80 future frames (11-50): eligible, and its 40 m the farthest
+
+
+def test_the_anchors_neighbours_are_the_nearest_eligible_agents_at_most_9_in_all():
+    # the anchor (id 1, 40 m) at x = 0; twelve eligible agents at |x| = 5, 10, ... 60 in turn left and right; beside
+    # the anchor a car creeping 1.875 m, a pedestrian logged on 39 future frames, and an OTHER
+    offsets = [5.0 * k * (-1) ** k for k in range(1, 13)]
+    at = [(0, 0), *[(x, 3.5) for x in offsets], (1, 1), (2, 1), (3, 1)]
+    steps = [0.5, *[0.125] * 12, 0.0234375, 0.25, 0.25]
+    types = [*[AgentType.VEHICLE] * 14, AgentType.PEDESTRIAN, AgentType.OTHER]
+    future = [80] * 14 + [39, 80]
+    scene = _straight_scene(at, steps, types=types, future_frames=future)
+    assert anchor_track(scene) == 0
+    nearest = rule_tracks(scene, 0)
+    assert len(nearest) == EVALUATED_MAX_TRACKS == 8
+    assert [int(scene.tracks.ids[i]) for i in nearest] == list(range(2, 10))  # 5 m, 10 m, ... 40 m from the anchor, in order
+    chosen = evaluated_tracks(scene, own=True)
+    assert _ids(scene, chosen) == list(range(1, 10)) and len(chosen) == EVALUATED_MAX_TRACKS + 1
+    # ties in distance go by id: the same two neighbours, ids swapped in order
+    twin = _straight_scene([(0, 0), (5, 0), (-5, 0)], [0.5, 0.125, 0.125], ids=[1, 9, 4])
+    assert [int(twin.tracks.ids[i]) for i in rule_tracks(twin, 0)] == [4, 9]
+    # no one eligible: no agent to evaluate, named with its three reasons
+    [window] = scene_windows(_frozen(scene))
+    assert window.evaluated is None and evaluated_by(window) is None
+    with pytest.raises(SceneNotScorableError, match="straight: no agent to evaluate: no self-driving car, no track to "
+                                                    "predict, and no agent for the rule to anchor on .none of its "
+                                                    "vehicles, pedestrians or cyclists valid at the current frame and "
+                                                    "on at least 40 of the 80 future frames and moving at least 2 m"):
+        window.logged()
+
+
+def test_a_scene_with_a_self_driving_car_keeps_it_as_the_anchor():
+    # the SDC (id 1) moves 10 m; id 2 moves 80 m and would anchor a scene without one; the rule goes around the SDC
+    at = [(0, 0), (100, 0), *[(5.0 * k, 3.5) for k in range(1, 11)]]
+    steps = [0.125, 1.0, *[0.125] * 10]
+    scene = _straight_scene(at, steps, sdc=0)
+    nearest = [int(scene.tracks.ids[i]) for i in rule_tracks(scene)]
+    assert nearest == list(range(3, 11))  # the 8 nearest the SDC, not id 2 far away
+    chosen = evaluated_tracks(scene, own=True)
+    assert _ids(scene, chosen) == [1, *range(3, 11)]
+    [window] = scene_windows(scene)
+    assert evaluated_by(window) == EVALUATED_BY[1] and window.logged().evaluated_ids.tolist() == [1, *range(3, 11)]
+    assert anchor_track(scene) == 1  # what the anchor would be without the SDC
+    valid = scene.tracks.valid.copy()
+    valid[0, 10] = False  # an SDC not valid at the current frame cannot anchor: the farthest mover does
+    lost = dataclasses.replace(scene, tracks=dataclasses.replace(scene.tracks, valid=valid))
+    assert _ids(lost, evaluated_tracks(lost, own=True)) == [2, *range(5, 13)]
+    with pytest.raises(SceneNotScorableError, match="its self-driving car .object 1. is not valid at the current frame"):
+        scene_windows(_frozen(lost))[0].logged()
+    # a scene with tracks to predict never anchors: its own window is WOSAC's, SDC and tracks to predict
+    ttp = dataclasses.replace(scene, predict_indices=np.array([5], np.int64), predict_difficulty=None)
+    assert evaluated_tracks(ttp, own=True) is None
+    [window] = scene_windows(ttp)
+    assert evaluated_by(window) == EVALUATED_BY[0] and window.logged().evaluated_ids.tolist() == [1, 6]
+
+
+def test_the_shared_nocturne_and_gpudrive_scenes_are_scored_around_their_anchor(shared_data):
+    for folder, count in (("nocturne_json", 3), ("gpudrive_json", 11)):
+        if not (shared_data / folder).is_dir():
+            pytest.skip(f"../shared/data/{folder} is absent")
+    scenes = read_scenarios(shared_data / "nocturne_json" / "example_scenario.json")
+    for scene in scenes:  # the rule, checked against its words on a real scene
+        assert scene.sdc_index < 0 and not len(scene.predict_indices)
+        [window] = scene_windows(scene)
+        tr, chosen = window.scenario.tracks, window.evaluated
+        now = tr.position[:, 10, :2].astype(np.float64)
+        travel = np.where(tr.valid, np.linalg.norm(tr.position[..., :2] - now[:, None], axis=-1), 0).max(axis=1)
+        eligible = (np.isin(tr.types, [0, 1, 2]) & tr.valid[:, 10] & (tr.valid[:, 11:].sum(axis=1) >= 40)
+                    & (travel >= 2.0))
+        anchor = anchor_track(window.scenario)
+        assert eligible[anchor] and travel[anchor] == travel[eligible].max() and anchor in chosen
+        assert eligible[chosen].all() and len(chosen) == min(9, int(eligible.sum()))
+        distance = np.linalg.norm(now - now[anchor], axis=-1)
+        left_out = np.setdiff1d(np.flatnonzero(eligible), chosen)
+        assert distance[chosen].max() <= distance[left_out].min(initial=np.inf)
+        assert evaluated_by(window) == EVALUATED_BY[2]
+    for folder, count in (("nocturne_json", 3), ("gpudrive_json", 11)):  # every scene scored, none skipped
+        result = _ok(["--scenes", str(shared_data / folder), *FAST])
+        assert result["skipped"] == [] and result["num_scenarios"] == count
+        assert 0.0 < result["meta_metric"] < 1.0
 
 
 # --------------------------------------------------------------------------------- resampling

@@ -39,8 +39,9 @@ class SceneNotScorableError(RolloutError):
     """A scene the realism metrics cannot score, whatever the rollouts: not 91 frames with the
     current frame at 10 (``smart-marl eval`` first cuts every scene to such a window,
     :mod:`smart_marl.metrics.windows`, and raises this when none fits or the rate cannot be resampled), or no
-    evaluated agent (no self-driving car and no track to predict), or an evaluated agent not valid at the
-    current frame. ``smart-marl eval`` skips such a scene with a warning naming it."""
+    evaluated agent (no self-driving car and no track to predict; through a window, none that the windows'
+    rule picks either), or an evaluated agent not valid at the current frame. ``smart-marl eval`` skips such a
+    scene with a warning naming it."""
 
 
 @dataclass(frozen=True)

@@ -21,11 +21,16 @@ Which windows (:func:`scene_windows`, ``smart-marl eval --window``):
 The evaluated agents (:func:`evaluated_tracks`): WOSAC's, the self-driving car plus the tracks to
 predict, at the scene's own current frame (exactly :func:`~.inputs.logged_scene`'s choice, so a
 WOMD scene scores as it always did); at another window, those of them valid at its current frame.
-A scene without tracks to predict (nuScenes, ScenarioNet's 20 s Waymo scenes) gets
-:data:`EVALUATED_RULE`: the self-driving car plus up to 8 vehicles, pedestrians or cyclists, nearest
-to it first, that are valid at the current frame and on at least 40 of the 80 future frames and move
-at least 2 m within the window. A scene with neither a self-driving car nor tracks to predict has no
-agent to evaluate and is skipped, as before.
+A scene without tracks to predict gets :data:`EVALUATED_RULE`: an anchor plus up to 8 vehicles,
+pedestrians or cyclists, nearest to the anchor at the current frame first, that are valid at the current
+frame and on at least 40 of the 80 future frames and move at least 2 m within the window
+(:func:`rule_tracks`). The anchor is the self-driving car where the window has one valid at its current
+frame (nuScenes, ScenarioNet's 20 s Waymo scenes); otherwise (the Nocturne JSON scenes, some GPUDrive
+ones: neither a self-driving car nor tracks to predict) the agent that meets the same three conditions
+and travels farthest within the window, the lowest id among equals (:func:`anchor_track`): up to 9
+agents either way. A window with no such agent has no agent to evaluate (:meth:`Window.logged` names
+the three reasons) and is skipped. A scene with tracks to predict never uses the anchor: a window where
+neither they nor the self-driving car are valid has no agent to evaluate, as before.
 
 Resampling (:func:`to_10hz`): the frame step is read from ``Scenario.timestamps_s`` (every reader
 fills it from the source's own timestamps where it has them, e.g. a ScenarioNet ``metadata/ts``).
@@ -69,11 +74,16 @@ EVALUATED_MIN_FUTURE_FRAMES = 40
 """The rule's least valid frames among the 80 future ones (half of the 8 s)."""
 EVALUATED_MIN_TRAVEL_M = 2.0
 """The rule's least travel: the farthest valid position in the window from the current one."""
+_CONDITIONS = (f"valid at the current frame and on at least {EVALUATED_MIN_FUTURE_FRAMES} of the {NUM_SIMULATION_STEPS} "
+               f"future frames and moving at least {EVALUATED_MIN_TRAVEL_M:g} m within the window (the farthest valid "
+               f"position from the current one)")
+_ELIGIBLE = f"vehicles, pedestrians or cyclists {_CONDITIONS}"
 EVALUATED_RULE = (
-    f"the self-driving car plus up to {EVALUATED_MAX_TRACKS} vehicles, pedestrians or cyclists, nearest to it at the "
-    f"current frame first, valid at the current frame and on at least {EVALUATED_MIN_FUTURE_FRAMES} of the "
-    f"{NUM_SIMULATION_STEPS} future frames, that move at least {EVALUATED_MIN_TRAVEL_M:g} m within the window")
-"""The evaluated agents of a window of a scene without tracks to predict, in words (docs/metrics.md)."""
+    f"an anchor plus up to {EVALUATED_MAX_TRACKS} more vehicles, pedestrians or cyclists, nearest to the anchor at the "
+    f"current frame first (ties: the lower id), each {_CONDITIONS}; the anchor is the self-driving car when it is valid "
+    f"at the current frame, otherwise the agent that meets those conditions and moves farthest within the window "
+    f"(ties: the lowest id), and a window where no agent meets them has no agent to evaluate and is skipped")
+"""The evaluated agents of a window of a scene without tracks to predict, in words (``eval --help``, docs/metrics.md)."""
 
 
 class WindowError(SceneNotScorableError):
@@ -99,6 +109,8 @@ class Window:
 
     def logged(self) -> LoggedScene:
         """The metrics' logged inputs of the window (:class:`SceneNotScorableError` when it has no agent to evaluate)."""
+        if self.evaluated is None and _anchored(self.scenario):  # the rule found no one: say why
+            raise SceneNotScorableError(_nobody(self.scenario))
         return logged_scene(self.scenario, self.evaluated)
 
 
@@ -256,7 +268,9 @@ def scene_windows(scenario: Scenario, which: str | int = "current") -> list[Wind
         out = [w for w in out if _evaluable(w)]
         if not out:
             raise WindowError(f"scenario {sid}: no agent to evaluate in any of its {len(frames)} windows (no self-driving "
-                              "car or track to predict valid at their current frames)")
+                              "car or track to predict valid at their current frames"
+                              + (f", nor an agent for the rule to anchor on: none of its {_ELIGIBLE})"
+                                 if not len(scene.predict_indices) else ")"))
     return out
 
 
@@ -273,7 +287,7 @@ def evaluated_tracks(window: Scenario, own: bool) -> np.ndarray | None:
     """Track indices to evaluate in a window (see the module docstring), None for
     :func:`~.inputs.logged_scene`'s own choice (the SDC and the tracks to predict): always at the scene's own
     current frame (``own``) when it has tracks to predict, and where neither they nor the rule give anyone
-    (``logged_scene`` then names what is missing)."""
+    (``logged_scene``, or :meth:`Window.logged` for the anchored rule, then names what is missing)."""
     valid = window.tracks.valid[:, CURRENT_STEP]
     sdc = window.sdc_index
     if len(window.predict_indices):
@@ -282,14 +296,41 @@ def evaluated_tracks(window: Scenario, own: bool) -> np.ndarray | None:
         keep = [int(i) for i in window.predict_indices if valid[i]]
         if keep:
             return np.unique(np.array(keep + ([sdc] if sdc >= 0 and valid[sdc] else []), np.int64))
-    if sdc < 0 or not valid[sdc]:
+    if sdc >= 0 and valid[sdc]:
+        return np.unique(np.array([sdc, *rule_tracks(window)], np.int64))
+    if not _anchored(window):
         return None
-    return np.unique(np.array([sdc, *rule_tracks(window)], np.int64))
+    anchor = anchor_track(window)
+    if anchor is None:
+        return None
+    return np.unique(np.array([anchor, *rule_tracks(window, anchor)], np.int64))
 
 
-def rule_tracks(window: Scenario) -> list[int]:
-    """The tracks :data:`EVALUATED_RULE` adds to the self-driving car of a window (nearest first)."""
-    tr, sdc = window.tracks, window.sdc_index
+EVALUATED_BY = ("tracks to predict", "rule, self-driving car anchor", "rule, farthest-moving anchor")
+"""How a window's evaluated agents are chosen (:func:`evaluated_by`): WOSAC's (the SDC and the tracks to predict),
+:data:`EVALUATED_RULE` around the self-driving car, or around the agent that moves farthest."""
+
+
+def evaluated_by(window: Window) -> str | None:
+    """Which of :data:`EVALUATED_BY` chose a window's evaluated agents; None when it has none to evaluate."""
+    sc = window.scenario
+    if not _evaluable(window):
+        return None
+    if len(sc.predict_indices) and sc.tracks.valid[sc.predict_indices, CURRENT_STEP].any():
+        return EVALUATED_BY[0]
+    return EVALUATED_BY[2] if _anchored(sc) else EVALUATED_BY[1]
+
+
+def _anchored(window: Scenario) -> bool:
+    """Whether a window's evaluated agents come from the rule around an anchor other than the SDC: no tracks to
+    predict and no self-driving car valid at its current frame."""
+    sdc = window.sdc_index
+    return not len(window.predict_indices) and not (sdc >= 0 and window.tracks.valid[sdc, CURRENT_STEP])
+
+
+def _eligible(window: Scenario) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rule's conditions: (eligible [N] bool, travel [N] in m, current positions [N, 2]) of a window's tracks."""
+    tr = window.tracks
     current = tr.position[:, CURRENT_STEP, :2].astype(np.float64)
     future_valid = tr.valid[:, CURRENT_STEP + 1:].sum(axis=1)
     travel = np.linalg.norm(tr.position[..., :2].astype(np.float64) - current[:, None], axis=-1)
@@ -297,12 +338,43 @@ def rule_tracks(window: Scenario) -> list[int]:
     movable = np.isin(tr.types, [AgentType.VEHICLE, AgentType.PEDESTRIAN, AgentType.CYCLIST])
     ok = movable & tr.valid[:, CURRENT_STEP]
     ok &= (future_valid >= EVALUATED_MIN_FUTURE_FRAMES) & (travel >= EVALUATED_MIN_TRAVEL_M)
-    ok[sdc] = False
+    return ok, travel, current
+
+
+def anchor_track(window: Scenario) -> int | None:
+    """The agent :data:`EVALUATED_RULE` anchors on in a window without a valid self-driving car or tracks to
+    predict: of the agents the rule may pick, the one that travels farthest within the window (its farthest valid
+    position from its current one), the lowest id among equals; None when no agent qualifies."""
+    ok, travel, _ = _eligible(window)
     candidates = np.flatnonzero(ok)
-    distance = np.linalg.norm(current[candidates] - current[sdc], axis=-1)
+    if not len(candidates):
+        return None
+    order = np.lexsort((window.tracks.ids[candidates], -travel[candidates]))  # farthest first, ties by id
+    return int(candidates[order[0]])
+
+
+def rule_tracks(window: Scenario, anchor: int | None = None) -> list[int]:
+    """The tracks :data:`EVALUATED_RULE` adds to its anchor (the self-driving car unless ``anchor`` names
+    another track) in a window, nearest to the anchor first."""
+    tr = window.tracks
+    anchor = window.sdc_index if anchor is None else int(anchor)
+    ok, _, current = _eligible(window)
+    ok[anchor] = False
+    candidates = np.flatnonzero(ok)
+    distance = np.linalg.norm(current[candidates] - current[anchor], axis=-1)
     order = np.lexsort((tr.ids[candidates], distance))  # nearest first, ties by id
     return [int(i) for i in candidates[order][:EVALUATED_MAX_TRACKS]]
 
 
-__all__ = ["EVALUATED_RULE", "ResampleError", "Window", "WindowError", "cut_window", "evaluated_tracks", "frame_step_s",
-           "parse_window", "rule_tracks", "scene_windows", "to_10hz", "window_frames"]
+def _nobody(window: Scenario) -> str:
+    """Why a window the anchored rule applies to has no agent to evaluate."""
+    sdc = window.sdc_index
+    car = ("no self-driving car" if sdc < 0 else
+           f"its self-driving car (object {int(window.tracks.ids[sdc])}) is not valid at the current frame")
+    return (f"scenario {window.scenario_id}: no agent to evaluate: {car}, no track to predict, and no agent for the rule "
+            f"to anchor on (none of its {_ELIGIBLE}; docs/metrics.md)")
+
+
+__all__ = ["EVALUATED_BY", "EVALUATED_RULE", "ResampleError", "Window", "WindowError", "anchor_track", "cut_window",
+           "evaluated_by", "evaluated_tracks", "frame_step_s", "parse_window", "rule_tracks", "scene_windows", "to_10hz",
+           "window_frames"]
