@@ -36,15 +36,15 @@ SETTINGS = dict(num_rollouts=2, num_steps=4, top_k=5, seed=7)
 
 PINS = {  # regenerated when collision-aware sampling became the default (stage 5 prior, 2026-11-25; the SUMO pin
     # did not move: no token of its first 4 steps collides); same settings
-    "womd-637f20cafde22ff8": {  # re-pinned 2026-11-29 (issue 55): with traffic control the fourth agent, standing
-        # more than 4 m before the red line that holds it, pulls up to it (token 42 where it stood: token 1), and so
-        # do others later (path 944.60 -> 945.52 m)
+    "womd-637f20cafde22ff8": {  # re-pinned 2026-11-29, second time (issue 55): a held vehicle pulls up to its red line
+        # only if it has moved since its log began; the fourth agent has stood all along (token 42 before, 0 now: it
+        # stands, as its log does), the others as before (path 945.52 -> 944.60 m)
         "simulated": 50,
-        "tokens_sha256": "ae2975dd7ba75778382c9e3aacbd0c06a73abbf38c5caa9c19c03c85a2a061f2",
-        "first_tokens": [[[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [42, 1, 1, 0]],
-                         [[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [42, 0, 1, 0]]],
-        "log_prob_sum": -625.3657351657748,
-        "path_length_m": 945.5221535858002,
+        "tokens_sha256": "bda2d45fbadf897fa2a3efec9e8560f2b92f7f2fc6161e06d2c1abac9e46a4fb",
+        "first_tokens": [[[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [0, 1, 1, 1]],
+                         [[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [1, 0, 1, 1]]],
+        "log_prob_sum": -613.2797739207745,
+        "path_length_m": 944.5962700704863,
     },
     "womd-637f20cafde22ff8-plain": {  # the stage-5 pin, unchanged
         "simulated": 50,

@@ -15,8 +15,8 @@ from smart_marl.embedded import sample_scenarios
 from smart_marl.model.checkpoint import load_prior
 from smart_marl.rollout import RolloutState
 from smart_marl.rollout.refill import replace_scenes, split_state, stack_states
-from smart_marl.rollout.stop_lines import (MIN_ADVANCE_M, STOP_DECEL_MPS2, line_groups, nearest_line, released,
-                                           served_after_step, stop_line_test)
+from smart_marl.rollout.stop_lines import (MIN_ADVANCE_M, SIGN_WAIT_STEPS, STOP_DECEL_MPS2, creeping, line_groups, nearest_line,
+                                           released, right_turn_lanes, scene_stop_lines, served_after_step, stop_line_test)
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 
@@ -36,6 +36,10 @@ def _lines_state(**extra) -> SimpleNamespace:
         agent_shape=torch.tensor([[[4.0, 2.0, 1.5], [4.0, 2.0, 1.5]]]), simulated=torch.ones(1, 2, dtype=torch.bool), num_slots=2)
     for name, value in extra.items():
         setattr(state, name, value)
+    if "stop_turn_red" not in extra:
+        state.stop_turn_red = torch.zeros_like(state.stop_red)
+    if "stop_moved" not in extra:  # every vehicle has moved since the log began (a queue that closed up)
+        state.stop_moved = torch.ones_like(state.stop_stood, dtype=torch.bool)
     return state
 
 
@@ -176,6 +180,89 @@ def test_a_leader_driving_off_releases_the_vehicle_behind_it():
     assert _released(state, [0]) == [False]
 
 
+def _one_line_state(sign: bool, red: bool, **extra) -> SimpleNamespace:
+    """One line 8 m ahead of slot 0 (standing at the origin, heading +x, front 6 m before it); slot 1 stands far aside."""
+    state = _lines_state(stop_xy=torch.tensor([[[8.0, 0.0]]]), stop_dir=torch.tensor([[[1.0, 0.0]]]),
+                         stop_group=torch.zeros(1, 1, dtype=torch.long), stop_valid=torch.ones(1, 1, dtype=torch.bool),
+                         stop_sign=torch.tensor([[sign]]), stop_red=torch.tensor([[red]]),
+                         stop_served=torch.zeros(1, 2, 1, dtype=torch.bool), **{"stop_go": torch.zeros(1, 1, dtype=torch.bool), **extra})
+    state.pose[0, 1, 1] = 60.0
+    state.previous_pose = state.pose.clone()
+    return state
+
+
+def test_a_served_stop_sign_releases_a_vehicle_only_when_the_crossing_is_clear():
+    state = _one_line_state(sign=True, red=False)
+    state.pose[0, 0, 0] = state.previous_pose[0, 0, 0] = 4.0  # front 2 m before the sign, standing
+    state.stop_served = served_after_step(state)
+    state.stop_stood[0, 0] = SIGN_WAIT_STEPS
+    assert _released(state, [0]) == [True]
+    state.stop_stood[0, 0] = SIGN_WAIT_STEPS - 1
+    assert _released(state, [0]) == [False]  # not stood long enough yet
+    state.stop_stood[0, 0] = SIGN_WAIT_STEPS
+    state.pose[0, 1] = torch.tensor([8.0, 15.0, -np.pi / 2])  # a car 15 m up the crossing road, coming at 6 m/s
+    state.previous_pose[0, 1] = torch.tensor([8.0, 18.0, -np.pi / 2])
+    assert _released(state, [0]) == [False]
+    state.pose[0, 1, :2] = state.previous_pose[0, 1, :2] = torch.tensor([8.0, 15.0])  # it stands (waits for us)
+    assert _released(state, [0]) == [True]
+    state.pose[0, 1] = torch.tensor([8.0, -15.0, -np.pi / 2])  # it has crossed and drives away
+    state.previous_pose[0, 1] = torch.tensor([8.0, -12.0, -np.pi / 2])
+    assert _released(state, [0]) == [True]
+    state.pose[0, 1] = torch.tensor([20.0, 0.2, 0.0])  # a car ahead going our way, 12 m past the line: not a crossing
+    state.previous_pose[0, 1] = torch.tensor([17.0, 0.2, 0.0])
+    assert _released(state, [0]) == [True]
+    state.pose[0, 1] = torch.tensor([20.0, 3.5, np.pi])  # an oncoming car: at a stop sign it came first, it goes first
+    state.previous_pose[0, 1] = torch.tensor([23.0, 3.5, np.pi])
+    assert _released(state, [0]) == [False]
+    state.stop_sign[:], state.stop_go[:] = False, True  # a green is not a stop sign: it lets the vehicle go all the same
+    assert _released(state, [0]) == [True]
+
+
+def test_a_dedicated_right_turn_lane_at_a_plain_red_is_served_like_a_stop_sign():
+    """A right-turn lane's red (STOP) holds a vehicle until it has stood at the line, then lets it turn as a served
+    stop sign does; a red arrow, or a line whose lanes do not all turn right, holds it as any red."""
+    state = _one_line_state(sign=False, red=True, stop_turn_red=torch.tensor([[True]]))
+    _, line = nearest_line(state, torch.tensor([0]), torch.tensor([0]))
+    assert line.tolist() == [0]  # held: it has not stopped at the line yet
+    state.pose[0, 0, 0] = state.previous_pose[0, 0, 0] = 4.0  # it stands with its front 2 m before the line
+    state.stop_served = served_after_step(state)
+    assert state.stop_served[0, :, 0].tolist() == [True, False]
+    _, line = nearest_line(state, torch.tensor([0]), torch.tensor([0]))
+    assert line.tolist() == [-1]  # served: the line holds it no more
+    state.stop_stood[0, 0] = SIGN_WAIT_STEPS
+    assert _released(state, [0]) == [True]
+    state.stop_turn_red[:] = False  # a red arrow (ARROW_STOP), or a through lane beside the turn: a red like any other
+    assert _released(state, [0]) == [False]
+    _, line = nearest_line(state, torch.tensor([0]), torch.tensor([0]))
+    assert line.tolist() == [0]
+
+
+def test_right_turn_lanes_are_the_signal_lanes_whose_direction_turns_clockwise():
+    scenes = sample_scenarios()
+    found = 0
+    for sc in scenes:
+        xy, direction, light = scene_stop_lines(sc)
+        right = right_turn_lanes(sc, light)
+        assert not right[light < 0].any()  # a stop sign's lane is never one
+        for k in np.flatnonzero(right):
+            p = sc.road_map.feature_points(int(np.flatnonzero(sc.road_map.ids == sc.traffic_lights.lane_ids[light[k]])[0]))[:, :2]
+            a, b = np.arctan2(*(p[1] - p[0])[::-1]), np.arctan2(*(p[-1] - p[-2])[::-1])
+            assert np.angle(np.exp(1j * (b - a))) < -np.pi / 4
+            found += 1
+    assert found > 0
+
+
+def test_a_vehicle_that_has_stood_all_along_is_not_pulled_up_to_its_red_line():
+    """A car standing 20 m before a red line since its log began (parked in the lane) stays; one that stopped there
+    after driving pulls up."""
+    state = _one_line_state(sign=False, red=True)
+    state.stop_xy[0, 0, 0] = 25.0
+    g, s = torch.zeros(1, dtype=torch.long), torch.zeros(1, dtype=torch.long)
+    assert creeping(state, g, s, torch.tensor([23.0])).tolist() == [True]
+    state.stop_moved[0, 0] = False
+    assert creeping(state, g, s, torch.tensor([23.0])).tolist() == [False]
+
+
 def _red_crossings(state: RolloutState, steps: int = 16) -> int:
     """Vehicle-steps whose front went more than half a metre past the red line that held them when the step began."""
     count = 0
@@ -294,9 +381,25 @@ def test_each_scene_of_a_batch_follows_its_own_light_clock_through_refills():
         index = scene_road(sc, _dummy_road_vocab(), model.config.road_settings).light_index
         frame = sc.current_frame + 5 * clock
         assert torch.equal(state.road_light[b, : len(index)], torch.from_numpy(light_codes(sc.traffic_lights, index, frame)))
-        red, go = line_lights(sc, scene_stop_lines(sc)[2], 5 * clock)
+        red, go, _ = line_lights(sc, scene_stop_lines(sc)[2], 5 * clock)
         assert torch.equal(state.stop_red[b, : len(red)], torch.from_numpy(red)) and torch.equal(state.stop_go[b, : len(go)], torch.from_numpy(go))
     signals = state.stop_valid & ~state.stop_sign
     assert bool(state.stop_go[0][signals[0]].all())  # 1.5 s in: every light green (from 1.2 s on)
     assert not bool(state.stop_go[1][signals[1]].all())  # refilled: its current frame's lights, before its green at 0.7 s
     torch.testing.assert_close(state.road_x, model.encode_road(state), rtol=1e-5, atol=1e-5)
+
+
+def test_a_rollout_knows_which_vehicles_have_moved_since_their_log_began():
+    """``stop_moved`` starts from the history (a token step of 1 m/s or more) and stays true once a slot moves."""
+    model, _ = load_prior("embedded", "cpu")
+    scene = sample_scenarios()[0]
+    state = RolloutState.start(model, scene, seed=0)
+    hist_tokens, valid, start, end = state.history
+    speed = (end[..., :2] - start[..., :2]).norm(dim=-1) / 0.5
+    assert torch.equal(state.stop_moved, (valid & (speed >= 1.0)).any(-1))
+    assert 0 < int(state.stop_moved[state.simulated].sum()) < int(state.simulated.sum())  # some stand, some move
+    before = state.stop_moved.clone()
+    state.step()
+    assert bool((state.stop_moved | ~before).all())  # never forgotten
+    moved_now = (state.pose[..., :2] - state.previous_pose[..., :2]).norm(dim=-1) / 0.5 >= 1.0
+    assert torch.equal(state.stop_moved, before | moved_now)

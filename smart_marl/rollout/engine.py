@@ -213,14 +213,14 @@ class RolloutState:
         self.token_poses = tp.to(dev)
         # ---- stop lines (:mod:`~smart_marl.rollout.stop_lines`): per scene, and the stop sign each slot has served
         self.stop_xy = self.stop_dir = self.stop_group = self.stop_sign = self.stop_valid = None
-        self.stop_red = self.stop_go = self.stop_red_steps = self.stop_go_steps = None
-        self.stop_served = self.stop_stood = None
+        self.stop_red = self.stop_go = self.stop_turn_red = self.stop_red_steps = self.stop_go_steps = self.stop_turn_red_steps = None
+        self.stop_served = self.stop_stood = self.stop_moved = None
         self.stop_token_ends = None
         if self.stop_lines:
             for name, t in stop_line_tensors(self.scenes, dev, steps).items():
                 setattr(self, name, t)
             self.stop_served = torch.zeros(*self.track_index.shape, self.stop_xy.shape[1], dtype=torch.bool, device=dev)
-            self.stop_stood = stood_in_history(hist_valid, hist_start, hist_end)  # token steps stood in a row
+            self.stop_stood, self.stop_moved = stood_in_history(hist_valid, hist_start, hist_end)  # steps stood in a row
             self.stop_token_ends = token_ends(self.token_poses, interpolation)
             self._stop_lights_now()
         # ---- history through the model
@@ -335,7 +335,8 @@ class RolloutState:
 
     def _stop_lights_now(self) -> None:
         """The stop lines' red and green lanes at each scene's clock (held at its last logged step)."""
-        self.stop_red, self.stop_go = lights_at(self.stop_red_steps, self.scene_clock), lights_at(self.stop_go_steps, self.scene_clock)
+        self.stop_red, self.stop_go, self.stop_turn_red = (lights_at(t, self.scene_clock) for t in (
+            self.stop_red_steps, self.stop_go_steps, self.stop_turn_red_steps))
 
     def set_agent_pose(self, pose: torch.Tensor, mask: torch.Tensor) -> None:
         """Override the current pose [G, N, 3] of the slots where ``mask`` [G, N] is true: their next
@@ -456,7 +457,7 @@ class RolloutState:
         if self.road_light_steps is not None:  # the next step's logits see the lights of the frame it starts at
             self._follow_logged_lights()
         if self.stop_lines:
-            self.stop_served, self.stop_stood = served_after_step(self), stood_after_step(self)
+            self.stop_served, (self.stop_stood, self.stop_moved) = served_after_step(self), stood_after_step(self)
             self._stop_lights_now()
         forced = sim & (forced_tokens >= 0) if forced_tokens is not None else torch.zeros_like(sim)
         return StepOutput(logits=logits, tokens=tokens, log_probs=log_probs, poses=placed, simulated=sim.clone(), forced=forced)

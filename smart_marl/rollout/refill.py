@@ -29,9 +29,9 @@ _PER_GROUP = {"track_index": -1, "agent_type": 0, "agent_shape": 0.0, "simulated
               "previous_pose": 0.0}
 _PER_SCENE = {"road_pose": 0.0, "road_valid": False, "road_points": 0.0, "road_type": 0, "road_light": 0, "road_x": 0.0}
 _STOP_LINES = {"stop_xy": 0.0, "stop_dir": float("nan"), "stop_group": 0, "stop_sign": False, "stop_red": False,
-               "stop_go": False, "stop_valid": False}
+               "stop_go": False, "stop_turn_red": False, "stop_valid": False}
 """Per scene, padded to the most stop lines (states with ``stop_lines``); the slots' served signs go with the slots."""
-_STEPS = {"road_light_steps": ("road_pose", 0), "stop_red_steps": ("stop_xy", False), "stop_go_steps": ("stop_xy", False),
+_STEPS = {"road_light_steps": ("road_pose", 0), "stop_red_steps": ("stop_xy", False), "stop_go_steps": ("stop_xy", False), "stop_turn_red_steps": ("stop_xy", False),
           "light_config_steps": (None, 0)}
 """Per scene and logged token step [B, S, ...]: padded to the most steps by holding each scene's last one, and to the
 most road pieces / stop lines (the tensor whose second dimension gives that size) with the fill."""
@@ -57,7 +57,7 @@ def _check(states: Sequence[RolloutState]) -> None:
 
 def _per_group(state: RolloutState) -> dict:
     """The per-slot tensors of ``state`` and their padding (``stop_served`` [G, N, L] also grows with the lines)."""
-    return {**_PER_GROUP, "stop_served": False, "stop_stood": 0} if state.stop_lines else _PER_GROUP
+    return {**_PER_GROUP, "stop_served": False, "stop_stood": 0, "stop_moved": False} if state.stop_lines else _PER_GROUP
 
 
 def _steps(state: RolloutState) -> dict:

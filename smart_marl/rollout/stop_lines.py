@@ -18,17 +18,24 @@ ahead and whose end speed is ``v`` needs ``v^2 / (2 (d - x))`` of deceleration a
 :data:`STOP_DECEL_MPS2`, or than the row's least demanding token plus 1 m/s2 where none is that gentle, are
 excluded, and a token that puts the bumper more than half a metre past the line needs an infinite one.
 
+**Right on red.** A signal's line whose lanes all turn right (:func:`right_turn_lanes`: a dedicated right-turn
+lane) and are all at a plain red (STOP or FLASHING_STOP; a red arrow forbids it) is served like a stop sign, as US
+law has it: the vehicle stops at it, then turns when the crossing is clear (below).
+
 **Go.** A vehicle that stands (under 1 m/s over its last token), is not held, and has room ahead (no agent within
 :data:`CLEAR_GAP_M` of its front in its path, 1.75 m to either side of its heading) is *released* when the reason
-it stands has gone: the nearest line ahead of it (in the window above) is a green light (GO, ARROW_GO) or a stop
-sign it has served and stood at for :data:`SIGN_WAIT_STEPS` (4 s), or, queued before a line that does not hold it,
-the vehicle ahead of it in its path (within 30 m, heading within 30 degrees) drives off (faster than 2 m/s). A
-released vehicle does not draw the tokens that leave it standing (ending less than :data:`MIN_ADVANCE_M` ahead).
-Parked cars stand beside the lanes, away from stop lines and out of the moving traffic's path, and are not released.
+it stands has gone: the nearest line ahead of it (in the window above) is a green light (GO, ARROW_GO), or a stop
+sign (or right turn on red) it has served and stood at for :data:`SIGN_WAIT_STEPS` (4 s) with the crossing clear
+(:func:`crossing_clear`: no other agent within :data:`CROSSING_NEAR_M` of its line coming at it on another heading),
+or, queued before a line that does not hold it, the vehicle ahead of it in its path (within 30 m, heading within 30
+degrees) drives off (faster than 2 m/s). A released vehicle does not draw the tokens that leave it standing (ending
+less than :data:`MIN_ADVANCE_M` ahead). Parked cars stand beside the lanes, away from stop lines and out of
+the moving traffic's path, and are not released.
 
-**Pull up.** A held vehicle that stands more than :data:`CREEP_FRONT_M` before its line with room ahead does not
-draw the tokens that leave it standing either: it pulls up to the line, as queued drivers do (and a stop sign is
-served only near its line).
+**Pull up.** A held vehicle that stands more than :data:`CREEP_FRONT_M` before its line with room ahead, and has
+moved since its log began, does not draw the tokens that leave it standing either: it pulls up to the line, as
+queued drivers do (and a stop sign is served only near its line). One that has stood all along stays (a car parked
+in a lane 20 m before a red light was pulled into the lane ahead of it and hit: a real WOMD scene).
 
 A row whose every token is excluded keeps them all, as in collision-aware sampling. Light states: the current
 frame's, held (``lights="current"``, the sim-agents challenge's rule) or the log's at every step, held after the
@@ -65,6 +72,10 @@ SERVED_BELOW_MPS = 1.0
 """A stop sign is served below this speed (m/s, over the last token) near its line: a full stop."""
 RED = (int(SignalState.STOP), int(SignalState.ARROW_STOP), int(SignalState.FLASHING_STOP))
 GREEN = (int(SignalState.GO), int(SignalState.ARROW_GO))
+TURN_ON_RED = (int(SignalState.STOP), int(SignalState.FLASHING_STOP))
+"""The reds a right turn may be made on after a stop (a red arrow, ARROW_STOP, forbids it)."""
+RIGHT_TURN_RAD = math.radians(45.0)
+"""A signal's lane whose direction turns this far clockwise from its start to its end is a right turn."""
 SAME_LINE_M = 1.0
 """Lanes whose stop points lie this near each other, running within 45 degrees of each other, leave one stop line."""
 OVERRUN_M = 0.5
@@ -84,6 +95,9 @@ on the 22 shared real scenes the vehicles whose log stops at a sign move on in 4
 after 2 s, the rollouts that stop there move on in 76%, after 4 s in 69%, after 6 s in 44%; their speed at 7-8 s is
 0.77, 0.80 and 0.70 of the log's (at 4 s: 0.92, 0.62, 0.31; seed 0, 8 rollouts, lights "log":
 docs/experiments/2026-11-29-traffic-control.md)."""
+CROSSING_NEAR_M, CROSSING_MOVING_MPS = 25.0, 1.0
+"""A vehicle that has served a stop sign waits while another agent within this distance of its line (m) comes at it
+faster than this (m/s) on another heading."""
 MIN_ADVANCE_M = 0.25
 """A released vehicle's token must take it at least this far forward (0.5 m/s over the token's 0.5 s)."""
 
@@ -115,6 +129,21 @@ def scene_stop_lines(scenario: Scenario) -> tuple[np.ndarray, np.ndarray, np.nda
             np.array(light, np.int64))
 
 
+def right_turn_lanes(scenario: Scenario, light: np.ndarray) -> np.ndarray:
+    """[L] the lanes of light lane indices ``light`` [L] (-1: a stop sign's, never) that turn right: their direction
+    at the end lies more than :data:`RIGHT_TURN_RAD` clockwise of the one at the start."""
+    rm, tl = scenario.road_map, scenario.traffic_lights
+    out = np.zeros(len(light), bool)
+    for k in np.flatnonzero(light >= 0):
+        found = np.flatnonzero(rm.ids == tl.lane_ids[light[k]])
+        p = rm.feature_points(int(found[0]))[:, :2].astype(np.float64) if len(found) else np.zeros((0, 2))
+        if len(p) >= 3:
+            first, last = p[1] - p[0], p[-1] - p[-2]
+            turn = math.atan2(first[0] * last[1] - first[1] * last[0], float(first @ last))
+            out[k] = turn < -RIGHT_TURN_RAD
+    return out
+
+
 def line_groups(xy: np.ndarray, direction: np.ndarray) -> np.ndarray:
     """[L] the stop line each lane's stop point belongs to (the smallest index of its connected lanes: points within
     :data:`SAME_LINE_M` of each other, directions within 45 degrees or unknown)."""
@@ -140,38 +169,45 @@ def stop_line_tensors(scenes: Sequence[Scenario], device, steps: int = 1) -> dic
     """Every scene's lanes' stop points padded to the most [B, L]: ``stop_xy`` [B, L, 2], ``stop_dir`` [B, L, 2],
     ``stop_group`` [B, L] (:func:`line_groups`), ``stop_sign`` [B, L] (a stop sign's), ``stop_valid`` [B, L], and the
     signals' states on token steps ``0 .. steps - 1`` (frame ``current + 5 k``, the last logged frame's held beyond
-    it): ``stop_red_steps`` / ``stop_go_steps`` [B, steps, L], the lanes whose light is red / green then."""
+    it): ``stop_red_steps`` / ``stop_go_steps`` [B, steps, L], the lanes whose light is red / green then, and
+    ``stop_turn_red_steps``, the right turns whose red lets them turn after a stop (:func:`line_lights`)."""
     lines = [scene_stop_lines(sc) for sc in scenes]
     size = max([len(li[2]) for li in lines] + [1])
     b_, s_ = len(scenes), int(steps)
     out = {"stop_xy": torch.zeros(b_, size, 2), "stop_dir": torch.full((b_, size, 2), float("nan")),
            "stop_group": torch.zeros(b_, size, dtype=torch.long), "stop_sign": torch.zeros(b_, size, dtype=torch.bool),
            "stop_valid": torch.zeros(b_, size, dtype=torch.bool),
-           "stop_red_steps": torch.zeros(b_, s_, size, dtype=torch.bool), "stop_go_steps": torch.zeros(b_, s_, size, dtype=torch.bool)}
+           "stop_red_steps": torch.zeros(b_, s_, size, dtype=torch.bool), "stop_go_steps": torch.zeros(b_, s_, size, dtype=torch.bool),
+           "stop_turn_red_steps": torch.zeros(b_, s_, size, dtype=torch.bool)}
     for b, ((xy, d, light), sc) in enumerate(zip(lines, scenes)):
         k = len(light)
         out["stop_xy"][b, :k], out["stop_dir"][b, :k] = torch.from_numpy(xy), torch.from_numpy(d)
         out["stop_group"][b, :k] = torch.from_numpy(line_groups(xy.astype(np.float64), d.astype(np.float64)))
         out["stop_sign"][b, :k] = torch.from_numpy(light < 0)
         out["stop_valid"][b, :k] = True
+        right = right_turn_lanes(sc, light)
         for step in range(s_):
-            red, go = line_lights(sc, light, 5 * step)
-            out["stop_red_steps"][b, step, :k], out["stop_go_steps"][b, step, :k] = torch.from_numpy(red), torch.from_numpy(go)
+            for name, lanes in zip(("stop_red_steps", "stop_go_steps", "stop_turn_red_steps"), line_lights(sc, light, 5 * step, right)):
+                out[name][b, step, :k] = torch.from_numpy(lanes)
     return {name: t.to(device) for name, t in out.items()}
 
 
-def line_lights(scenario: Scenario, light: np.ndarray, frame_offset: int) -> tuple[np.ndarray, np.ndarray]:
-    """([L] red, [L] green): the lines of light lane indices ``light`` [L] (-1: a stop sign) whose signal is red /
-    green at ``current frame + frame_offset`` (held at the scene's last frame beyond it; neither where unknown)."""
+def line_lights(scenario: Scenario, light: np.ndarray, frame_offset: int,
+                right: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """([L] red, [L] green, [L] turn on red): the lines of light lane indices ``light`` [L] (-1: a stop sign) whose
+    signal is red / green at ``current frame + frame_offset`` (held at the scene's last frame beyond it; neither where
+    unknown), and among the ``right`` [L] turns (:func:`right_turn_lanes`; none when not given) those whose red
+    (:data:`TURN_ON_RED`) lets a vehicle turn after a stop."""
     tl = scenario.traffic_lights
-    red, go = np.zeros(len(light), bool), np.zeros(len(light), bool)
+    red, go, turn = np.zeros(len(light), bool), np.zeros(len(light), bool), np.zeros(len(light), bool)
     has = light >= 0
     if has.any() and tl.states.shape[0]:
         f = min(scenario.current_frame + int(frame_offset), tl.states.shape[0] - 1)
         state, present = tl.states[f, light[has]], tl.present[f, light[has]]
         red[has] = np.isin(state, RED) & present
         go[has] = np.isin(state, GREEN) & present
-    return red, go
+        turn[has] = np.isin(state, TURN_ON_RED) & present
+    return red, go, turn & (np.zeros(len(light), bool) if right is None else right)
 
 
 def lines_ahead(state, g: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -195,7 +231,7 @@ def nearest_line(state, g: torch.Tensor, s: torch.Tensor, view=None) -> tuple[to
     :func:`lines_ahead`, where the caller has it."""
     b = state.scene_of_group[g]
     ahead, in_view = lines_ahead(state, g, s) if view is None else view
-    active = red_line_holds(state)[b] | (state.stop_sign[b] & ~state.stop_served[g, s])
+    active = (red_line_holds(state) | state.stop_sign)[b] & ~(servable(state)[b] & state.stop_served[g, s])
     dist, line = ahead.masked_fill(~(in_view & active), float("inf")).min(-1)
     return dist, torch.where(torch.isfinite(dist), line, torch.full_like(line, -1))
 
@@ -209,6 +245,17 @@ def _per_line(state, lanes: torch.Tensor) -> torch.Tensor:
 def red_line_holds(state) -> torch.Tensor:
     """[B, L] the signals' lanes whose whole stop line is red (no lane leaving it has a light that is not)."""
     return state.stop_red & ~_per_line(state, state.stop_valid & ~state.stop_sign & ~state.stop_red)
+
+
+def turn_on_red_lines(state) -> torch.Tensor:
+    """[B, L] the signals' lanes whose whole stop line is red and is all right turns that may turn on that red after
+    a stop (``stop_turn_red``): a dedicated right-turn lane at a plain red, served like a stop sign."""
+    return red_line_holds(state) & ~_per_line(state, state.stop_valid & ~state.stop_sign & ~state.stop_turn_red)
+
+
+def servable(state) -> torch.Tensor:
+    """[B, L] the lines a vehicle serves by standing at them: stop signs, and right turns on red."""
+    return state.stop_sign | turn_on_red_lines(state)
 
 
 def green_line_goes(state) -> torch.Tensor:
@@ -252,8 +299,9 @@ def _path_ahead(state, g: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, 
 
 def released(state, g: torch.Tensor, s: torch.Tensor, held: torch.Tensor, view=None) -> torch.Tensor:
     """[M] the vehicles of slots ``(g, s)`` that stand, are not ``held`` [M], have room ahead and whose reason to
-    stand has gone: a green line or a served stop sign (stood at for :data:`SIGN_WAIT_STEPS`) nearest ahead, or, with
-    a line ahead that does not hold it, the vehicle ahead in the path driving off. ``view``: as :func:`nearest_line`'s."""
+    stand has gone: a green line nearest ahead, or a served stop sign (stood at for :data:`SIGN_WAIT_STEPS`, the
+    crossing clear: :func:`crossing_clear`), or, with a line ahead that does not hold it, the vehicle ahead in the path
+    driving off. ``view``: as :func:`nearest_line`'s."""
     out = _standing(state, g, s) & ~held
     if not bool(out.any()):
         return out
@@ -262,16 +310,38 @@ def released(state, g: torch.Tensor, s: torch.Tensor, held: torch.Tensor, view=N
     dist, line = ahead.masked_fill(~in_view, float("inf")).min(-1)  # the nearest line ahead, whatever its light
     lc = line.clamp(min=0)
     waited = state.stop_stood[g, s] >= SIGN_WAIT_STEPS
-    lets_go = (state.stop_sign[b, lc] & state.stop_served[g, s].gather(1, lc[:, None]).squeeze(1) & waited) | green_line_goes(state)[b, lc]
+    at_sign = servable(state)[b, lc] & state.stop_served[g, s].gather(1, lc[:, None]).squeeze(1) & waited
+    if bool(at_sign.any()):
+        at_sign = at_sign & crossing_clear(state, g, s, dist)
+    lets_go = at_sign | green_line_goes(state)[b, lc]
     room, leaves = _path_ahead(state, g, s)
     return out & room & torch.isfinite(dist) & (lets_go | leaves)
 
 
+def crossing_clear(state, g: torch.Tensor, s: torch.Tensor, line_m: torch.Tensor) -> torch.Tensor:
+    """[M] no other agent comes at the stop line of slots ``(g, s)`` (their nearest line ahead, ``line_m`` [M] metres
+    ahead of their centres): none within :data:`CROSSING_NEAR_M` of that point moving faster than
+    :data:`CROSSING_MOVING_MPS` towards it on another heading (more than 30 degrees off theirs: across their way, or
+    head on, since at a stop sign whoever came first goes first), the gap a driver at a sign waits for."""
+    pose, m = state.pose[g, s], torch.arange(len(g), device=g.device)
+    at = pose[:, :2] + torch.nan_to_num(line_m, posinf=0.0)[:, None] * torch.stack([pose[:, 2].cos(), pose[:, 2].sin()], -1)
+    others, before = state.pose.index_select(0, g), state.previous_pose.index_select(0, g)  # [M, N, 3]
+    there = state.simulated.index_select(0, g).clone()
+    there[m, s] = False
+    velocity = torch.nan_to_num((others[..., :2] - before[..., :2]) / 0.5)  # [M, N, 2]
+    to_line = at[:, None] - others[..., :2]
+    near = to_line.norm(dim=-1) < CROSSING_NEAR_M
+    coming = (velocity * to_line).sum(-1) > CROSSING_MOVING_MPS * to_line.norm(dim=-1)  # closing faster than that
+    crossing = (others[..., 2] - pose[:, None, 2]).cos() < LEADER_ALIGNED_COS  # not going its way
+    return ~(there & near & coming & crossing).any(-1)
+
+
 def creeping(state, g: torch.Tensor, s: torch.Tensor, front_m: torch.Tensor) -> torch.Tensor:
     """[M] the held vehicles of slots ``(g, s)``, their front bumpers ``front_m`` [M] before the line that holds them,
-    that stand further back than :data:`CREEP_FRONT_M` with room ahead: they pull up to the line (a sign's is served
-    only within :data:`SERVED_WITHIN_M` of it)."""
-    out = _standing(state, g, s) & (front_m > CREEP_FRONT_M)
+    that stand further back than :data:`CREEP_FRONT_M` with room ahead and have moved since the log began: they pull
+    up to the line (a sign's is served only within :data:`SERVED_WITHIN_M` of it). One that has stood all along is
+    left where it stands: a car parked in a lane, or waiting for what no rule sees."""
+    out = _standing(state, g, s) & (front_m > CREEP_FRONT_M) & state.stop_moved[g, s]
     return out & _path_ahead(state, g, s)[0] if bool(out.any()) else out
 
 
@@ -333,29 +403,34 @@ def served_after_step(state) -> torch.Tensor:
     if len(g):
         dist, line = nearest_line(state, g, s)
         front = dist - state.agent_shape[g, s, 0].to(dist.dtype) / 2
-        b, line = state.scene_of_group[g], line.clamp(min=0)
-        at = (torch.isfinite(dist) & state.stop_sign[b, line] & (front < SERVED_WITHIN_M)).nonzero().squeeze(1)
+        b, line, serve = state.scene_of_group[g], line.clamp(min=0), servable(state)
+        at = (torch.isfinite(dist) & serve[b, line] & (front < SERVED_WITHIN_M)).nonzero().squeeze(1)
         if len(at):
             ga, sa, ba = g[at], s[at], b[at]
-            approach = state.stop_sign[ba] & (state.stop_group[ba] == state.stop_group[ba, line[at]][:, None])  # [K, L]
+            approach = serve[ba] & (state.stop_group[ba] == state.stop_group[ba, line[at]][:, None])  # [K, L]
             served[ga, sa] |= approach
     return served
 
 
-def stood_after_step(state) -> torch.Tensor:
-    """[G, N] how many token steps in a row each slot has now stood (under :data:`STOPPED_MPS`)."""
+def stood_after_step(state) -> tuple[torch.Tensor, torch.Tensor]:
+    """([G, N] how many token steps in a row each slot has now stood (under :data:`STOPPED_MPS`), [G, N] whether it
+    has moved on any step so far)."""
     standing = _speed_mps(state.pose, state.previous_pose) < STOPPED_MPS
-    return torch.where(standing, state.stop_stood + 1, torch.zeros_like(state.stop_stood))
+    return torch.where(standing, state.stop_stood + 1, torch.zeros_like(state.stop_stood)), state.stop_moved | ~standing
 
 
-def stood_in_history(valid: torch.Tensor, start: torch.Tensor, end: torch.Tensor) -> torch.Tensor:
-    """[G, N] how many of the history's last token steps in a row each slot stood (an agent may have waited at a sign
-    before the current frame already), from its steps' ``valid`` [G, N, S] and start / end poses [G, N, S, 3]."""
+def stood_in_history(valid: torch.Tensor, start: torch.Tensor, end: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """([G, N] how many of the history's last token steps in a row each slot stood (an agent may have waited at a sign
+    before the current frame already), [G, N] whether it moved on a logged step), from its steps' ``valid``
+    [G, N, S] and start / end poses [G, N, S, 3]."""
     stood = torch.zeros(valid.shape[:2], dtype=torch.long, device=valid.device)
+    moved = torch.zeros(valid.shape[:2], dtype=torch.bool, device=valid.device)
     for k in range(valid.shape[2]):
-        standing = valid[:, :, k] & (_speed_mps(end[:, :, k], start[:, :, k]) < STOPPED_MPS)
+        speed = _speed_mps(end[:, :, k], start[:, :, k])
+        standing = valid[:, :, k] & (speed < STOPPED_MPS)
         stood = torch.where(standing, stood + 1, torch.zeros_like(stood))
-    return stood
+        moved |= valid[:, :, k] & (speed >= STOPPED_MPS)
+    return stood, moved
 
 
 def lights_at(steps: torch.Tensor, clock: torch.Tensor) -> torch.Tensor:
@@ -364,6 +439,6 @@ def lights_at(steps: torch.Tensor, clock: torch.Tensor) -> torch.Tensor:
     return steps[torch.arange(steps.shape[0], device=steps.device), k]
 
 
-__all__ = ["GREEN", "STOP_DECEL_MPS2", "creeping", "green_line_goes", "lights_at", "line_lights", "logged_light_steps",
-           "nearest_line", "released", "scene_stop_lines", "served_after_step", "stood_after_step", "stood_in_history",
-           "stop_line_test", "stop_line_tensors", "token_ends"]
+__all__ = ["GREEN", "TURN_ON_RED", "STOP_DECEL_MPS2", "creeping", "green_line_goes", "lights_at", "line_lights", "logged_light_steps",
+           "nearest_line", "released", "right_turn_lanes", "scene_stop_lines", "servable", "served_after_step", "stood_after_step", "stood_in_history",
+           "stop_line_test", "stop_line_tensors", "token_ends", "turn_on_red_lines"]
