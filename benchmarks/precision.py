@@ -6,7 +6,9 @@ Rows:
 
 * ``cached_step``: the median ms of a KV-cached rollout step (the model on the newest step, the sampler, placing
   the tokens) of smart-1m and smart-7m with random weights at 128 agents of a synthetic scene
-  (``benchmarks/rollout_latency.py``'s setup), steps 3..16 of ``--repeats`` fresh rollouts;
+  (``benchmarks/rollout_latency.py``'s setup), steps 3..16 of ``--repeats`` fresh rollouts, with collision-aware
+  sampling (``sampling: "default"``) and drawn plainly (``"plain"``: the model's part of the step, without the
+  float32 box geometry that random weights make the sampler search through token after token);
 * ``batched_env``: agent-steps/s of the batched env (embedded prior, traffic control on, the default) at 32 and 128
   scenes over the shared real scenes (``benchmarks/env_throughput.py``'s setup and timing);
 * ``eval``: seconds per scene of ``smart-marl eval``'s rollouts (the embedded prior, 32 rollouts x 8 s) of the two
@@ -57,14 +59,15 @@ def cached_step(args, common) -> list[dict]:
     for name in ("smart-1m", "smart-7m"):
         model, vocab = rl.build_model(name, snippets, args.device)
         models = {p: inference_model(model, p) for p in PRECISIONS}
-        times = {p: [] for p in PRECISIONS}
-        for _ in range(args.repeats):
+        for sampling in ("default", "plain"):
+            times = {p: [] for p in PRECISIONS}
+            for _ in range(args.repeats):
+                for p in PRECISIONS:
+                    times[p] += rl.step_times(models[p], vocab, scene, "cached", 16, args.device, sampling == "default")[2:]
             for p in PRECISIONS:
-                times[p] += rl.step_times(models[p], vocab, scene, "cached", 16, args.device)[2:]
-        for p in PRECISIONS:
-            rows.append(dict(row="cached_step", model=name, agents=args.agents, precision=p,
-                             ms_per_step=round(statistics.median(times[p]), 2), steps_timed=len(times[p]), **common))
-            emit(**rows[-1])
+                rows.append(dict(row="cached_step", model=name, agents=args.agents, sampling=sampling, precision=p,
+                                 ms_per_step=round(statistics.median(times[p]), 2), steps_timed=len(times[p]), **common))
+                emit(**rows[-1])
     return rows
 
 
@@ -206,14 +209,14 @@ def main() -> int:
     faster_when_lower = {"cached_step", "eval"}
     keyed = {}
     for r in rows:
-        key = (r["row"], r.get("model"), r.get("num_scenes"))
+        key = (r["row"], r.get("model"), r.get("num_scenes"), r.get("sampling"))
         keyed.setdefault(key, {})[r["precision"]] = r
-    for (row, model, scenes), pair in keyed.items():
+    for (row, model, scenes, sampling), pair in keyed.items():
         if set(pair) != set(PRECISIONS):
             continue
         a, b = pair["float32"][value[row]], pair["bfloat16"][value[row]]
         speedup = a / b if row in faster_when_lower else b / a
-        extra = {}
+        extra = {} if sampling is None else {"sampling": sampling}
         if row == "train":
             fa, fb = pair["float32"]["val_motion_loss"], pair["bfloat16"]["val_motion_loss"]
             extra = dict(val_loss_float32=fa, val_loss_bfloat16=fb, val_loss_relative_difference=round((fb - fa) / fa, 4))

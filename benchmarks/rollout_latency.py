@@ -87,10 +87,11 @@ def sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def step_times(model, vocab, scene, mode: str, steps: int, device: str) -> list[float]:
+def step_times(model, vocab, scene, mode: str, steps: int, device: str, avoid_collisions: bool = True) -> list[float]:
     from smart_marl.rollout import RolloutState
 
-    state = RolloutState.start(model, [scene], num_rollouts=1, seed=0, device=device, mode=mode, motion_vocab=vocab)
+    state = RolloutState.start(model, [scene], num_rollouts=1, seed=0, device=device, mode=mode, motion_vocab=vocab,
+                               avoid_collisions=avoid_collisions)
     out = []
     for _ in range(steps):
         sync(device)
