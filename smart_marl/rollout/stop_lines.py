@@ -35,7 +35,7 @@ the moving traffic's path, and are not released.
 **Pull up.** A held vehicle that stands more than :data:`CREEP_FRONT_M` before its line with room ahead, and has
 moved since its log began, does not draw the tokens that leave it standing either: it pulls up to the line, as
 queued drivers do (and a stop sign is served only near its line). One that has stood all along stays (a car parked
-in a lane 20 m before a red light was pulled into the lane ahead of it and hit: a real WOMD scene).
+in a lane 22 m before a red light was pulled into the lane ahead of it and hit: a real WOMD scene).
 
 A row whose every token is excluded keeps them all, as in collision-aware sampling. Light states: the current
 frame's, held (``lights="current"``, the sim-agents challenge's rule) or the log's at every step, held after the
