@@ -38,6 +38,11 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=seed, default=None, help="random seed (default: the config's); with --evaluate, the first evaluation seed")
     p.add_argument("--evaluate", default=None, metavar="CHECKPOINT", help="evaluate this policy checkpoint next to the expert and the prior on held-out scenes and exit")
     p.add_argument("--episodes", type=rollouts, default=None, help="with --evaluate: rollouts (seeds) per held-out scene (default: the config's eval_episodes)")
+    p.add_argument("--select", default=None, metavar="RUN", help="score every policy checkpoint of the run folder RUN alone on "
+                   "--val-scenes (goal rate - collision rate - offroad rate), write RUN/checkpoints/selection.json and "
+                   "policy_best (a copy of the best) and print the scores (agents.select_policy)")
+    p.add_argument("--val-scenes", default=None, metavar="PATH", help="with --select: validation scenes, neither the run's "
+                   "training nor its test (eval_scenes) scenes")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     p.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
     p.set_defaults(func=run)
@@ -50,6 +55,8 @@ def run(args) -> int:
     except ImportError as exc:
         print(f"smart-marl finetune: error: needs the env and rl extras (pip install 'smart-marl[env,rl]'): {exc}", file=sys.stderr)
         return 2
+    if args.select or args.val_scenes:
+        return _select(args)
     if args.evaluate:
         if args.out:
             print("smart-marl finetune: error: --out does not apply to --evaluate (it prints its table)", file=sys.stderr)
@@ -83,4 +90,26 @@ def run(args) -> int:
         else:
             print(format_table(result.evaluation))
     print(strict_json(summary))
+    return 0
+
+
+def _select(args) -> int:
+    """``--select RUN --val-scenes PATH``: :func:`agents.select_policy.select_policy`, printed."""
+    from ..select_policy import select_policy
+
+    if not (args.select and args.val_scenes):
+        print("smart-marl finetune: error: --select RUN and --val-scenes PATH go together", file=sys.stderr)
+        return 2
+    if args.config or args.evaluate or args.overrides or args.out:
+        print("smart-marl finetune: error: --select takes only --val-scenes, --episodes, --seed and --json", file=sys.stderr)
+        return 2
+    selection = select_policy(args.select, args.val_scenes, episodes=args.episodes, seed=args.seed)
+    if args.json:
+        print(strict_json(selection))
+        return 0
+    for r in selection["checkpoints"]:
+        row = r["row"]
+        print(f"{r['checkpoint']:<14} iteration {r['iteration']!s:>5}  score {r['score']:+.3f}  goal {row['goal_rate']:.3f}  "
+              f"collision {row['collision_rate']:.3f}  offroad {row['offroad_rate']:.3f}")
+    print(f"best: {selection['best']} -> {args.select}/checkpoints/policy_best")
     return 0
