@@ -23,6 +23,7 @@ LAYER = {"smart_marl": 0, "envs": 1, "agents": 2}  # a module may import its own
 OPTIONAL_EXTRA_IMPORTS = {
     ("agents.commands.finetune", "agents.evaluate"),  # torchrl, pettingzoo (the env and rl extras)
     ("agents.commands.finetune", "agents.finetune"),
+    ("agents.commands.finetune", "agents.select_policy"),
 }
 
 

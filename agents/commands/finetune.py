@@ -52,11 +52,12 @@ def run(args) -> int:
     try:  # the optional env and rl extras
         from ..evaluate import format_table
         from ..finetune import evaluate_checkpoint, finetune, load_finetune_config
+        from ..select_policy import select_policy
     except ImportError as exc:
         print(f"smart-marl finetune: error: needs the env and rl extras (pip install 'smart-marl[env,rl]'): {exc}", file=sys.stderr)
         return 2
     if args.select or args.val_scenes:
-        return _select(args)
+        return _select(args, select_policy)
     if args.evaluate:
         if args.out:
             print("smart-marl finetune: error: --out does not apply to --evaluate (it prints its table)", file=sys.stderr)
@@ -93,10 +94,8 @@ def run(args) -> int:
     return 0
 
 
-def _select(args) -> int:
-    """``--select RUN --val-scenes PATH``: :func:`agents.select_policy.select_policy`, printed."""
-    from ..select_policy import select_policy
-
+def _select(args, select_policy) -> int:
+    """``--select RUN --val-scenes PATH``: ``select_policy`` (:func:`agents.select_policy.select_policy`), printed."""
     if not (args.select and args.val_scenes):
         print("smart-marl finetune: error: --select RUN and --val-scenes PATH go together", file=sys.stderr)
         return 2
