@@ -20,7 +20,7 @@ import re
 import shutil
 from pathlib import Path
 
-from .finetune import FinetuneError, _pool, evaluate_finetuned, load_finetune_config, load_policy, training_pool
+from .finetune import FinetuneError, _pool, evaluate_finetuned, load_finetune_config, load_policy, load_prior, training_pool
 from .policy import FinetunedTensorPolicy
 
 SELECTION_FILE = "selection.json"
@@ -62,11 +62,13 @@ def select_policy(run_dir: str | Path, val_scenes: str | list, episodes: int | N
         if overlap:
             raise FinetuneError(f"val_scenes {val_scenes!r}: {len(overlap)} of its scenes are the run's {name} scenes "
                                 f"({', '.join(overlap[:5])}); validate on scenes that are neither")
-    rows = []
+    rows, prior = [], None
     for path in paths:
         saved, net, meta = load_policy(path)
         cfg = load_finetune_config(saved.to_dict(), {"eval_scenes": val_scenes, **({"eval_num_scenes": int(num_scenes)} if num_scenes else {})})
-        result = evaluate_finetuned(cfg, net.to(cfg.device), training=training, episodes=episodes, seed=seed, baselines=False)
+        prior = prior or load_prior(cfg.prior, cfg.device)  # one run, one prior: loaded once
+        result = evaluate_finetuned(cfg, net.to(cfg.device), training=training, model=prior[0], vocab=prior[1], episodes=episodes,
+                                    seed=seed, baselines=False)
         row = result["rows"][FinetunedTensorPolicy.name]
         rows.append({"checkpoint": path.stem, "iteration": meta.get("iteration"), "score": score(row), "row": row,
                      "scenes": len(result["scenes"]), "seeds": result["seeds"]})

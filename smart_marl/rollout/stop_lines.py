@@ -207,7 +207,7 @@ def line_lights(scenario: Scenario, light: np.ndarray, frame_offset: int,
         red[has] = np.isin(state, RED) & present
         go[has] = np.isin(state, GREEN) & present
         turn[has] = np.isin(state, TURN_ON_RED) & present
-    return red, go, turn & (np.zeros(len(light), bool) if right is None else right)
+    return red, go, turn & right if right is not None else np.zeros(len(light), bool)
 
 
 def lines_ahead(state, g: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -231,7 +231,8 @@ def nearest_line(state, g: torch.Tensor, s: torch.Tensor, view=None) -> tuple[to
     :func:`lines_ahead`, where the caller has it."""
     b = state.scene_of_group[g]
     ahead, in_view = lines_ahead(state, g, s) if view is None else view
-    active = (red_line_holds(state) | state.stop_sign)[b] & ~(servable(state)[b] & state.stop_served[g, s])
+    holds = red_line_holds(state)
+    active = (holds | state.stop_sign)[b] & ~(servable(state, holds)[b] & state.stop_served[g, s])
     dist, line = ahead.masked_fill(~(in_view & active), float("inf")).min(-1)
     return dist, torch.where(torch.isfinite(dist), line, torch.full_like(line, -1))
 
@@ -247,15 +248,12 @@ def red_line_holds(state) -> torch.Tensor:
     return state.stop_red & ~_per_line(state, state.stop_valid & ~state.stop_sign & ~state.stop_red)
 
 
-def turn_on_red_lines(state) -> torch.Tensor:
-    """[B, L] the signals' lanes whose whole stop line is red and is all right turns that may turn on that red after
-    a stop (``stop_turn_red``): a dedicated right-turn lane at a plain red, served like a stop sign."""
-    return red_line_holds(state) & ~_per_line(state, state.stop_valid & ~state.stop_sign & ~state.stop_turn_red)
-
-
-def servable(state) -> torch.Tensor:
-    """[B, L] the lines a vehicle serves by standing at them: stop signs, and right turns on red."""
-    return state.stop_sign | turn_on_red_lines(state)
+def servable(state, holds: torch.Tensor | None = None) -> torch.Tensor:
+    """[B, L] the lines a vehicle serves by standing at them: stop signs, and right turns on red (a signal's line that
+    is red as a whole, ``holds`` (:func:`red_line_holds`, computed when not given), and all right turns that may turn
+    on that red after a stop, ``stop_turn_red``: a dedicated right-turn lane at a plain red)."""
+    holds = red_line_holds(state) if holds is None else holds
+    return state.stop_sign | (holds & ~_per_line(state, state.stop_valid & ~state.stop_sign & ~state.stop_turn_red))
 
 
 def green_line_goes(state) -> torch.Tensor:
@@ -274,18 +272,24 @@ def _standing(state, g: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
     return (_speed_mps(state.pose[g, s], before) < STOPPED_MPS) & ~torch.isnan(before[:, 0])
 
 
+def _others(state, g: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(poses [M, N, 3], previous poses [M, N, 3], simulated [M, N] except each row's own slot) of the agents of the
+    groups of slots ``(g, s)``: the others each vehicle looks at."""
+    there = state.simulated.index_select(0, g).clone()
+    there[torch.arange(len(g), device=g.device), s] = False
+    return state.pose.index_select(0, g), state.previous_pose.index_select(0, g), there
+
+
 def _path_ahead(state, g: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """([M] no agent within :data:`CLEAR_GAP_M` of the front bumper in the path, [M] the nearest agent in the path lies
     within :data:`LEADER_AHEAD_M` going the same way faster than :data:`LEADER_MOVING_MPS`): the path is the slot's
     heading line, 1.75 m to either side, ahead of its centre."""
     pose, m = state.pose[g, s], torch.arange(len(g), device=g.device)
-    others, before = state.pose.index_select(0, g), state.previous_pose.index_select(0, g)  # [M, N, 3]
+    others, before, there = _others(state, g, s)
     c, sn = pose[:, 2].cos()[:, None], pose[:, 2].sin()[:, None]
     rel = others[..., :2] - pose[:, None, :2]
     fwd = rel[..., 0] * c + rel[..., 1] * sn
     side = rel[..., 1] * c - rel[..., 0] * sn
-    there = state.simulated.index_select(0, g).clone()
-    there[m, s] = False
     in_path = there & (fwd > 0) & (side.abs() < PATH_SIDE_M)
     length = state.agent_shape.index_select(0, g)[..., 0].to(fwd.dtype)  # [M, N]
     gap = fwd - state.agent_shape[g, s, 0].to(fwd.dtype)[:, None] / 2 - length / 2
@@ -323,11 +327,9 @@ def crossing_clear(state, g: torch.Tensor, s: torch.Tensor, line_m: torch.Tensor
     ahead of their centres): none within :data:`CROSSING_NEAR_M` of that point moving faster than
     :data:`CROSSING_MOVING_MPS` towards it on another heading (more than 30 degrees off theirs: across their way, or
     head on, since at a stop sign whoever came first goes first), the gap a driver at a sign waits for."""
-    pose, m = state.pose[g, s], torch.arange(len(g), device=g.device)
+    pose = state.pose[g, s]
     at = pose[:, :2] + torch.nan_to_num(line_m, posinf=0.0)[:, None] * torch.stack([pose[:, 2].cos(), pose[:, 2].sin()], -1)
-    others, before = state.pose.index_select(0, g), state.previous_pose.index_select(0, g)  # [M, N, 3]
-    there = state.simulated.index_select(0, g).clone()
-    there[m, s] = False
+    others, before, there = _others(state, g, s)
     velocity = torch.nan_to_num((others[..., :2] - before[..., :2]) / 0.5)  # [M, N, 2]
     to_line = at[:, None] - others[..., :2]
     near = to_line.norm(dim=-1) < CROSSING_NEAR_M
@@ -441,4 +443,4 @@ def lights_at(steps: torch.Tensor, clock: torch.Tensor) -> torch.Tensor:
 
 __all__ = ["GREEN", "TURN_ON_RED", "STOP_DECEL_MPS2", "creeping", "green_line_goes", "lights_at", "line_lights", "logged_light_steps",
            "nearest_line", "released", "right_turn_lanes", "scene_stop_lines", "servable", "served_after_step", "stood_after_step", "stood_in_history",
-           "stop_line_test", "stop_line_tensors", "token_ends", "turn_on_red_lines"]
+           "stop_line_test", "stop_line_tensors", "token_ends"]
