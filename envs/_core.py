@@ -43,7 +43,7 @@ from smart_marl.rollout.refill import replace_scenes, split_state, stack_states
 from smart_marl.scenario import DT_S
 from smart_marl.tokens import FRAMES_PER_TOKEN, MOTION_TYPES, MotionVocabulary
 
-from ._dynamics import BACKGROUNDS, Motion, move, release
+from ._dynamics import BACKGROUNDS, Motion, draw_background, move, release
 from ._observation import HISTORY_FRAMES, ObservationConfig, build_observations
 from ._reward import TERMINATION_EVENTS, RewardConfig, StepReward, route_progress_m, step_reward
 from ._scene import SceneStatic
@@ -264,7 +264,9 @@ class TrafficCore:
     # --------------------------------------------------------------------------------- step
     def forward(self) -> torch.Tensor | None:
         """The prior's next-token logits of every slot [B, Ns, Vmax] (the model's forward, computed
-        once per step; timed in ``timing["forward_s"]``), or None without a prior."""
+        once per step; timed in ``timing["forward_s"]``), or None without a prior. With them, the background's
+        tokens of the step are drawn (:func:`envs._dynamics.draw_background`): before the policy acts, as SMART
+        draws every agent's token from one forward pass, so they do not depend on the controlled agents' tokens."""
         if self.prior is None:
             return None
         if self.prior._logits is None:
@@ -275,6 +277,9 @@ class TrafficCore:
             if self.device.type == "cuda":
                 torch.cuda.synchronize(self.device)
             self.timing["forward_s"] += time.perf_counter() - t0
+        if self.prior.drawn_ahead() is None:  # the background's tokens, drawn before the controlled agents act
+            draw_background(self.scenes, self.background, self.token_poses, self.prior, self.slot_of_track, self.pose, self.present,
+                            self.in_sim, self.done_track, self.frame, self.ctrl_track, self.live)
         return self.prior.logits()
 
     def step(self, actions: torch.Tensor) -> CoreStep:
@@ -347,7 +352,7 @@ class TrafficCore:
         if self.shield:  # once per step (the logits are a new tensor every step, and after a reset or refill)
             if self._unsafe is None or self._unsafe[0] is not logits:
                 self._unsafe = (logits, unsafe_tokens(self.shield, self.prior, self.scenes, self.ctrl_track, slot.clamp(min=0), has,
-                                                      out, self.shield_top_k))
+                                                      out, self.shield_top_k, self.prior.drawn_ahead()))
             out = out.masked_fill(self._unsafe[1], float("-inf"))
         return torch.where(has[..., None], out, torch.zeros_like(out))
 

@@ -10,10 +10,12 @@ who is present after the step and the prior's log-probability of each track's to
 Who moves how (see :mod:`envs.smart_traffic_v0`):
 
 * controlled agents: their tokens, placed at their poses (by the prior's step when there is one,
-  which is given the tokens as forced tokens, so it conditions everyone else on them; without a
+  which is given the tokens as forced tokens, so everyone's next steps are conditioned on them; without a
   prior, the token's own contour poses);
-* background ``"prior"``: the prior's step samples every other vehicle, pedestrian and cyclist;
-  agents of type OTHER move at constant velocity;
+* background ``"prior"``: the prior samples every other vehicle, pedestrian and cyclist, drawn before the
+  controlled agents act (:func:`draw_background`, when the step's logits are computed: the same step's
+  background tokens do not depend on the controlled agents' tokens, and a shield knows where the background
+  goes); agents of type OTHER move at constant velocity;
 * background ``"log"`` / ``"constant_velocity"``: the logged poses (present on the frames the log
   is valid; a missing frame keeps the last pose) / the logged velocity at the current frame,
   heading held. With a prior, the prior still steps (for its logits): the agents it simulates that
@@ -31,7 +33,7 @@ from dataclasses import dataclass
 import torch
 
 from smart_marl.geometry_torch import squared_length
-from smart_marl.rollout import RolloutState
+from smart_marl.rollout import FORCED_LATER, Draw, RolloutState
 from smart_marl.rollout.frames import compose_torch
 from smart_marl.scenario import DT_S, wrap_angle
 from smart_marl.tokens import FRAMES_PER_TOKEN
@@ -111,20 +113,72 @@ def move(scenes: SceneBatch, background: str, token_poses: torch.Tensor, prior: 
     ctrl_track [B, C] the controlled tracks (-1: none), ctrl_live [B, C] those that act this step,
     actions [B, C] their tokens; slot_of_track [B, N] each track's slot in ``prior`` (-1: none);
     token_poses [3, Vmax, 6, 3]. ``prior`` is stepped (and the agents that follow the log or constant
-    velocity are re-anchored in it).
+    velocity are re-anchored in it); where its tokens were drawn ahead (:func:`draw_background`), it takes them.
     """
     b, n = pose.shape[:2]
     dev = pose.device
     rows = torch.arange(b, device=dev)[:, None].expand_as(ctrl_track)
     lb, lt, la = rows[ctrl_live], ctrl_track[ctrl_live], actions[ctrl_live]  # the live controlled agents
-    is_ctrl = torch.zeros(b, n, dtype=torch.bool, device=dev)
-    is_ctrl[lb, lt] = True
+    outside, frames, present_after = _outside_moves(scenes, background, pose, present, in_sim, done, frame, _controlled(ctrl_track, ctrl_live, n))
+    action_logp = torch.zeros(b, n, dtype=pose.dtype, device=dev)
+    agent_type = scenes.types.clamp(min=0)
+    if prior is None:
+        frames[lb, lt] = place_tokens(token_poses, agent_type[lb, lt], la, pose[lb, lt])
+        return Motion(frames, present_after, action_logp)
+
+    # the prior: controlled agents' tokens forced, log / cv agents it simulates follow their moves
+    forced, follow = _prior_forced(prior, slot_of_track, outside, frames, pose, agent_type, token_poses)
+    forced[lb, slot_of_track[lb, lt]] = la
+    out = prior.step(forced)
+    slot_track = prior.track_index  # [B, Ns] (-1 on padding)
+    slot_of = slot_track.clamp(min=0)
+    by_prior = out.simulated & (slot_track >= 0)  # [B, Ns]
+    pb, ps = by_prior.nonzero(as_tuple=True)
+    pt = slot_of[pb, ps]
+    keep = ~outside[pb, pt]  # log / cv agents keep their own poses
+    frames[pb[keep], pt[keep]] = out.poses[pb[keep], ps[keep]].to(frames.dtype)
+    action_logp[pb, pt] = out.log_probs[pb, ps].to(action_logp.dtype)
+    fb, fs = follow.nonzero(as_tuple=True)
+    if len(fb):  # re-anchor log / cv agents at their true poses
+        new_pose = prior.current_pose.clone()
+        new_pose[fb, fs] = frames[fb, slot_of[fb, fs], -1].to(new_pose.dtype)
+        prior.set_agent_pose(new_pose, follow)
+    return Motion(frames, present_after, action_logp)
+
+
+def draw_background(scenes: SceneBatch, background: str, token_poses: torch.Tensor, prior: RolloutState, slot_of_track: torch.Tensor,
+                    pose: torch.Tensor, present: torch.Tensor, in_sim: torch.Tensor, done: torch.Tensor, frame: torch.Tensor,
+                    ctrl_track: torch.Tensor, ctrl_live: torch.Tensor) -> Draw:
+    """The prior's tokens of the coming step drawn before the controlled agents act
+    (:meth:`RolloutState.draw_ahead <smart_marl.rollout.RolloutState.draw_ahead>`; arguments as :func:`move`, which
+    then takes them): the live controlled agents' slots are forced later, the agents that follow the log or
+    constant velocity get the tokens :func:`move` gives them, everyone else's are drawn."""
+    n = pose.shape[1]
+    is_ctrl = _controlled(ctrl_track, ctrl_live, n)
+    outside, frames, _ = _outside_moves(scenes, background, pose, present, in_sim, done, frame, is_ctrl)
+    forced, _ = _prior_forced(prior, slot_of_track, outside, frames, pose, scenes.types.clamp(min=0), token_poses)
+    lb, lt = is_ctrl.nonzero(as_tuple=True)
+    slot = slot_of_track[lb, lt]
+    forced[lb[slot >= 0], slot[slot >= 0]] = FORCED_LATER
+    return prior.draw_ahead(forced)
+
+
+def _controlled(ctrl_track: torch.Tensor, ctrl_live: torch.Tensor, n: int) -> torch.Tensor:
+    """[B, N] bool, the tracks of the live controlled agents."""
+    rows = torch.arange(ctrl_track.shape[0], device=ctrl_track.device)[:, None].expand_as(ctrl_track)
+    is_ctrl = torch.zeros(ctrl_track.shape[0], n, dtype=torch.bool, device=ctrl_track.device)
+    is_ctrl[rows[ctrl_live], ctrl_track[ctrl_live]] = True
+    return is_ctrl
+
+
+def _outside_moves(scenes: SceneBatch, background: str, pose: torch.Tensor, present: torch.Tensor, in_sim: torch.Tensor,
+                   done: torch.Tensor, frame: torch.Tensor, is_ctrl: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(outside [B, N], frames [B, N, 5, 3], present after [B, N]): the background agents that move outside the
+    prior (by the log or at constant velocity) and their frames; everyone else held at ``pose`` for now."""
+    b, n = pose.shape[:2]
     moving = present & ~done
     frames = pose[:, :, None].expand(b, n, FRAMES_PER_TOKEN, 3).clone()
     present_after = moving.clone()
-    action_logp = torch.zeros(b, n, dtype=pose.dtype, device=dev)
-
-    # background agents outside the prior's control: log or constant velocity
     if background == "prior":
         outside = moving & ~is_ctrl & ~scenes.is_motion  # OTHER agents: constant velocity
     elif background == "log":  # present when the log is valid: an agent may come back after a gap
@@ -138,16 +192,15 @@ def move(scenes: SceneBatch, background: str, token_poses: torch.Tensor, prior: 
         else:
             moved = constant_velocity_frames(scenes, frame)
         frames = torch.where(outside[..., None, None], moved, frames)
+    return outside, frames, present_after
 
-    agent_type = scenes.types.clamp(min=0)
-    if prior is None:
-        frames[lb, lt] = place_tokens(token_poses, agent_type[lb, lt], la, pose[lb, lt])
-        return Motion(frames, present_after, action_logp)
 
-    # the prior: controlled agents' tokens forced, log / cv agents it simulates follow their moves
-    ns = prior.num_slots
-    forced = torch.full((b, ns), -1, dtype=torch.long, device=dev)
-    forced[lb, slot_of_track[lb, lt]] = la
+def _prior_forced(prior: RolloutState, slot_of_track: torch.Tensor, outside: torch.Tensor, frames: torch.Tensor, pose: torch.Tensor,
+                  agent_type: torch.Tensor, token_poses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(forced [B, Ns], follow [B, Ns]): the prior's forced tokens for the slots that move outside it (the token
+    nearest their move; -1 elsewhere), and those slots."""
+    b, ns = prior.track_index.shape
+    forced = torch.full((b, ns), -1, dtype=torch.long, device=pose.device)
     slot_track = prior.track_index  # [B, Ns] (-1 on padding)
     slot_valid = prior.valid & (slot_track >= 0)
     slot_of = slot_track.clamp(min=0)
@@ -157,18 +210,7 @@ def move(scenes: SceneBatch, background: str, token_poses: torch.Tensor, prior: 
         ft = slot_of[fb, fs]
         forced[fb, fs] = nearest_tokens(token_poses[:, :, -1].to(pose.dtype), _in_vocab(token_poses, prior.vocab_sizes),
                                         agent_type[fb, ft], pose[fb, ft], frames[fb, ft, -1])
-    out = prior.step(forced)
-    by_prior = out.simulated & (slot_track >= 0)  # [B, Ns]
-    pb, ps = by_prior.nonzero(as_tuple=True)
-    pt = slot_of[pb, ps]
-    keep = ~outside[pb, pt]  # log / cv agents keep their own poses
-    frames[pb[keep], pt[keep]] = out.poses[pb[keep], ps[keep]].to(frames.dtype)
-    action_logp[pb, pt] = out.log_probs[pb, ps].to(action_logp.dtype)
-    if len(fb):  # re-anchor log / cv agents at their true poses
-        new_pose = prior.current_pose.clone()
-        new_pose[fb, fs] = frames[fb, slot_of[fb, fs], -1].to(new_pose.dtype)
-        prior.set_agent_pose(new_pose, follow)
-    return Motion(frames, present_after, action_logp)
+    return forced, follow
 
 
 def _in_vocab(token_poses: torch.Tensor, vocab_sizes: torch.Tensor) -> torch.Tensor:
@@ -185,4 +227,4 @@ def release(prior: RolloutState, slot_of_track: torch.Tensor, gone: torch.Tensor
     prior.set_agent_valid(keep)
 
 
-__all__ = ["BACKGROUNDS", "Motion", "constant_velocity_frames", "log_frames", "move", "nearest_tokens", "place_tokens", "release"]
+__all__ = ["BACKGROUNDS", "Motion", "constant_velocity_frames", "draw_background", "log_frames", "move", "nearest_tokens", "place_tokens", "release"]

@@ -9,17 +9,20 @@ out: ``bool [B, C, V]``, true on the tokens to take out (their logits become ``-
 The checks (``SHIELD_CHECKS``), on the tokens most likely first, until ``k`` pass both:
 
 * ``"collision"``: the background's collision-aware rule (:mod:`smart_marl.rollout.avoidance`, the same
-  code): the token's five 10 Hz frames overlap the box of one of the agent's nearest others, each
-  moving at constant velocity (a policy does not know the others' next tokens when it chooses);
+  code): the token's five 10 Hz frames overlap the box of one of the agent's 16 nearest others on the
+  same frame. The background's tokens of the step are drawn before the policy acts
+  (:func:`envs._dynamics.draw_background`), so the background agents are checked on the frames they will
+  really take; the other controlled agents, whose tokens come with the policy's, at constant velocity;
 * ``"offroad"``: a vehicle whose box, at the token's end (the step's last frame, where the reward's
   offroad event is measured), has a corner beyond a road edge (:func:`envs._reward.offroad`'s test).
 
 So the top ``k`` of the shielded logits are the ``k`` most likely tokens that pass, and the reference of
 fine-tuning (the prior's top ``k``, renormalised) is the prior as the shield lets it drive. An agent
 all of whose tokens fail keeps them all (nothing is taken out), as in the background's rule. What the
-shield cannot see: the others' real next moves (a car that brakes hard, a policy's neighbour), the
-rounded boxes of the events (a little smaller than the exact boxes checked here), offroad on the
-step's in-between frames.
+shield cannot see: the other controlled agents' next moves (a policy's neighbour), an agent beyond the 16
+nearest, a pair whose boxes overlap already (left alone, as in the background's rule), offroad on the
+step's in-between frames. The events' boxes are rounded (a little smaller than the exact boxes checked
+here), so a token the shield allows does not collide with a background agent within the step.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from typing import Sequence
 
 import torch
 
-from smart_marl.rollout import RolloutState
+from smart_marl.rollout import Draw, RolloutState
 from smart_marl.rollout.avoidance import excluded_tokens, off_road_test
 from smart_marl.scenario import AgentType
 
@@ -38,10 +41,12 @@ SHIELD_CHECKS = ("collision", "offroad")
 
 
 def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch, ctrl_track: torch.Tensor,
-                  ctrl_slot: torch.Tensor, acting: torch.Tensor, logits: torch.Tensor, top_k: int | None) -> torch.Tensor:
+                  ctrl_slot: torch.Tensor, acting: torch.Tensor, logits: torch.Tensor, top_k: int | None,
+                  ahead: Draw | None = None) -> torch.Tensor:
     """bool [B, C, V]: the tokens the shield takes out (module docstring) for the controlled agents
     ``acting`` [B, C] (tracks ``ctrl_track`` [B, C], slots ``ctrl_slot`` [B, C] in ``prior``, one group
-    per scene), whose prior logits are ``logits`` [B, C, V]; ``top_k`` the policy's k (None: every token)."""
+    per scene), whose prior logits are ``logits`` [B, C, V]; ``top_k`` the policy's k (None: every token);
+    ``ahead`` the background's tokens of the step, drawn already (the others are checked where they go)."""
     out = torch.zeros(logits.shape, dtype=torch.bool, device=logits.device)
     if not checks or not bool(acting.any()):
         return out
@@ -54,8 +59,10 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
     present = prior.simulated if "collision" in checks else torch.zeros_like(prior.simulated)  # no other agent blocks
     rows = cb * prior.num_slots + slot
     k = 0 if top_k is None else int(top_k)
+    known_frames, known = ahead.frames(prior) if ahead is not None else (None, None)
     out[cb, cc] = excluded_tokens(logits[cb, cc], rows, prior.pose, prior.previous_pose, prior.agent_shape, present,
-                                  prior.agent_type, prior.token_poses.to(prior.pose.dtype), k, prior.interpolation, also=also)
+                                  prior.agent_type, prior.token_poses.to(prior.pose.dtype), k, prior.interpolation,
+                                  known_frames=known_frames, known=known, also=also)
     return out
 
 

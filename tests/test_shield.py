@@ -14,6 +14,7 @@ from envs._reward import offroad
 from envs._shield import SHIELD_CHECKS
 from envs.errors import EnvConfigError, EnvConfigTypeError
 from smart_marl.geometry_torch import boxes_overlap
+from smart_marl.rollout import FORCED_LATER
 from smart_marl.rollout.avoidance import constant_velocity_pose, excluded_tokens
 from smart_marl.rollout.frames import token_frames
 from smart_marl.scenario import AgentType
@@ -33,9 +34,12 @@ def _env(scenes, prior, **kw):
 
 def _brute_force(core, b: int, c: int, tokens: torch.Tensor) -> torch.Tensor:
     """bool [T]: does each token of controlled slot ``c`` of scene row ``b`` overlap another simulated agent
-    (exact boxes, on the same frame, the other at constant velocity) or, for a vehicle, end with a corner
-    off the road; pairs overlapping already now are left out (the rule's exception)."""
+    (exact boxes, on the same frame; a background agent where its token drawn ahead takes it, another
+    controlled agent at constant velocity) or, for a vehicle, end with a corner off the road; pairs
+    overlapping already now are left out (the rule's exception)."""
     pr = core.prior
+    draw = pr.drawn_ahead()
+    drawn = {int(r): int(t) for r, t, f in zip(draw.rows, draw.tokens, draw.forced.reshape(-1)[draw.rows]) if f != FORCED_LATER}
     track = int(core.ctrl_track[b, c])
     s = int(core.slot_of_track[b, track])
     pose, before = pr.pose[b], pr.previous_pose[b]
@@ -48,8 +52,14 @@ def _brute_force(core, b: int, c: int, tokens: torch.Tensor) -> torch.Tensor:
     for o in pr.simulated[b].nonzero().squeeze(1).tolist():
         if o == s or boxes_overlap(pose[s, :2], pose[s, 2], half[s], pose[o, :2], pose[o, 2], half[o]):
             continue
-        other_xy = pose[o, :2] + step[:, None] * (ahead[o, :2] - pose[o, :2])  # [5, 2]
-        hit |= boxes_overlap(frames[..., :2], frames[..., 2], half[s], other_xy, pose[o, 2], half[o]).any(-1)
+        if b * pr.num_slots + o in drawn:  # where its token takes it
+            other = token_frames(pr.token_poses[pr.agent_type[b, o], drawn[b * pr.num_slots + o]][None], pose[o][None],
+                                 before[o][None], pr.interpolation)[0]  # [5, 3]
+            other_xy, other_heading = other[:, :2], other[:, 2]
+        else:
+            other_xy = pose[o, :2] + step[:, None] * (ahead[o, :2] - pose[o, :2])  # [5, 2]
+            other_heading = pose[o, 2]
+        hit |= boxes_overlap(frames[..., :2], frames[..., 2], half[s], other_xy, other_heading, half[o]).any(-1)
     ends = frames[:, -1].to(core.pose.dtype)  # [T, 3]
     ctrl = torch.full((core.num_scenes, len(tokens)), -1, dtype=torch.long)
     ctrl[b] = track

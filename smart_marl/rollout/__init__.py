@@ -5,6 +5,7 @@ sampling, scenes x rollouts in one batch) and the stepping API the environment d
 ``RolloutState.start(...)`` / ``state.step(forced_tokens)`` for one token step at a time.
 """
 
+from .drawing import FORCED_LATER, Draw
 from .engine import (
     LIGHTS, MODES, RolloutResult, RolloutState, StepOutput, TrackFrames, collect_result, rollout, track_frames,
 )
@@ -15,7 +16,7 @@ from .sampling import (
 )
 
 __all__ = [
-    "LIGHTS", "MODES", "RolloutResult", "RolloutState", "SceneHistory", "StepOutput", "TrackFrames", "collect_result", "rollout",
+    "FORCED_LATER", "Draw", "LIGHTS", "MODES", "RolloutResult", "RolloutState", "SceneHistory", "StepOutput", "TrackFrames", "collect_result", "rollout",
     "DEFAULT_TOP_K", "TEMPERATURE_RANGE", "has_prior_logits", "no_prior_logits", "reference_log_probs", "reference_name",
     "sample_tokens", "scene_history", "temperature_rule", "top_k_mask", "track_frames",
 ]

@@ -63,12 +63,12 @@ from ..model.precision import check_precision, inference_model
 from ..scenario import DT_S, Scenario
 from ..tokens import FRAMES_PER_TOKEN, MOTION_TYPES, MotionVocabulary
 from ..tokens.road import RoadVocabulary
-from .avoidance import excluded_tokens
+from .drawing import Draw, check_forced, complete, draw_tokens
 from .frames import INTERPOLATIONS, token_frames
 from .history import scene_history
-from .sampling import DEFAULT_TOP_K, sample_tokens
+from .sampling import DEFAULT_TOP_K
 from .stop_lines import (lights_at, logged_light_steps, served_after_step, stood_after_step, stood_in_history, stop_line_tensors,
-                         stop_line_test, token_ends)
+                         token_ends)
 
 MODES = ("cached", "full")
 LIGHTS = ("current", "log")
@@ -229,6 +229,7 @@ class RolloutState:
         self.previous_pose = torch.where(hist_valid[:, :, -1, None], hist_start[:, :, -1], self.pose)  # 0.5 s before it
         self.step_index = 0
         self._logits: torch.Tensor | None = None
+        self._ahead: Draw | None = None  # the next step's tokens drawn ahead (draw_ahead)
         self.cache = None  # the model's KV cache (mode "cached")
         if mode == "cached":
             self.cache = model.start_cache(self.road_x, self.road_pose, self.road_valid, self.scene_of_group, self.agent_type,
@@ -277,6 +278,7 @@ class RolloutState:
         """Remove agents (``mask`` [G, N] false): they stop being simulated from the next step on
         and vanish from everyone's neighbourhoods. Only agents simulated now can stay valid."""
         self.simulated = self.simulated & mask.to(self.device, torch.bool)
+        self._ahead = None  # an edit between draw_ahead and step: the step draws again
         if self._pending is not None and self._logits is None:  # the step not yet run sees the removal
             tok, st, en, va = self._pending
             self._pending = (tok, st, en, va & self.simulated)
@@ -291,6 +293,7 @@ class RolloutState:
         if light.shape != self.road_light.shape:
             raise ValueError(f"road_light must have shape {tuple(self.road_light.shape)}, got {tuple(light.shape)}")
         self.road_light = light
+        self._ahead = None
         with torch.no_grad():
             self.road_x = self.model.encode_road(self)
         if self.cache is not None:
@@ -344,6 +347,7 @@ class RolloutState:
         called), those logits stay as they were; the new pose is seen from the following step on."""
         m = mask.to(self.device, torch.bool)
         self.pose = torch.where(m[..., None], pose.to(self.device, self.pose.dtype), self.pose)
+        self._ahead = None
         self.previous_pose = torch.where(m[..., None], torch.nan, self.previous_pose)  # moved: no motion to continue
         if self._pending is not None and self._logits is None:
             tok, st, en, va = self._pending
@@ -385,53 +389,46 @@ class RolloutState:
         the pending step) is the copy's own."""
         out = copy.copy(self)
         out.generator = torch.Generator(device=self.device).manual_seed(int(seed))
+        out._ahead = None  # drawn with this state's generator
         out.history = [t.clone() for t in self.history]  # mode "full" writes into its last step
         out.cache = self.cache.fork() if self.cache is not None else None
         return out
 
+    def draw_ahead(self, forced_tokens: torch.Tensor) -> Draw:
+        """Draw the next step's tokens now, before the tokens of the slots marked :data:`~smart_marl.rollout.drawing.FORCED_LATER` in
+        ``forced_tokens`` [G, N] are known (the rest as :meth:`step` takes them: ``-1`` drawn, a token id
+        imposed; :mod:`~smart_marl.rollout.drawing`). The next :meth:`step` takes these draws, given a token
+        exactly where this had ``FORCED_LATER`` (and the same tokens elsewhere); an edit of the state in between
+        (:meth:`set_agent_valid`, :meth:`set_agent_pose`, :meth:`set_road_light`) drops them, and the step
+        draws afresh. Returns the draw (:meth:`Draw.frames <smart_marl.rollout.drawing.Draw.frames>`: where the
+        drawn agents will be on the step's frames)."""
+        self._ahead = None
+        self._ahead = draw_tokens(self, check_forced(self, forced_tokens, later=True))
+        return self._ahead
+
+    def drawn_ahead(self) -> Draw | None:
+        """The draw of :meth:`draw_ahead` if the next step will take it (made from the current logits), else None."""
+        ahead = self._ahead
+        return ahead if ahead is not None and ahead.logits is self._logits else None
+
     def step(self, forced_tokens: torch.Tensor | None = None) -> StepOutput:
         """Advance every simulated agent by one token (0.5 s). ``forced_tokens`` [G, N] int64: ``-1``
         where the token is sampled (top-k, temperature, this state's generator), a token id in the
-        slot's type vocabulary where it is imposed. Non-simulated slots are left where they are."""
+        slot's type vocabulary where it is imposed. Non-simulated slots are left where they are. After
+        :meth:`draw_ahead`, the tokens it drew are taken and ``forced_tokens`` completes them."""
         logits = self.logits()
         g, n = self.num_groups, self.num_slots
         sim = self.simulated
         if forced_tokens is not None:
-            forced_tokens = forced_tokens.to(self.device, torch.long)
-            size = self.vocab_sizes.to(self.device)[self.agent_type]
-            bad = sim & (forced_tokens >= size)
-            if bad.any():
-                raise ValueError(f"forced token outside its agent type's vocabulary at slots {bad.nonzero()[:5].tolist()}")
-        rows = sim.reshape(-1).nonzero().squeeze(1)
-        forced_rows = forced_tokens.reshape(-1)[rows] if forced_tokens is not None else None
-        row_logits = logits.reshape(g * n, -1).index_select(0, rows)  # (index_select: 2.5x faster than logits[rows] on the CPU)
-        v, k = row_logits.shape[1], self.top_k
-        # the top k + 1, ranked once for the collision check and the sampler (both read them)
-        top = torch.topk(row_logits, k + 1, dim=-1) if 0 < k < v and (self.avoid_collisions or self.temperature == 1.0) else None
-        exclude = None
-        pick = torch.ones(len(rows), dtype=torch.bool, device=self.device) if forced_rows is None else forced_rows < 0
-        stop_test = stop_line_test(self, rows[pick]) if self.stop_lines else None
-        if self.avoid_collisions or stop_test is not None:
-            known = known_frames = None
-            if forced_tokens is not None:  # the forced agents' frames of this step, seen by the others' check
-                known = sim & (forced_tokens >= 0)
-                kg, ks = known.nonzero(as_tuple=True)
-                if len(kg):  # placed where they are forced only (a few of the slots)
-                    local = self.token_poses[self.agent_type[kg, ks], forced_tokens[kg, ks]]
-                    known_frames = self.pose.new_zeros(g, n, FRAMES_PER_TOKEN, 3)
-                    known_frames[kg, ks] = token_frames(local, self.pose[kg, ks], self.previous_pose[kg, ks], self.interpolation)
-                else:
-                    known = None
-            exclude = torch.zeros(row_logits.shape, dtype=torch.bool, device=self.device)
-            at = pick.nonzero().squeeze(1)
-            exclude[pick] = excluded_tokens(row_logits.index_select(0, at), rows[at], self.pose, self.previous_pose, self.agent_shape,
-                                            sim if self.avoid_collisions else torch.zeros_like(sim),
-                                            self.agent_type, self.token_poses, self.top_k, self.interpolation,
-                                            known_frames=known_frames, known=known, also=stop_test,
-                                            top=None if top is None else (top.values[at], top.indices[at]),
-                                            vocab_sizes=self.vocab_sizes)
-        tok_rows, logp_rows = sample_tokens(row_logits, self.generator, self.top_k, self.temperature, forced_rows, exclude,
-                                            None if top is None else (top.values, top.indices), self.log_probs_of)
+            forced_tokens = check_forced(self, forced_tokens)
+        ahead = self.drawn_ahead()
+        if ahead is not None:  # drawn before the forced-later tokens were known (draw_ahead); a refused step keeps it
+            rows = ahead.rows
+            tok_rows, logp_rows = complete(self, ahead, forced_tokens)
+            self._ahead = None
+        else:
+            draw = draw_tokens(self, forced_tokens)
+            rows, tok_rows, logp_rows = draw.rows, draw.tokens, draw.log_probs
         tokens = torch.full((g * n,), -1, dtype=torch.long, device=self.device)
         tokens[rows] = tok_rows
         log_probs = torch.zeros(g * n, device=self.device)

@@ -191,6 +191,7 @@ def replace_scenes(state: RolloutState, rows: Sequence[int], new: RolloutState) 
         raise ValueError(f"replace_scenes: rows must be distinct scene indices in 0..{len(state.scenes) - 1}, got {rows}")
     if not rows:
         return
+    state._ahead = None  # tokens drawn ahead (draw_ahead) for the scenes that go: the next step draws again
     if state._logits is not None and new._logits is None:
         new = new.fork(0)  # the fork's own cache takes the pending step; ``new`` stays as it was
         new.logits()
