@@ -10,7 +10,7 @@ The checks (``SHIELD_CHECKS``), on the tokens most likely first, until ``k`` pas
 
 * ``"collision"``: the background's collision-aware rule (:mod:`smart_marl.rollout.avoidance`, the same
   code): the token's five 10 Hz frames overlap the box of one of the agent's 16 nearest others on the
-  same frame. The background's tokens of the step are drawn before the policy acts
+  same frame, every box the scene's (:func:`event_boxes`: what the collision event measures, not the prior's shapes). The background's tokens of the step are drawn before the policy acts
   (:func:`envs._dynamics.draw_background`), so the background agents are checked on the frames they will
   really take; the other controlled agents, whose tokens come with the policy's, at constant velocity;
 * ``"offroad"``: a vehicle whose box, at the token's end (the step's last frame, where the reward's
@@ -60,10 +60,20 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
     rows = cb * prior.num_slots + slot
     k = 0 if top_k is None else int(top_k)
     known_frames, known = ahead.frames(prior) if ahead is not None else (None, None)
-    out[cb, cc] = excluded_tokens(logits[cb, cc], rows, prior.pose, prior.previous_pose, prior.agent_shape, present,
+    out[cb, cc] = excluded_tokens(logits[cb, cc], rows, prior.pose, prior.previous_pose, event_boxes(prior, scenes), present,
                                   prior.agent_type, prior.token_poses.to(prior.pose.dtype), k, prior.interpolation,
                                   known_frames=known_frames, known=known, also=also)
     return out
+
+
+def event_boxes(prior: RolloutState, scenes: SceneBatch) -> torch.Tensor:
+    """[B, Ns, 3] the box of every prior slot as the environment's events measure it (the scene's box of the slot's
+    track, :attr:`SceneBatch.box_size`), the prior's own shape where a slot has no track. The prior's shapes come from
+    the tokenized history and may be some 20 cm shorter: checked with them, a token could pass the shield and still
+    touch another agent by the events' boxes."""
+    track = prior.track_index
+    boxes = scenes.box_size.gather(1, track.clamp(min=0)[..., None].expand(-1, -1, scenes.box_size.shape[-1]))
+    return torch.where((track >= 0)[..., None], boxes.to(prior.agent_shape.dtype), prior.agent_shape)
 
 
 def _offroad_test(scenes: SceneBatch, scene: torch.Tensor, track: torch.Tensor, pose: torch.Tensor, token_ends: torch.Tensor):
@@ -75,4 +85,4 @@ def _offroad_test(scenes: SceneBatch, scene: torch.Tensor, track: torch.Tensor, 
     return off_road_test(scenes.edges, scene, pose, token_ends, scenes.box_size[scene, track], scenes.z[scene, track], vehicle)
 
 
-__all__ = ["SHIELD_CHECKS", "unsafe_tokens"]
+__all__ = ["SHIELD_CHECKS", "event_boxes", "unsafe_tokens"]

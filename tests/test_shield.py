@@ -11,7 +11,7 @@ import torch
 
 from envs import smart_traffic_v0
 from envs._reward import offroad
-from envs._shield import SHIELD_CHECKS
+from envs._shield import SHIELD_CHECKS, event_boxes
 from envs.errors import EnvConfigError, EnvConfigTypeError
 from smart_marl.geometry_torch import boxes_overlap
 from smart_marl.rollout import FORCED_LATER
@@ -47,7 +47,7 @@ def _brute_force(core, b: int, c: int, tokens: torch.Tensor) -> torch.Tensor:
     frames = token_frames(local, pose[s][None], before[s][None], pr.interpolation)  # [T, 5, 3]
     ahead = constant_velocity_pose(pose, before)
     step = torch.arange(1, FRAMES_PER_TOKEN + 1, dtype=pose.dtype) / FRAMES_PER_TOKEN
-    half = pr.agent_shape[b, :, :2] / 2
+    half = event_boxes(pr, core.scenes)[b, :, :2] / 2  # the boxes the events measure (the scene's, not the prior's shapes)
     hit = torch.zeros(len(tokens), dtype=torch.bool)
     for o in pr.simulated[b].nonzero().squeeze(1).tolist():
         if o == s or boxes_overlap(pose[s, :2], pose[s, 2], half[s], pose[o, :2], pose[o, 2], half[o]):

@@ -1,0 +1,145 @@
+"""Benchmark: one fine-tuned policy against every baseline in its own environment, on held-out scenes (issue 58's
+protocol: 200 generated scenes x 8 seeds, the 11 real scenes x 48 seeds).
+
+What comes in: a policy checkpoint (``--policy``, anything ``agents.finetune.load_policy`` reads, e.g.
+``runs/ft/checkpoints/policy_best``), held-out sets (``--set NAME=PATH[,PATH...]:SCENES:SEEDS``, SCENES ``all`` for
+every scene with a controllable agent) and a folder for the rows (``--run-dir``). What goes out: one JSON line per
+(set, row) with the row's metrics (``agents.evaluate.evaluate_policies``: collision, offroad, goal, front collisions,
+progress, KL, realism), every row in the policy's environment (its shield, reward and background): the shielded prior at
+the policy's top-k and at top-3 first, the fine-tuned policy, the expert restricted to the same action space
+(log-following, ``expert (log)``), then the rows named by ``--rows`` (the prior's full softmax, the priors with the
+shield off: another environment). ``--table`` prints the Markdown table of the rows found, each against the shielded
+prior at the policy's top-k (the policy card's table).
+
+Resumable: each (set, row) is written to ``RUN_DIR/eval_SET_ROW.json`` as it finishes and read back when found (kill
+it and start it again with the same arguments); ``--only-set`` runs one set, so two processes can share the work.
+
+    .venv/bin/python benchmarks/finetune_heldout.py --policy runs/ft58/checkpoints/policy_best --run-dir runs/ft58_eval \\
+        --set generated=data/rl_heldout:200:8 \\
+        --set real=../shared/data/womd_tfrecord,../shared/data/nocturne_json,../shared/data/scenarionet/waymo,../shared/data/smart_pkl:all:48
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+FIRST_ROWS = ("fine-tuned", "expert (log)")
+
+
+def emit(row: dict) -> None:
+    print(json.dumps(row, default=float), flush=True)
+
+
+def parse_set(text: str) -> tuple[str, list[str], int | None, int]:
+    """``NAME=PATH[,PATH...]:SCENES:SEEDS`` -> (name, paths, scene count or None for all, seeds)."""
+    try:
+        name, rest = text.split("=", 1)
+        paths, scenes, seeds = rest.rsplit(":", 2)
+        return name, paths.split(","), None if scenes == "all" else int(scenes), int(seeds)
+    except ValueError:
+        raise SystemExit(f"--set {text!r}: expected NAME=PATH[,PATH...]:SCENES:SEEDS (SCENES a number or 'all')") from None
+
+
+def slug(name: str) -> str:
+    return name.replace(" ", "_").replace("(", "").replace(")", "").replace(",", "")
+
+
+def table(run_dir: Path, sets: list[str], reference: str) -> str:
+    """The Markdown table of the rows under ``run_dir``: one line per (set, row), against ``reference``."""
+    bad = lambda r: r["collision_rate"] + r["offroad_rate"]  # noqa: E731
+    out = ["| held-out set | policy | shield | collision | front | offroad | coll. + off. vs ref. | goal | goal vs ref. | "
+           "realism (meta) | vs ref. |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for name in sets:
+        rows = {}
+        for path in sorted(run_dir.glob(f"eval_{name}_*.json")):
+            result = json.loads(path.read_text())
+            rows[result["row"]] = result
+        if reference not in rows:
+            out.append(f"| {name} | (no {reference} row yet) |||||||||")
+            continue
+        base = rows[reference]["metrics"]
+        for row_name, result in sorted(rows.items(), key=lambda kv: result_order(kv[0], reference)):
+            r = result["metrics"]
+            where = f"{name}, {len(result['scenes'])} x {len(result['seeds'])} seeds"
+            out.append(f"| {where} | {row_name} | {'on' if r.get('shield') else 'off'} | {r['collision_rate']:.3f} | "
+                       f"{r['front_collision_rate']:.3f} | {r['offroad_rate']:.3f} | {bad(r) / max(bad(base), 1e-9):.2f}x | "
+                       f"{r['goal_rate']:.3f} | {r['goal_rate'] / max(base['goal_rate'], 1e-9):.2f}x | {r['meta_metric']:.4f} | "
+                       f"{r['meta_metric'] - base['meta_metric']:+.4f} |")
+    return "\n".join(out)
+
+
+def result_order(name: str, reference: str) -> tuple:
+    """Table order: the reference, the other shielded priors, the policy, the expert, the rest, shield-off rows last."""
+    off = "shield off" in name
+    first = FIRST_ROWS.index(name) if name in FIRST_ROWS else len(FIRST_ROWS)
+    return (off, name != reference, not name.startswith("prior top-"), first, name)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--policy", required=True, help="the fine-tuned policy checkpoint (load_policy)")
+    p.add_argument("--set", action="append", required=True, dest="sets", metavar="NAME=PATH[,PATH...]:SCENES:SEEDS")
+    p.add_argument("--run-dir", required=True, help="where each (set, row) is kept as it finishes")
+    p.add_argument("--rows", default="", help="more rows besides the lead ones, comma-separated names (e.g. 'prior full softmax')")
+    p.add_argument("--only-set", default=None, help="evaluate this set only")
+    p.add_argument("--num-envs", type=int, default=32, help="episodes stepped together")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--table", action="store_true", help="print the Markdown table of the rows found and exit")
+    args = p.parse_args(argv)
+
+    import torch
+
+    from agents import finetune as ft
+    from agents.evaluate import evaluate_policies
+    from smart_marl.scenario import AgentType
+
+    torch.set_num_threads(args.threads)
+    sets = [parse_set(s) for s in args.sets]
+    run_dir = Path(args.run_dir)
+    cfg, net, meta = ft.load_policy(args.policy)
+    reference = f"prior top-{cfg.reference_top_k}" if cfg.reference_top_k else "prior full softmax"
+    if args.table:
+        print(table(run_dir, [s[0] for s in sets], reference))
+        return 0
+    run_dir.mkdir(parents=True, exist_ok=True)
+    model, vocab = ft.load_prior(cfg.prior, cfg.device)
+    training = set(meta.get("trained_on") or [])
+    policies = ft.evaluation_policies(cfg, net)
+    wanted = [k for k in policies if k.startswith("prior top-") and "shield off" not in k] + list(FIRST_ROWS)
+    wanted += [k.strip() for k in args.rows.split(",") if k.strip() and k.strip() not in wanted]
+    unknown = [k for k in wanted if k not in policies]
+    if unknown:
+        raise SystemExit(f"--rows: unknown row(s) {unknown}; known: {list(policies)}")
+    for name, paths, count, num_seeds in sets:
+        if args.only_set is not None and name != args.only_set:
+            continue
+        pool = ft._pool(paths, f"--set {name}")
+        scenes = ft.core_scenes(cfg, pool, vocab, len(pool) if count is None else count, exclude=training)
+        seeds = list(range(cfg.eval_seed, cfg.eval_seed + num_seeds))
+        core = ft.evaluation_core(cfg, model, vocab, len(scenes))
+        for row in wanted:
+            path = run_dir / f"eval_{name}_{slug(row)}.json"
+            if path.is_file():
+                result = json.loads(path.read_text())
+            else:
+                out = evaluate_policies(core, scenes, {row: policies[row]}, seeds, num_envs=args.num_envs,
+                                        vocab_size=vocab[AgentType.VEHICLE].size, num_agents=cfg.max_agents, rules=cfg.eval_rules,
+                                        temperature=cfg.temperature, reference_top_k=cfg.reference_top_k)
+                result = {"row": row, "policy": str(args.policy), "scenes": out["scenes"], "seeds": out["seeds"],
+                          "rules": out["rules"], "metrics": out["rows"][row]}
+                tmp = path.with_suffix(".tmp")
+                tmp.write_text(json.dumps(result, indent=1, default=float))
+                tmp.replace(path)
+            emit({"benchmark": "finetune_heldout", "set": name, "row": row, "policy": result["policy"],
+                  "scenes": len(result["scenes"]), "seeds": len(result["seeds"]), **result["metrics"]})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
