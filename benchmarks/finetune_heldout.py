@@ -88,6 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--run-dir", required=True, help="where each (set, row) is kept as it finishes")
     p.add_argument("--rows", default="", help="more rows besides the lead ones, comma-separated names (e.g. 'prior full softmax')")
     p.add_argument("--only-set", default=None, help="evaluate this set only")
+    p.add_argument("--lead-only", action="store_true",
+                   help="the shielded priors at the policy's top-k and at top-3 and the policy only (no expert, no --rows)")
     p.add_argument("--num-envs", type=int, default=32, help="episodes stepped together")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--table", action="store_true", help="print the Markdown table of the rows found and exit")
@@ -96,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from agents import finetune as ft
-    from agents.evaluate import evaluate_policies
+    from agents.evaluate import LEAD_TOP_K, evaluate_policies
     from smart_marl.scenario import AgentType
 
     torch.set_num_threads(args.threads)
@@ -111,8 +113,9 @@ def main(argv: list[str] | None = None) -> int:
     model, vocab = ft.load_prior(cfg.prior, cfg.device)
     training = set(meta.get("trained_on") or [])
     policies = ft.evaluation_policies(cfg, net)
-    wanted = [k for k in policies if k.startswith("prior top-") and "shield off" not in k] + list(FIRST_ROWS)
-    wanted += [k.strip() for k in args.rows.split(",") if k.strip() and k.strip() not in wanted]
+    lead = [f"prior top-{k}" for k in dict.fromkeys((cfg.reference_top_k, LEAD_TOP_K)) if k]
+    wanted = lead + ["fine-tuned"] if args.lead_only else [k for k in policies if k.startswith("prior top-") and "shield off" not in k] + list(FIRST_ROWS)
+    wanted += [] if args.lead_only else [k.strip() for k in args.rows.split(",") if k.strip() and k.strip() not in wanted]
     unknown = [k for k in wanted if k not in policies]
     if unknown:
         raise SystemExit(f"--rows: unknown row(s) {unknown}; known: {list(policies)}")

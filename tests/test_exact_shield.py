@@ -107,14 +107,15 @@ def test_a_token_the_shield_allows_does_not_run_into_a_background_agent_within_t
     After each step, every token each agent was allowed, placed where the step places tokens, overlaps no background
     agent's box on the frames it really took (the scene's boxes, as the events measure them; exact rectangles) on any
     of the step's five frames, except a pair that overlapped already (the rule leaves such pairs alone) or an agent
-    whose every token the shield looked at failed (it then takes nothing out)."""
+    whose every token the shield looked at failed (it then takes nothing out). Nor does it overlap another controlled
+    agent's box where that one stood (the shield keeps a controlled agent clear of another that might brake)."""
     model, vocab = embedded_prior
     env = smart_traffic_v0.parallel_env(scenarios=womd_scenes, prior=model, motion_vocab=vocab, controlled="vehicles",
                                         max_agents=16, horizon_steps=10, terminate_on=(), reference_top_k=3,
                                         observation="dict", shield=True)
     rng = np.random.default_rng(0)
     ahead_m = vocab[AgentType.VEHICLE].poses[:, -1, 0]  # how far ahead each vehicle token ends
-    checked = shielded = 0
+    checked = shielded = standing_checked = 0
     for index in range(len(womd_scenes)):
         obs, _ = env.reset(seed=index, options={"scene_index": index})
         for step in range(10):
@@ -147,7 +148,13 @@ def test_a_token_the_shield_allows_does_not_run_into_a_background_agent_within_t
                         continue  # overlapping already: left alone
                     hit = boxes_overlap(paths[..., :2], paths[..., 2], half[t], frames[o, :, :2], frames[o, :, 2], half[o]).any(-1)
                     assert not hit.any() or not mask[c].any(), (index, t, o, tokens[hit].tolist())  # only where it could not help
-    assert checked > 300 and shielded > 30  # the scenes exercise it
+                for o in ctrl[live & (ctrl != t)].tolist():  # another controlled agent, were it to stand where it stood
+                    if _overlaps(before[t][None], half[t], before[o][None], half[o]):
+                        continue
+                    hit = boxes_overlap(paths[..., :2], paths[..., 2], half[t], before[o, :2], before[o, 2], half[o]).any(-1)
+                    assert not hit.any() or not mask[c].any(), (index, t, o, tokens[hit].tolist())
+                    standing_checked += 1
+    assert checked > 300 and shielded > 30 and standing_checked > 1000  # the scenes exercise it
 
 
 def test_the_shield_measures_boxes_as_the_events_do_not_by_the_priors_shapes(womd_scenes, embedded_prior):

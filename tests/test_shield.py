@@ -15,7 +15,7 @@ from envs._shield import SHIELD_CHECKS, event_boxes
 from envs.errors import EnvConfigError, EnvConfigTypeError
 from smart_marl.geometry_torch import boxes_overlap
 from smart_marl.rollout import FORCED_LATER
-from smart_marl.rollout.avoidance import constant_velocity_pose, excluded_tokens
+from smart_marl.rollout.avoidance import SEARCH_DEPTH, constant_velocity_pose, excluded_tokens
 from smart_marl.rollout.frames import token_frames
 from smart_marl.scenario import AgentType
 from smart_marl.tokens import FRAMES_PER_TOKEN
@@ -35,7 +35,7 @@ def _env(scenes, prior, **kw):
 def _brute_force(core, b: int, c: int, tokens: torch.Tensor) -> torch.Tensor:
     """bool [T]: does each token of controlled slot ``c`` of scene row ``b`` overlap another simulated agent
     (exact boxes, on the same frame; a background agent where its token drawn ahead takes it, another
-    controlled agent at constant velocity) or, for a vehicle, end with a corner off the road; pairs
+    controlled agent at constant velocity and standing where it is) or, for a vehicle, end with a corner off the road; pairs
     overlapping already now are left out (the rule's exception)."""
     pr = core.prior
     draw = pr.drawn_ahead()
@@ -56,9 +56,10 @@ def _brute_force(core, b: int, c: int, tokens: torch.Tensor) -> torch.Tensor:
             other = token_frames(pr.token_poses[pr.agent_type[b, o], drawn[b * pr.num_slots + o]][None], pose[o][None],
                                  before[o][None], pr.interpolation)[0]  # [5, 3]
             other_xy, other_heading = other[:, :2], other[:, 2]
-        else:
+        else:  # another controlled agent: driving on at constant velocity, or standing where it is
             other_xy = pose[o, :2] + step[:, None] * (ahead[o, :2] - pose[o, :2])  # [5, 2]
             other_heading = pose[o, 2]
+            hit |= boxes_overlap(frames[..., :2], frames[..., 2], half[s], pose[o, :2], pose[o, 2], half[o]).any(-1)
         hit |= boxes_overlap(frames[..., :2], frames[..., 2], half[s], other_xy, other_heading, half[o]).any(-1)
     ends = frames[:, -1].to(core.pose.dtype)  # [T, 3]
     ctrl = torch.full((core.num_scenes, len(tokens)), -1, dtype=torch.long)
@@ -99,9 +100,12 @@ def test_the_shield_takes_out_exactly_unsafe_tokens_and_keeps_k_safe_ones_on_top
                 gone = torch.isinf(shielded[0, c]) & torch.isfinite(plain[0, c])
                 assert torch.equal(shielded[0, c][~gone], plain[0, c][~gone])  # nothing else changes
                 top = torch.topk(shielded[0, c], K).indices
+                top = top[torch.isfinite(shielded[0, c][top])]  # fewer than k where the search found fewer free
                 unsafe_top = _brute_force(core, 0, c, top)
-                if gone.any():  # what it took out is unsafe, and its top k are safe
-                    assert _brute_force(core, 0, c, gone.nonzero().squeeze(1)).all()
+                if gone.any():  # what it took out is unsafe (among the tokens it searched), and its top k are safe
+                    searched = torch.zeros_like(gone)
+                    searched[torch.topk(plain[0, c], SEARCH_DEPTH).indices] = True  # a row with fewer than k free there
+                    assert _brute_force(core, 0, c, (gone & searched).nonzero().squeeze(1)).all()  # loses all the rest
                     assert not unsafe_top.any()
                     taken_out += int(gone.sum())
                 else:  # nothing taken out: the prior's own top k are safe (or every token failed: left alone)
