@@ -67,8 +67,8 @@ def table(run_dir: Path, sets: list[str], reference: str) -> str:
         for row_name, result in sorted(rows.items(), key=lambda kv: result_order(kv[0], reference)):
             r = result["metrics"]
             where = f"{name}, {len(result['scenes'])} x {len(result['seeds'])} seeds"
-            out.append(f"| {where} | {row_name} | {'on' if r.get('shield') else 'off'} | {r['collision_rate']:.3f} | "
-                       f"{r['front_collision_rate']:.3f} | {r['offroad_rate']:.3f} | {bad(r) / max(bad(base), 1e-9):.2f}x | "
+            out.append(f"| {where} | {row_name} | {'on' if r.get('shield') else 'off'} | {r['collision_rate']:.4f} | "
+                       f"{r['front_collision_rate']:.4f} | {r['offroad_rate']:.4f} | {bad(r) / max(bad(base), 1e-9):.2f}x | "
                        f"{r['goal_rate']:.3f} | {r['goal_rate'] / max(base['goal_rate'], 1e-9):.2f}x | {r['meta_metric']:.4f} | "
                        f"{r['meta_metric'] - base['meta_metric']:+.4f} |")
     return "\n".join(out)

@@ -261,4 +261,4 @@ def test_finetune_heldout_reads_its_sets_and_lays_out_the_card_table_against_the
             json.dumps({"row": row, "scenes": ["a"] * 11, "seeds": list(range(48)), "metrics": m}))
     lines = heldout.table(tmp_path, ["real"], "prior top-16").splitlines()[2:]
     assert [line.split(" | ")[1] for line in lines] == ["prior top-16", "prior top-3", "fine-tuned"]
-    assert "| 2.00x | 0.600 | 2.00x | 0.7400 | -0.0350 |" in lines[2]
+    assert "| 0.0200 | 0.0100 | 0.0000 | 2.00x | 0.600 | 2.00x | 0.7400 | -0.0350 |" in lines[2]
