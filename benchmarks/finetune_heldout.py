@@ -28,12 +28,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from finetune_generalisation import cached, emit  # noqa: E402
 
 FIRST_ROWS = ("fine-tuned", "expert (log)")
-
-
-def emit(row: dict) -> None:
-    print(json.dumps(row, default=float), flush=True)
 
 
 def parse_set(text: str) -> tuple[str, list[str], int | None, int]:
@@ -127,18 +126,13 @@ def main(argv: list[str] | None = None) -> int:
         seeds = list(range(cfg.eval_seed, cfg.eval_seed + num_seeds))
         core = ft.evaluation_core(cfg, model, vocab, len(scenes))
         for row in wanted:
-            path = run_dir / f"eval_{name}_{slug(row)}.json"
-            if path.is_file():
-                result = json.loads(path.read_text())
-            else:
+            def run(row=row):
                 out = evaluate_policies(core, scenes, {row: policies[row]}, seeds, num_envs=args.num_envs,
                                         vocab_size=vocab[AgentType.VEHICLE].size, num_agents=cfg.max_agents, rules=cfg.eval_rules,
                                         temperature=cfg.temperature, reference_top_k=cfg.reference_top_k)
-                result = {"row": row, "policy": str(args.policy), "scenes": out["scenes"], "seeds": out["seeds"],
-                          "rules": out["rules"], "metrics": out["rows"][row]}
-                tmp = path.with_suffix(".tmp")
-                tmp.write_text(json.dumps(result, indent=1, default=float))
-                tmp.replace(path)
+                return {"row": row, "policy": str(args.policy), "scenes": out["scenes"], "seeds": out["seeds"],
+                        "rules": out["rules"], "metrics": out["rows"][row]}
+            result = cached(run_dir / f"eval_{name}_{slug(row)}.json", run)
             emit({"benchmark": "finetune_heldout", "set": name, "row": row, "policy": result["policy"],
                   "scenes": len(result["scenes"]), "seeds": len(result["seeds"]), **result["metrics"]})
     return 0
