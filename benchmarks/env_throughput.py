@@ -25,7 +25,7 @@ Actions: each controlled agent takes its prior's most likely token; ``terminate_
 episode runs its full horizon. Scenes: ``--scenes`` (default: the shared real scenes with a moving
 vehicle to control, ../shared/data), cycled to fill the batch. Prior: ``--prior`` (default the
 embedded one). Medians of ``--repeats`` timed runs. ``--traffic-control both``: every configuration with the
-background's traffic control (the envs' default) and without, interleaved; each line carries ``traffic_control`` and
+background's traffic control and speed persistence (the envs' defaults) and without either, interleaved; each line carries ``traffic_control`` and
 its speed-up is against the PettingZoo env with the same setting, the "on" lines ``agent_steps_per_s_vs_off``.
 
     .venv/bin/python benchmarks/env_throughput.py [--num-scenes 1,8,32,128] [--steps 32] [--threads 2] [--device cpu]
@@ -169,9 +169,9 @@ def main() -> int:
     p.add_argument("--device", default="cpu")
     p.add_argument("--shield", action="store_true", help="the controlled agents' shield (envs._shield), checked to the top 3")
     p.add_argument("--traffic-control", default="on", choices=("on", "off", "both"),
-                   help="the background's traffic control (stop_lines=True, lights='log': the envs' defaults) or none "
-                        "(stop_lines=False, lights='current'); both: side by side in one run, each against the PettingZoo env "
-                        "with the same setting (default on)")
+                   help="the background's traffic control and speed persistence (stop_lines=True, lights='log', "
+                        "persistence 0.25: the envs' defaults) or none (stop_lines=False, lights='current', persistence 0); "
+                        "both: side by side in one run, each against the PettingZoo env with the same setting (default on)")
     p.add_argument("--stop-lines", dest="traffic_control", action="store_const", const="on",
                    help="--traffic-control on (kept for older command lines)")
     args = p.parse_args()
@@ -180,10 +180,12 @@ def main() -> int:
     from envs import smart_traffic_batched_v0, smart_traffic_v0
     from envs._setup import load_scenes
     from smart_marl.model.checkpoint import load_prior
+    from smart_marl.rollout.persistence import DEFAULT_PERSISTENCE
 
     scenes = load_scenes(args.scenes) if args.scenes else real_scenes()
     model, vocab = load_prior(args.prior, args.device)
-    settings = {"on": dict(stop_lines=True, lights="log"), "off": dict(stop_lines=False, lights="current")}
+    settings = {"on": dict(stop_lines=True, lights="log", persistence=DEFAULT_PERSISTENCE),
+                "off": dict(stop_lines=False, lights="current", persistence=0.0)}
     chosen = ["on", "off"] if args.traffic_control == "both" else [args.traffic_control]
     kw = dict(prior=model, motion_vocab=vocab, controlled=args.controlled, max_agents=args.max_agents, background=args.background,
               horizon_steps=args.horizon, terminate_on=(), device=args.device,

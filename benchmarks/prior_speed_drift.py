@@ -58,7 +58,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from smart_marl.commands.arguments import collision_avoidance_flag, stop_lines_flag
+from smart_marl.commands.arguments import collision_avoidance_flag, persistence_option, stop_lines_flag
 from smart_marl.model.batch import collate_scenes, scene_road, scene_tensors
 from smart_marl.model.checkpoint import load_checkpoint, load_prior
 from smart_marl.model.losses import TREND_BAND  # "keeps": within this share of the speed now (the training weights' band)
@@ -170,6 +170,7 @@ def vehicle_rollout_arguments(ap: argparse.ArgumentParser, rollouts: int) -> Non
                     help="the light states the prior sees: the current frame's, held, or the log's at every step")
     ap.add_argument("--max-scenes", type=int, default=0, help="the first N scenes of each set (0: all)")
     stop_lines_flag(ap)
+    persistence_option(ap)
 
 
 def vehicle_rollout_sets(args):
@@ -180,9 +181,10 @@ def vehicle_rollout_sets(args):
     sets = scene_sets(args.sets or [f"real={','.join(str(SHARED / p) for p in REAL_91_FRAMES)}"])
     sets = {name: scenes[: args.max_scenes] if args.max_scenes else scenes for name, scenes in sets.items()}
     rollout_kwargs = dict(num_steps=NUM_FRAMES // 5, num_rollouts=args.rollouts, top_k=args.top_k, seed=args.seed,
-                          avoid_collisions=args.sampling == "default", lights=args.lights, stop_lines=args.stop_lines)
+                          avoid_collisions=args.sampling == "default", lights=args.lights, stop_lines=args.stop_lines,
+                          persistence=args.persistence)
     common = {"prior": args.prior, "sampling": args.sampling, "top_k": args.top_k, "seed": args.seed, "rollouts": args.rollouts,
-              "lights": args.lights, "stop_lines": args.stop_lines}
+              "lights": args.lights, "stop_lines": args.stop_lines, "persistence": args.persistence}
     return model, sets, rollout_kwargs, common
 
 

@@ -12,11 +12,12 @@ counted in every row (``scenes_skipped``: ``unreadable`` files, ``not_10hz``, ``
 ``scenes`` counts the scenes rolled out, at most ``--max-scenes``). Each scene is rolled
 out ``--rollouts`` times for 8 s with ``prior_speed_drift.rollout_from_log`` (its arguments:
 ``prior_speed_drift.vehicle_rollout_arguments``; ``--no-stop-lines`` turns the engine's traffic control off, on by
-default as the engine's, and the rows report it as ``stop_lines``).
+default as the engine's, and the rows report it as ``stop_lines``; ``--persistence B`` the vehicles' speed persistence,
+:mod:`smart_marl.rollout.persistence`, reported as ``persistence``).
 
 What goes out (stdout, one JSON object per line, flushed), per set, every row with ``benchmark``, ``set``,
 ``scenes``, ``scenes_skipped``, ``seed``, ``rollouts``, ``prior``, ``top_k``, ``sampling``, ``lights``,
-``stop_lines`` and its counts:
+``stop_lines``, ``persistence`` and its counts:
 
 * ``kind: "cause"``, one row per cause (:data:`CAUSES`) of the simulated vehicles (parked ones too, mostly
   ``none``): ``vehicles``; ``log_mps_4s``, ``rollout_mps_4s``,
@@ -85,7 +86,7 @@ Definitions (every distance in the scene's local frame, metres; frames from the 
   or past that line (within 2 m laterally).
 
     .venv/bin/python benchmarks/traffic_control.py [--prior PATH] [--set NAME=PATH ...] [--rollouts 8] [--seed 0]
-        [--sampling default|plain] [--top-k K] [--lights current|log] [--no-stop-lines] [--max-scenes N] [--threads 2]
+        [--sampling default|plain] [--top-k K] [--lights current|log] [--no-stop-lines] [--persistence B] [--max-scenes N] [--threads 2]
 """
 
 from __future__ import annotations

@@ -26,6 +26,7 @@ What each argument takes (the documented meanings):
   [:data:`MIN_RENDER_RADIUS_M`, :data:`MAX_RENDER_RADIUS_M`];
 * ``avoid_collisions``, ``stop_lines``: True or False (not the string "false");
 * ``lights``: "log" or "current" (:data:`smart_marl.rollout.LIGHTS`);
+* ``persistence``: a finite number >= 0 (:mod:`smart_marl.rollout.persistence`; 0: off);
 * ``precision``: the prior's arithmetic, "float32" or "bfloat16" (:mod:`smart_marl.model.precision`);
 * ``shield``: True (every check of :data:`envs._shield.SHIELD_CHECKS`), False / None / an empty list (none),
   or a list of check names (a bare string is one name), normalised to a tuple in ``SHIELD_CHECKS`` order;
@@ -49,6 +50,7 @@ from smart_marl.model.precision import PRECISIONS
 from smart_marl.model.smart import MAX_VOCAB_SIZE
 from smart_marl.render.bev import MIN_VIEW_RADIUS_M
 from smart_marl.rollout import LIGHTS, temperature_rule
+from smart_marl.rollout.persistence import DEFAULT_PERSISTENCE, persistence_rule
 
 from ._dynamics import BACKGROUNDS
 from ._observation import ObservationConfig
@@ -153,7 +155,7 @@ def check_env_arguments(*, background: Any, horizon_steps: Any, scene_order: Any
                         render_modes: Iterable[str], max_agents: Any, top_k: Any, temperature: Any, reference_top_k: Any,
                         render_size_px: Any, render_radius_m: Any, avoid_collisions: Any, reward: Any, observation: Any,
                         controlled: Any, device: Any = "cpu", shield: Any = (), stop_lines: Any = True,
-                        lights: Any = "log", precision: Any = "float32") -> dict[str, Any]:
+                        lights: Any = "log", precision: Any = "float32", persistence: Any = DEFAULT_PERSISTENCE) -> dict[str, Any]:
     """The constructor's arguments checked and normalised (see the module docstring), as a dict of
     the same names; :class:`~envs.errors.EnvConfigError` naming the first one that is refused."""
     return {
@@ -175,6 +177,7 @@ def check_env_arguments(*, background: Any, horizon_steps: Any, scene_order: Any
         "stop_lines": bool(_check("stop_lines", stop_lines, flag, bool)),
         "lights": _check("lights", lights, one_of(*LIGHTS), str),
         "precision": _check("precision", precision, one_of(*PRECISIONS), str),
+        "persistence": float(_check("persistence", persistence, persistence_rule)),
         "reward": _reward(reward),
         "observation": _observation(observation),
         "controlled": _controlled(controlled),

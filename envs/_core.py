@@ -39,6 +39,7 @@ from smart_marl.cpu_memory import keep_freed_memory
 from smart_marl.model.precision import inference_model
 from smart_marl.padding import grow
 from smart_marl.rollout import DEFAULT_TOP_K, RolloutState
+from smart_marl.rollout.persistence import DEFAULT_PERSISTENCE
 from smart_marl.rollout.refill import replace_scenes, split_state, stack_states
 from smart_marl.scenario import DT_S
 from smart_marl.tokens import FRAMES_PER_TOKEN, MOTION_TYPES, MotionVocabulary
@@ -99,7 +100,7 @@ class TrafficCore:
                  observation: ObservationConfig | None = None, top_k: int = DEFAULT_TOP_K, temperature: float = 1.0,
                  avoid_collisions: bool = True, device="cpu", dtype=torch.float32, prior_cache_size: int = 8,
                  record: bool = False, shield: Sequence[str] = (), shield_top_k: int | None = None, stop_lines: bool = True,
-                 lights: str = "log", precision: str = "float32") -> None:
+                 lights: str = "log", precision: str = "float32", persistence: float = DEFAULT_PERSISTENCE) -> None:
         if background not in BACKGROUNDS:
             raise ValueError(f"background must be one of {BACKGROUNDS}, got {background!r}")
         # the prior at its precision (smart_marl.model.precision: a bfloat16 copy is made once and kept)
@@ -112,6 +113,7 @@ class TrafficCore:
         self.top_k, self.temperature, self.avoid_collisions = int(top_k), float(temperature), bool(avoid_collisions)
         self.stop_lines = bool(stop_lines)  # the background stops at red lights and stop signs (smart_marl.rollout.stop_lines)
         self.lights = lights  # what the prior and the stop lines see of the lights: the log's clock, or the current frame's
+        self.persistence = float(persistence)  # the background's speed persistence (smart_marl.rollout.persistence)
         self.device, self.dtype = torch.device(device), dtype
         self.shield, self.shield_top_k = tuple(shield), shield_top_k  # envs._shield: checks, and the k the policy draws from
         self._unsafe: tuple[torch.Tensor, torch.Tensor] | None = None  # (the logits it was computed on, the shield's mask)
@@ -237,7 +239,7 @@ class TrafficCore:
                 started = RolloutState.start(self.model, [scenes[i].static.scenario for i in chunk], num_rollouts=1, seed=0,
                                              top_k=self.top_k, temperature=self.temperature, device=self.device,
                                              motion_vocab=self.motion_vocab, avoid_collisions=self.avoid_collisions,
-                                             stop_lines=self.stop_lines, lights=self.lights)
+                                             stop_lines=self.stop_lines, lights=self.lights, persistence=self.persistence)
                 states += split_state(started) if len(chunk) > 1 else [started]
             fresh = dict(zip(first, states))
             for i, st in enumerate(out):

@@ -31,7 +31,8 @@ reference; :class:`envs._core.TrafficCore` underneath both) with tensors instead
 
 ``device="cuda"``: the prior, the state and every tensor the environment returns stay on the device.
 ``precision="bfloat16"``: the prior runs in bfloat16 (:mod:`smart_marl.model.precision`); its logits, the
-observations and the state stay float32.
+observations and the state stay float32. ``stop_lines``, ``lights`` and ``persistence`` (the background's traffic
+control and speed persistence) as the PettingZoo env's.
 
 What it refuses (:mod:`envs.errors`), by the PettingZoo env's rules: the constructor's arguments as
 :mod:`envs._arguments` checks them, ``max_agents`` in 1..:data:`~envs._arguments.MAX_AGENT_SLOTS`, ``num_scenes`` in
@@ -66,6 +67,7 @@ from torchrl.envs import EnvBase
 from smart_marl.config_files import check_value, integer, is_integer, shown
 from smart_marl.config_files import seed as seed_rule
 from smart_marl.rollout import DEFAULT_TOP_K, reference_name
+from smart_marl.rollout.persistence import DEFAULT_PERSISTENCE
 from smart_marl.scenario import AgentType, Scenario
 from smart_marl.tokens import MotionVocabulary
 
@@ -103,13 +105,14 @@ class SmartTrafficBatchedEnv(EnvBase):
                  motion_vocab: MotionVocabulary | None = None, top_k: int = DEFAULT_TOP_K, temperature: float = 1.0,
                  reference_top_k: int | None = None, avoid_collisions: bool = True, observation: ObservationConfig | None = None,
                  shield=(), device="cpu", prior_cache_size: int = 1024, max_loaded_scenes: int = 1024, seed: int = 0,
-                 stop_lines: bool = True, lights: str = "log", precision: str = "float32") -> None:
+                 stop_lines: bool = True, lights: str = "log", precision: str = "float32",
+                 persistence: float = DEFAULT_PERSISTENCE) -> None:
         a = check_env_arguments(background=background, horizon_steps=horizon_steps, scene_order=scene_order,
                                 terminate_on=terminate_on, render_mode=None, render_modes=(), max_agents=max_agents, top_k=top_k,
                                 temperature=temperature, reference_top_k=reference_top_k, render_size_px=400, render_radius_m=50.0,
                                 avoid_collisions=avoid_collisions, reward=reward, observation=observation or "vector",
                                 controlled=controlled, device=device, shield=shield, stop_lines=stop_lines,
-                                lights=lights, precision=precision)
+                                lights=lights, precision=precision, persistence=persistence)
         if a["max_agents"] is None:
             raise EnvConfigError("max_agents must be an integer >= 1: the batched env's agent group has that many slots per scene")
         for name, value, high, why in (("max_agents", a["max_agents"], MAX_AGENT_SLOTS, "the most agents of a scene"),
@@ -137,7 +140,8 @@ class SmartTrafficBatchedEnv(EnvBase):
         self.core = TrafficCore(self.model, self.motion_vocab, self.background, self.horizon_steps, a["reward"], a["terminate_on"],
                                 self.obs_config, a["top_k"], self.temperature, a["avoid_collisions"], device=device,
                                 prior_cache_size=prior_cache_size, shield=a["shield"], shield_top_k=self.reference_top_k,
-                                stop_lines=a["stop_lines"], lights=a["lights"], precision=a["precision"])
+                                stop_lines=a["stop_lines"], lights=a["lights"], precision=a["precision"],
+                                persistence=a["persistence"])
         self.shield = a["shield"]
         self.scene_indices = [-1] * self.num_scenes  # the pool index each row plays
         self._seed = int(seed)

@@ -80,6 +80,7 @@ from pettingzoo.utils.conversions import parallel_to_aec_wrapper
 
 from smart_marl.render import BevRenderer, EpisodeRecorder
 from smart_marl.rollout import DEFAULT_TOP_K, reference_log_probs, reference_name, top_k_mask
+from smart_marl.rollout.persistence import DEFAULT_PERSISTENCE
 from smart_marl.scenario import DT_S, AgentType
 from smart_marl.tokens import FRAMES_PER_TOKEN, MotionVocabulary
 
@@ -112,13 +113,15 @@ class SmartTrafficEnv(ParallelEnv):
                  scene_order: str = "sequential", motion_vocab: MotionVocabulary | None = None, top_k: int = DEFAULT_TOP_K,
                  temperature: float = 1.0, render_size_px: int = 400, render_radius_m: float = 50.0,
                  reference_top_k: int | None = None, avoid_collisions: bool = True, shield=(), device="cpu",
-                 stop_lines: bool = True, lights: str = "log", precision: str = "float32") -> None:
+                 stop_lines: bool = True, lights: str = "log", precision: str = "float32",
+                 persistence: float = DEFAULT_PERSISTENCE) -> None:
         a = check_env_arguments(background=background, horizon_steps=horizon_steps, scene_order=scene_order,
                                 terminate_on=terminate_on, render_mode=render_mode, render_modes=self.metadata["render_modes"],
                                 max_agents=max_agents, top_k=top_k, temperature=temperature, reference_top_k=reference_top_k,
                                 render_size_px=render_size_px, render_radius_m=render_radius_m,
                                 avoid_collisions=avoid_collisions, reward=reward, observation=observation, controlled=controlled,
-                                device=device, shield=shield, stop_lines=stop_lines, lights=lights, precision=precision)
+                                device=device, shield=shield, stop_lines=stop_lines, lights=lights, precision=precision,
+                                persistence=persistence)
         if render_mode == "human" and not _has_display():
             raise EnvConfigError("render_mode='human' opens a matplotlib window, but there is no display (DISPLAY and "
                                  "WAYLAND_DISPLAY are unset); use render_mode='rgb_array' (and EpisodeRecorder) instead")
@@ -140,6 +143,7 @@ class SmartTrafficEnv(ParallelEnv):
         self.scene_order = a["scene_order"]
         self.top_k, self.temperature = a["top_k"], a["temperature"]
         self.avoid_collisions, self.stop_lines, self.lights = a["avoid_collisions"], a["stop_lines"], a["lights"]
+        self.persistence = a["persistence"]
         self.reference_top_k = a["reference_top_k"]
         self.reference = reference_name(self.reference_top_k, self.temperature)
         self.render_size_px, self.render_radius_m = a["render_size_px"], a["render_radius_m"]
@@ -147,7 +151,7 @@ class SmartTrafficEnv(ParallelEnv):
                                 self.terminate_on, self.obs_config, self.top_k, self.temperature, self.avoid_collisions,
                                 device=self.device, dtype=torch.float64, prior_cache_size=self.PRIOR_STATE_CACHE, record=True,
                                 shield=a["shield"], shield_top_k=self.reference_top_k, stop_lines=self.stop_lines,
-                                lights=self.lights, precision=a["precision"])
+                                lights=self.lights, precision=a["precision"], persistence=self.persistence)
         self.shield = a["shield"]
         self._statics: dict[int, SceneStatic] = {}
         self._obs_spaces: dict[str, spaces.Space] = {}
@@ -479,7 +483,8 @@ def parallel_env(scenarios="embedded", prior="embedded", controlled="sdc", backg
     turns green, the sign is served or the queue ahead drives off, :mod:`smart_marl.rollout.stop_lines`; default True),
     ``lights`` ("log": the prior and the stop lines see the log's light states at every step, held after the scene's
     last logged frame; "current": the current frame's, held), ``precision`` (the prior's arithmetic: "float32", the
-    default, or "bfloat16", :mod:`smart_marl.model.precision`), ``shield`` (the same for the controlled agents' action masks, plus staying on the road:
+    default, or "bfloat16", :mod:`smart_marl.model.precision`), ``persistence`` (its vehicles lean toward going on with
+    the change of speed they are in, :mod:`smart_marl.rollout.persistence`; default 0.25, 0: off), ``shield`` (the same for the controlled agents' action masks, plus staying on the road:
     :mod:`envs._shield`; default off), ``render_size_px``, ``render_radius_m``, ``device`` (``"cuda"``: the prior and the state on the
     GPU; what a step returns is numpy as always)."""
     return SmartTrafficEnv(scenarios=scenarios, prior=prior, controlled=controlled, background=background,

@@ -9,7 +9,16 @@ a fill value that the owner's masks already treat as absent (-1 indices, False m
 
 from __future__ import annotations
 
+import numpy as np
 import torch
+
+
+def pad_stack(arrays: list[np.ndarray], size: tuple[int, ...], fill=0) -> np.ndarray:
+    """``arrays`` (one per row, each no larger than ``size``) stacked into [rows, *size], padded with ``fill``."""
+    out = np.full((len(arrays), *size), fill, dtype=arrays[0].dtype)
+    for i, a in enumerate(arrays):
+        out[(i, *[slice(0, k) for k in a.shape])] = a
+    return out
 
 
 def grow(t: torch.Tensor, sizes: dict[int, int], fill=0) -> torch.Tensor:

@@ -185,7 +185,7 @@ def test_prior_driven_episode_equals_the_rollout_engine_on_the_same_seed(scenes,
         _, _, _, _, infos = env.step(dict(zip(env.agents, tokens.tolist())))
     poses, present = env.trajectories()
     res = rollout(model, scenes[0], num_rollouts=1, num_steps=steps, seed=seed, motion_vocab=vocab, avoid_collisions=False,
-                  stop_lines=False, lights="log")  # the env's lights; no rules: the plain draw the env's agents took
+                  stop_lines=False, lights="log", persistence=0.0)  # the env's lights; no rules: the plain draw the env's agents took
     sc = scenes[0]
     sim = res.simulated[0]
     assert sim.sum() == len(env.possible_agents) and present[sim].all()

@@ -149,10 +149,10 @@ def test_same_seed_same_rollouts_other_seed_differs(model, vocab, scenes):
 
 
 def test_sampled_tokens_are_inside_the_top_k_with_unclipped_log_probs(model, vocab, scenes):
-    # plain top-k (collision-aware sampling and traffic control may go below the top k: tests/test_avoidance.py,
-    # tests/test_stop_lines.py)
+    # plain top-k (collision-aware sampling, traffic control and speed persistence may go below the top k:
+    # tests/test_avoidance.py, tests/test_stop_lines.py, tests/test_persistence.py)
     state = _start(model, vocab, scenes[:2], num_rollouts=8, seed=5, top_k=3, temperature=0.7, avoid_collisions=False,
-                   stop_lines=False)
+                   stop_lines=False, persistence=0.0)
     for _ in range(3):
         out = state.step()
         sim = out.simulated

@@ -3,8 +3,8 @@ tokens. Refactors of the model, the KV-cached step or the rollout engine must no
 
 Pinned here: 2 rollouts x 4 token steps, seed 7, top-k 5, of the embedded prior
 (``smart_marl/checkpoints/embedded``) on the real WOMD scene 637f20cafde22ff8 (skipped when
-``../shared/data`` is absent), with the default rules (collision-aware sampling and traffic control) and without
-any ("-plain"), and on the package's first SUMO sample scene (always runs). The
+``../shared/data`` is absent), with the default rules (collision-aware sampling, traffic control and speed
+persistence) and without any ("-plain"), and on the package's first SUMO sample scene (always runs). The
 tokens of every simulated agent are pinned exactly (a SHA-256 of the int64 array, agents in track
 order, plus the first agents' tokens written out); log-probabilities to 1e-5 (relative) and the
 agents' summed path length to 1 mm.
@@ -30,23 +30,25 @@ from smart_marl.embedded import sample_scenarios
 from smart_marl.model.checkpoint import load_embedded
 from smart_marl.readers import read_scenarios
 from smart_marl.rollout import rollout
+from smart_marl.rollout.persistence import DEFAULT_PERSISTENCE
 
 WOMD_SCENE = "womd_tfrecord/motion_data_one_scenario.tfrecord"
 SETTINGS = dict(num_rollouts=2, num_steps=4, top_k=5, seed=7)
 
 PINS = {  # regenerated when collision-aware sampling became the default (stage 5 prior, 2026-11-25; the SUMO pin
     # did not move: no token of its first 4 steps collides); same settings
-    "womd-637f20cafde22ff8": {  # re-pinned 2026-11-29, second time (issue 55): a held vehicle pulls up to its red line
-        # only if it has moved since its log began; the fourth agent has stood all along (token 42 before, 0 now: it
-        # stands, as its log does), the others as before (path 945.52 -> 944.60 m)
+    "womd-637f20cafde22ff8": {  # re-pinned 2026-11-29, third time: speed persistence became the default
+        # (smart_marl.rollout.persistence, 0.25): vehicles that were speeding up or slowing lean toward going on with it
+        # (path 944.60 -> 943.04 m; the first four agents draw as before); with persistence 0 the pin of before comes back
+        # exactly (the plain pin below is drawn with it off and did not move)
         "simulated": 50,
-        "tokens_sha256": "bda2d45fbadf897fa2a3efec9e8560f2b92f7f2fc6161e06d2c1abac9e46a4fb",
+        "tokens_sha256": "8083568eaed682a3dcd9bc73547fd52fb3fe5769f2487d09aacc0152ab6df6f9",
         "first_tokens": [[[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [0, 1, 1, 1]],
                          [[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [1, 0, 1, 1]]],
-        "log_prob_sum": -613.2797739207745,
-        "path_length_m": 944.5962700704863,
+        "log_prob_sum": -615.2929181307554,
+        "path_length_m": 943.0432663798164,
     },
-    "womd-637f20cafde22ff8-plain": {  # the stage-5 pin, unchanged
+    "womd-637f20cafde22ff8-plain": {  # the stage-5 pin, unchanged (no rule, no persistence)
         "simulated": 50,
         "tokens_sha256": "8f8c0e0e871a0c47e2e35a97137d2409c852bad1c83445b58d3ebecfb0d27de7",
         "first_tokens": [[[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 1], [0, 1, 1, 1]],
@@ -68,8 +70,9 @@ PINS = {  # regenerated when collision-aware sampling became the default (stage 
 
 def _summary(scene, avoid_collisions: bool = True) -> dict:
     """What is pinned of one scene's rollout (computed on one torch thread): with the default rules, or ``-plain``
-    with none (no collision-aware sampling, no traffic control: the model and the sampler alone)."""
-    result = rollout(load_embedded(), scene, **SETTINGS, avoid_collisions=avoid_collisions, stop_lines=avoid_collisions)
+    with none (no collision-aware sampling, no traffic control, no speed persistence: the model and the sampler alone)."""
+    result = rollout(load_embedded(), scene, **SETTINGS, avoid_collisions=avoid_collisions, stop_lines=avoid_collisions,
+                     persistence=DEFAULT_PERSISTENCE if avoid_collisions else 0.0)
     sim = result.simulated[0]  # [A] the same agents are simulated in every rollout of a scene
     tokens = np.ascontiguousarray(result.tokens[:, sim], np.int64)  # [R, simulated, steps]
     return {

@@ -13,7 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from smart_marl.commands.arguments import (bounded_int, collision_avoidance_flag, device, lights_option, output_dir, rollouts, seed,
-                                          precision_option, stop_lines_flag)
+                                          persistence_option, precision_option, stop_lines_flag)
 from smart_marl.embedded import scene_sources
 from smart_marl.errors import SmartMarlError
 from smart_marl.readers import read_scenarios
@@ -43,6 +43,7 @@ def register(subparsers) -> None:
     collision_avoidance_flag(p, "the prior (both runs)")
     stop_lines_flag(p, "the prior (both runs)")
     lights_option(p, "log")
+    persistence_option(p, "the prior (both runs)")
     precision_option(p, "the prior (both runs)")
     p.set_defaults(func=run)
 
@@ -58,7 +59,8 @@ def run(args) -> int:
         raise SmartMarlError(f"{args.scene}: no scene" + (f" with id {args.scenario_id}" if args.scenario_id else ""))
     result = run_whatif(args.checkpoint, scene, script, num_rollouts=args.rollouts, seed=args.seed, num_steps=args.steps,
                         device=args.device, realism=not args.no_realism, avoid_collisions=args.avoid_collisions,
-                        stop_lines=args.stop_lines, lights=args.lights, precision=args.precision)
+                        stop_lines=args.stop_lines, lights=args.lights, precision=args.precision,
+                        persistence=args.persistence)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     csv_path = write_table_csv(result.table, out / "table.csv")

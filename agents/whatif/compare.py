@@ -22,6 +22,7 @@ from smart_marl.model.checkpoint import EMBEDDED, load_prior
 from smart_marl.model.precision import precision_problem
 from smart_marl.model.smart import MAX_VOCAB_SIZE
 from smart_marl.rollout import DEFAULT_TOP_K, temperature_rule
+from smart_marl.rollout.persistence import DEFAULT_PERSISTENCE, persistence_rule
 from smart_marl.scenario import AgentType, Scenario
 from smart_marl.tokens import FRAMES_PER_TOKEN, TOKEN_S
 
@@ -41,19 +42,22 @@ class WhatIfResult:
 
 def run_whatif(prior, scene: Scenario, whatif: WhatIf, num_rollouts: int = 8, seed: int = 0, num_steps: int = 16,
                top_k: int = DEFAULT_TOP_K, temperature: float = 1.0, device="cpu", realism: bool = True,
-               avoid_collisions: bool = True, stop_lines: bool = True, lights: str = "log", precision: str = "float32") -> WhatIfResult:
+               avoid_collisions: bool = True, stop_lines: bool = True, lights: str = "log", precision: str = "float32",
+               persistence: float = DEFAULT_PERSISTENCE) -> WhatIfResult:
     """The what-if and its unperturbed baseline (same seed, same number of rollouts) on one scene,
     and the comparison table (:func:`compare`). ``prior``: a SMART model, Checkpoint, checkpoint
     path, or None for the embedded prior; ``avoid_collisions=False``: the prior's agents sample
     plainly (the weights' own answer to the what-if; scripted agents are never restricted); ``stop_lines``
     and ``lights``: the prior's traffic control and the light states it sees (:mod:`smart_marl.rollout.stop_lines`; by
     default on, the log's clock: a light a script overrides holds from its step on); ``precision``: the prior's arithmetic
-    (:mod:`smart_marl.model.precision`)."""
+    (:mod:`smart_marl.model.precision`); ``persistence``: the prior's vehicles' speed persistence
+    (:mod:`smart_marl.rollout.persistence`; 0: off)."""
     if isinstance(num_steps, bool) or not isinstance(num_steps, int) or not 1 <= num_steps <= MAX_STEPS:
         raise WhatIfError(whatif.path, f"num_steps must be 1..{MAX_STEPS} token steps of 0.5 s, got {num_steps!r}")
     for name, value, rule in (("num_rollouts", num_rollouts, integer(1, MAX_ROLLOUTS, "32x WOSAC's 32")),
                               ("top_k", top_k, integer(0, MAX_VOCAB_SIZE, "the largest vocabulary: a larger k is every token")),
-                              ("temperature", temperature, temperature_rule), ("precision", precision, precision_problem)):
+                              ("temperature", temperature, temperature_rule), ("precision", precision, precision_problem),
+                              ("persistence", persistence, persistence_rule)):
         check_value(name, value, rule, lambda problem: WhatIfError(whatif.path, problem))
     end_s = num_steps * TOKEN_S
     for i, edit in enumerate(whatif.edits):  # an onset after the rollout's end would be found only after simulating
@@ -64,7 +68,8 @@ def run_whatif(prior, scene: Scenario, whatif: WhatIf, num_rollouts: int = 8, se
     model, vocab = load_prior(EMBEDDED if prior is None else prior, device)
     prepared = prepare(scene, whatif, vocab)  # every edit checked against the scene and the vocabulary before any rollout
     base_prep = Prepared(scene=scene, scripts=[], removals=[], lights=[], affected={}, followers={}, onset_step={})
-    rules = dict(avoid_collisions=avoid_collisions, stop_lines=stop_lines, lights=lights, precision=precision)
+    rules = dict(avoid_collisions=avoid_collisions, stop_lines=stop_lines, lights=lights, precision=precision,
+                 persistence=persistence)
     baseline = simulate(model, vocab, base_prep, num_rollouts, seed, num_steps, top_k, temperature, device, scripted_on=False, **rules)
     perturbed = simulate(model, vocab, prepared, num_rollouts, seed, num_steps, top_k, temperature, device, **rules)
     return WhatIfResult(whatif, prepared, baseline, perturbed, compare(baseline, perturbed, prepared, realism=realism))

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from smart_marl.rollout import DEFAULT_TOP_K, RolloutState, StepOutput, track_frames
+from smart_marl.rollout.persistence import DEFAULT_PERSISTENCE
 from smart_marl.scenario import DT_S, Scenario
 from smart_marl.tokens import FRAMES_PER_TOKEN, road_pieces
 from smart_marl.tokens.motion import match_token_path, path_heading_weight
@@ -150,15 +151,17 @@ def _nearest(state: RolloutState, atype: int, slot: int, targets: np.ndarray) ->
 
 def simulate(model, vocab, prepared: Prepared, num_rollouts: int, seed: int, num_steps: int = 16, top_k: int = DEFAULT_TOP_K,
              temperature: float = 1.0, device="cpu", scripted_on: bool = True, avoid_collisions: bool = True,
-             stop_lines: bool = True, lights: str = "log", precision: str = "float32") -> SimRollouts:
+             stop_lines: bool = True, lights: str = "log", precision: str = "float32",
+             persistence: float = DEFAULT_PERSISTENCE) -> SimRollouts:
     """Roll out ``prepared.scene`` with its per-step actions (``scripted_on=False``: the scene as
     it is, no forced tokens, removals or light changes; ``avoid_collisions``: collision-aware sampling
     of the prior's agents, :mod:`smart_marl.rollout.avoidance`; ``stop_lines``, ``lights``: its traffic control,
-    :mod:`smart_marl.rollout.stop_lines`; ``precision``: the prior's arithmetic)."""
+    :mod:`smart_marl.rollout.stop_lines`; ``precision``: the prior's arithmetic; ``persistence``: its vehicles'
+    speed persistence, :mod:`smart_marl.rollout.persistence`)."""
     scene = prepared.scene
     state = RolloutState.start(model, scene, num_rollouts=num_rollouts, seed=seed, top_k=top_k, temperature=temperature,
                                device=device, motion_vocab=vocab, avoid_collisions=avoid_collisions, stop_lines=stop_lines,
-                               lights=lights, precision=precision)
+                               lights=lights, precision=precision, persistence=persistence)
     outs = state.run(num_steps, ScriptedSteps(state, prepared, scripted_on))
     frames = track_frames(state, outs)
     t_frames = FRAMES_PER_TOKEN * num_steps

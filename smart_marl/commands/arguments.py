@@ -27,6 +27,7 @@ from ..model.precision import PRECISIONS
 from ..model.smart import MAX_VOCAB_SIZE
 from ..readers import format_names
 from ..rollout.engine import LIGHTS
+from ..rollout.persistence import DEFAULT_PERSISTENCE, persistence_rule
 from ..rollout.sampling import temperature_rule
 from ..tokens.motion import MOTION_TYPES
 
@@ -148,6 +149,15 @@ def precision_option(parser: argparse.ArgumentParser, who: str = "the prior") ->
                              "geometry stay float32; default: float32)")
 
 
+def persistence_option(parser: argparse.ArgumentParser, who: str = "the prior") -> None:
+    """``--persistence B`` (``args.persistence``, default :data:`~smart_marl.rollout.persistence.DEFAULT_PERSISTENCE`):
+    how strongly ``who``'s vehicles go on with the change of speed they are in (:mod:`smart_marl.rollout.persistence`;
+    0: off, the model's distribution as it is)."""
+    parser.add_argument("--persistence", type=checked(persistence_rule, float, "a number", "persistence"), default=DEFAULT_PERSISTENCE, metavar="B",
+                        help=f"{who}'s vehicles lean toward going on with the change of speed they are in, this strongly "
+                             f"(0: off; default: {DEFAULT_PERSISTENCE:g}, smart_marl.rollout.persistence)")
+
+
 def output_file(text: str) -> str:
     """A file (or checkpoint name) to write: not a folder, in a folder that exists or can be created."""
     problem = output_file_problem(text)
@@ -189,4 +199,4 @@ def reader_formats() -> list[str]:
 
 
 __all__ = ["checked", "numbers_list", "workers", "MAX_WORKERS", "rollouts", "MAX_ROLLOUTS", "temperature", "top_k", "positive_int", "non_negative_int", "seed", "positive_number", "bounded_int", "bounded_number",
-           "positive_numbers", "output_file", "motion_types", "collision_avoidance_flag", "stop_lines_flag", "lights_option", "precision_option", "output_dir", "device", "device_or_auto", "reader_formats"]
+           "positive_numbers", "output_file", "motion_types", "collision_avoidance_flag", "stop_lines_flag", "lights_option", "persistence_option", "precision_option", "output_dir", "device", "device_or_auto", "reader_formats"]

@@ -53,9 +53,10 @@ from ..model.checkpoint import EMBEDDED, checkpoint_paths, load_prior, resolve_c
 from ..readers import expand_paths, read_scenarios
 from ..readers.scene_cache import file_sha256
 from ..rollout import DEFAULT_TOP_K, rollout
+from ..rollout.persistence import DEFAULT_PERSISTENCE
 from ..version import __version__
 from .arguments import (bounded_int, collision_avoidance_flag, device, output_dir, output_file, reader_formats, rollouts, seed,
-                        lights_option, precision_option, stop_lines_flag, temperature, top_k)
+                        lights_option, persistence_option, precision_option, stop_lines_flag, temperature, top_k)
 
 POLICY_CHOICES = ("constant_velocity", "log_replay", "random", "prior")
 WOSAC_ROLLOUTS = 32
@@ -105,6 +106,7 @@ def register(subparsers) -> None:
     collision_avoidance_flag(p, "--policy prior")
     stop_lines_flag(p, "--policy prior")
     lights_option(p, "current")
+    persistence_option(p, "--policy prior")
     precision_option(p, "--policy prior")
     p.add_argument("--rollouts", type=rollouts, default=32, help="rollouts per scene for --policy (default 32)")
     p.add_argument("--seed", type=seed, default=0, help="random seed for --policy (default 0)")
@@ -285,24 +287,25 @@ def _rollouts_of(args, scenario, scene, submitted, models: dict):
         rollouts = prior_rollouts(models["prior"], scenario, args.rollouts, args.seed, args.device,
                                   DEFAULT_TOP_K if args.top_k is None else args.top_k, args.temperature or 1.0,
                                   avoid_collisions=args.avoid_collisions, stop_lines=args.stop_lines, lights=args.lights,
-                                  precision=args.precision)
+                                  precision=args.precision, persistence=args.persistence)
         return rollouts, f"--policy prior ({args.checkpoint or 'embedded'})"
     return policy_rollouts(args.policy, scenario, args.rollouts, args.seed), f"--policy {args.policy}"
 
 
 def prior_rollouts(prior, scenario, num_rollouts: int, seed: int, device: str = "cpu", top_k: int = DEFAULT_TOP_K,
                    temperature: float = 1.0, avoid_collisions: bool = True, stop_lines: bool = True, lights: str = "current",
-                   precision: str = "float32"):
+                   precision: str = "float32", persistence: float = DEFAULT_PERSISTENCE):
     """WOSAC rollouts of one scene by the SMART prior (top-k sampling, ``top_k`` 0: the whole
     distribution; collision-aware unless ``avoid_collisions`` is False; ``stop_lines`` and ``lights``: the engine's,
     by default traffic control with the lights known up to the current frame; ``precision``: the model's arithmetic,
-    :mod:`smart_marl.model.precision`): 16 token steps (80 frames)
+    :mod:`smart_marl.model.precision`; ``persistence``: the vehicles' speed persistence,
+    :mod:`smart_marl.rollout.persistence`): 16 token steps (80 frames)
     of every agent valid at the current frame (the engine simulates vehicles, pedestrians and
     cyclists and moves agents of type OTHER at constant velocity), as
     :class:`~smart_marl.metrics.inputs.Rollouts`."""
     result = rollout(prior, scenario, num_rollouts=num_rollouts, num_steps=16, seed=seed, device=device, top_k=top_k,
                      temperature=temperature, avoid_collisions=avoid_collisions, stop_lines=stop_lines, lights=lights,
-                     precision=precision)
+                     precision=precision, persistence=persistence)
     agents = np.flatnonzero(result.has_trajectory[0])
     return Rollouts.from_source(result.agent_ids[0, agents], result.trajectory[:, agents], scenario.frame)
 
@@ -354,7 +357,7 @@ def _run_config(args, paths: list[str], shard: Shard) -> dict:
             source.update(checkpoint={k: file_sha256(files[k]) for k in ("meta", "weights")},
                           top_k=DEFAULT_TOP_K if args.top_k is None else args.top_k,
                           temperature=args.temperature or 1.0, avoid_collisions=args.avoid_collisions,
-                          stop_lines=args.stop_lines, lights=args.lights)
+                          stop_lines=args.stop_lines, lights=args.lights, persistence=args.persistence)
             if args.precision != "float32":  # absent in float32: runs started before the option keep their identity
                 source["precision"] = args.precision
     config = {"smart_marl": __version__, "scenes": input_digest(paths), "format": args.format, "rules": args.rules,

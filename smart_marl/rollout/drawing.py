@@ -26,6 +26,7 @@ import torch
 from ..tokens import FRAMES_PER_TOKEN
 from .avoidance import excluded_tokens
 from .frames import token_frames
+from .persistence import tilted
 from .sampling import sample_tokens
 from .stop_lines import stop_line_test
 
@@ -74,13 +75,15 @@ def check_forced(state, forced_tokens: torch.Tensor, later: bool = False) -> tor
 
 def draw_tokens(state, forced_tokens: torch.Tensor | None) -> Draw:
     """The step's draw (module docstring): top-k sampling with the state's temperature and generator, tokens
-    excluded by collision-aware sampling and the stop lines where they are on."""
+    excluded by collision-aware sampling and the stop lines where they are on, vehicles' logits tilted by speed
+    persistence (:mod:`~smart_marl.rollout.persistence`; the log-probabilities are the model's)."""
     logits = state.logits()
     g, n = state.num_groups, state.num_slots
     sim = state.simulated
     rows = sim.reshape(-1).nonzero().squeeze(1)
     forced_rows = forced_tokens.reshape(-1)[rows] if forced_tokens is not None else None
     row_logits = logits.reshape(g * n, -1).index_select(0, rows)  # (index_select: 2.5x faster than logits[rows] on the CPU)
+    model_logits, row_logits = row_logits, tilted(state, rows, row_logits)  # ranked and sampled tilted, scored as the model's
     v, k = row_logits.shape[1], state.top_k
     # the top k + 1, ranked once for the collision check and the sampler (both read them)
     top = torch.topk(row_logits, k + 1, dim=-1) if 0 < k < v and (state.avoid_collisions or state.temperature == 1.0) else None
@@ -109,7 +112,7 @@ def draw_tokens(state, forced_tokens: torch.Tensor | None) -> Draw:
     # forced-later rows take a placeholder (token 0, in every type's vocabulary) until their token is given
     given = None if forced_rows is None else torch.where(forced_rows == FORCED_LATER, torch.zeros_like(forced_rows), forced_rows)
     tokens, log_probs = sample_tokens(row_logits, state.generator, state.top_k, state.temperature, given, exclude,
-                                      None if top is None else (top.values, top.indices), state.log_probs_of)
+                                      None if top is None else (top.values, top.indices), state.log_probs_of, scored=model_logits)
     forced = forced_tokens if forced_tokens is not None else torch.full((g, n), -1, dtype=torch.long, device=state.device)
     return Draw(logits=logits, forced=forced, rows=rows, tokens=tokens, log_probs=log_probs)
 

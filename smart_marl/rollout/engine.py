@@ -60,12 +60,14 @@ from ..model.batch import light_codes, scene_road
 from ..model.checkpoint import load_prior
 from ..model.motionnet import NUM_MOTION_TYPES
 from ..model.precision import check_precision, inference_model
+from ..padding import pad_stack
 from ..scenario import DT_S, Scenario
 from ..tokens import FRAMES_PER_TOKEN, MOTION_TYPES, MotionVocabulary
 from ..tokens.road import RoadVocabulary
 from .drawing import Draw, check_forced, complete, draw_tokens
 from .frames import INTERPOLATIONS, token_frames
 from .history import scene_history
+from .persistence import DEFAULT_PERSISTENCE, check_persistence, mean_speed, speed_before_history, token_speeds
 from .sampling import DEFAULT_TOP_K
 from .stop_lines import (lights_at, logged_light_steps, served_after_step, stood_after_step, stood_in_history, stop_line_tensors,
                          token_ends)
@@ -83,13 +85,6 @@ at its own current frame)."""
 def _dummy_road_vocab() -> RoadVocabulary:
     """Rollouts do not read road token ids (RoadNet embeds the pieces' points): a 1-token stand-in."""
     return RoadVocabulary(points=np.zeros((1, 11, 2), np.float32), tolerance_m=0.0, requested_size=1)
-
-
-def _pad_stack(arrays: list[np.ndarray], size: tuple[int, ...], fill=0) -> np.ndarray:
-    out = np.full((len(arrays), *size), fill, dtype=arrays[0].dtype)
-    for i, a in enumerate(arrays):
-        out[(i, *[slice(0, k) for k in a.shape])] = a
-    return out
 
 
 # ------------------------------------------------------------------------------------ state
@@ -143,7 +138,7 @@ class RolloutState:
     def __init__(self, model, vocab: MotionVocabulary, scenes: Sequence[Scenario], num_rollouts: int, seed: int, top_k: int,
                  temperature: float, device, mode: str, road_vocab: RoadVocabulary | None = None,
                  interpolation: str = "spline", avoid_collisions: bool = True, lights: str = "current",
-                 stop_lines: bool = True) -> None:
+                 stop_lines: bool = True, persistence: float = DEFAULT_PERSISTENCE) -> None:
         if lights not in LIGHTS:
             raise ValueError(f"lights must be one of {LIGHTS}, got {lights!r}")
         self.lights = lights
@@ -155,6 +150,7 @@ class RolloutState:
         self.scenes = list(scenes)
         self.top_k, self.temperature = int(top_k), float(temperature)
         self.avoid_collisions, self.stop_lines, self.log_probs_of = bool(avoid_collisions), bool(stop_lines), "all"
+        self.persistence = check_persistence(persistence)  # speed persistence (:mod:`~smart_marl.rollout.persistence`)
         self.device = torch.device(device)
         self.generator = torch.Generator(device=self.device).manual_seed(int(seed))
         self.num_rollouts = r = int(num_rollouts)
@@ -170,16 +166,16 @@ class RolloutState:
             pad = s - a.shape[1]
             return np.concatenate([np.full((a.shape[0], pad, *a.shape[2:]), fill, a.dtype), a], 1) if pad else a
         rep = lambda a: torch.from_numpy(np.repeat(a, r, axis=0)).to(dev)  # noqa: E731  (B, ...) -> (G, ...)
-        self.track_index = rep(_pad_stack([h.track_index for h in hists], (n,), -1))
-        self.agent_type = rep(_pad_stack([h.agent_type for h in hists], (n,), 0))
-        self.agent_shape = rep(_pad_stack([h.agent_shape for h in hists], (n, 3)))
-        self.simulated = rep(_pad_stack([h.simulated for h in hists], (n,), False))
-        hist_tokens = rep(_pad_stack([right(h.tokens) for h in hists], (n, s)))
-        hist_valid = rep(_pad_stack([right(h.valid, False) for h in hists], (n, s), False))
-        hist_start = rep(_pad_stack([right(h.start_pose) for h in hists], (n, s, 3)))
-        hist_end = rep(_pad_stack([right(h.end_pose) for h in hists], (n, s, 3)))
+        self.track_index = rep(pad_stack([h.track_index for h in hists], (n,), -1))
+        self.agent_type = rep(pad_stack([h.agent_type for h in hists], (n,), 0))
+        self.agent_shape = rep(pad_stack([h.agent_shape for h in hists], (n, 3)))
+        self.simulated = rep(pad_stack([h.simulated for h in hists], (n,), False))
+        hist_tokens = rep(pad_stack([right(h.tokens) for h in hists], (n, s)))
+        hist_valid = rep(pad_stack([right(h.valid, False) for h in hists], (n, s), False))
+        hist_start = rep(pad_stack([right(h.start_pose) for h in hists], (n, s, 3)))
+        hist_end = rep(pad_stack([right(h.end_pose) for h in hists], (n, s, 3)))
         ids = [np.where(h.track_index >= 0, sc.tracks.ids[h.track_index], -1) for h, sc in zip(hists, self.scenes)]
-        self.agent_ids = rep(_pad_stack(ids, (n,), -1))
+        self.agent_ids = rep(pad_stack(ids, (n,), -1))
         self.num_groups, self.num_slots, self.num_history_steps = len(self.scenes) * r, n, s
         self.scene_of_group = torch.arange(len(self.scenes), device=dev).repeat_interleave(r)
         # ---- road: pieces per scene, encoded once per scene
@@ -188,16 +184,16 @@ class RolloutState:
         rmax = max(max(len(rd.token) for rd in roads), 1)
         p = cfg.road_piece_points
         t = lambda a: torch.from_numpy(a).to(dev)  # noqa: E731
-        self.road_pose = t(_pad_stack([rd.pose.astype(np.float32) for rd in roads], (rmax, 3)))
-        self.road_valid = t(_pad_stack([np.ones(len(rd.token), bool) for rd in roads], (rmax,), False))
-        self.road_points = t(_pad_stack([rd.local.astype(np.float32).reshape(-1, p, 2) for rd in roads], (rmax, p, 2)))
-        self.road_type = t(_pad_stack([rd.type_id for rd in roads], (rmax,)))
-        self.road_light = t(_pad_stack([rd.light for rd in roads], (rmax,)))
+        self.road_pose = t(pad_stack([rd.pose.astype(np.float32) for rd in roads], (rmax, 3)))
+        self.road_valid = t(pad_stack([np.ones(len(rd.token), bool) for rd in roads], (rmax,), False))
+        self.road_points = t(pad_stack([rd.local.astype(np.float32).reshape(-1, p, 2) for rd in roads], (rmax, p, 2)))
+        self.road_type = t(pad_stack([rd.type_id for rd in roads], (rmax,)))
+        self.road_light = t(pad_stack([rd.light for rd in roads], (rmax,)))
         self.scene_clock = torch.zeros(len(self.scenes), dtype=torch.long, device=dev)  # token steps each scene has run
         steps = max(logged_light_steps(sc) for sc in self.scenes) if lights == "log" else 1
         self.road_light_steps = None  # [B, S, R] the pieces' light codes on each logged token step (lights="log")
         if lights == "log":
-            self.road_light_steps = t(_pad_stack([np.stack([light_codes(sc.traffic_lights, rd.light_index, sc.current_frame + FRAMES_PER_TOKEN * k)
+            self.road_light_steps = t(pad_stack([np.stack([light_codes(sc.traffic_lights, rd.light_index, sc.current_frame + FRAMES_PER_TOKEN * k)
                                                              for k in range(steps)]) for sc, rd in zip(self.scenes, roads)], (steps, rmax)))
         self.light_config = self.light_config_steps = self.road_x_configs = None
         if lights == "log":
@@ -211,6 +207,7 @@ class RolloutState:
         for k, tt in enumerate(MOTION_TYPES):
             tp[k, : vocab[tt].size] = torch.from_numpy(vocab[tt].poses)
         self.token_poses = tp.to(dev)
+        self.token_speeds = token_speeds(self.token_poses)  # [types, Vmax] m/s
         # ---- stop lines (:mod:`~smart_marl.rollout.stop_lines`): per scene, and the stop sign each slot has served
         self.stop_xy = self.stop_dir = self.stop_group = self.stop_sign = self.stop_valid = None
         self.stop_red = self.stop_go = self.stop_turn_red = self.stop_red_steps = self.stop_go_steps = self.stop_turn_red_steps = None
@@ -227,6 +224,7 @@ class RolloutState:
         self.history = [hist_tokens, hist_valid, hist_start, hist_end]  # grows by one step per token step (full mode)
         self.pose = hist_end[:, :, -1].clone()  # (G, N, 3) where each slot's next token starts
         self.previous_pose = torch.where(hist_valid[:, :, -1, None], hist_start[:, :, -1], self.pose)  # 0.5 s before it
+        self.speed_before = speed_before_history(hist_valid, hist_start, hist_end)  # the token before the current one's
         self.step_index = 0
         self._logits: torch.Tensor | None = None
         self._ahead: Draw | None = None  # the next step's tokens drawn ahead (draw_ahead)
@@ -243,7 +241,7 @@ class RolloutState:
     def start(cls, model, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 1, seed: int = 0, top_k: int = DEFAULT_TOP_K,
               temperature: float = 1.0, device="cpu", mode: str = "cached", motion_vocab: MotionVocabulary | None = None,
               interpolation: str = "spline", avoid_collisions: bool = True, lights: str = "current",
-              stop_lines: bool = True, precision: str = "float32") -> "RolloutState":
+              stop_lines: bool = True, precision: str = "float32", persistence: float = DEFAULT_PERSISTENCE) -> "RolloutState":
         """Tokenize the scenes' histories and run them through the model. ``model``: anything
         :func:`~smart_marl.model.checkpoint.load_prior` takes (a SMART model, a Checkpoint, a Prior, a checkpoint path or
         ``"embedded"``); ``motion_vocab`` overrides the vocabulary used to tokenize the history and place tokens (by
@@ -253,7 +251,9 @@ class RolloutState:
         ``stop_lines`` (default True; False: the prior alone): vehicles do not draw tokens after which they could not
         stop before a red light's or a stop sign's line ahead, and a standing vehicle whose light turned green, whose
         stop sign it has served or whose leader drives off does not draw the tokens that leave it standing
-        (:mod:`~smart_marl.rollout.stop_lines`); ``precision``: ``"float32"`` or ``"bfloat16"`` (:mod:`~smart_marl.model.precision`)."""
+        (:mod:`~smart_marl.rollout.stop_lines`); ``precision``: ``"float32"`` or ``"bfloat16"`` (:mod:`~smart_marl.model.precision`);
+        ``persistence`` (default :data:`~smart_marl.rollout.persistence.DEFAULT_PERSISTENCE`, 0: off): a vehicle's
+        draw leans toward going on with the change of speed it is in (:mod:`~smart_marl.rollout.persistence`)."""
         check_precision(precision)
         m, vocab = load_prior(model, device)
         m = inference_model(m, precision)  # the model itself in float32, its bfloat16 copy (made once) in bfloat16
@@ -261,7 +261,7 @@ class RolloutState:
         if not scenes:
             raise ValueError("no scenes to roll out")
         return cls(m, motion_vocab or vocab, scenes, num_rollouts, seed, top_k, temperature, device, mode, interpolation=interpolation,
-                   avoid_collisions=avoid_collisions, lights=lights, stop_lines=stop_lines)
+                   avoid_collisions=avoid_collisions, lights=lights, stop_lines=stop_lines, persistence=persistence)
 
     # ------------------------------------------------------------------------------ accessors
     @property
@@ -441,6 +441,7 @@ class RolloutState:
                                                                       self.previous_pose.reshape(-1, 3)[rows], self.interpolation)
         new_pose = placed[:, :, -1].clone()
         start = self.pose
+        self.speed_before = torch.where(sim, mean_speed(self.pose, self.previous_pose), self.speed_before)
         self.previous_pose = torch.where(sim[..., None], self.pose, self.previous_pose)
         self._pending = (tokens.clamp(min=0), start, new_pose, sim.clone())
         if self.mode == "full":
@@ -498,13 +499,15 @@ class RolloutResult:
 def rollout(model_or_checkpoint, scenes: Scenario | Sequence[Scenario], num_rollouts: int = 32, num_steps: int = 16,
             top_k: int = DEFAULT_TOP_K, temperature: float = 1.0, seed: int = 0, device="cpu", mode: str = "cached",
             motion_vocab: MotionVocabulary | None = None, interpolation: str = "spline", avoid_collisions: bool = True,
-            lights: str = "current", stop_lines: bool = True, precision: str = "float32") -> RolloutResult:
+            lights: str = "current", stop_lines: bool = True, precision: str = "float32",
+            persistence: float = DEFAULT_PERSISTENCE) -> RolloutResult:
     """Generate ``num_rollouts`` joint futures of ``num_steps`` tokens (0.5 s each) for every scene
     in one batch (see the module docstring). Same seed, same rollouts (on the CPU). ``lights``: :data:`LIGHTS`;
-    ``stop_lines``, ``precision``: :meth:`RolloutState.start`."""
+    ``stop_lines``, ``precision``, ``persistence``: :meth:`RolloutState.start`."""
     state = RolloutState.start(model_or_checkpoint, scenes, num_rollouts=num_rollouts, seed=seed, top_k=top_k, temperature=temperature,
                                device=device, mode=mode, motion_vocab=motion_vocab, interpolation=interpolation,
-                               avoid_collisions=avoid_collisions, lights=lights, stop_lines=stop_lines, precision=precision)
+                               avoid_collisions=avoid_collisions, lights=lights, stop_lines=stop_lines, precision=precision,
+                               persistence=persistence)
     outs = state.run(num_steps)
     return collect_result(state, outs)
 

@@ -26,7 +26,7 @@ from ..padding import grow, put_rows
 from .engine import RolloutState
 
 _PER_GROUP = {"track_index": -1, "agent_type": 0, "agent_shape": 0.0, "simulated": False, "agent_ids": -1, "pose": 0.0,
-              "previous_pose": 0.0}
+              "previous_pose": 0.0, "speed_before": float("nan")}
 _PER_SCENE = {"road_pose": 0.0, "road_valid": False, "road_points": 0.0, "road_type": 0, "road_light": 0, "road_x": 0.0}
 _STOP_LINES = {"stop_xy": 0.0, "stop_dir": float("nan"), "stop_group": 0, "stop_sign": False, "stop_red": False,
                "stop_go": False, "stop_turn_red": False, "stop_valid": False}

@@ -52,7 +52,7 @@ def any_rows(mask: torch.Tensor) -> torch.Tensor:
 def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int = DEFAULT_TOP_K, temperature: float = 1.0,
                   forced: torch.Tensor | None = None, exclude: torch.Tensor | None = None,
                   top: tuple[torch.Tensor, torch.Tensor] | None = None,
-                  log_probs_of: str = "all") -> tuple[torch.Tensor, torch.Tensor]:
+                  log_probs_of: str = "all", scored: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Top-k sampling with renormalised probabilities.
 
     logits [..., V] (``-inf`` for tokens outside the agent's vocabulary; a row must have at
@@ -63,7 +63,9 @@ def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int =
     ``torch.topk(logits, top_k + 1)`` [M, k + 1] where the caller has it (read, at temperature 1, instead
     of ranking again; rows with equal values among them are ranked again, so the draw is the same).
     ``log_probs_of``: ``"all"`` rows, or ``"forced"`` rows only (the others' log-probability is 0; the
-    ``log_softmax`` over [M, V] is the sampler's largest cost after ranking).
+    ``log_softmax`` over [M, V] is the sampler's largest cost after ranking). ``scored``: the logits [..., V] the
+    log-probabilities are of, when the draw ranks and samples from other ones (default: ``logits``; speed persistence,
+    :mod:`~smart_marl.rollout.persistence`, tilts what is sampled and reports the model's log-probabilities).
     """
     if temperature <= 0:
         raise ValueError(f"temperature must be > 0, got {temperature}")
@@ -92,6 +94,8 @@ def sample_tokens(logits: torch.Tensor, generator: torch.Generator, top_k: int =
     if forced is not None:
         f = forced.reshape(-1).to(tokens.device)
         tokens = torch.where(f >= 0, f, tokens)
+    if scored is not None and scored is not logits:
+        flat = scored.reshape(-1, v) if temperature == 1.0 else scored.reshape(-1, v) / temperature
     if log_probs_of == "all":
         log_probs = torch.log_softmax(flat, dim=-1).gather(1, tokens[:, None]).squeeze(1)
     else:  # the forced rows', row by row: the same values as over every row
