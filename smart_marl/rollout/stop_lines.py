@@ -58,6 +58,7 @@ import torch
 
 from ..model.batch import stop_sign_lanes
 from ..scenario import Scenario, SignalState
+from .persistence import mean_speed
 
 STOP_DECEL_MPS2 = 3.0
 """The deceleration a vehicle may need after a token to stop before an active line (m/s2)."""
@@ -264,7 +265,7 @@ def green_line_goes(state) -> torch.Tensor:
 
 def _speed_mps(pose: torch.Tensor, previous_pose: torch.Tensor) -> torch.Tensor:
     """[...] the speed over the last token (0.5 s) from the poses [..., 3]; 0 where there is no previous pose."""
-    return torch.nan_to_num((pose[..., :2] - previous_pose[..., :2]).norm(dim=-1) / 0.5, nan=0.0)
+    return torch.nan_to_num(mean_speed(pose, previous_pose), nan=0.0)
 
 
 def _standing(state, g: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
