@@ -13,9 +13,11 @@ Rows:
   scenes over the shared real scenes (``benchmarks/env_throughput.py``'s setup and timing);
 * ``eval``: seconds per scene of ``smart-marl eval``'s rollouts (the embedded prior, 32 rollouts x 8 s) of the two
   shared WOMD tfrecord scenes;
-* ``train``: smart-1m trained ``--train-steps`` steps from one initialisation on the shared real scenes (two a
-  batch), tokens/s, and the validation loss after those steps on scenes it never trained on, computed in float32
-  for both runs.
+* ``train``: smart-1m and smart-7m (``--train-models``) trained ``--train-steps`` steps from one initialisation on
+  the shared real scenes (two a batch), tokens/s, and the validation loss after those steps on scenes it never
+  trained on, computed in float32 for both runs. The process keeps freed memory as ``smart-marl train`` does
+  (:func:`smart_marl.cpu_memory.keep_freed_memory`); bfloat16 on the CPU trains a bfloat16 working copy of the
+  float32 weights (:func:`smart_marl.model.precision.training_copy`), as ``smart-marl train`` does.
 
     .venv/bin/python benchmarks/precision.py [--repeats 3] [--threads 2] [--device cpu] [--skip train,eval]
 
@@ -125,6 +127,13 @@ def eval_rollouts(args, common) -> list[dict]:
 
 
 def train(args, common) -> list[dict]:
+    rows = []
+    for name in args.train_models.split(","):
+        rows += train_model(args, common, name)
+    return rows
+
+
+def train_model(args, common, name: str) -> list[dict]:
     import numpy as np
 
     import env_throughput as et
@@ -137,11 +146,14 @@ def train(args, common) -> list[dict]:
     from smart_marl.tokens.road import RoadVocabulary, road_pieces
     from smart_marl.train import DistInfo, evaluate_sums, finish_metrics, load_train_config, make_optimizer, make_scheduler, train_step
 
+    from smart_marl.cpu_memory import keep_freed_memory
+
+    keep_freed_memory()  # as `smart-marl train` does
     device = torch.device(args.device)
     scenes = et.real_scenes()
     n_val = max(2, len(scenes) // 4)
     train_scenes, val_scenes = scenes[:-n_val], scenes[-n_val:]
-    cfg = get_config("smart-1m", dropout=0.0)
+    cfg = get_config(name, dropout=0.0)
     snippets, _ = collect_snippets(train_scenes)
     snippets = {k: (v if len(v) else snippets[AgentType.VEHICLE]) for k, v in snippets.items()}
     mv = uniform_grid_vocabulary({AgentType(k): v for k, v in snippets.items()}, {AgentType(t): cfg.motion_vocab_sizes[t] for t in range(3)})
@@ -153,7 +165,7 @@ def train(args, common) -> list[dict]:
     arrays = [scene_tensors(s, mv, scene_road(s, rv), noise_topk=5, rng=i, road_keep_radius_m=keep) for i, s in enumerate(train_scenes)]
     batches = [collate_scenes(arrays[i:i + 2]) for i in range(0, len(arrays) - 1, 2)]
     val = [collate_scenes([scene_tensors(s, mv, scene_road(s, rv), road_keep_radius_m=keep)]) for s in val_scenes]
-    tcfg = load_train_config("smart-1m", {"max_steps": args.train_steps})
+    tcfg = load_train_config(name, {"max_steps": args.train_steps})
     state = {}
     for p in PRECISIONS:
         torch.manual_seed(0)
@@ -178,7 +190,7 @@ def train(args, common) -> list[dict]:
         s["model"].eval()
         with torch.no_grad():
             metrics = finish_metrics(evaluate_sums(s["model"], val, device, 0.0, amp=False, precision="float32"))
-        rows.append(dict(row="train", model="smart-1m", precision=p, steps=args.train_steps, tokens_per_s=round(s["tokens"] / s["seconds"], 1),
+        rows.append(dict(row="train", model=name, precision=p, steps=args.train_steps, tokens_per_s=round(s["tokens"] / s["seconds"], 1),
                          val_motion_loss=round(float(metrics["motion_loss"]), 5), val_scenes=len(val), train_scenes=len(train_scenes),
                          **common))
         emit(**rows[-1])
@@ -192,6 +204,7 @@ def main() -> int:
     p.add_argument("--device", default="cpu")
     p.add_argument("--agents", type=int, default=128)
     p.add_argument("--train-steps", type=int, default=40)
+    p.add_argument("--train-models", default="smart-1m,smart-7m", help="comma-separated model sizes of the train row")
     p.add_argument("--skip", default="", help="comma-separated rows to leave out: cached_step,batched_env,eval,train")
     args = p.parse_args()
     torch.set_num_threads(args.threads)

@@ -48,7 +48,7 @@ from .model.batch import SmartBatch, collate_scenes
 from .model.checkpoint import (CheckpointError, VocabularyMismatchError, checkpoint_paths, load_checkpoint, load_train_state,
                                save_checkpoint)
 from .model.losses import NextTokenLoss, summarise
-from .model.precision import autocast
+from .model.precision import autocast, return_gradients, training_copy, uses_training_copy
 from .model.smart import SMART, SmartConfig, get_config
 from .runlog import RunLog
 from .scenario import Scenario
@@ -183,10 +183,16 @@ def train_step(loss_module: torch.nn.Module, optimizer: torch.optim.Optimizer, s
     if info.enabled:
         dist.all_reduce(counts)
     norms = (counts / info.world_size).clamp(min=1.0 / info.world_size)
-    with autocast(precision, device, amp):  # smart_marl.model.precision decides
-        out = loss_module(batch, motion_normaliser=norms[0], road_normaliser=norms[1])
     optimizer.zero_grad(set_to_none=True)
-    out["loss"].backward()
+    if uses_training_copy(precision, device, info.enabled):  # smart_marl.model.precision decides
+        work = training_copy(loss_module)
+        out = work(batch, motion_normaliser=norms[0], road_normaliser=norms[1])
+        out["loss"].backward()
+        return_gradients(loss_module, work)
+    else:
+        with autocast(precision, device, amp):
+            out = loss_module(batch, motion_normaliser=norms[0], road_normaliser=norms[1])
+        out["loss"].backward()
     grad_norm = torch.nn.utils.clip_grad_norm_(loss_module.parameters(), grad_clip) if grad_clip and grad_clip > 0 else torch.zeros(())
     bad = (~torch.isfinite(out["loss"].detach().float()) | ~torch.isfinite(grad_norm.detach().float())).float().reshape(1)
     if info.enabled:  # every rank stops, or none

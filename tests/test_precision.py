@@ -1,7 +1,8 @@
 """The arithmetic precision option (smart_marl.model.precision): bfloat16 inference keeps what must stay float32 in
 float32 and picks the same top token as float32 on at least 99% of a real scene's teacher-forced steps; every
-surface that takes ``precision`` refuses an unknown one by name; bfloat16 training autocasts and keeps float32
-weights. (Speed and realism side by side: benchmarks/precision.py, docs/model_card.md.)"""
+surface that takes ``precision`` refuses an unknown one by name; bfloat16 training on the CPU runs a bfloat16
+working copy and keeps float32 weights, its gradients close to float32's; the rows padded for oneDNN change none of
+the rows given. (Speed and realism side by side: benchmarks/precision.py, docs/model_card.md.)"""
 
 from __future__ import annotations
 
@@ -116,21 +117,102 @@ def test_every_surface_refuses_an_unknown_precision_by_name(tmp_path, capsys):
         assert code == 2 and "--precision" in err and "half" in err, (argv, err)
 
 
-def test_bfloat16_training_autocasts_and_keeps_float32_weights(prior):
+def _training_setup(prior):
     from smart_marl.model.losses import NextTokenLoss
-    from smart_marl.train import DistInfo, load_train_config, make_optimizer, make_scheduler, train_step
+    from smart_marl.train import load_train_config, make_optimizer, make_scheduler
 
-    scene = next(iter(read_scenarios(SHARED / SCENES[0]))) if (SHARED / SCENES[0]).is_file() else None
-    if scene is None:
+    if not (SHARED / SCENES[0]).is_file():
         pytest.skip("no shared WOMD scene")
+    scene = next(iter(read_scenarios(SHARED / SCENES[0])))
     batch = collate_scenes([scene_tensors(scene, prior.motion_vocab, scene_road(scene, prior.road_vocab), rng=0)])
     model = load_checkpoint(resolve_checkpoint_path(EMBEDDED)).model.train()
-    module = NextTokenLoss(model, 0.1)
-    cfg = load_train_config("smart-1m", {"max_steps": 10, "precision": "bfloat16"})
+    cfg = load_train_config("smart-1m", {"max_steps": 10, "precision": "bfloat16", "dropout": 0.0})
     opt = make_optimizer(model, cfg)
+    return batch, model, NextTokenLoss(model, 0.1), opt, make_scheduler(opt, cfg)
+
+
+def _gradients(module, batch, precision):
+    """Every parameter's gradient [P] of one step's loss (no optimizer step), at ``precision``."""
+    from smart_marl.model.precision import return_gradients, training_copy
+
+    module.zero_grad(set_to_none=True)
+    torch.manual_seed(0)
+    work = training_copy(module) if precision == "bfloat16" else module
+    work(batch, motion_normaliser=1000.0, road_normaliser=1000.0)["loss"].backward()
+    if work is not module:
+        return_gradients(module, work)
+    return torch.cat([p.grad.reshape(-1) for p in module.parameters() if p.grad is not None])
+
+
+def test_bfloat16_training_on_the_cpu_steps_float32_weights_with_a_bfloat16_working_copy(prior):
+    from smart_marl.model.precision import training_copy
+    from smart_marl.train import DistInfo, train_step
+
+    batch, model, module, opt, sched = _training_setup(prior)
     before = {k: v.clone() for k, v in model.state_dict().items()}
-    out = train_step(module, opt, make_scheduler(opt, cfg), batch, 1.0, DistInfo(), torch.device("cpu"), amp=False,
-                     precision="bfloat16")
+    out = train_step(module, opt, sched, batch, 1.0, DistInfo(), torch.device("cpu"), amp=False, precision="bfloat16")
     assert torch.isfinite(torch.tensor(out["loss"])) and out["grad_norm"] > 0
-    assert all(p.dtype == torch.float32 for p in model.parameters())
+    assert all(p.dtype == torch.float32 for p in model.parameters())  # the optimizer's weights and state stay float32
+    assert all(v.dtype == torch.float32 for st in opt.state.values() for v in st.values() if v.is_floating_point())
     assert any(not torch.equal(before[k], v) for k, v in model.state_dict().items())
+    work = training_copy(module)  # the same copy, loaded with the weights after the step
+    assert training_copy(module) is work
+    for (name, w), m in zip(work.named_parameters(), module.parameters()):
+        want = torch.float32 if name.rsplit(".", 1)[-1] in FLOAT32_PARAMETERS else torch.bfloat16
+        assert w.dtype == want, name
+        assert torch.equal(w.float(), m.to(want).float()), name
+
+
+def test_bfloat16_gradients_point_where_the_float32_ones_do(prior):
+    batch, model, module, _, _ = _training_setup(prior)
+    module.eval()  # no dropout: the padded rows would draw other masks
+    fp32, bf16 = _gradients(module, batch, "float32"), _gradients(module, batch, "bfloat16")
+    assert bf16.dtype == torch.float32 and bool(torch.isfinite(bf16).all())
+    cosine = float(torch.nn.functional.cosine_similarity(fp32, bf16, dim=0))
+    assert cosine > 0.99, cosine
+    assert 0.9 < float(bf16.norm() / fp32.norm()) < 1.1
+
+
+def test_a_distributed_or_gpu_run_autocasts_instead():
+    from smart_marl.model.precision import uses_training_copy
+
+    assert uses_training_copy("bfloat16", "cpu")
+    assert not uses_training_copy("float32", "cpu")
+    assert not uses_training_copy("bfloat16", "cpu", distributed=True)
+    assert not uses_training_copy("bfloat16", "cuda")
+    with pytest.raises(PrecisionError, match="precision"):
+        uses_training_copy("half", "cpu")
+
+
+def test_bucketed_row_counts_are_few_and_waste_at_most_an_eighth():
+    from smart_marl.model.precision import bucket_rows
+
+    sizes = [bucket_rows(n) for n in range(1, 200_001)]
+    assert all(b >= n for n, b in zip(range(1, 200_001), sizes))
+    assert all(b <= max(16, n * 1.125) for n, b in zip(range(1, 200_001), sizes))
+    assert len(set(sizes)) <= 8 * 15  # eight a doubling
+    assert sizes[16 - 1] == 16 and sizes[1000 - 1] == 1024 and sizes[1025 - 1] == 1152
+
+
+def test_padded_bfloat16_products_give_the_unpadded_rows(prior):
+    """The padding (rows appended, cut off again) changes no row: the MLPs, the Fourier embeddings and the
+    attention of a bfloat16 model against the same layers run on exactly the rows given."""
+    from smart_marl.model.layers import FourierEmbedding, NeighbourAttention
+
+    torch.manual_seed(0)
+    bf16 = inference_model(prior.model, "bfloat16")
+    head = bf16.motion_heads[0]
+    x = torch.randn(1001, head[0].in_features, dtype=torch.bfloat16)
+    unpadded = torch.nn.Sequential.forward(head, x)
+    assert torch.allclose(head(x).float(), unpadded.float(), atol=1e-2, rtol=1e-2)
+    fourier = next(m for m in bf16.modules() if isinstance(m, FourierEmbedding))
+    g = torch.randn(777, fourier.input_dim)
+    assert torch.allclose(fourier(g).float(), fourier._embed_rows(g, None, ()).float(), atol=1e-2, rtol=1e-2)
+    att = next(m for m in bf16.modules() if isinstance(m, NeighbourAttention))
+    q, k, d = 333, 8, att.to_q.in_features
+    x_q = torch.randn(q, d, dtype=torch.bfloat16)
+    index, mask = torch.randint(0, q, (q, k)), torch.rand(q, k) > 0.3
+    rpe = torch.randn(q, k, d, dtype=torch.bfloat16)
+    out = att(x_q, (index, rpe), mask)
+    assert out.shape == (q, d)
+    assert torch.allclose(out.float(), att._attend(x_q, (index, rpe), mask, None).float(), atol=2e-2, rtol=2e-2)

@@ -17,6 +17,7 @@ import torch.nn.functional as F
 
 from ..geometry_torch import squared_length
 from ..scenario import wrap_angle
+from .precision import bucket_rows, pad_rows, pads_rows
 
 
 def relative_pose_features(query_pose: torch.Tensor, key_pose: torch.Tensor) -> torch.Tensor:
@@ -101,6 +102,13 @@ class FourierEmbedding(nn.Module):
 
     def _embed(self, x: torch.Tensor, categorical: torch.Tensor | None, repeated_dims: tuple[int, ...]) -> torch.Tensor:
         """The embeddings [M, hidden] of rows x [M, D] (categorical [M, hidden] or None)."""
+        m = x.shape[0]
+        if pads_rows(self.w1) and not x.requires_grad:  # rows padded to a known shape (bucket_rows)
+            x, categorical = pad_rows(x, bucket_rows(m)), None if categorical is None else pad_rows(categorical, bucket_rows(m))
+            return self._embed_rows(x, categorical, repeated_dims)[:m]
+        return self._embed_rows(x, categorical, repeated_dims)
+
+    def _embed_rows(self, x: torch.Tensor, categorical: torch.Tensor | None, repeated_dims: tuple[int, ...]) -> torch.Tensor:
         if x.requires_grad or torch.is_autocast_enabled(x.device.type):
             h = self._trunk_autograd(x, repeated_dims)
         else:  # the usual case: geometry carries no gradient; hand-written backward, fewer passes over memory
@@ -151,13 +159,16 @@ class _FourierTrunk(torch.autograd.Function):
         saved = []
         for d in range(dims):
             col, inverse = _distinct(x[:, d].contiguous(), d in repeated_dims)  # (U,)
+            if inverse is not None and pads_rows(w1):  # the distinct values padded too (bucket_rows)
+                col = pad_rows(col, bucket_rows(col.shape[0]))
             feat = x.new_empty(col.shape[0], 2 * nf + 1)  # (U, 2F+1) = [cos, sin, x]
             ang = torch.mul(col[:, None], freqs[d]).mul_(2 * math.pi)  # (U, F)
             torch.cos(ang, out=feat[:, :nf])
             torch.sin(ang, out=feat[:, nf:2 * nf])
             feat[:, 2 * nf] = col
             # the phases and their cos/sin in float32 (x's), the products at the weights' precision (.precision)
-            z = torch.addmm(b1[d], feat.to(w1.dtype), w1[d])  # (U, H)
+            feat = feat.to(w1.dtype)  # kept at the weights' precision for the backward too
+            z = torch.addmm(b1[d], feat, w1[d])  # (U, H)
             y, mean, rstd = torch.native_layer_norm(z, [hdim], ln_w, ln_b, eps)
             y.relu_()
             if inverse is None:
@@ -189,9 +200,9 @@ class _FourierTrunk(torch.autograd.Function):
             # z = cos(a) W_c + sin(a) W_s + ..., a = 2 pi x f, so dL/df_j = 2 pi sum_h (W_s[j, h] A[j, h] - W_c[j, h] B[j, h])
             # with A, B = (x cos(a))^T gz, (x sin(a))^T gz: one product as tall as the weight gradient's, where
             # the gradient of the (U, 2F) features would be a (U, H) x (H, 2F) product and two more passes
-            ab = (feat[:, : 2 * nf] * col[:, None]).t() @ gz  # (2F, H) = [A; B]
+            ab = ((feat[:, : 2 * nf] * col[:, None]).to(gz.dtype).t() @ gz).float()  # (2F, H) = [A; B], x float32
             w_c, w_s = w1[d, :nf], w1[d, nf:2 * nf]
-            grads["freqs"].append((w_s * ab[:nf] - w_c * ab[nf:]).sum(-1) * (2 * math.pi))
+            grads["freqs"].append((w_s.float() * ab[:nf] - w_c.float() * ab[nf:]).sum(-1) * (2 * math.pi))
         ctx.saved = None
         g_b2 = g.sum(0).expand(len(grads["w2"]), hdim).contiguous()
         stack = {k: torch.stack(v) for k, v in grads.items()}
@@ -203,7 +214,13 @@ class MLP(nn.Sequential):
     float format (geometry in float32 into a bfloat16 model, :mod:`.precision`) is cast once on the way in."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return super().forward(x.to(self[0].weight.dtype))
+        w = self[0].weight
+        x = x.to(w.dtype)
+        if not pads_rows(w) or x.numel() == 0:
+            return super().forward(x)
+        flat = x.reshape(-1, x.shape[-1])  # rows padded to a known shape (bucket_rows)
+        out = super().forward(pad_rows(flat, bucket_rows(flat.shape[0])))[: flat.shape[0]]
+        return out.reshape(*x.shape[:-1], out.shape[-1])
 
 
 def mlp(in_dim: int, hidden_dim: int, out_dim: int, layers: int = 2) -> MLP:
@@ -537,6 +554,16 @@ class NeighbourAttention(nn.Module):
 
     def forward(self, x_q: torch.Tensor, keys: torch.Tensor | tuple[torch.Tensor, torch.Tensor],
                 mask: torch.Tensor, source: torch.Tensor | None = None) -> torch.Tensor:
+        q = x_q.shape[0]
+        if not pads_rows(self.to_q.weight) or bucket_rows(q) == q:
+            return self._attend(x_q, keys, mask, source)
+        # queries padded to a known shape (bucket_rows) by rows that attend to nothing (their index 0 is in range)
+        pad = lambda t: pad_rows(t, bucket_rows(q))  # noqa: E731
+        keys = tuple(pad(k) for k in keys) if isinstance(keys, tuple) else pad(keys)
+        return self._attend(pad(x_q), keys, pad(mask), source)[:q]
+
+    def _attend(self, x_q: torch.Tensor, keys: torch.Tensor | tuple[torch.Tensor, torch.Tensor],
+                mask: torch.Tensor, source: torch.Tensor | None) -> torch.Tensor:
         n_q = normalise(x_q)  # (Q, d)
         q_in = torch.addcmul(self.norm_q.bias, n_q, self.norm_q.weight)  # norm_q(x_q)
         h, dh = self.num_heads, self.head_dim
