@@ -78,7 +78,8 @@ class TrainConfig:
     seed: int = 0
     device: str = "auto"  # auto: cuda when available
     amp: bool = True  # bf16 autocast on CUDA (the older switch; precision="bfloat16" autocasts on any device)
-    precision: str = "float32"  # "bfloat16": the forward autocast to bfloat16 on CPU and GPU (smart_marl.model.precision)
+    precision: str = "bfloat16"  # mixed precision: a bfloat16 working copy on the CPU, autocast on a GPU; "float32": none
+    # (smart_marl.model.precision; bfloat16 the default since 2026-12-06: 1.15-1.31x the tokens/s on the CPU)
     init: str | None = None  # checkpoint whose weights start the run (fine-tuning)
     tensorboard: bool = True
     progress: bool = True
