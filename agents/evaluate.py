@@ -47,7 +47,7 @@ import numpy as np
 import torch
 
 from envs._core import CoreScene, TrafficCore
-from envs._shield import SHIELD_CHECKS
+from envs._shield import DEFAULT_SHIELD_CHECKS, SHIELD_CHECKS
 from smart_marl.geometry import bearing_deg, first_overlaps
 from smart_marl.metrics import Rollouts, SceneNotScorableError, aggregate, logged_scene, score_rollouts
 from smart_marl.metrics.config import NUM_SIMULATION_STEPS
@@ -108,9 +108,10 @@ def same_environment_policies(policies: Mapping[str, TensorPolicy], shield: Sequ
 
 
 def shield_label(checks: Sequence[str]) -> str:
-    """"on" (every check of :data:`envs._shield.SHIELD_CHECKS`), "off" (none) or the checks joined with "+"."""
+    """"on" (the checks of ``shield=True``, :data:`envs._shield.DEFAULT_SHIELD_CHECKS`), "off" (none) or the checks
+    joined with "+"."""
     checks = tuple(checks)
-    return "off" if not checks else "on" if set(checks) == set(SHIELD_CHECKS) else "+".join(checks)
+    return "off" if not checks else "on" if set(checks) == set(DEFAULT_SHIELD_CHECKS) else "+".join(checks)
 
 
 @contextmanager

@@ -96,7 +96,7 @@ def main() -> int:
 
     from envs._core import TrafficCore
     from envs._pool import ScenePool, next_scenes
-    from envs._shield import SHIELD_CHECKS
+    from envs._shield import DEFAULT_SHIELD_CHECKS
     from smart_marl.model.checkpoint import load_prior
     from smart_marl.tokens import MOTION_TYPES
 
@@ -115,7 +115,7 @@ def main() -> int:
         common["pool_scenes"] = len(pool)
         core = TrafficCore(model, vocab, "prior", args.horizon, terminate_on=(), device=device, prior_cache_size=4096,
                            avoid_collisions=not args.no_collision_avoidance,
-                           **(dict(shield=SHIELD_CHECKS, shield_top_k=3) if args.shield else {}))
+                           **(dict(shield=DEFAULT_SHIELD_CHECKS, shield_top_k=3) if args.shield else {}))
         t0 = time.perf_counter()
         _, scenes = next_scenes(pool, b, args.controlled, args.max_agents, types)
         core.reset(scenes, seed=0, num_agents=args.max_agents)

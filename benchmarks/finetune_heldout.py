@@ -11,6 +11,9 @@ the policy's top-k and at top-3 first, the fine-tuned policy, the expert restric
 shield off: another environment). ``--table`` prints the Markdown table of the rows found, each against the shielded
 prior at the policy's top-k (the policy card's table).
 
+``--shield collision+offroad+gap`` evaluates every row with other shield checks than the policy's (the same for every
+row: one environment).
+
 Resumable: each (set, row) is written to ``RUN_DIR/eval_SET_ROW.json`` as it finishes and read back when found (kill
 it and start it again with the same arguments); ``--only-set`` runs one set, so two processes can share the work.
 
@@ -22,6 +25,7 @@ it and start it again with the same arguments); ``--only-set`` runs one set, so 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -51,6 +55,8 @@ def slug(name: str) -> str:
 
 def table(run_dir: Path, sets: list[str], reference: str) -> str:
     """The Markdown table of the rows under ``run_dir``: one line per (set, row), against ``reference``."""
+    from agents.evaluate import shield_label
+
     bad = lambda r: r["collision_rate"] + r["offroad_rate"]  # noqa: E731
     out = ["| held-out set | policy | shield | collision | front | offroad | coll. + off. vs ref. | goal | goal vs ref. | "
            "realism (meta) | vs ref. |", "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -66,7 +72,7 @@ def table(run_dir: Path, sets: list[str], reference: str) -> str:
         for row_name, result in sorted(rows.items(), key=lambda kv: result_order(kv[0], reference)):
             r = result["metrics"]
             where = f"{name}, {len(result['scenes'])} x {len(result['seeds'])} seeds"
-            out.append(f"| {where} | {row_name} | {'on' if r.get('shield') else 'off'} | {r['collision_rate']:.4f} | "
+            out.append(f"| {where} | {row_name} | {shield_label(r.get('shield') or ())} | {r['collision_rate']:.4f} | "
                        f"{r['front_collision_rate']:.4f} | {r['offroad_rate']:.4f} | {bad(r) / max(bad(base), 1e-9):.2f}x | "
                        f"{r['goal_rate']:.3f} | {r['goal_rate'] / max(base['goal_rate'], 1e-9):.2f}x | {r['meta_metric']:.4f} | "
                        f"{r['meta_metric'] - base['meta_metric']:+.4f} |")
@@ -92,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--num-envs", type=int, default=32, help="episodes stepped together")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--table", action="store_true", help="print the Markdown table of the rows found and exit")
+    p.add_argument("--shield", default=None, help="the shield's checks for every row, joined with '+' (e.g. "
+                   "'collision+offroad+gap'; default: the policy's own)")
     args = p.parse_args(argv)
 
     import torch
@@ -104,6 +112,10 @@ def main(argv: list[str] | None = None) -> int:
     sets = [parse_set(s) for s in args.sets]
     run_dir = Path(args.run_dir)
     cfg, net, meta = ft.load_policy(args.policy)
+    if args.shield is not None:
+        from envs._arguments import shield_checks
+
+        cfg = dataclasses.replace(cfg, shield=shield_checks([c for c in args.shield.split("+") if c]))
     reference = f"prior top-{cfg.reference_top_k}" if cfg.reference_top_k else "prior full softmax"
     if args.table:
         print(table(run_dir, [s[0] for s in sets], reference))

@@ -28,8 +28,8 @@ What each argument takes (the documented meanings):
 * ``lights``: "log" or "current" (:data:`smart_marl.rollout.LIGHTS`);
 * ``persistence``: a finite number >= 0 (:mod:`smart_marl.rollout.persistence`; 0: off);
 * ``precision``: the prior's arithmetic, "float32" or "bfloat16" (:mod:`smart_marl.model.precision`);
-* ``shield``: True (every check of :data:`envs._shield.SHIELD_CHECKS`), False / None / an empty list (none),
-  or a list of check names (a bare string is one name), normalised to a tuple in ``SHIELD_CHECKS`` order;
+* ``shield``: True (the collision and offroad checks, :data:`envs._shield.DEFAULT_SHIELD_CHECKS`), False / None / an
+  empty list (none), or a list of check names of :data:`envs._shield.SHIELD_CHECKS` ("gap" among them) (a bare string is one name), normalised to a tuple in ``SHIELD_CHECKS`` order;
 * ``controlled``: "sdc", "predict", "vehicles", "all", "moving_vehicles", a callable, or a list of track
   ids (integers) and agent names (strings);
 * ``reset(seed)``: None or an integer in 0..2**63 - 1; ``reset(options)``: None or a dict; its key
@@ -56,7 +56,7 @@ from ._dynamics import BACKGROUNDS
 from ._observation import ObservationConfig
 from ._reward import TERMINATION_EVENTS, RewardConfig
 from ._setup import SELECTIONS
-from ._shield import SHIELD_CHECKS
+from ._shield import DEFAULT_SHIELD_CHECKS, SHIELD_CHECKS
 from .errors import EnvConfigError, EnvConfigTypeError
 
 MAX_HORIZON_STEPS = 10_000
@@ -191,7 +191,7 @@ def shield_checks(value: Any) -> tuple[str, ...]:
     if value is None or value is False:
         return ()
     if value is True:
-        return SHIELD_CHECKS
+        return DEFAULT_SHIELD_CHECKS
     names = (value,) if isinstance(value, str) else value
     if not isinstance(names, (list, tuple)):
         raise EnvConfigTypeError(f"shield must be True, False or a list of {list(SHIELD_CHECKS)}, got {shown(value)}")

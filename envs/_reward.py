@@ -178,6 +178,13 @@ def mean_jerk(positions: torch.Tensor, valid: torch.Tensor, new_frames: int) -> 
     return torch.where(ok.any(-1), (mag * ok).sum(-1) / ok.sum(-1).clamp(min=1), torch.zeros_like(mag[..., 0]))
 
 
+def half_extents(half: torch.Tensor, turn: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The half extents (along, across) [...] of boxes with half sizes ``half`` [..., 2] (length, width) turned by
+    ``turn`` [...] radians against a heading: how far each reaches along that heading and across it."""
+    c, s = torch.cos(turn).abs(), torch.sin(turn).abs()
+    return half[..., 0] * c + half[..., 1] * s, half[..., 0] * s + half[..., 1] * c
+
+
 def time_gaps(ctrl_track: torch.Tensor, live: torch.Tensor, frames: torch.Tensor, present: torch.Tensor,
               box_size: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """([B, C] time headway, [B, C] time to collision), in seconds, of each live controlled track to its
@@ -194,10 +201,8 @@ def time_gaps(ctrl_track: torch.Tensor, live: torch.Tensor, frames: torch.Tensor
     rel = last[:, None, :, :2] - mine[:, :, None, :2]  # [B, C, N, 2] the others seen from each agent
     ahead, side = (rel * forward[:, :, None]).sum(-1), (rel * left[:, :, None]).sum(-1)  # [B, C, N]
     turn = last[:, None, :, 2] - mine[..., None, 2]  # [B, C, N] the others' headings in the agent's frame
-    c, s = torch.cos(turn).abs(), torch.sin(turn).abs()
     half = box_size[..., :2].to(last.dtype) / 2  # [B, N, 2]
-    along = half[:, None, :, 0] * c + half[:, None, :, 1] * s  # the others' half extents along the heading
-    across = half[:, None, :, 0] * s + half[:, None, :, 1] * c  # and across it
+    along, across = half_extents(half[:, None], turn)  # the others' half extents along the heading and across it
     my_half = gather_tracks(half, ctrl_track)  # [B, C, 2]
     other = torch.arange(n, device=frames.device)[None, None] != ctrl_track[..., None]
     in_path = other & present[:, None] & live[..., None] & (ahead > 0) & (side.abs() < my_half[..., 1:2] + across)

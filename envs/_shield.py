@@ -6,7 +6,8 @@ box, type; :class:`smart_marl.rollout.RolloutState`), the scenes' road edges, th
 slots and their prior logits ``[B, C, V]``, the checks and the ``k`` the policy draws from. What goes
 out: ``bool [B, C, V]``, true on the tokens to take out (their logits become ``-inf``).
 
-The checks (``SHIELD_CHECKS``), on the tokens most likely first, until ``k`` pass both:
+The checks (``SHIELD_CHECKS``; ``shield=True`` is the first two, :data:`DEFAULT_SHIELD_CHECKS`), on the tokens most
+likely first, until ``k`` pass every check asked for:
 
 * ``"collision"``: the background's collision-aware rule (:mod:`smart_marl.rollout.avoidance`, the same
   code): the token's five 10 Hz frames overlap the box of one of the agent's 16 nearest others on the
@@ -15,7 +16,12 @@ The checks (``SHIELD_CHECKS``), on the tokens most likely first, until ``k`` pas
   really take; the other controlled agents, whose tokens come with the policy's, both at constant velocity
   and standing where they are (one that drives on, one that brakes);
 * ``"offroad"``: a vehicle whose box, at the token's end (the step's last frame, where the reward's
-  offroad event is measured), has a corner beyond a road edge (:func:`envs._reward.offroad`'s test).
+  offroad event is measured), has a corner beyond a road edge (:func:`envs._reward.offroad`'s test);
+* ``"gap"`` (asked for by name): a vehicle's token that ends closer to an agent ahead (of the 8 nearest ahead, where
+  the step takes them) than the distance it would need to stop behind it should that one brake hard
+  (responsibility-sensitive safety's longitudinal distance, :func:`_gap_test`), unless the token brakes. Collisions
+  with a car ahead come from following too close: when the car ahead brakes, every token of the follower hits it,
+  the shield can take nothing out, and the follower runs into it (issue 58's diagnosis).
 
 So the top ``k`` of the shielded logits are the ``k`` most likely tokens that pass, and the reference of
 fine-tuning (the prior's top ``k``, renormalised) is the prior as the shield lets it drive. An agent
@@ -28,6 +34,7 @@ here), so a token the shield allows does not collide with a background agent wit
 
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import torch
@@ -36,11 +43,33 @@ from smart_marl.geometry_torch import boxes_overlap
 from smart_marl.rollout import Draw, RolloutState
 from smart_marl.rollout.avoidance import excluded_tokens, off_road_test
 from smart_marl.rollout.frames import token_frames
-from smart_marl.scenario import AgentType
+from smart_marl.scenario import AgentType, wrap_angle
+from smart_marl.tokens import FRAMES_PER_TOKEN
 
+from ._reward import half_extents
 from ._scene_batch import SceneBatch
 
-SHIELD_CHECKS = ("collision", "offroad")
+SHIELD_CHECKS = ("collision", "offroad", "gap")
+DEFAULT_SHIELD_CHECKS = ("collision", "offroad")
+"""The checks of ``shield=True``; ``"gap"`` is asked for by name."""
+
+GAP_RESPONSE_S = 0.5
+"""The gap check's reaction time: one token (the follower can brake from the next step on)."""
+GAP_OWN_BRAKE = 4.0
+"""m/s^2 the follower counts on braking at from the next step on."""
+GAP_LEADER_BRAKE = 6.0
+"""m/s^2 the hardest braking the gap check expects of the agent ahead."""
+GAP_MARGIN_M = 1.0
+"""Metres kept between the boxes when both have stopped."""
+GAP_BRAKING = 1.0
+"""m/s a token sheds (2 m/s^2 over the step) to be allowed whatever the gap: braking is always a way out."""
+GAP_SAME_WAY = math.pi / 4
+"""The others the gap check stops behind: those heading within 45 degrees of the agent's heading (a car ahead in its
+lane), and those standing (below GAP_STANDING m/s). One crossing its path is the collision check's: braking for it
+as for a car ahead made the shielded prior brake in junctions and get hit from behind."""
+GAP_STANDING = 1.0
+GAP_CANDIDATES = 8
+"""How many of the others nearest ahead of each agent the gap check looks at."""
 
 
 def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch, ctrl_track: torch.Tensor,
@@ -62,15 +91,84 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
         tests.append(_offroad_test(scenes, cb, track, prior.current_pose[cb, slot], prior.token_poses[prior.agent_type[cb, slot], :, -1]))
     if "collision" in checks and acting.shape[1] > 1:
         tests.append(_standing_test(prior, boxes, cb, cc, slot, acting, ctrl_slot))
-    also = None if not tests else tests[0] if len(tests) == 1 else (lambda r, tok: tests[0](r, tok) | tests[1](r, tok))
+    known_frames, known = ahead.frames(prior) if ahead is not None else (None, None)
+    if "gap" in checks:
+        tests.append(_gap_test(prior, boxes, cb, slot, known_frames, known))
+    also = None if not tests else (lambda r, tok: _any_of(tests, r, tok))
     present = prior.simulated if "collision" in checks else torch.zeros_like(prior.simulated)  # no other agent blocks
     rows = cb * prior.num_slots + slot
     k = 0 if top_k is None else int(top_k)
-    known_frames, known = ahead.frames(prior) if ahead is not None else (None, None)
     out[cb, cc] = excluded_tokens(logits[cb, cc], rows, prior.pose, prior.previous_pose, boxes, present,
                                   prior.agent_type, prior.token_poses.to(prior.pose.dtype), k, prior.interpolation,
                                   known_frames=known_frames, known=known, also=also)
     return out
+
+
+def _any_of(tests, r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
+    out = tests[0](r, tok)
+    for t in tests[1:]:
+        out = out | t(r, tok)
+    return out
+
+
+def _gap_test(prior: RolloutState, boxes: torch.Tensor, cb: torch.Tensor, slot: torch.Tensor,
+              known_frames: torch.Tensor | None, known: torch.Tensor | None):
+    """An ``also`` of :func:`~smart_marl.rollout.avoidance.excluded_tokens` for the M acting agents (scenes ``cb``, prior
+    slots ``slot``): a vehicle's token after which the gap to the agent ahead is shorter than the distance it needs to
+    stop behind it should that one brake hard (a responsibility-sensitive-safety rule): gap < v GAP_RESPONSE_S +
+    v^2 / (2 GAP_OWN_BRAKE) - u^2 / (2 GAP_LEADER_BRAKE) + GAP_MARGIN_M, v the agent's speed at the token's end, u the
+    other's along the agent's heading, both at the step's end (the others where the step takes them: the background
+    on its drawn frames, the rest at constant velocity). A token that brakes (sheds GAP_BRAKING m/s or ends below
+    0.5 m/s) is never taken out, so the check leaves a way out to an agent that is too close already."""
+    dtype = prior.pose.dtype
+    dt = GAP_RESPONSE_S / FRAMES_PER_TOKEN
+    pose, before = prior.pose[cb], prior.previous_pose[cb]  # [M, N, 3] every slot of each agent's scene
+    end = pose + (pose - before)  # constant velocity over the step
+    vel = (pose - before)[..., :2] / GAP_RESPONSE_S
+    if known is not None:
+        kf = known_frames[cb].to(dtype)
+        end = torch.where(known[cb][..., None], kf[:, :, -1], end)
+        vel = torch.where(known[cb][..., None], (kf[:, :, -1, :2] - kf[:, :, -2, :2]) / dt, vel)
+    m, n = pose.shape[:2]
+    own_pose, own_before = prior.pose[cb, slot], prior.previous_pose[cb, slot]
+    own_speed = (own_pose - own_before)[:, :2].norm(dim=-1) / GAP_RESPONSE_S  # [M]
+    heading = torch.stack([own_pose[:, 2].cos(), own_pose[:, 2].sin()], -1)  # [M, 2]
+    rel = end[..., :2] - own_pose[:, None, :2]
+    ahead_now = (rel * heading[:, None]).sum(-1)  # [M, N]
+    other = prior.simulated[cb] & (torch.arange(n, device=cb.device)[None] != slot[:, None]) & (ahead_now > 0)
+    k = min(GAP_CANDIDATES, n)
+    dist, near = rel.norm(dim=-1).masked_fill(~other, float("inf")).topk(k, dim=-1, largest=False)  # [M, K]
+    near_ok = torch.isfinite(dist)
+    o_speed = vel.gather(1, near[..., None].expand(-1, -1, 2)).norm(dim=-1)  # [M, K]
+    o_end, o_vel = end.gather(1, near[..., None].expand(-1, -1, 3)), vel.gather(1, near[..., None].expand(-1, -1, 2))
+    o_half = boxes[cb].gather(1, near[..., None].expand(-1, -1, boxes.shape[-1]))[..., :2].to(dtype) / 2  # [M, K, 2]
+    own_half = boxes[cb, slot, :2].to(dtype) / 2  # [M, 2]
+    vehicle = prior.agent_type[cb, slot] == int(AgentType.VEHICLE)
+    token_poses = prior.token_poses.to(dtype)
+    kind = prior.agent_type[cb, slot]
+
+    def test(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
+        local = token_poses[kind[r][:, None], tok]  # [R, c, 6, 3]
+        frames = token_frames(local, own_pose[r][:, None].expand(-1, tok.shape[1], -1),
+                              own_before[r][:, None].expand(-1, tok.shape[1], -1), prior.interpolation)  # [R, c, 5, 3]
+        last = frames[:, :, -1]  # [R, c, 3]
+        fwd = torch.stack([last[..., 2].cos(), last[..., 2].sin()], -1)  # [R, c, 2]
+        left = torch.stack([-fwd[..., 1], fwd[..., 0]], -1)
+        v = ((last[..., :2] - frames[:, :, -2, :2]) / dt * fwd).sum(-1).clamp(min=0.0)  # [R, c] own speed at the end
+        rel = o_end[r][:, None, :, :2] - last[:, :, None, :2]  # [R, c, K, 2]
+        ahead, side = (rel * fwd[:, :, None]).sum(-1), (rel * left[:, :, None]).sum(-1)
+        along, across = half_extents(o_half[r][:, None], o_end[r][:, None, :, 2] - last[..., None, 2])  # [R, c, K]
+        mine = own_half[r][:, None, None]  # [R, 1, 1, 2]
+        turn = wrap_angle(o_end[r][:, None, :, 2] - last[..., None, 2])
+        along_way = (turn.abs() < GAP_SAME_WAY) | (o_speed[r][:, None] < GAP_STANDING)  # not crossing: the collision check's
+        in_path = near_ok[r][:, None] & along_way & (ahead > 0) & (side.abs() < mine[..., 1] + across)
+        gap = ahead - mine[..., 0] - along  # [R, c, K]
+        u = (o_vel[r][:, None] * fwd[:, :, None]).sum(-1).clamp(min=0.0)  # the other's speed along the heading
+        need = (v * GAP_RESPONSE_S + v * v / (2 * GAP_OWN_BRAKE))[..., None] - u * u / (2 * GAP_LEADER_BRAKE) + GAP_MARGIN_M
+        short = (in_path & (gap < need)).any(-1)  # [R, c]
+        brakes = (v <= torch.clamp(own_speed[r][:, None] - GAP_BRAKING, min=0.0)) | (v < 0.5)
+        return short & ~brakes & vehicle[r][:, None]
+    return test
 
 
 def _standing_test(prior: RolloutState, boxes: torch.Tensor, cb: torch.Tensor, cc: torch.Tensor, slot: torch.Tensor,
@@ -121,4 +219,4 @@ def _offroad_test(scenes: SceneBatch, scene: torch.Tensor, track: torch.Tensor, 
     return off_road_test(scenes.edges, scene, pose, token_ends, scenes.box_size[scene, track], scenes.z[scene, track], vehicle)
 
 
-__all__ = ["SHIELD_CHECKS", "event_boxes", "unsafe_tokens"]
+__all__ = ["DEFAULT_SHIELD_CHECKS", "SHIELD_CHECKS", "event_boxes", "unsafe_tokens"]

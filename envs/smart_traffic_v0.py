@@ -43,9 +43,9 @@ k: that distribution restricted to its top k tokens and renormalised, the prior 
 :func:`smart_marl.rollout.reference_log_probs`). The ``"dict"`` observation's ``action_mask``
 is the reference's support (every token without a top-k), ``env.reference`` names it.
 
-The shield (``shield=True`` or a list of :data:`envs._shield.SHIELD_CHECKS`; off by default): the tokens
-that would run a controlled agent into another agent (at constant velocity) or a vehicle off the road are
-taken out of its prior logits (``-inf``), so out of the action mask and the reference too
+The shield (``shield=True``, or a list of :data:`envs._shield.SHIELD_CHECKS`; off by default): the tokens
+that would run a controlled agent into another agent or a vehicle off the road (and with ``"gap"``, those that would
+leave a vehicle closer to the agent ahead than it can stop) are taken out of its prior logits (``-inf``), so out of the action mask and the reference too
 (:mod:`envs._shield`).
 
 ``infos[agent]`` (fixed keys and shapes, so TorchRL can stack them): ``prior_logits`` [V] and

@@ -17,7 +17,7 @@ from agents.evaluate import (LEAD_TOP_K, ShieldOff, evaluate_policies, format_ta
                              same_environment_policies, shield_label)
 from agents.policy import ExpertTensorPolicy, FinetunedTensorPolicy, PriorTensorPolicy  # noqa: E402
 from envs._core import CoreScene, TrafficCore  # noqa: E402
-from envs._shield import SHIELD_CHECKS  # noqa: E402
+from envs._shield import DEFAULT_SHIELD_CHECKS as SHIELD_CHECKS  # noqa: E402
 from smart_marl.scenario import AgentType  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py

@@ -11,7 +11,7 @@ import torch
 
 from envs import smart_traffic_v0
 from envs._reward import offroad
-from envs._shield import SHIELD_CHECKS, event_boxes
+from envs._shield import DEFAULT_SHIELD_CHECKS, SHIELD_CHECKS, event_boxes
 from envs.errors import EnvConfigError, EnvConfigTypeError
 from smart_marl.geometry_torch import boxes_overlap
 from smart_marl.rollout import FORCED_LATER
@@ -71,8 +71,10 @@ def _brute_force(core, b: int, c: int, tokens: torch.Tensor) -> torch.Tensor:
 
 
 def test_shield_arguments_are_checked_and_normalised(sample_scenes, embedded_prior):
-    assert _env(sample_scenes[:1], embedded_prior).shield == SHIELD_CHECKS
-    assert _env(sample_scenes[:1], embedded_prior, shield=["offroad", "collision"]).shield == SHIELD_CHECKS  # the canonical order
+    assert _env(sample_scenes[:1], embedded_prior).shield == DEFAULT_SHIELD_CHECKS == ("collision", "offroad")
+    assert _env(sample_scenes[:1], embedded_prior, shield=["offroad", "collision"]).shield == DEFAULT_SHIELD_CHECKS  # the canonical order
+    assert _env(sample_scenes[:1], embedded_prior, shield=["gap", "collision"]).shield == ("collision", "gap")
+    assert SHIELD_CHECKS == ("collision", "offroad", "gap")
     assert _env(sample_scenes[:1], embedded_prior, shield="offroad").shield == ("offroad",)
     assert _env(sample_scenes[:1], embedded_prior, shield=False).shield == ()
     with pytest.raises(EnvConfigError, match=r"shield: unknown check\(s\) \['seatbelt'\]"):
@@ -95,7 +97,7 @@ def test_the_shield_takes_out_exactly_unsafe_tokens_and_keeps_k_safe_ones_on_top
             shielded = core.prior_logits()
             core.shield = ()
             plain = core.prior_logits()
-            core.shield = SHIELD_CHECKS
+            core.shield = DEFAULT_SHIELD_CHECKS
             for c in core.live[0].nonzero().squeeze(1).tolist():
                 gone = torch.isinf(shielded[0, c]) & torch.isfinite(plain[0, c])
                 assert torch.equal(shielded[0, c][~gone], plain[0, c][~gone])  # nothing else changes
@@ -159,7 +161,8 @@ def test_the_batched_env_and_a_finetuning_config_carry_the_shield(sample_scenes,
         assert not torch.isinf(logits[~live]).any()  # padded and done slots stay zeros
     assert seen > 0
     cfg = load_finetune_config("tiny", ["shield=true"])
-    assert cfg.shield == SHIELD_CHECKS and cfg.to_dict()["shield"] == list(SHIELD_CHECKS)
+    assert cfg.shield == DEFAULT_SHIELD_CHECKS and cfg.to_dict()["shield"] == list(DEFAULT_SHIELD_CHECKS)
+    assert load_finetune_config("tiny", ['shield=["gap", "offroad", "collision"]']).shield == SHIELD_CHECKS
     assert load_finetune_config("tiny", ['shield=["offroad"]']).shield == ("offroad",)
     with pytest.raises(FinetuneConfigError, match=r"shield: unknown check\(s\) \['brakes'\]"):
         load_finetune_config("tiny", ['shield=["brakes"]'])
