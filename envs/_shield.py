@@ -34,7 +34,6 @@ here), so a token the shield allows does not collide with a background agent wit
 
 from __future__ import annotations
 
-import math
 from typing import Sequence
 
 import torch
@@ -43,7 +42,7 @@ from smart_marl.geometry_torch import boxes_overlap
 from smart_marl.rollout import Draw, RolloutState
 from smart_marl.rollout.avoidance import excluded_tokens, off_road_test
 from smart_marl.rollout.frames import token_frames
-from smart_marl.scenario import AgentType, wrap_angle
+from smart_marl.scenario import AgentType
 from smart_marl.tokens import FRAMES_PER_TOKEN
 
 from ._reward import half_extents
@@ -63,11 +62,6 @@ GAP_MARGIN_M = 1.0
 """Metres kept between the boxes when both have stopped."""
 GAP_BRAKING = 1.0
 """m/s a token sheds (2 m/s^2 over the step) to be allowed whatever the gap: braking is always a way out."""
-GAP_SAME_WAY = math.pi / 4
-"""The others the gap check stops behind: those heading within 45 degrees of the agent's heading (a car ahead in its
-lane), and those standing (below GAP_STANDING m/s). One crossing its path is the collision check's: braking for it
-as for a car ahead made the shielded prior brake in junctions and get hit from behind."""
-GAP_STANDING = 1.0
 GAP_CANDIDATES = 8
 """How many of the others nearest ahead of each agent the gap check looks at."""
 
@@ -139,7 +133,6 @@ def _gap_test(prior: RolloutState, boxes: torch.Tensor, cb: torch.Tensor, slot: 
     k = min(GAP_CANDIDATES, n)
     dist, near = rel.norm(dim=-1).masked_fill(~other, float("inf")).topk(k, dim=-1, largest=False)  # [M, K]
     near_ok = torch.isfinite(dist)
-    o_speed = vel.gather(1, near[..., None].expand(-1, -1, 2)).norm(dim=-1)  # [M, K]
     o_end, o_vel = end.gather(1, near[..., None].expand(-1, -1, 3)), vel.gather(1, near[..., None].expand(-1, -1, 2))
     o_half = boxes[cb].gather(1, near[..., None].expand(-1, -1, boxes.shape[-1]))[..., :2].to(dtype) / 2  # [M, K, 2]
     own_half = boxes[cb, slot, :2].to(dtype) / 2  # [M, 2]
@@ -159,9 +152,7 @@ def _gap_test(prior: RolloutState, boxes: torch.Tensor, cb: torch.Tensor, slot: 
         ahead, side = (rel * fwd[:, :, None]).sum(-1), (rel * left[:, :, None]).sum(-1)
         along, across = half_extents(o_half[r][:, None], o_end[r][:, None, :, 2] - last[..., None, 2])  # [R, c, K]
         mine = own_half[r][:, None, None]  # [R, 1, 1, 2]
-        turn = wrap_angle(o_end[r][:, None, :, 2] - last[..., None, 2])
-        along_way = (turn.abs() < GAP_SAME_WAY) | (o_speed[r][:, None] < GAP_STANDING)  # not crossing: the collision check's
-        in_path = near_ok[r][:, None] & along_way & (ahead > 0) & (side.abs() < mine[..., 1] + across)
+        in_path = near_ok[r][:, None] & (ahead > 0) & (side.abs() < mine[..., 1] + across)
         gap = ahead - mine[..., 0] - along  # [R, c, K]
         u = (o_vel[r][:, None] * fwd[:, :, None]).sum(-1).clamp(min=0.0)  # the other's speed along the heading
         need = (v * GAP_RESPONSE_S + v * v / (2 * GAP_OWN_BRAKE))[..., None] - u * u / (2 * GAP_LEADER_BRAKE) + GAP_MARGIN_M

@@ -1,6 +1,6 @@
 """The shield's gap check (envs._shield, ``shield=[..., "gap"]``): a controlled vehicle's token after which it could
 not stop behind the agent ahead should that one brake hard is taken out, unless the token brakes. Checked against a
-brute force over every other agent going its way or standing (the check itself looks at the 8 nearest ahead), on the package's sample scenes
+brute force over every other agent (the check itself looks at the 8 nearest ahead), on the package's sample scenes
 with the agents driving at the fastest token every other step, where followers close in."""
 
 from __future__ import annotations
@@ -12,8 +12,7 @@ import pytest
 import torch
 
 from envs import smart_traffic_v0
-from envs._shield import (GAP_BRAKING, GAP_LEADER_BRAKE, GAP_MARGIN_M, GAP_OWN_BRAKE, GAP_RESPONSE_S, GAP_SAME_WAY,
-                          GAP_STANDING, event_boxes)
+from envs._shield import GAP_BRAKING, GAP_LEADER_BRAKE, GAP_MARGIN_M, GAP_OWN_BRAKE, GAP_RESPONSE_S, event_boxes
 from smart_marl.rollout import FORCED_LATER
 from smart_marl.rollout.frames import token_frames
 from smart_marl.scenario import AgentType
@@ -64,9 +63,6 @@ def _too_close(core, b: int, c: int, tokens: list[int], slack: float = 0.0) -> l
             dx, dy = float(end[0]) - x, float(end[1]) - y
             ahead, side = dx * fwd[0] + dy * fwd[1], dx * left[0] + dy * left[1]
             turn = float(end[2]) - h
-            crossing = abs(math.remainder(turn, 2 * math.pi)) >= GAP_SAME_WAY and float(vel.norm()) >= GAP_STANDING
-            if crossing:  # another way across its path: the collision check's
-                continue
             along = float(half[o, 0]) * abs(math.cos(turn)) + float(half[o, 1]) * abs(math.sin(turn))
             across = float(half[o, 0]) * abs(math.sin(turn)) + float(half[o, 1]) * abs(math.cos(turn))
             if ahead <= 0 or abs(side) >= float(half[s, 1]) + across:
