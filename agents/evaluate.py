@@ -47,7 +47,7 @@ import numpy as np
 import torch
 
 from envs._core import CoreScene, TrafficCore
-from envs._shield import DEFAULT_SHIELD_CHECKS, SHIELD_CHECKS
+from envs._shield import DEFAULT_SHIELD_CHECKS
 from smart_marl.geometry import bearing_deg, first_overlaps
 from smart_marl.metrics import Rollouts, SceneNotScorableError, aggregate, logged_scene, score_rollouts
 from smart_marl.metrics.config import NUM_SIMULATION_STEPS

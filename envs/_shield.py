@@ -99,10 +99,20 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
 
 
 def _any_of(tests, r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
+    """[R, c]: does token ``tok`` of rows ``r`` fail any of ``tests``."""
     out = tests[0](r, tok)
     for t in tests[1:]:
         out = out | t(r, tok)
     return out
+
+
+def _own_frames(prior: RolloutState, kind: torch.Tensor, pose: torch.Tensor, before: torch.Tensor, r: torch.Tensor,
+                tok: torch.Tensor, token_poses: torch.Tensor) -> torch.Tensor:
+    """[R, c, 5, 3]: the step's frames of rows ``r`` (types ``kind``, at ``pose`` from ``before``, [M] / [M, 3]) were
+    they to take tokens ``tok`` [R, c], placed as the step places them."""
+    local = token_poses[kind[r][:, None], tok]  # [R, c, 6, 3]
+    return token_frames(local, pose[r][:, None].expand(-1, tok.shape[1], -1), before[r][:, None].expand(-1, tok.shape[1], -1),
+                        prior.interpolation)
 
 
 def _gap_test(prior: RolloutState, boxes: torch.Tensor, cb: torch.Tensor, slot: torch.Tensor,
@@ -123,7 +133,7 @@ def _gap_test(prior: RolloutState, boxes: torch.Tensor, cb: torch.Tensor, slot: 
         kf = known_frames[cb].to(dtype)
         end = torch.where(known[cb][..., None], kf[:, :, -1], end)
         vel = torch.where(known[cb][..., None], (kf[:, :, -1, :2] - kf[:, :, -2, :2]) / dt, vel)
-    m, n = pose.shape[:2]
+    n = pose.shape[1]
     own_pose, own_before = prior.pose[cb, slot], prior.previous_pose[cb, slot]
     own_speed = (own_pose - own_before)[:, :2].norm(dim=-1) / GAP_RESPONSE_S  # [M]
     heading = torch.stack([own_pose[:, 2].cos(), own_pose[:, 2].sin()], -1)  # [M, 2]
@@ -141,9 +151,7 @@ def _gap_test(prior: RolloutState, boxes: torch.Tensor, cb: torch.Tensor, slot: 
     kind = prior.agent_type[cb, slot]
 
     def test(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
-        local = token_poses[kind[r][:, None], tok]  # [R, c, 6, 3]
-        frames = token_frames(local, own_pose[r][:, None].expand(-1, tok.shape[1], -1),
-                              own_before[r][:, None].expand(-1, tok.shape[1], -1), prior.interpolation)  # [R, c, 5, 3]
+        frames = _own_frames(prior, kind, own_pose, own_before, r, tok, token_poses)  # [R, c, 5, 3]
         last = frames[:, :, -1]  # [R, c, 3]
         fwd = torch.stack([last[..., 2].cos(), last[..., 2].sin()], -1)  # [R, c, 2]
         left = torch.stack([-fwd[..., 1], fwd[..., 0]], -1)
@@ -182,9 +190,7 @@ def _standing_test(prior: RolloutState, boxes: torch.Tensor, cb: torch.Tensor, c
     kind = prior.agent_type[cb, slot]
 
     def test(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
-        local = token_poses[kind[r][:, None], tok]  # [R, c, 6, 3]
-        frames = token_frames(local, own_pose[r][:, None].expand(-1, tok.shape[1], -1),
-                              own_before[r][:, None].expand(-1, tok.shape[1], -1), prior.interpolation)  # [R, c, 5, 3]
+        frames = _own_frames(prior, kind, own_pose, own_before, r, tok, token_poses)  # [R, c, 5, 3]
         hit = boxes_overlap(frames[:, :, None, :, :2], frames[:, :, None, :, 2], own_half[r][:, None, None, None],
                             pose[r][:, None, :, None, :2], pose[r][:, None, :, None, 2], half[r][:, None, :, None])  # [R, c, C, 5]
         return (hit.any(-1) & ok[r][:, None]).any(-1)

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 import torch
 
@@ -16,6 +15,7 @@ from envs._shield import GAP_BRAKING, GAP_LEADER_BRAKE, GAP_MARGIN_M, GAP_OWN_BR
 from smart_marl.rollout import FORCED_LATER
 from smart_marl.rollout.frames import token_frames
 from smart_marl.scenario import AgentType
+from test_shield import shielded_steps
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 K = 3
@@ -76,30 +76,18 @@ def _too_close(core, b: int, c: int, tokens: list[int], slack: float = 0.0) -> l
 
 def test_the_gap_check_takes_out_the_tokens_that_close_in_and_keeps_those_that_brake(sample_scenes, embedded_prior):
     env = _env(sample_scenes, embedded_prior, ["gap"])
-    rng = np.random.default_rng(0)
-    fastest = int(embedded_prior[1][AgentType.VEHICLE].poses[:, -1, 0].argmax())
     taken_out = checked = 0
-    for index in range(len(sample_scenes)):
-        obs, _ = env.reset(seed=index, options={"scene_index": index})
-        for step in range(8):
-            if not env.agents:
-                break
-            core = env.core
-            shielded = core.prior_logits()
-            core.shield = ()
-            plain = core.prior_logits()
-            core.shield = ("gap",)
-            for c in core.live[0].nonzero().squeeze(1).tolist():
-                gone = (torch.isinf(shielded[0, c]) & torch.isfinite(plain[0, c])).nonzero().squeeze(1).tolist()
-                top = torch.topk(shielded[0, c], K).indices.tolist()
-                top = [t for t in top if math.isfinite(float(shielded[0, c, t]))]
-                if gone:  # what it took out ends too close without braking; what it leaves on top does not
-                    assert all(_too_close(core, 0, c, gone[:64], slack=1e-3))
-                    assert not any(_too_close(core, 0, c, top, slack=-1e-3))
-                    taken_out += len(gone)
-                else:  # nothing taken out: its top k keep their distance, or every token fails (left alone)
-                    assert not any(_too_close(core, 0, c, top, slack=-1e-3)) or all(_too_close(core, 0, c, torch.topk(plain[0, c], 64).indices.tolist()))
-                checked += 1
-            obs, *_ = env.step({a: fastest if step % 2 else int(rng.choice(np.flatnonzero(obs[a]["action_mask"])))
-                                for a in env.agents})
+    for core, shielded, plain, _ in shielded_steps(env, embedded_prior, len(sample_scenes), 8):
+        for c in core.live[0].nonzero().squeeze(1).tolist():
+            gone = (torch.isinf(shielded[0, c]) & torch.isfinite(plain[0, c])).nonzero().squeeze(1).tolist()
+            top = torch.topk(shielded[0, c], K).indices.tolist()
+            top = [t for t in top if math.isfinite(float(shielded[0, c, t]))]
+            if gone:  # what it took out ends too close without braking; what it leaves on top does not
+                assert all(_too_close(core, 0, c, gone[:64], slack=1e-3))
+                assert not any(_too_close(core, 0, c, top, slack=-1e-3))
+                taken_out += len(gone)
+            else:  # nothing taken out: its top k keep their distance, or every token fails (left alone)
+                assert not any(_too_close(core, 0, c, top, slack=-1e-3)) or all(
+                    _too_close(core, 0, c, torch.topk(plain[0, c], 64).indices.tolist()))
+            checked += 1
     assert checked > 20 and taken_out > 0  # the sample scenes exercise it

@@ -83,43 +83,49 @@ def test_shield_arguments_are_checked_and_normalised(sample_scenes, embedded_pri
         _env(sample_scenes[:1], embedded_prior, shield=3)
 
 
-def test_the_shield_takes_out_exactly_unsafe_tokens_and_keeps_k_safe_ones_on_top(sample_scenes, embedded_prior):
-    env = _env(sample_scenes, embedded_prior)
-    rng = np.random.default_rng(0)
-    fastest = int(embedded_prior[1][AgentType.VEHICLE].poses[:, -1, 0].argmax())
-    taken_out, checked_agents = 0, 0
-    for index in range(len(sample_scenes)):
+def shielded_steps(env, prior, num_scenes: int, steps: int, seed: int = 0):
+    """Every step of ``env``'s episodes on each of its first ``num_scenes`` scenes, up to ``steps``: (core, shielded prior logits, plain prior
+    logits, observations). Between steps the agents take a random token of their masks, and every other step the token
+    that goes farthest ahead, whatever their masks say: off the road and into others, where the shield has work to do."""
+    rng = np.random.default_rng(seed)
+    fastest = int(prior[1][AgentType.VEHICLE].poses[:, -1, 0].argmax())
+    for index in range(num_scenes):
         obs, _ = env.reset(seed=index, options={"scene_index": index})
-        for step in range(4):
+        for step in range(steps):
             if not env.agents:
                 break
-            core = env.core
+            core, checks = env.core, env.core.shield
             shielded = core.prior_logits()
             core.shield = ()
             plain = core.prior_logits()
-            core.shield = DEFAULT_SHIELD_CHECKS
-            for c in core.live[0].nonzero().squeeze(1).tolist():
-                gone = torch.isinf(shielded[0, c]) & torch.isfinite(plain[0, c])
-                assert torch.equal(shielded[0, c][~gone], plain[0, c][~gone])  # nothing else changes
-                top = torch.topk(shielded[0, c], K).indices
-                top = top[torch.isfinite(shielded[0, c][top])]  # fewer than k where the search found fewer free
-                unsafe_top = _brute_force(core, 0, c, top)
-                if gone.any():  # what it took out is unsafe (among the tokens it searched), and its top k are safe
-                    searched = torch.zeros_like(gone)
-                    searched[torch.topk(plain[0, c], SEARCH_DEPTH).indices] = True  # a row with fewer than k free there
-                    assert _brute_force(core, 0, c, (gone & searched).nonzero().squeeze(1)).all()  # loses all the rest
-                    assert not unsafe_top.any()
-                    taken_out += int(gone.sum())
-                else:  # nothing taken out: the prior's own top k are safe (or every token failed: left alone)
-                    assert not unsafe_top.any() or _brute_force(core, 0, c, torch.topk(plain[0, c], 64).indices).all()
-                mask = obs[env.agents[c]]["action_mask"].astype(bool) if env.agents[c] in obs else None
-                if mask is not None:  # the action mask is the shielded top k
-                    assert set(np.flatnonzero(mask)) == set(top.tolist())
-                checked_agents += 1
-            # every other step the agents ignore their masks and take the token that goes farthest ahead: off the
-            # road and into others, where the shield has work to do
+            core.shield = checks
+            yield core, shielded, plain, obs
             obs, *_ = env.step({a: fastest if step % 2 else int(rng.choice(np.flatnonzero(obs[a]["action_mask"])))
                                 for a in env.agents})
+
+
+def test_the_shield_takes_out_exactly_unsafe_tokens_and_keeps_k_safe_ones_on_top(sample_scenes, embedded_prior):
+    env = _env(sample_scenes, embedded_prior)
+    taken_out, checked_agents = 0, 0
+    for core, shielded, plain, obs in shielded_steps(env, embedded_prior, len(sample_scenes), 4):
+        for c in core.live[0].nonzero().squeeze(1).tolist():
+            gone = torch.isinf(shielded[0, c]) & torch.isfinite(plain[0, c])
+            assert torch.equal(shielded[0, c][~gone], plain[0, c][~gone])  # nothing else changes
+            top = torch.topk(shielded[0, c], K).indices
+            top = top[torch.isfinite(shielded[0, c][top])]  # fewer than k where the search found fewer free
+            unsafe_top = _brute_force(core, 0, c, top)
+            if gone.any():  # what it took out is unsafe (among the tokens it searched), and its top k are safe
+                searched = torch.zeros_like(gone)
+                searched[torch.topk(plain[0, c], SEARCH_DEPTH).indices] = True  # a row with fewer than k free there
+                assert _brute_force(core, 0, c, (gone & searched).nonzero().squeeze(1)).all()  # loses all the rest
+                assert not unsafe_top.any()
+                taken_out += int(gone.sum())
+            else:  # nothing taken out: the prior's own top k are safe (or every token failed: left alone)
+                assert not unsafe_top.any() or _brute_force(core, 0, c, torch.topk(plain[0, c], 64).indices).all()
+            mask = obs[env.agents[c]]["action_mask"].astype(bool) if env.agents[c] in obs else None
+            if mask is not None:  # the action mask is the shielded top k
+                assert set(np.flatnonzero(mask)) == set(top.tolist())
+            checked_agents += 1
     assert checked_agents > 20 and taken_out > 0  # the sample scenes exercise it
 
 

@@ -54,6 +54,15 @@ def precision_problem(value) -> str | None:
     return None if isinstance(value, str) and value in PRECISIONS else f"must be one of {list(PRECISIONS)}, got {value!r}"
 
 
+def _bfloat16_copy(model: nn.Module) -> nn.Module:
+    """A copy of ``model`` whose parameters are bfloat16 but :data:`FLOAT32_PARAMETERS` (buffers as they are)."""
+    out = copy.deepcopy(model)
+    for name, p in out.named_parameters():
+        if name.rsplit(".", 1)[-1] not in FLOAT32_PARAMETERS:
+            p.data = p.data.to(torch.bfloat16)
+    return out
+
+
 def inference_model(model: nn.Module, precision: str = "float32") -> nn.Module:
     """The model to run inference with at ``precision``: ``model`` itself in float32; in bfloat16 a copy whose
     parameters are bfloat16 (but :data:`FLOAT32_PARAMETERS`; buffers, the vocabulary's geometry, stay float32),
@@ -66,11 +75,7 @@ def inference_model(model: nn.Module, precision: str = "float32") -> nn.Module:
         return model
     out = _CONVERTED.get(model)
     if out is None:
-        out = copy.deepcopy(model).eval()
-        for name, p in out.named_parameters():
-            if name.rsplit(".", 1)[-1] not in FLOAT32_PARAMETERS:
-                p.data = p.data.to(DTYPES[precision])
-            p.requires_grad_(False)
+        out = _bfloat16_copy(model).eval().requires_grad_(False)
         out.precision = precision
         _CONVERTED[model] = out
     return out
@@ -78,9 +83,10 @@ def inference_model(model: nn.Module, precision: str = "float32") -> nn.Module:
 
 def pads_rows(weight: torch.Tensor) -> bool:
     """Whether products with ``weight`` have their rows padded to :func:`bucket_rows`: bfloat16 on the CPU with
-    gradients on (training). Inference is left unpadded: a rollout's steps repeat their shapes (the agents and the
-    cache's rows stay), and padding the attention's keys cost the cached step of smart-7m more than it saved
-    (49 ms bfloat16 against 53 ms float32 with padding, 42 against 50 without)."""
+    gradients on (training). Inference is left unpadded: a rollout's steps repeat their shapes (after the first
+    step, 4-6 new kernels a step on the sample scenes), a run with inference padded was no faster (cached step
+    0.91-1.07x float32's against 0.89-1.04x unpadded, 2026-12-06, one run each), and unpadded it gives the rollouts
+    measured before (the realism and top-token figures of the model card) bit for bit."""
     return weight.dtype == torch.bfloat16 and weight.device.type == "cpu" and torch.is_grad_enabled()
 
 
@@ -120,11 +126,7 @@ def training_copy(module: nn.Module) -> nn.Module:
     kept as long as ``module`` lives; run forward and backward on it, then :func:`return_gradients`."""
     work = _WORKING.get(module)
     if work is None:
-        work = copy.deepcopy(module)
-        for name, p in work.named_parameters():
-            if name.rsplit(".", 1)[-1] not in FLOAT32_PARAMETERS:
-                p.data = p.data.to(torch.bfloat16)
-        _WORKING[module] = work
+        work = _WORKING[module] = _bfloat16_copy(module)
     work.train(module.training)
     with torch.no_grad():
         for w, m in zip(work.parameters(), module.parameters()):
