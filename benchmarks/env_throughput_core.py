@@ -8,7 +8,7 @@ Prints one JSON line per number of scenes: ``num_scenes``, ``device`` (and ``gpu
 token exclusion, dynamics, events, rewards, observations), ``refill_ms_per_scene``, peak memory. The step
 is the core's, with observations and the controlled agents' prior logits read every step, as the TorchRL
 face reads them; TorchRL's own bookkeeping is not included (``env_throughput.py`` measures the TorchRL face).
-Actions: each controlled agent's prior most likely token (with ``--shield``, of the tokens the shield leaves).
+Actions: each controlled agent's prior most likely token (with ``--shield [CHECKS]``, of the tokens the shield leaves).
 Finished scenes are refilled from the pool in order (their starts are kept after the first pass, which is not
 timed). Medians of ``--repeats``.
 
@@ -72,6 +72,8 @@ def time_core(core, pool, args, types, steps: int) -> dict:
 
 
 def main() -> int:
+    from envs._shield import DEFAULT_SHIELD_CHECKS, SHIELD_CHECKS
+
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scenes", nargs="*", default=["embedded"], help="scene sources (default: the package's sample scenes)")
     p.add_argument("--prior", default="embedded")
@@ -84,11 +86,16 @@ def main() -> int:
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--no-collision-avoidance", action="store_true")
-    p.add_argument("--shield", action="store_true", help="the controlled agents' shield (envs._shield: collision and offroad), "
-                   "checked to the top 3")
+    p.add_argument("--shield", nargs="?", const="+".join(DEFAULT_SHIELD_CHECKS), default="",
+                   help="the controlled agents' shield (envs._shield), checked to the top 3: its checks joined with '+' "
+                   "(alone: collision+offroad, shield=True)")
     p.add_argument("--tf32", action="store_true", help="CUDA: TensorFloat-32 matrix products (torch.backends.cuda.matmul.allow_tf32)")
     p.add_argument("--profile", action="store_true", help="also print torch.profiler's table of the timed steps' heaviest operations")
     args = p.parse_args()
+    checks = tuple(c for c in args.shield.split("+") if c)
+    unknown = sorted(set(checks) - set(SHIELD_CHECKS))
+    if unknown:
+        p.error(f"--shield: unknown check(s) {unknown}; known: {list(SHIELD_CHECKS)}")
     torch.set_num_threads(args.threads)
     if args.tf32:
         torch.backends.cuda.matmul.allow_tf32 = True
@@ -96,7 +103,6 @@ def main() -> int:
 
     from envs._core import TrafficCore
     from envs._pool import ScenePool, next_scenes
-    from envs._shield import DEFAULT_SHIELD_CHECKS
     from smart_marl.model.checkpoint import load_prior
     from smart_marl.tokens import MOTION_TYPES
 
@@ -107,7 +113,7 @@ def main() -> int:
     common = dict(benchmark="env_throughput_core", background="prior", prior=args.prior, controlled=args.controlled,
                   max_agents=args.max_agents, horizon_steps=args.horizon, device=str(device), torch=torch.__version__,
                   torch_threads=args.threads, cpu=platform.processor() or platform.machine(), cpus=os.cpu_count(),
-                  avoid_collisions=not args.no_collision_avoidance, shield=args.shield, tf32=args.tf32)
+                  avoid_collisions=not args.no_collision_avoidance, shield=args.shield or False, tf32=args.tf32)
     if device.type == "cuda":
         common["gpu"] = torch.cuda.get_device_name(device)
     for b in [int(x) for x in args.num_scenes.split(",")]:
@@ -115,7 +121,7 @@ def main() -> int:
         common["pool_scenes"] = len(pool)
         core = TrafficCore(model, vocab, "prior", args.horizon, terminate_on=(), device=device, prior_cache_size=4096,
                            avoid_collisions=not args.no_collision_avoidance,
-                           **(dict(shield=DEFAULT_SHIELD_CHECKS, shield_top_k=3) if args.shield else {}))
+                           **(dict(shield=checks, shield_top_k=3) if checks else {}))
         t0 = time.perf_counter()
         _, scenes = next_scenes(pool, b, args.controlled, args.max_agents, types)
         core.reset(scenes, seed=0, num_agents=args.max_agents)

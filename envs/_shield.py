@@ -82,13 +82,16 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
     boxes = event_boxes(prior, scenes)
     if "offroad" in checks:
         track = ctrl_track[cb, cc]
-        tests.append(_offroad_test(scenes, cb, track, prior.current_pose[cb, slot], prior.token_poses[prior.agent_type[cb, slot], :, -1]))
+        offroad = _offroad_test(scenes, cb, track, prior.current_pose[cb, slot], prior.token_poses[prior.agent_type[cb, slot], :, -1])
+        tests.append(lambda r, tok, frames: offroad(r, tok))
     if "collision" in checks and acting.shape[1] > 1:
         tests.append(_standing_test(prior, boxes, cb, cc, slot, acting, ctrl_slot))
     known_frames, known = ahead.frames(prior) if ahead is not None else (None, None)
     if "gap" in checks:
         tests.append(_gap_test(prior, boxes, cb, slot, known_frames, known))
-    also = None if not tests else (lambda r, tok: _any_of(tests, r, tok))
+    placed = len(tests) > ("offroad" in checks)  # a test that needs the candidate tokens' frames
+    own = (prior.agent_type[cb, slot], prior.pose[cb, slot], prior.previous_pose[cb, slot], prior.token_poses.to(prior.pose.dtype))
+    also = None if not tests else (lambda r, tok: _any_of(tests, r, tok, _own_frames(prior, *own, r, tok) if placed else None))
     present = prior.simulated if "collision" in checks else torch.zeros_like(prior.simulated)  # no other agent blocks
     rows = cb * prior.num_slots + slot
     k = 0 if top_k is None else int(top_k)
@@ -98,16 +101,17 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
     return out
 
 
-def _any_of(tests, r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
-    """[R, c]: does token ``tok`` of rows ``r`` fail any of ``tests``."""
-    out = tests[0](r, tok)
+def _any_of(tests, r: torch.Tensor, tok: torch.Tensor, frames: torch.Tensor | None) -> torch.Tensor:
+    """[R, c]: does token ``tok`` of rows ``r`` (their step's frames ``frames`` [R, c, 5, 3], placed once for every
+    test) fail any of ``tests``."""
+    out = tests[0](r, tok, frames)
     for t in tests[1:]:
-        out = out | t(r, tok)
+        out = out | t(r, tok, frames)
     return out
 
 
-def _own_frames(prior: RolloutState, kind: torch.Tensor, pose: torch.Tensor, before: torch.Tensor, r: torch.Tensor,
-                tok: torch.Tensor, token_poses: torch.Tensor) -> torch.Tensor:
+def _own_frames(prior: RolloutState, kind: torch.Tensor, pose: torch.Tensor, before: torch.Tensor,
+                token_poses: torch.Tensor, r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
     """[R, c, 5, 3]: the step's frames of rows ``r`` (types ``kind``, at ``pose`` from ``before``, [M] / [M, 3]) were
     they to take tokens ``tok`` [R, c], placed as the step places them."""
     local = token_poses[kind[r][:, None], tok]  # [R, c, 6, 3]
@@ -147,12 +151,9 @@ def _gap_test(prior: RolloutState, boxes: torch.Tensor, cb: torch.Tensor, slot: 
     o_half = boxes[cb].gather(1, near[..., None].expand(-1, -1, boxes.shape[-1]))[..., :2].to(dtype) / 2  # [M, K, 2]
     own_half = boxes[cb, slot, :2].to(dtype) / 2  # [M, 2]
     vehicle = prior.agent_type[cb, slot] == int(AgentType.VEHICLE)
-    token_poses = prior.token_poses.to(dtype)
-    kind = prior.agent_type[cb, slot]
 
-    def test(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
-        frames = _own_frames(prior, kind, own_pose, own_before, r, tok, token_poses)  # [R, c, 5, 3]
-        last = frames[:, :, -1]  # [R, c, 3]
+    def test(r: torch.Tensor, tok: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
+        last = frames[:, :, -1]  # [R, c, 3] (frames [R, c, 5, 3]: the tokens' step, _own_frames)
         fwd = torch.stack([last[..., 2].cos(), last[..., 2].sin()], -1)  # [R, c, 2]
         left = torch.stack([-fwd[..., 1], fwd[..., 0]], -1)
         v = ((last[..., :2] - frames[:, :, -2, :2]) / dt * fwd).sum(-1).clamp(min=0.0)  # [R, c] own speed at the end
@@ -183,14 +184,11 @@ def _standing_test(prior: RolloutState, boxes: torch.Tensor, cb: torch.Tensor, c
     other_slot = ctrl_slot[cb].clamp(min=0)  # [M, C]
     pose = prior.pose[cb[:, None], other_slot]  # [M, C, 3] where they stand
     half = boxes[cb[:, None], other_slot, :2].to(pose.dtype) / 2
-    own_pose, own_before = prior.pose[cb, slot], prior.previous_pose[cb, slot]
+    own_pose = prior.pose[cb, slot]
     own_half = boxes[cb, slot, :2].to(pose.dtype) / 2
     ok = ok & ~boxes_overlap(own_pose[:, None, :2], own_pose[:, None, 2], own_half[:, None], pose[..., :2], pose[..., 2], half)
-    token_poses = prior.token_poses.to(pose.dtype)
-    kind = prior.agent_type[cb, slot]
 
-    def test(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
-        frames = _own_frames(prior, kind, own_pose, own_before, r, tok, token_poses)  # [R, c, 5, 3]
+    def test(r: torch.Tensor, tok: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
         hit = boxes_overlap(frames[:, :, None, :, :2], frames[:, :, None, :, 2], own_half[r][:, None, None, None],
                             pose[r][:, None, :, None, :2], pose[r][:, None, :, None, 2], half[r][:, None, :, None])  # [R, c, C, 5]
         return (hit.any(-1) & ok[r][:, None]).any(-1)
