@@ -10,11 +10,14 @@ asked to raise and to keep down, in one number), the best checkpoint (the earlie
 ``OUT/checkpoints/selection.json`` with all of it, and ``OUT/checkpoints/policy_best.{json,safetensors}``, a copy of the
 chosen checkpoint's files (``load_policy("OUT/checkpoints/policy_best")`` reads it). ``policy_last`` is scored only when
 no numbered checkpoint holds its iteration. Validation scenes that are the run's training or test scenes are
-refused by id.
+refused by id. A selection run again (more checkpoints since, a run that goes on) scores only what it has not: a row
+of the last ``selection.json`` is kept when its checkpoint's files (their SHA-256) and the validation settings are the
+same, since a checkpoint's evaluation on the same scenes and seeds is the same.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 import shutil
@@ -62,8 +65,14 @@ def select_policy(run_dir: str | Path, val_scenes: str | list, episodes: int | N
         if overlap:
             raise FinetuneError(f"val_scenes {val_scenes!r}: {len(overlap)} of its scenes are the run's {name} scenes "
                                 f"({', '.join(overlap[:5])}); validate on scenes that are neither")
+    settings = json.loads(json.dumps({"val_scenes": val_scenes, "episodes": episodes, "seed": seed, "num_scenes": num_scenes}))
+    done = _scored(Path(run_dir) / "checkpoints" / SELECTION_FILE, settings)
     rows, prior = [], None
     for path in paths:
+        digest = _digest(path)
+        if digest in done:
+            rows.append({**done[digest], "checkpoint": path.stem})
+            continue
         saved, net, meta = load_policy(path)
         cfg = load_finetune_config(saved.to_dict(), {"eval_scenes": val_scenes, **({"eval_num_scenes": int(num_scenes)} if num_scenes else {})})
         prior = prior or load_prior(cfg.prior, cfg.device)  # one run, one prior: loaded once
@@ -71,18 +80,38 @@ def select_policy(run_dir: str | Path, val_scenes: str | list, episodes: int | N
                                     seed=seed, baselines=False)
         row = result["rows"][FinetunedTensorPolicy.name]
         rows.append({"checkpoint": path.stem, "iteration": meta.get("iteration"), "score": score(row), "row": row,
-                     "scenes": len(result["scenes"]), "seeds": result["seeds"]})
+                     "scenes": len(result["scenes"]), "seeds": result["seeds"], "digest": digest})
     best = max(rows, key=lambda r: (r["score"], -rows.index(r)))  # the earliest of equal scores
     ckpt = Path(run_dir) / "checkpoints"
     for ext in ("json", "safetensors"):
         shutil.copyfile(ckpt / f"{best['checkpoint']}.{ext}", ckpt / f"{BEST}.{ext}.tmp")
         (ckpt / f"{BEST}.{ext}.tmp").replace(ckpt / f"{BEST}.{ext}")
-    selection = {"val_scenes": val_scenes, "score": "goal_rate - collision_rate - offroad_rate", "best": best["checkpoint"],
+    selection = {**settings, "score": "goal_rate - collision_rate - offroad_rate", "best": best["checkpoint"],
                  "best_iteration": best["iteration"], "checkpoints": rows}
     tmp = ckpt / f"{SELECTION_FILE}.tmp"
     tmp.write_text(json.dumps(selection, indent=1, default=float))
     tmp.replace(ckpt / SELECTION_FILE)
     return selection
+
+
+def _digest(path: Path) -> str:
+    """SHA-256 of a checkpoint's two files (``path`` its ``.json``)."""
+    h = hashlib.sha256()
+    for f in (path, path.with_suffix(".safetensors")):
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def _scored(selection_file: Path, settings: dict) -> dict:
+    """The rows of an earlier selection with the same ``settings``, by checkpoint digest (none when it is missing,
+    unreadable or was made with other settings: those checkpoints are scored again)."""
+    try:
+        earlier = json.loads(selection_file.read_text())
+        if any(earlier.get(k) != v for k, v in settings.items()):
+            return {}
+        return {r["digest"]: r for r in earlier["checkpoints"] if isinstance(r, dict) and isinstance(r.get("digest"), str)}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {}
 
 
 __all__ = ["BEST", "SELECTION_FILE", "run_checkpoints", "score", "select_policy"]

@@ -86,3 +86,35 @@ def test_the_select_command_prints_the_scores_and_refuses_half_its_arguments(run
     assert "go together" in capsys.readouterr().err
     assert main(["finetune", "--select", str(run), "--val-scenes", str(shared_data / NOCTURNE), "--config", "tiny"]) == 2
     assert "--select takes only" in capsys.readouterr().err
+
+
+def test_a_selection_run_again_scores_only_the_checkpoints_it_has_not(run, shared_data, tmp_path, monkeypatch):
+    import shutil
+
+    import agents.select_policy as sp
+
+    copy = tmp_path / "run"
+    shutil.copytree(run / "checkpoints", copy / "checkpoints")
+    val = str(shared_data / NOCTURNE)
+    calls = []
+    real = sp.evaluate_finetuned
+    monkeypatch.setattr(sp, "evaluate_finetuned", lambda *a, **k: calls.append(1) or real(*a, **k))
+    first = select_policy(copy, val, episodes=1, num_scenes=1)
+    assert len(calls) == 3
+    again = select_policy(copy, val, episodes=1, num_scenes=1)  # nothing new: every row kept
+    assert len(calls) == 3 and again["checkpoints"] == first["checkpoints"] and again["best"] == first["best"]
+    # a new checkpoint (the run went on) is scored, the others kept; a changed one is scored again
+    ckpt = copy / "checkpoints"
+    meta = json.loads((ckpt / "policy_0003.json").read_text())
+    (ckpt / "policy_0004.json").write_text(json.dumps({**meta, "iteration": 4}))
+    shutil.copyfile(ckpt / "policy_0003.safetensors", ckpt / "policy_0004.safetensors")
+    (ckpt / "policy_0001.json").write_text(json.dumps({**json.loads((ckpt / "policy_0001.json").read_text()), "note": "edited"}))
+    grown = select_policy(copy, val, episodes=1, num_scenes=1)
+    assert len(calls) == 5 and [r["checkpoint"] for r in grown["checkpoints"]] == [f"policy_000{i}" for i in (1, 2, 3, 4)]
+    assert grown["checkpoints"][3]["row"] == first["checkpoints"][2]["row"]  # the same weights score the same
+    # other settings, or a selection file that does not read: every checkpoint scored again
+    select_policy(copy, val, episodes=2, num_scenes=1)
+    assert len(calls) == 9
+    (ckpt / "selection.json").write_text("{not json")
+    select_policy(copy, val, episodes=2, num_scenes=1)
+    assert len(calls) == 13
