@@ -235,7 +235,7 @@ def _print_config_or_parse(argv: list[str], capsys) -> None:
     from smart_marl.cli import build_parser, main
 
     argv = [CUDA_FREE.get(prev, a) if prev in CUDA_FREE and a == "cuda" else a for prev, a in zip([""] + argv, argv)]
-    if argv[0] in ("train", "finetune") and "--evaluate" not in argv:
+    if argv[0] in ("train", "finetune") and "--evaluate" not in argv and "--select" not in argv:  # those two run, not configure
         code = main(argv + ["--print-config"])
         capsys.readouterr()
         assert code == 0, f"smart-marl {' '.join(argv)} --print-config exited {code}"

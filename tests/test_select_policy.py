@@ -86,6 +86,8 @@ def test_the_select_command_prints_the_scores_and_refuses_half_its_arguments(run
     assert "go together" in capsys.readouterr().err
     assert main(["finetune", "--select", str(run), "--val-scenes", str(shared_data / NOCTURNE), "--config", "tiny"]) == 2
     assert "--select takes only" in capsys.readouterr().err
+    assert main(["finetune", "--select", str(run), "--val-scenes", str(shared_data / NOCTURNE), "--print-config"]) == 2
+    assert "--select takes only" in capsys.readouterr().err
 
 
 def test_a_selection_run_again_scores_only_the_checkpoints_it_has_not(run, shared_data, tmp_path, monkeypatch):

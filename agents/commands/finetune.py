@@ -99,7 +99,7 @@ def _select(args, select_policy) -> int:
     if not (args.select and args.val_scenes):
         print("smart-marl finetune: error: --select RUN and --val-scenes PATH go together", file=sys.stderr)
         return 2
-    if args.config or args.evaluate or args.overrides or args.out:
+    if args.config or args.evaluate or args.overrides or args.out or args.print_config:
         print("smart-marl finetune: error: --select takes only --val-scenes, --episodes, --seed and --json", file=sys.stderr)
         return 2
     selection = select_policy(args.select, args.val_scenes, episodes=args.episodes, seed=args.seed)
