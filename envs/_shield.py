@@ -34,6 +34,7 @@ here), so a token the shield allows does not collide with a background agent wit
 
 from __future__ import annotations
 
+import functools
 from typing import Sequence
 
 import torch
@@ -78,35 +79,33 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
         return out
     cb, cc = acting.nonzero(as_tuple=True)  # [M] the agents, scene by scene
     slot = ctrl_slot[cb, cc]
-    tests = []
     boxes = event_boxes(prior, scenes)
+    token_poses = prior.token_poses.to(prior.pose.dtype)
+    plain, framed = [], []  # tests of (rows, tokens), and of (rows, tokens, the tokens' frames)
     if "offroad" in checks:
         track = ctrl_track[cb, cc]
-        offroad = _offroad_test(scenes, cb, track, prior.current_pose[cb, slot], prior.token_poses[prior.agent_type[cb, slot], :, -1])
-        tests.append(lambda r, tok, frames: offroad(r, tok))
+        plain.append(_offroad_test(scenes, cb, track, prior.current_pose[cb, slot], prior.token_poses[prior.agent_type[cb, slot], :, -1]))
     if "collision" in checks and acting.shape[1] > 1:
-        tests.append(_standing_test(prior, boxes, cb, cc, slot, acting, ctrl_slot))
+        framed.append(_standing_test(prior, boxes, cb, cc, slot, acting, ctrl_slot))
     known_frames, known = ahead.frames(prior) if ahead is not None else (None, None)
     if "gap" in checks:
-        tests.append(_gap_test(prior, boxes, cb, slot, known_frames, known))
-    placed = len(tests) > ("offroad" in checks)  # a test that needs the candidate tokens' frames
-    own = (prior.agent_type[cb, slot], prior.pose[cb, slot], prior.previous_pose[cb, slot], prior.token_poses.to(prior.pose.dtype))
-    also = None if not tests else (lambda r, tok: _any_of(tests, r, tok, _own_frames(prior, *own, r, tok) if placed else None))
+        framed.append(_gap_test(prior, boxes, cb, slot, known_frames, known))
+    own = (prior.agent_type[cb, slot], prior.pose[cb, slot], prior.previous_pose[cb, slot], token_poses)
+
+    def also(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
+        """[R, c]: does token ``tok`` of rows ``r`` fail any test (the frames placed once for all that need them)."""
+        fails = [t(r, tok) for t in plain]
+        if framed:
+            frames = _own_frames(prior, *own, r, tok)  # [R, c, 5, 3]
+            fails += [t(r, tok, frames) for t in framed]
+        return functools.reduce(torch.logical_or, fails)
+
     present = prior.simulated if "collision" in checks else torch.zeros_like(prior.simulated)  # no other agent blocks
     rows = cb * prior.num_slots + slot
     k = 0 if top_k is None else int(top_k)
     out[cb, cc] = excluded_tokens(logits[cb, cc], rows, prior.pose, prior.previous_pose, boxes, present,
-                                  prior.agent_type, prior.token_poses.to(prior.pose.dtype), k, prior.interpolation,
-                                  known_frames=known_frames, known=known, also=also)
-    return out
-
-
-def _any_of(tests, r: torch.Tensor, tok: torch.Tensor, frames: torch.Tensor | None) -> torch.Tensor:
-    """[R, c]: does token ``tok`` of rows ``r`` (their step's frames ``frames`` [R, c, 5, 3], placed once for every
-    test) fail any of ``tests``."""
-    out = tests[0](r, tok, frames)
-    for t in tests[1:]:
-        out = out | t(r, tok, frames)
+                                  prior.agent_type, token_poses, k, prior.interpolation,
+                                  known_frames=known_frames, known=known, also=also if plain or framed else None)
     return out
 
 
