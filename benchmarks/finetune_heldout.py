@@ -15,7 +15,7 @@ prior at the policy's top-k (the policy card's table).
 row: one environment).
 
 Resumable: each (set, row) is written to ``RUN_DIR/eval_SET_ROW.json`` as it finishes and read back when found (kill
-it and start it again with the same arguments); ``--only-set`` runs one set, so two processes can share the work.
+it and start it again with the same arguments); ``--only-set`` runs one set and ``--only-row`` one row, so processes can share the work.
 
     .venv/bin/python benchmarks/finetune_heldout.py --policy runs/ft58/checkpoints/policy_best --run-dir runs/ft58_eval \\
         --set generated=data/rl_heldout:200:8 \\
@@ -93,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--run-dir", required=True, help="where each (set, row) is kept as it finishes")
     p.add_argument("--rows", default="", help="more rows besides the lead ones, comma-separated names (e.g. 'prior full softmax')")
     p.add_argument("--only-set", default=None, help="evaluate this set only")
+    p.add_argument("--only-row", default=None, help="evaluate this row only (of those asked for; e.g. 'fine-tuned')")
     p.add_argument("--lead-only", action="store_true",
                    help="the shielded priors at the policy's top-k and at top-3 and the policy only (no expert, no --rows)")
     p.add_argument("--num-envs", type=int, default=32, help="episodes stepped together")
@@ -130,6 +131,10 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [k for k in wanted if k not in policies]
     if unknown:
         raise SystemExit(f"--rows: unknown row(s) {unknown}; known: {list(policies)}")
+    if args.only_row is not None:
+        if args.only_row not in wanted:
+            raise SystemExit(f"--only-row: {args.only_row!r} is not one of the rows asked for: {wanted}")
+        wanted = [args.only_row]
     for name, paths, count, num_seeds in sets:
         if args.only_set is not None and name != args.only_set:
             continue

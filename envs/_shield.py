@@ -25,7 +25,10 @@ likely first, until ``k`` pass every check asked for:
 
 So the top ``k`` of the shielded logits are the ``k`` most likely tokens that pass, and the reference of
 fine-tuning (the prior's top ``k``, renormalised) is the prior as the shield lets it drive. An agent
-all of whose tokens fail keeps them all (nothing is taken out), as in the background's rule. What the
+all of whose tokens fail keeps the tokens that stay on the road (with ``"offroad"``: the road is where it is, the
+others' moves are predictions), or all of them if none does (nothing is taken out, as in the background's rule).
+Before this fallback, such agents took any token, and most of the fine-tuned policy's offroad events came from
+them (wedged between a road edge and an agent the collision or gap check expects to close in). What the
 shield cannot see: another controlled agent's move other than driving on or standing (a turn across, a swerve), an
 agent beyond the 16 nearest, a pair whose boxes overlap already (left alone, as in the background's rule), offroad on the
 step's in-between frames. The events' boxes are rounded (a little smaller than the exact boxes checked
@@ -91,10 +94,13 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
     if "gap" in checks:
         framed.append(_gap_test(prior, boxes, cb, slot, known_frames, known))
     own = (prior.agent_type[cb, slot], prior.pose[cb, slot], prior.previous_pose[cb, slot], token_poses)
+    went_off = torch.zeros(len(cb), dtype=torch.bool, device=cb.device)  # rows with a searched token off the road
 
     def also(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
         """[R, c]: does token ``tok`` of rows ``r`` fail any test (the frames placed once for all that need them)."""
         fails = [t(r, tok) for t in plain]
+        if "offroad" in checks:
+            went_off[r] |= fails[0].any(-1)
         if framed:
             frames = _own_frames(prior, *own, r, tok)  # [R, c, 5, 3]
             fails += [t(r, tok, frames) for t in framed]
@@ -103,9 +109,19 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
     present = prior.simulated if "collision" in checks else torch.zeros_like(prior.simulated)  # no other agent blocks
     rows = cb * prior.num_slots + slot
     k = 0 if top_k is None else int(top_k)
-    out[cb, cc] = excluded_tokens(logits[cb, cc], rows, prior.pose, prior.previous_pose, boxes, present,
-                                  prior.agent_type, token_poses, k, prior.interpolation,
-                                  known_frames=known_frames, known=known, also=also if plain or framed else None)
+    search = functools.partial(excluded_tokens, pose=prior.pose, previous_pose=prior.previous_pose, size=boxes,
+                               agent_type=prior.agent_type, token_poses=token_poses, top_k=k, interpolation=prior.interpolation)
+    taken = search(logits[cb, cc], rows, present=present, known_frames=known_frames, known=known,
+                   also=also if plain or framed else None)
+    # An agent every token of which failed some check has nothing taken out. If one of them went off the road, it
+    # is searched again for the road alone: the road is where it is, the others' moves are predictions, so it
+    # keeps the tokens that stay on the road (the k most likely of them), or all if none does.
+    again = (went_off & ~taken.any(-1)).nonzero().squeeze(1)
+    if len(again) and len(framed) + ("collision" in checks) > 0:
+        road = plain[0]
+        taken[again] = search(logits[cb[again], cc[again]], rows[again], present=torch.zeros_like(prior.simulated),
+                              also=lambda r, tok: road(again[r], tok))
+    out[cb, cc] = taken
     return out
 
 

@@ -262,3 +262,14 @@ def test_finetune_heldout_reads_its_sets_and_lays_out_the_card_table_against_the
     lines = heldout.table(tmp_path, ["real"], "prior top-16").splitlines()[2:]
     assert [line.split(" | ")[1] for line in lines] == ["prior top-16", "prior top-3", "fine-tuned"]
     assert "| 0.0200 | 0.0100 | 0.0000 | 2.00x | 0.600 | 2.00x | 0.7400 | -0.0350 |" in lines[2]
+
+
+def test_finetune_heldout_only_row_refuses_a_row_it_was_not_asked_for(tmp_path):
+    """``--only-row`` picks one of the rows asked for (so processes can share a set); any other name is refused, naming
+    the rows it could have been, before anything is evaluated."""
+    heldout = load_benchmark("finetune_heldout")
+    with pytest.raises(SystemExit, match=r"--only-row: 'expert \(log\)' is not one of the rows asked for: \['prior top-16', "
+                                         r"'prior top-3', 'fine-tuned'\]"):
+        heldout.main(["--policy", "embedded", "--lead-only", "--only-row", "expert (log)", "--set", "g=nowhere:1:1",
+                      "--run-dir", str(tmp_path / "run")])
+    assert not list((tmp_path / "run").glob("eval_*.json"))

@@ -32,11 +32,11 @@ def _env(scenes, prior, **kw):
     return smart_traffic_v0.parallel_env(**args)
 
 
-def _brute_force(core, b: int, c: int, tokens: torch.Tensor) -> torch.Tensor:
+def _brute_force(core, b: int, c: int, tokens: torch.Tensor, road: bool = False) -> torch.Tensor:
     """bool [T]: does each token of controlled slot ``c`` of scene row ``b`` overlap another simulated agent
     (exact boxes, on the same frame; a background agent where its token drawn ahead takes it, another
     controlled agent at constant velocity and standing where it is) or, for a vehicle, end with a corner off the road; pairs
-    overlapping already now are left out (the rule's exception)."""
+    overlapping already now are left out (the rule's exception). ``road``: the offroad test alone."""
     pr = core.prior
     draw = pr.drawn_ahead()
     drawn = {int(r): int(t) for r, t, f in zip(draw.rows, draw.tokens, draw.forced.reshape(-1)[draw.rows]) if f != FORCED_LATER}
@@ -67,7 +67,7 @@ def _brute_force(core, b: int, c: int, tokens: torch.Tensor) -> torch.Tensor:
     last = torch.zeros(core.num_scenes, len(tokens), 3, dtype=core.pose.dtype)
     last[b] = ends
     off = offroad(core.scenes, ctrl, ctrl >= 0, last)[b]
-    return hit | off
+    return off if road else hit | off
 
 
 def test_shield_arguments_are_checked_and_normalised(sample_scenes, embedded_prior):
@@ -106,7 +106,7 @@ def shielded_steps(env, prior, num_scenes: int, steps: int, seed: int = 0):
 
 def test_the_shield_takes_out_exactly_unsafe_tokens_and_keeps_k_safe_ones_on_top(sample_scenes, embedded_prior):
     env = _env(sample_scenes, embedded_prior)
-    taken_out, checked_agents = 0, 0
+    taken_out, checked_agents, to_the_road = 0, 0, 0
     for core, shielded, plain, obs in shielded_steps(env, embedded_prior, len(sample_scenes), 4):
         for c in core.live[0].nonzero().squeeze(1).tolist():
             gone = torch.isinf(shielded[0, c]) & torch.isfinite(plain[0, c])
@@ -118,7 +118,11 @@ def test_the_shield_takes_out_exactly_unsafe_tokens_and_keeps_k_safe_ones_on_top
                 searched = torch.zeros_like(gone)
                 searched[torch.topk(plain[0, c], SEARCH_DEPTH).indices] = True  # a row with fewer than k free there
                 assert _brute_force(core, 0, c, (gone & searched).nonzero().squeeze(1)).all()  # loses all the rest
-                assert not unsafe_top.any()
+                if unsafe_top.any():  # every token fails a check: those off the road are taken out, the rest kept
+                    assert _brute_force(core, 0, c, torch.topk(plain[0, c], 64).indices).all()
+                    assert not _brute_force(core, 0, c, top, road=True).any()
+                    assert _brute_force(core, 0, c, (gone & searched).nonzero().squeeze(1), road=True).all()
+                    to_the_road += 1
                 taken_out += int(gone.sum())
             else:  # nothing taken out: the prior's own top k are safe (or every token failed: left alone)
                 assert not unsafe_top.any() or _brute_force(core, 0, c, torch.topk(plain[0, c], 64).indices).all()
@@ -126,10 +130,11 @@ def test_the_shield_takes_out_exactly_unsafe_tokens_and_keeps_k_safe_ones_on_top
             if mask is not None:  # the action mask is the shielded top k
                 assert set(np.flatnonzero(mask)) == set(top.tolist())
             checked_agents += 1
-    assert checked_agents > 20 and taken_out > 0  # the sample scenes exercise it
+    assert checked_agents > 20 and taken_out > 0 and to_the_road > 0  # the sample scenes exercise it
 
 
 def test_an_agent_whose_every_token_fails_keeps_them_all_and_a_lone_agent_is_still_checked():
+    """The search's rule (the shield searches such an agent again for the road alone: the test above)."""
     logits = torch.tensor([[3.0, 2.0, 1.0, 0.0]])
     pose = torch.zeros(1, 1, 3)
     size = torch.tensor([[[4.0, 2.0, 1.5]]])
