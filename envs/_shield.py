@@ -27,8 +27,8 @@ So the top ``k`` of the shielded logits are the ``k`` most likely tokens that pa
 fine-tuning (the prior's top ``k``, renormalised) is the prior as the shield lets it drive. An agent
 all of whose tokens fail keeps the tokens that stay on the road (with ``"offroad"``: the road is where it is, the
 others' moves are predictions), or all of them if none does (nothing is taken out, as in the background's rule).
-Before this fallback, such agents took any token, and most of the fine-tuned policy's offroad events came from
-them (wedged between a road edge and an agent the collision or gap check expects to close in). What the
+Left alone, such agents (wedged between a road edge and an agent the collision or gap check expects to close in)
+took any token, and they were where the fine-tuned policy's offroad events came from. What the
 shield cannot see: another controlled agent's move other than driving on or standing (a turn across, a swerve), an
 agent beyond the 16 nearest, a pair whose boxes overlap already (left alone, as in the background's rule), offroad on the
 step's in-between frames. The events' boxes are rounded (a little smaller than the exact boxes checked
