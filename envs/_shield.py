@@ -94,12 +94,13 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
     if "gap" in checks:
         framed.append(_gap_test(prior, boxes, cb, slot, known_frames, known))
     own = (prior.agent_type[cb, slot], prior.pose[cb, slot], prior.previous_pose[cb, slot], token_poses)
+    fallback = "offroad" in checks and bool(framed or "collision" in checks)  # a check the road alone can relax
     went_off = torch.zeros(len(cb), dtype=torch.bool, device=cb.device)  # rows with a searched token off the road
 
     def also(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
         """[R, c]: does token ``tok`` of rows ``r`` fail any test (the frames placed once for all that need them)."""
         fails = [t(r, tok) for t in plain]
-        if "offroad" in checks:
+        if fallback:
             went_off[r] |= fails[0].any(-1)
         if framed:
             frames = _own_frames(prior, *own, r, tok)  # [R, c, 5, 3]
@@ -116,8 +117,8 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
     # An agent every token of which failed some check has nothing taken out. If one of them went off the road, it
     # is searched again for the road alone: the road is where it is, the others' moves are predictions, so it
     # keeps the tokens that stay on the road (the k most likely of them), or all if none does.
-    again = (went_off & ~taken.any(-1)).nonzero().squeeze(1)
-    if len(again) and len(framed) + ("collision" in checks) > 0:
+    again = (went_off & ~taken.any(-1)).nonzero().squeeze(1)  # empty without the fallback
+    if len(again):
         road = plain[0]
         taken[again] = search(logits[cb[again], cc[again]], rows[again], present=torch.zeros_like(prior.simulated),
                               also=lambda r, tok: road(again[r], tok))

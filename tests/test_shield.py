@@ -117,11 +117,12 @@ def test_the_shield_takes_out_exactly_unsafe_tokens_and_keeps_k_safe_ones_on_top
             if gone.any():  # what it took out is unsafe (among the tokens it searched), and its top k are safe
                 searched = torch.zeros_like(gone)
                 searched[torch.topk(plain[0, c], SEARCH_DEPTH).indices] = True  # a row with fewer than k free there
-                assert _brute_force(core, 0, c, (gone & searched).nonzero().squeeze(1)).all()  # loses all the rest
+                gone_searched = (gone & searched).nonzero().squeeze(1)
+                assert _brute_force(core, 0, c, gone_searched).all()  # loses all the rest
                 if unsafe_top.any():  # every token fails a check: those off the road are taken out, the rest kept
                     assert _brute_force(core, 0, c, torch.topk(plain[0, c], 64).indices).all()
                     assert not _brute_force(core, 0, c, top, road=True).any()
-                    assert _brute_force(core, 0, c, (gone & searched).nonzero().squeeze(1), road=True).all()
+                    assert _brute_force(core, 0, c, gone_searched, road=True).all()
                     to_the_road += 1
                 taken_out += int(gone.sum())
             else:  # nothing taken out: the prior's own top k are safe (or every token failed: left alone)
