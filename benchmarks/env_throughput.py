@@ -154,6 +154,10 @@ def summarise(runs: list[dict]) -> dict:
 
 
 def main() -> int:
+    from envs._arguments import shield_option
+    from envs._shield import DEFAULT_SHIELD_CHECKS
+    from envs.errors import EnvConfigError
+
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scenes", default=None, help="scenes (any path read_scenarios reads; default: the shared real scenes)")
     p.add_argument("--prior", default="embedded")
@@ -167,7 +171,9 @@ def main() -> int:
     p.add_argument("--max-agents", type=int, default=4)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--device", default="cpu")
-    p.add_argument("--shield", action="store_true", help="the controlled agents' shield (envs._shield), checked to the top 3")
+    p.add_argument("--shield", nargs="?", const="+".join(DEFAULT_SHIELD_CHECKS), default="",
+                   help="the controlled agents' shield (envs._shield), checked to the top 3: its checks joined with '+' "
+                   "(alone: collision+offroad, shield=True)")
     p.add_argument("--traffic-control", default="on", choices=("on", "off", "both"),
                    help="the background's traffic control and speed persistence (stop_lines=True, lights='log', "
                         "persistence 0.25: the envs' defaults) or none (stop_lines=False, lights='current', persistence 0); "
@@ -175,6 +181,10 @@ def main() -> int:
     p.add_argument("--stop-lines", dest="traffic_control", action="store_const", const="on",
                    help="--traffic-control on (kept for older command lines)")
     args = p.parse_args()
+    try:
+        checks = shield_option(args.shield)
+    except EnvConfigError as e:
+        p.error(f"--{e}")
     torch.set_num_threads(args.threads)
 
     from envs import smart_traffic_batched_v0, smart_traffic_v0
@@ -189,8 +199,8 @@ def main() -> int:
     chosen = ["on", "off"] if args.traffic_control == "both" else [args.traffic_control]
     kw = dict(prior=model, motion_vocab=vocab, controlled=args.controlled, max_agents=args.max_agents, background=args.background,
               horizon_steps=args.horizon, terminate_on=(), device=args.device,
-              **(dict(shield=True, reference_top_k=3) if args.shield else {}))
-    common = dict(benchmark="env_throughput", background=args.background, shield=args.shield,
+              **(dict(shield=list(checks), reference_top_k=3) if checks else {}))
+    common = dict(benchmark="env_throughput", background=args.background, shield=args.shield or False,
                   prior=args.prior, controlled=args.controlled,
                   max_agents=args.max_agents, horizon_steps=args.horizon, torch_threads=args.threads, device=args.device,
                   cpu=platform.processor() or platform.machine(), scenes=len(scenes))

@@ -72,7 +72,9 @@ def time_core(core, pool, args, types, steps: int) -> dict:
 
 
 def main() -> int:
-    from envs._shield import DEFAULT_SHIELD_CHECKS, SHIELD_CHECKS
+    from envs._arguments import shield_option
+    from envs._shield import DEFAULT_SHIELD_CHECKS
+    from envs.errors import EnvConfigError
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scenes", nargs="*", default=["embedded"], help="scene sources (default: the package's sample scenes)")
@@ -92,10 +94,10 @@ def main() -> int:
     p.add_argument("--tf32", action="store_true", help="CUDA: TensorFloat-32 matrix products (torch.backends.cuda.matmul.allow_tf32)")
     p.add_argument("--profile", action="store_true", help="also print torch.profiler's table of the timed steps' heaviest operations")
     args = p.parse_args()
-    checks = tuple(c for c in args.shield.split("+") if c)
-    unknown = sorted(set(checks) - set(SHIELD_CHECKS))
-    if unknown:
-        p.error(f"--shield: unknown check(s) {unknown}; known: {list(SHIELD_CHECKS)}")
+    try:
+        checks = shield_option(args.shield)
+    except EnvConfigError as e:
+        p.error(f"--{e}")
     torch.set_num_threads(args.threads)
     if args.tf32:
         torch.backends.cuda.matmul.allow_tf32 = True

@@ -114,9 +114,13 @@ def main(argv: list[str] | None = None) -> int:
     run_dir = Path(args.run_dir)
     cfg, net, meta = ft.load_policy(args.policy)
     if args.shield is not None:
-        from envs._arguments import shield_checks
+        from envs._arguments import shield_option
+        from envs.errors import EnvConfigError
 
-        cfg = dataclasses.replace(cfg, shield=shield_checks([c for c in args.shield.split("+") if c]))
+        try:
+            cfg = dataclasses.replace(cfg, shield=shield_option(args.shield))
+        except EnvConfigError as e:
+            p.error(f"--{e}")
     reference = f"prior top-{cfg.reference_top_k}" if cfg.reference_top_k else "prior full softmax"
     if args.table:
         print(table(run_dir, [s[0] for s in sets], reference))

@@ -201,6 +201,12 @@ def shield_checks(value: Any) -> tuple[str, ...]:
     return tuple(c for c in SHIELD_CHECKS if c in names)
 
 
+def shield_option(text: str) -> tuple[str, ...]:
+    """A command line's shield, its checks joined with '+' (``"collision+offroad+gap"``; ``""``: none), as
+    :func:`shield_checks` gives them; :class:`~envs.errors.EnvConfigError` naming a bad check."""
+    return shield_checks([c for c in str(text).split("+") if c])
+
+
 def _device(value: Any):
     """``value`` as a torch.device this machine runs on (``"cpu"``, ``"cuda"``, ``"cuda:1"``, a torch.device)."""
     import torch
@@ -228,4 +234,5 @@ def check_reset_arguments(seed_value: Any, options: Any, num_scenes: int) -> tup
 
 
 __all__ = ["MAX_AGENT_SLOTS", "MAX_HEADWAY_S", "MAX_HORIZON_STEPS", "MAX_REWARD_WEIGHT", "MAX_TTC_S", "MAX_RENDER_SIZE_PX",
-           "MAX_RENDER_RADIUS_M", "MIN_RENDER_RADIUS_M", "OBSERVATION_RULES", "REWARD_RULES", "TOP_K_WHY", "check_env_arguments", "check_reset_arguments", "shield_checks"]
+           "MAX_RENDER_RADIUS_M", "MIN_RENDER_RADIUS_M", "OBSERVATION_RULES", "REWARD_RULES", "TOP_K_WHY", "check_env_arguments", "check_reset_arguments", "shield_checks",
+           "shield_option"]

@@ -273,3 +273,14 @@ def test_finetune_heldout_only_row_refuses_a_row_it_was_not_asked_for(tmp_path):
         heldout.main(["--policy", "embedded", "--lead-only", "--only-row", "expert (log)", "--set", "g=nowhere:1:1",
                       "--run-dir", str(tmp_path / "run")])
     assert not list((tmp_path / "run").glob("eval_*.json"))
+
+
+def test_finetune_heldout_refuses_an_unknown_shield_check_by_name(tmp_path, capsys):
+    """``--shield`` takes the checks joined with '+'; a check the shield does not know is refused, named, before
+    anything runs."""
+    heldout = load_benchmark("finetune_heldout")
+    with pytest.raises(SystemExit):
+        heldout.main(["--policy", "embedded", "--lead-only", "--shield", "collision+seatbelt", "--set", "g=nowhere:1:1",
+                      "--run-dir", str(tmp_path / "run")])
+    assert "--shield: unknown check(s) ['seatbelt']" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()

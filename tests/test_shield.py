@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from envs import smart_traffic_v0
+from envs._arguments import shield_option
 from envs._reward import offroad
 from envs._shield import DEFAULT_SHIELD_CHECKS, SHIELD_CHECKS, event_boxes
 from envs.errors import EnvConfigError, EnvConfigTypeError
@@ -81,6 +82,10 @@ def test_shield_arguments_are_checked_and_normalised(sample_scenes, embedded_pri
         _env(sample_scenes[:1], embedded_prior, shield=["seatbelt"])
     with pytest.raises(EnvConfigTypeError, match="shield must be True, False or a list"):
         _env(sample_scenes[:1], embedded_prior, shield=3)
+    # a command line's form (the benchmarks' --shield): checks joined with '+'
+    assert shield_option("gap+collision") == ("collision", "gap") and shield_option("") == ()
+    with pytest.raises(EnvConfigError, match=r"shield: unknown check\(s\) \['seatbelt'\]"):
+        shield_option("collision+seatbelt")
 
 
 def shielded_steps(env, prior, num_scenes: int, steps: int, seed: int = 0):
