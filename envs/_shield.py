@@ -19,9 +19,11 @@ likely first, until ``k`` pass every check asked for:
   offroad event is measured), has a corner beyond a road edge (:func:`envs._reward.offroad`'s test);
 * ``"gap"`` (asked for by name): a vehicle's token that ends closer to an agent ahead (of the 8 nearest ahead, where
   the step takes them) than the distance it would need to stop behind it should that one brake hard
-  (responsibility-sensitive safety's longitudinal distance, :func:`_gap_test`), unless the token brakes. Collisions
-  with a car ahead come from following too close: when the car ahead brakes, every token of the follower hits it,
-  the shield can take nothing out, and the follower runs into it (issue 58's diagnosis).
+  (responsibility-sensitive safety's longitudinal distance, :func:`_gap_test`), unless the token brakes early enough
+  (sheds 1 m/s over the step, and from its end the agent could still stop behind that one braking hard) or ends
+  standing. Collisions with a car ahead come from following too close: when the car ahead brakes, every token of the
+  follower hits it, the shield can take nothing out, and the follower runs into it (issue 58's diagnosis); and from
+  braking too gently once too close (a policy that wants speed takes the mildest brake it is allowed).
 
 So the top ``k`` of the shielded logits are the ``k`` most likely tokens that pass, and the reference of
 fine-tuning (the prior's top ``k``, renormalised) is the prior as the shield lets it drive. An agent
@@ -65,7 +67,10 @@ GAP_LEADER_BRAKE = 6.0
 GAP_MARGIN_M = 1.0
 """Metres kept between the boxes when both have stopped."""
 GAP_BRAKING = 1.0
-"""m/s a token sheds (2 m/s^2 over the step) to be allowed whatever the gap: braking is always a way out."""
+"""m/s a token must shed (2 m/s^2 over the step) to be allowed closer than the gap check's distance."""
+GAP_HARDEST_BRAKE = 6.0
+"""m/s^2 the follower can brake at when it must: a braking token from whose end it could not stop behind the agent
+ahead even so (that one braking at GAP_LEADER_BRAKE) is taken out too; a token that ends standing never is."""
 GAP_CANDIDATES = 8
 """How many of the others nearest ahead of each agent the gap check looks at."""
 
@@ -142,8 +147,10 @@ def _gap_test(prior: RolloutState, boxes: torch.Tensor, cb: torch.Tensor, slot: 
     stop behind it should that one brake hard (a responsibility-sensitive-safety rule): gap < v GAP_RESPONSE_S +
     v^2 / (2 GAP_OWN_BRAKE) - u^2 / (2 GAP_LEADER_BRAKE) + GAP_MARGIN_M, v the agent's speed at the token's end, u the
     other's along the agent's heading, both at the step's end (the others where the step takes them: the background
-    on its drawn frames, the rest at constant velocity). A token that brakes (sheds GAP_BRAKING m/s or ends below
-    0.5 m/s) is never taken out, so the check leaves a way out to an agent that is too close already."""
+    on its drawn frames, the rest at constant velocity). A token that brakes early enough is allowed all the same, so
+    the check leaves a way out to an agent that is too close already: it sheds GAP_BRAKING m/s and the agent could
+    still stop behind the other from its end at GAP_HARDEST_BRAKE (v^2 / (2 GAP_HARDEST_BRAKE) - u^2 / (2
+    GAP_LEADER_BRAKE) + GAP_MARGIN_M <= gap), or it ends below 0.5 m/s (a way out that is always there)."""
     dtype = prior.pose.dtype
     dt = GAP_RESPONSE_S / FRAMES_PER_TOKEN
     pose, before = prior.pose[cb], prior.previous_pose[cb]  # [M, N, 3] every slot of each agent's scene
@@ -180,10 +187,12 @@ def _gap_test(prior: RolloutState, boxes: torch.Tensor, cb: torch.Tensor, slot: 
         in_path = near_ok[r][:, None] & (ahead > 0) & (side.abs() < mine[..., 1] + across)
         gap = ahead - mine[..., 0] - along  # [R, c, K]
         u = (o_vel[r][:, None] * fwd[:, :, None]).sum(-1).clamp(min=0.0)  # the other's speed along the heading
-        need = (v * GAP_RESPONSE_S + v * v / (2 * GAP_OWN_BRAKE))[..., None] - u * u / (2 * GAP_LEADER_BRAKE) + GAP_MARGIN_M
+        stops = u * u / (2 * GAP_LEADER_BRAKE) - GAP_MARGIN_M  # how far ahead of its box the other stops, less the margin
+        need = (v * GAP_RESPONSE_S + v * v / (2 * GAP_OWN_BRAKE))[..., None] - stops
         short = (in_path & (gap < need)).any(-1)  # [R, c]
-        brakes = (v <= torch.clamp(own_speed[r][:, None] - GAP_BRAKING, min=0.0)) | (v < 0.5)
-        return short & ~brakes & vehicle[r][:, None]
+        late = (in_path & (gap < (v * v / (2 * GAP_HARDEST_BRAKE))[..., None] - stops)).any(-1)  # even braking hard
+        brakes = (v <= torch.clamp(own_speed[r][:, None] - GAP_BRAKING, min=0.0)) & ~late
+        return short & ~(brakes | (v < 0.5)) & vehicle[r][:, None]
     return test
 
 
