@@ -156,7 +156,6 @@ def summarise(runs: list[dict]) -> dict:
 def main() -> int:
     from envs._arguments import shield_option
     from envs._shield import DEFAULT_SHIELD_CHECKS
-    from envs.errors import EnvConfigError
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scenes", default=None, help="scenes (any path read_scenarios reads; default: the shared real scenes)")
@@ -171,7 +170,7 @@ def main() -> int:
     p.add_argument("--max-agents", type=int, default=4)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--device", default="cpu")
-    p.add_argument("--shield", nargs="?", const="+".join(DEFAULT_SHIELD_CHECKS), default="",
+    p.add_argument("--shield", nargs="?", type=shield_option, const=DEFAULT_SHIELD_CHECKS, default=(),
                    help="the controlled agents' shield (envs._shield), checked to the top 3: its checks joined with '+' "
                    "(alone: collision+offroad, shield=True)")
     p.add_argument("--traffic-control", default="on", choices=("on", "off", "both"),
@@ -181,10 +180,7 @@ def main() -> int:
     p.add_argument("--stop-lines", dest="traffic_control", action="store_const", const="on",
                    help="--traffic-control on (kept for older command lines)")
     args = p.parse_args()
-    try:
-        checks = shield_option(args.shield)
-    except EnvConfigError as e:
-        p.error(f"--{e}")
+    checks = args.shield
     torch.set_num_threads(args.threads)
 
     from envs import smart_traffic_batched_v0, smart_traffic_v0
@@ -200,7 +196,7 @@ def main() -> int:
     kw = dict(prior=model, motion_vocab=vocab, controlled=args.controlled, max_agents=args.max_agents, background=args.background,
               horizon_steps=args.horizon, terminate_on=(), device=args.device,
               **(dict(shield=list(checks), reference_top_k=3) if checks else {}))
-    common = dict(benchmark="env_throughput", background=args.background, shield=args.shield or False,
+    common = dict(benchmark="env_throughput", background=args.background, shield="+".join(checks) or False,
                   prior=args.prior, controlled=args.controlled,
                   max_agents=args.max_agents, horizon_steps=args.horizon, torch_threads=args.threads, device=args.device,
                   cpu=platform.processor() or platform.machine(), scenes=len(scenes))

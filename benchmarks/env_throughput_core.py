@@ -74,7 +74,6 @@ def time_core(core, pool, args, types, steps: int) -> dict:
 def main() -> int:
     from envs._arguments import shield_option
     from envs._shield import DEFAULT_SHIELD_CHECKS
-    from envs.errors import EnvConfigError
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scenes", nargs="*", default=["embedded"], help="scene sources (default: the package's sample scenes)")
@@ -88,16 +87,13 @@ def main() -> int:
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--no-collision-avoidance", action="store_true")
-    p.add_argument("--shield", nargs="?", const="+".join(DEFAULT_SHIELD_CHECKS), default="",
+    p.add_argument("--shield", nargs="?", type=shield_option, const=DEFAULT_SHIELD_CHECKS, default=(),
                    help="the controlled agents' shield (envs._shield), checked to the top 3: its checks joined with '+' "
                    "(alone: collision+offroad, shield=True)")
     p.add_argument("--tf32", action="store_true", help="CUDA: TensorFloat-32 matrix products (torch.backends.cuda.matmul.allow_tf32)")
     p.add_argument("--profile", action="store_true", help="also print torch.profiler's table of the timed steps' heaviest operations")
     args = p.parse_args()
-    try:
-        checks = shield_option(args.shield)
-    except EnvConfigError as e:
-        p.error(f"--{e}")
+    checks = args.shield
     torch.set_num_threads(args.threads)
     if args.tf32:
         torch.backends.cuda.matmul.allow_tf32 = True
@@ -115,7 +111,7 @@ def main() -> int:
     common = dict(benchmark="env_throughput_core", background="prior", prior=args.prior, controlled=args.controlled,
                   max_agents=args.max_agents, horizon_steps=args.horizon, device=str(device), torch=torch.__version__,
                   torch_threads=args.threads, cpu=platform.processor() or platform.machine(), cpus=os.cpu_count(),
-                  avoid_collisions=not args.no_collision_avoidance, shield=args.shield or False, tf32=args.tf32)
+                  avoid_collisions=not args.no_collision_avoidance, shield="+".join(checks) or False, tf32=args.tf32)
     if device.type == "cuda":
         common["gpu"] = torch.cuda.get_device_name(device)
     for b in [int(x) for x in args.num_scenes.split(",")]:

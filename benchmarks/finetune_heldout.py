@@ -87,6 +87,8 @@ def result_order(name: str, reference: str) -> tuple:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from envs._arguments import shield_option
+
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--policy", required=True, help="the fine-tuned policy checkpoint (load_policy)")
     p.add_argument("--set", action="append", required=True, dest="sets", metavar="NAME=PATH[,PATH...]:SCENES:SEEDS")
@@ -99,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--num-envs", type=int, default=32, help="episodes stepped together")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--table", action="store_true", help="print the Markdown table of the rows found and exit")
-    p.add_argument("--shield", default=None, help="the shield's checks for every row, joined with '+' (e.g. "
+    p.add_argument("--shield", type=shield_option, default=None, help="the shield's checks for every row, joined with '+' (e.g. "
                    "'collision+offroad+gap'; default: the policy's own)")
     args = p.parse_args(argv)
 
@@ -114,13 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     run_dir = Path(args.run_dir)
     cfg, net, meta = ft.load_policy(args.policy)
     if args.shield is not None:
-        from envs._arguments import shield_option
-        from envs.errors import EnvConfigError
-
-        try:
-            cfg = dataclasses.replace(cfg, shield=shield_option(args.shield))
-        except EnvConfigError as e:
-            p.error(f"--{e}")
+        cfg = dataclasses.replace(cfg, shield=args.shield)
     reference = f"prior top-{cfg.reference_top_k}" if cfg.reference_top_k else "prior full softmax"
     if args.table:
         print(table(run_dir, [s[0] for s in sets], reference))

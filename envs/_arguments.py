@@ -39,6 +39,7 @@ What each argument takes (the documented meanings):
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import numbers
 from collections.abc import Iterable, Mapping
@@ -203,8 +204,11 @@ def shield_checks(value: Any) -> tuple[str, ...]:
 
 def shield_option(text: str) -> tuple[str, ...]:
     """A command line's shield, its checks joined with '+' (``"collision+offroad+gap"``; ``""``: none), as
-    :func:`shield_checks` gives them; :class:`~envs.errors.EnvConfigError` naming a bad check."""
-    return shield_checks([c for c in str(text).split("+") if c])
+    :func:`shield_checks` gives them: an argparse ``type`` (a bad check is refused by name as the argument's error)."""
+    try:
+        return shield_checks([c for c in str(text).split("+") if c])
+    except EnvConfigError as e:
+        raise argparse.ArgumentTypeError(str(e).removeprefix("shield: ")) from None
 
 
 def _device(value: Any):

@@ -282,5 +282,5 @@ def test_finetune_heldout_refuses_an_unknown_shield_check_by_name(tmp_path, caps
     with pytest.raises(SystemExit):
         heldout.main(["--policy", "embedded", "--lead-only", "--shield", "collision+seatbelt", "--set", "g=nowhere:1:1",
                       "--run-dir", str(tmp_path / "run")])
-    assert "--shield: unknown check(s) ['seatbelt']" in capsys.readouterr().err
+    assert "argument --shield: unknown check(s) ['seatbelt']" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()

@@ -74,10 +74,10 @@ def _too_close(core, b: int, c: int, tokens: list[int], slack: float = 0.0, late
             gap, stops = ahead - float(half[s, 0]) - along, u * u / (2 * GAP_LEADER_BRAKE) - GAP_MARGIN_M
             short |= gap < v * GAP_RESPONSE_S + v * v / (2 * GAP_OWN_BRAKE) - stops + slack
             late |= gap < v * v / (2 * GAP_HARDEST_BRAKE) - stops + slack  # could not stop even braking hard
-        brakes = v <= max(own_speed - GAP_BRAKING, 0.0) and not late
-        if late_brakes is not None and short and late and v <= max(own_speed - GAP_BRAKING, 0.0) and v >= 0.5:
+        sheds = v <= max(own_speed - GAP_BRAKING, 0.0)
+        if late_brakes is not None and short and sheds and late and v >= 0.5:
             late_brakes.append(t)  # it brakes, but too late to stop behind the other
-        out.append(short and not (brakes or v < 0.5) and int(pr.agent_type[b, s]) == int(AgentType.VEHICLE))
+        out.append(short and not ((sheds and not late) or v < 0.5) and int(pr.agent_type[b, s]) == int(AgentType.VEHICLE))
     return out
 
 
