@@ -27,7 +27,9 @@ likely first, until ``k`` pass every check asked for:
 
 So the top ``k`` of the shielded logits are the ``k`` most likely tokens that pass, and the reference of
 fine-tuning (the prior's top ``k``, renormalised) is the prior as the shield lets it drive. An agent
-all of whose tokens fail keeps the tokens that stay on the road (with ``"offroad"``: the road is where it is, the
+all of whose tokens fail, the gap check among the failures, is searched again without the gap check (a gap already
+too short to keep is no reason to give up the step's own collision and offroad checks); one all of whose tokens fail
+still keeps the tokens that stay on the road (with ``"offroad"``: the road is where it is, the
 others' moves are predictions), or all of them if none does (nothing is taken out, as in the background's rule).
 Left alone, such agents (wedged between a road edge and an agent the collision or gap check expects to close in)
 took any token, and they were where the fine-tuned policy's offroad events came from. What the
@@ -96,29 +98,41 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
     if "collision" in checks and acting.shape[1] > 1:
         framed.append(_standing_test(prior, boxes, cb, cc, slot, acting, ctrl_slot))
     known_frames, known = ahead.frames(prior) if ahead is not None else (None, None)
-    if "gap" in checks:
-        framed.append(_gap_test(prior, boxes, cb, slot, known_frames, known))
+    gap = _gap_test(prior, boxes, cb, slot, known_frames, known) if "gap" in checks else None
     own = (prior.agent_type[cb, slot], prior.pose[cb, slot], prior.previous_pose[cb, slot], token_poses)
-    fallback = "offroad" in checks and bool(framed or "collision" in checks)  # a check the road alone can relax
+    fallback = "offroad" in checks and bool(framed or gap or "collision" in checks)  # a check the road alone can relax
     went_off = torch.zeros(len(cb), dtype=torch.bool, device=cb.device)  # rows with a searched token off the road
+    gap_failed = torch.zeros(len(cb), dtype=torch.bool, device=cb.device)  # rows with a searched token too close
 
-    def also(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
-        """[R, c]: does token ``tok`` of rows ``r`` fail any test (the frames placed once for all that need them)."""
-        fails = [t(r, tok) for t in plain]
-        if fallback:
-            went_off[r] |= fails[0].any(-1)
-        if framed:
-            frames = _own_frames(prior, *own, r, tok)  # [R, c, 5, 3]
-            fails += [t(r, tok, frames) for t in framed]
-        return functools.reduce(torch.logical_or, fails)
+    def failing(tests: list, where: torch.Tensor | None = None):
+        """The ``also`` of a search of the rows ``where`` (indices into the M agents; None: all), or None without a test:
+        [R, c] does token ``tok`` of rows ``r`` fail a plain test or one of ``tests`` (the frames placed once for all
+        that need them); the rows with a token off the road, or one the gap check fails, are noted."""
+        def also(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
+            r = r if where is None else where[r]
+            fails = [t(r, tok) for t in plain]
+            if fallback:
+                went_off[r] |= fails[0].any(-1)
+            if tests:
+                frames = _own_frames(prior, *own, r, tok)  # [R, c, 5, 3]
+                fails += [t(r, tok, frames) for t in tests]
+                if tests[-1] is gap:
+                    gap_failed[r] |= fails[-1].any(-1)
+            return functools.reduce(torch.logical_or, fails)
+        return also if plain or tests else None
 
     present = prior.simulated if "collision" in checks else torch.zeros_like(prior.simulated)  # no other agent blocks
     rows = cb * prior.num_slots + slot
     k = 0 if top_k is None else int(top_k)
     search = functools.partial(excluded_tokens, pose=prior.pose, previous_pose=prior.previous_pose, size=boxes,
-                               agent_type=prior.agent_type, token_poses=token_poses, top_k=k, interpolation=prior.interpolation)
-    taken = search(logits[cb, cc], rows, present=present, known_frames=known_frames, known=known,
-                   also=also if plain or framed else None)
+                               agent_type=prior.agent_type, token_poses=token_poses, top_k=k, interpolation=prior.interpolation,
+                               present=present, known_frames=known_frames, known=known)
+    taken = search(logits[cb, cc], rows, also=failing(framed + ([gap] if gap else [])))
+    # An agent every token of which failed some check, the gap check among them, is searched again without it: a gap
+    # too short to keep already is no reason to give up the step's own collision and offroad checks.
+    redo = (gap_failed & ~taken.any(-1)).nonzero().squeeze(1)
+    if len(redo):
+        taken[redo] = search(logits[cb[redo], cc[redo]], rows[redo], also=failing(framed, redo))
     # An agent every token of which failed some check has nothing taken out. If one of them went off the road, it
     # is searched again for the road alone: the road is where it is, the others' moves are predictions, so it
     # keeps the tokens that stay on the road (the k most likely of them), or all if none does.
@@ -126,7 +140,7 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
     if len(again):
         road = plain[0]
         taken[again] = search(logits[cb[again], cc[again]], rows[again], present=torch.zeros_like(prior.simulated),
-                              also=lambda r, tok: road(again[r], tok))
+                              known_frames=None, known=None, also=lambda r, tok: road(again[r], tok))
     out[cb, cc] = taken
     return out
 

@@ -99,3 +99,28 @@ def test_the_gap_check_takes_out_the_tokens_that_close_in_and_keeps_those_that_b
                     _too_close(core, 0, c, torch.topk(plain[0, c], 64).indices.tolist()))
             checked += 1
     assert checked > 20 and taken_out > 0 and late  # the sample scenes exercise it, braking too late included
+
+
+def _shielded_again(core, checks):
+    """The step's prior logits shielded by ``checks`` (the core keeps one mask a step: computed afresh here)."""
+    core.shield, core._unsafe = checks, None
+    return core.prior_logits()
+
+
+def test_an_agent_the_gap_check_fails_everywhere_keeps_the_collision_and_offroad_checks(sample_scenes, embedded_prior, monkeypatch):
+    """Every token of an agent failing the gap check (forced here) is no reason to give up the step's own checks: the
+    agent is searched again without it, and its shielded logits are those of ``collision+offroad`` (not the road alone
+    or nothing taken out, the fallbacks of an agent every token of which fails)."""
+    import envs._shield as shield_module
+
+    monkeypatch.setattr(shield_module, "_gap_test", lambda *a, **k: lambda r, tok, frames: torch.ones(tok.shape, dtype=torch.bool))
+    env = _env(sample_scenes, embedded_prior, ["collision", "offroad", "gap"])
+    checked = beyond_the_road = 0
+    for core, shielded, _, _ in shielded_steps(env, embedded_prior, len(sample_scenes), 6):
+        without_gap, road = (_shielded_again(core, checks) for checks in (("collision", "offroad"), ("offroad",)))
+        _shielded_again(core, ("collision", "offroad", "gap"))  # the step goes on with its own mask
+        for c in core.live[0].nonzero().squeeze(1).tolist():
+            assert torch.equal(shielded[0, c], without_gap[0, c])
+            beyond_the_road += int(not torch.equal(without_gap[0, c], road[0, c]))
+            checked += 1
+    assert checked > 20 and beyond_the_road > 0  # the collision check takes out more than the road on the sample scenes
