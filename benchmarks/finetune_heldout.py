@@ -6,8 +6,10 @@ What comes in: a policy checkpoint (``--policy``, anything ``agents.finetune.loa
 every scene with a controllable agent) and a folder for the rows (``--run-dir``). What goes out: one JSON line per
 (set, row) with the row's metrics (``agents.evaluate.evaluate_policies``: collision, offroad, goal, front collisions,
 progress, KL, realism), every row in the policy's environment (its shield, reward and background): the shielded prior at
-the policy's top-k and at top-3 first, the fine-tuned policy, the expert restricted to the same action space
-(log-following, ``expert (log)``), then the rows named by ``--rows`` (the prior's full softmax, the priors with the
+the policy's top-k and at top-3 first, the fine-tuned policy, the log-following expert restricted to the same action
+space (``expert within prior top-K``: of the shielded top K, the token closest to the log; issue 58's goal target is
+against it), the log-following expert unrestricted (``expert (log)``: the log's token whatever the mask says), then
+the rows named by ``--rows`` (the prior's full softmax, the priors with the
 shield off: another environment). ``--table`` prints the Markdown table of the rows found, each against the shielded
 prior at the policy's top-k (the policy card's table).
 
@@ -36,7 +38,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from finetune_generalisation import cached, emit  # noqa: E402
 
-FIRST_ROWS = ("fine-tuned", "expert (log)")
+FIRST_ROWS = ("fine-tuned", "expert within", "expert (log)")
+"""After the shielded priors, the rows whose names start so, in this order."""
 
 
 def parse_set(text: str) -> tuple[str, list[str], int | None, int]:
@@ -82,7 +85,7 @@ def table(run_dir: Path, sets: list[str], reference: str) -> str:
 def result_order(name: str, reference: str) -> tuple:
     """Table order: the reference, the other shielded priors, the policy, the expert, the rest, shield-off rows last."""
     off = "shield off" in name
-    first = FIRST_ROWS.index(name) if name in FIRST_ROWS else len(FIRST_ROWS)
+    first = next((i for i, start in enumerate(FIRST_ROWS) if name.startswith(start)), len(FIRST_ROWS))
     return (off, name != reference, not name.startswith("prior top-"), first, name)
 
 
@@ -109,6 +112,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from agents import finetune as ft
     from agents.evaluate import LEAD_TOP_K, evaluate_policies
+    from agents.policy import ExpertWithinTopK
     from smart_marl.scenario import AgentType
 
     torch.set_num_threads(args.threads)
@@ -125,8 +129,13 @@ def main(argv: list[str] | None = None) -> int:
     model, vocab = ft.load_prior(cfg.prior, cfg.device)
     training = set(meta.get("trained_on") or [])
     policies = ft.evaluation_policies(cfg, net)
+    restricted = ExpertWithinTopK(cfg.reference_top_k) if cfg.reference_top_k else None
+    if restricted is not None:
+        policies[restricted.name] = restricted
     lead = [f"prior top-{k}" for k in dict.fromkeys((cfg.reference_top_k, LEAD_TOP_K)) if k]
-    wanted = lead + ["fine-tuned"] if args.lead_only else [k for k in policies if k.startswith("prior top-") and "shield off" not in k] + list(FIRST_ROWS)
+    experts = ([restricted.name] if restricted is not None else []) + ["expert (log)"]
+    shielded_priors = [k for k in policies if k.startswith("prior top-") and "shield off" not in k]
+    wanted = lead + ["fine-tuned"] if args.lead_only else shielded_priors + ["fine-tuned"] + experts
     wanted += [] if args.lead_only else [k.strip() for k in args.rows.split(",") if k.strip() and k.strip() not in wanted]
     unknown = [k for k in wanted if k not in policies]
     if unknown:

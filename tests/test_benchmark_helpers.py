@@ -247,7 +247,8 @@ def test_room_ahead_is_the_nearest_agent_ahead_in_the_lane(sample_scenes):
 
 def test_finetune_heldout_reads_its_sets_and_lays_out_the_card_table_against_the_shielded_prior(tmp_path):
     """finetune_heldout: ``--set`` is parsed (a bad one is refused, naming it); the table puts the reference (the
-    shielded prior at the policy's top-k) first, the policy after the shielded priors, and divides by the reference."""
+    shielded prior at the policy's top-k) first, the policy after the shielded priors, then the expert restricted to
+    the action space and the unrestricted one, and divides by the reference."""
     heldout = load_benchmark("finetune_heldout")
     assert heldout.parse_set("real=a,b:all:48") == ("real", ["a", "b"], None, 48)
     assert heldout.parse_set("gen=data/x:200:8") == ("gen", ["data/x"], 200, 8)
@@ -255,12 +256,14 @@ def test_finetune_heldout_reads_its_sets_and_lays_out_the_card_table_against_the
         heldout.parse_set("gen=data/x:8")
     metrics = lambda coll, goal, meta: {"collision_rate": coll, "offroad_rate": 0.0, "front_collision_rate": coll / 2,  # noqa: E731
                                         "goal_rate": goal, "meta_metric": meta, "shield": ["collision", "offroad"]}
-    for row, m in (("fine-tuned", metrics(0.02, 0.6, 0.74)), ("prior top-3", metrics(0.005, 0.35, 0.77)),
+    for row, m in (("expert (log)", metrics(0.2, 0.9, 0.78)), ("fine-tuned", metrics(0.02, 0.6, 0.74)),
+                   ("expert within prior top-16", metrics(0.05, 0.95, 0.8)), ("prior top-3", metrics(0.005, 0.35, 0.77)),
                    ("prior top-16", metrics(0.01, 0.3, 0.775))):
         (tmp_path / f"eval_real_{heldout.slug(row)}.json").write_text(
             json.dumps({"row": row, "scenes": ["a"] * 11, "seeds": list(range(48)), "metrics": m}))
     lines = heldout.table(tmp_path, ["real"], "prior top-16").splitlines()[2:]
-    assert [line.split(" | ")[1] for line in lines] == ["prior top-16", "prior top-3", "fine-tuned"]
+    assert [line.split(" | ")[1] for line in lines] == ["prior top-16", "prior top-3", "fine-tuned", "expert within prior top-16",
+                                                        "expert (log)"]
     assert "| 0.0200 | 0.0100 | 0.0000 | 2.00x | 0.600 | 2.00x | 0.7400 | -0.0350 |" in lines[2]
 
 
