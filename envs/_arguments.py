@@ -29,7 +29,7 @@ What each argument takes (the documented meanings):
 * ``persistence``: a finite number >= 0 (:mod:`smart_marl.rollout.persistence`; 0: off);
 * ``precision``: the prior's arithmetic, "float32" or "bfloat16" (:mod:`smart_marl.model.precision`);
 * ``shield``: True (the collision and offroad checks, :data:`envs._shield.DEFAULT_SHIELD_CHECKS`), False / None / an
-  empty list (none), or a list of check names of :data:`envs._shield.SHIELD_CHECKS` ("gap" among them) (a bare string is one name), normalised to a tuple in ``SHIELD_CHECKS`` order;
+  empty list (none), or a list of check names of :data:`envs._shield.SHIELD_CHECKS` ("gap" and "joint" among them) (a bare string is one name), normalised to a tuple in ``SHIELD_CHECKS`` order;
 * ``controlled``: "sdc", "predict", "vehicles", "all", "moving_vehicles", a callable, or a list of track
   ids (integers) and agent names (strings);
 * ``reset(seed)``: None or an integer in 0..2**63 - 1; ``reset(options)``: None or a dict; its key

@@ -49,7 +49,7 @@ from ._observation import HISTORY_FRAMES, ObservationConfig, build_observations
 from ._reward import TERMINATION_EVENTS, RewardConfig, StepReward, route_progress_m, step_reward
 from ._scene import SceneStatic
 from ._scene_batch import SceneBatch, gather_tracks
-from ._shield import unsafe_tokens
+from ._shield import joint_actions, unsafe_tokens
 
 
 START_CHUNK = 16
@@ -80,6 +80,7 @@ class CoreStep:
     progress_m: torch.Tensor  # [B, C] route progress after the step
     terms: torch.Tensor  # [B, C, 8] reward terms (REWARD_TERMS order)
     action_log_prob: torch.Tensor  # [B, C] the prior's full-softmax log-probability of the token taken
+    replaced: torch.Tensor  # [B, C] bool, the shield's "joint" check took another token than the one chosen
 
 
 def token_pose_table(vocab: MotionVocabulary, device) -> torch.Tensor:
@@ -290,6 +291,10 @@ class TrafficCore:
         live = self.live
         actions = torch.where(live, actions.to(self.device, torch.long), torch.zeros_like(self.ctrl_track))
         self.forward()
+        replaced = torch.zeros_like(live)
+        if "joint" in self.shield and self.prior is not None:  # the chosen tokens checked against each other
+            slot, has = self._controlled_slots()
+            actions, replaced = joint_actions(self.prior, self.scenes, slot, has, actions, self.prior_logits(), self.shield_top_k)
         # 1. dynamics: every agent's 5 new frames (the prior, if any, takes its step here)
         motion = move(self.scenes, self.background, self.token_poses, self.prior, self.slot_of_track, self.pose, self.present,
                       self.in_sim, self.done_track, self.frame, self.ctrl_track, live, actions)
@@ -309,7 +314,7 @@ class TrafficCore:
         self.present[tb, self.ctrl_track[tb, tc]] = False
         return CoreStep(acted=live, reward=r.reward, terminated=r.terminated & live, truncated=truncated, collision=r.collision,
                         offroad=r.offroad, goal_reached=r.goal_reached, progress_m=r.progress_m, terms=r.terms,
-                        action_log_prob=logp)
+                        action_log_prob=logp, replaced=replaced)
 
     def _advance(self, motion: Motion) -> None:
         """The state update of a step: poses, velocities, the pose history, who is present, the clock."""
@@ -348,15 +353,20 @@ class TrafficCore:
         logits = self.forward()
         if logits is None:
             return None
-        slot = gather_tracks(self.slot_of_track, self.ctrl_track)  # [B, C]
-        out = logits.gather(1, slot.clamp(min=0)[..., None].expand(-1, -1, logits.shape[-1]))
-        has = self.live & (slot >= 0) & self.prior.valid.gather(1, slot.clamp(min=0))
+        slot, has = self._controlled_slots()
+        out = logits.gather(1, slot[..., None].expand(-1, -1, logits.shape[-1]))
         if self.shield:  # once per step (the logits are a new tensor every step, and after a reset or refill)
             if self._unsafe is None or self._unsafe[0] is not logits:
-                self._unsafe = (logits, unsafe_tokens(self.shield, self.prior, self.scenes, self.ctrl_track, slot.clamp(min=0), has,
+                self._unsafe = (logits, unsafe_tokens(self.shield, self.prior, self.scenes, self.ctrl_track, slot, has,
                                                       out, self.shield_top_k, self.prior.drawn_ahead()))
             out = out.masked_fill(self._unsafe[1], float("-inf"))
         return torch.where(has[..., None], out, torch.zeros_like(out))
+
+    def _controlled_slots(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each controlled agent's prior slot [B, C] (0 where it has none), and bool [B, C]: it acts and has one."""
+        slot = gather_tracks(self.slot_of_track, self.ctrl_track)
+        has = self.live & (slot >= 0) & self.prior.valid.gather(1, slot.clamp(min=0))
+        return slot.clamp(min=0), has
 
     def trajectories(self, row: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """The recorded episode of row ``row`` (``record=True``): ([N, 5 * steps, 3] x, y, heading,

@@ -23,7 +23,11 @@ likely first, until ``k`` pass every check asked for:
   (sheds 1 m/s over the step, and from its end the agent could still stop behind that one braking hard) or ends
   standing. Collisions with a car ahead come from following too close: when the car ahead brakes, every token of the
   follower hits it, the shield can take nothing out, and the follower runs into it (issue 58's diagnosis); and from
-  braking too gently once too close (a policy that wants speed takes the mildest brake it is allowed).
+  braking too gently once too close (a policy that wants speed takes the mildest brake it is allowed);
+* ``"joint"`` (asked for by name; not a mask): when the step is taken and every controlled agent's token is known, a
+  token that would run into another controlled agent's, as taken, is replaced by the most likely of the agent's
+  shielded top ``k`` that does not (:func:`joint_actions`). The mask sees another controlled agent driving on or
+  standing only; the policy's collisions the other checks left were mostly with the other controlled agents.
 
 So the top ``k`` of the shielded logits are the ``k`` most likely tokens that pass, and the reference of
 fine-tuning (the prior's top ``k``, renormalised) is the prior as the shield lets it drive. An agent
@@ -33,7 +37,8 @@ still keeps the tokens that stay on the road (with ``"offroad"``: the road is wh
 others' moves are predictions), or all of them if none does (nothing is taken out, as in the background's rule).
 Left alone, such agents (wedged between a road edge and an agent the collision or gap check expects to close in)
 took any token, and they were where the fine-tuned policy's offroad events came from. What the
-shield cannot see: another controlled agent's move other than driving on or standing (a turn across, a swerve), an
+shield cannot see: another controlled agent's move other than driving on or standing (a turn across, a swerve; with
+``"joint"``, where the later agent of the pair has a token that keeps clear of it), an
 agent beyond the 16 nearest, a pair whose boxes overlap already (left alone, as in the background's rule), offroad on the
 step's in-between frames. The events' boxes are rounded (a little smaller than the exact boxes checked
 here), so a token the shield allows does not collide with a background agent within the step.
@@ -56,9 +61,9 @@ from smart_marl.tokens import FRAMES_PER_TOKEN
 from ._reward import half_extents
 from ._scene_batch import SceneBatch
 
-SHIELD_CHECKS = ("collision", "offroad", "gap")
+SHIELD_CHECKS = ("collision", "offroad", "gap", "joint")
 DEFAULT_SHIELD_CHECKS = ("collision", "offroad")
-"""The checks of ``shield=True``; ``"gap"`` is asked for by name."""
+"""The checks of ``shield=True``; ``"gap"`` and ``"joint"`` are asked for by name."""
 
 GAP_RESPONSE_S = 0.5
 """The gap check's reaction time: one token (the follower can brake from the next step on)."""
@@ -253,4 +258,55 @@ def _offroad_test(scenes: SceneBatch, scene: torch.Tensor, track: torch.Tensor, 
     return off_road_test(scenes.edges, scene, pose, token_ends, scenes.box_size[scene, track], scenes.z[scene, track], vehicle)
 
 
-__all__ = ["DEFAULT_SHIELD_CHECKS", "SHIELD_CHECKS", "event_boxes", "unsafe_tokens"]
+def joint_actions(prior: RolloutState, scenes: SceneBatch, ctrl_slot: torch.Tensor, acting: torch.Tensor, actions: torch.Tensor,
+                  logits: torch.Tensor, top_k: int | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``"joint"`` check, once the controlled agents have chosen: (the tokens taken [B, C], bool [B, C] where one
+    was replaced). ``acting`` [B, C] the controlled agents with a prior slot ``ctrl_slot`` [B, C], ``actions`` [B, C]
+    their chosen tokens, ``logits`` [B, C, V] their shielded prior logits (``-inf`` on what the mask takes out).
+
+    The mask can only guess another controlled agent's move (driving on or standing); here every chosen token is
+    known. In the order of the controlled slots, an agent whose chosen token's frames overlap (the scene's boxes, on
+    any of the step's frames) those of an earlier agent's token as taken is given the most likely of its top ``k``
+    shielded tokens that overlaps none of them (the prior's choice among what the shield allows; the chosen token is
+    kept where none does). Pairs overlapping already are left alone, as in the mask's checks. So two controlled agents
+    do not run into each other within a step where one of them has a way out."""
+    taken, replaced = actions.clone(), torch.zeros_like(acting)
+    b, c = acting.shape
+    if c < 2 or int(acting.sum(-1).max()) < 2:
+        return taken, replaced
+    slot = ctrl_slot.clamp(min=0)
+    at = (torch.arange(b, device=slot.device)[:, None].expand_as(slot), slot)  # [B, C] each agent's prior slot
+    kind, pose, before = prior.agent_type[at], prior.pose[at], prior.previous_pose[at]  # [B, C] / [B, C, 3]
+    half = event_boxes(prior, scenes)[at][..., :2].to(pose.dtype) / 2  # [B, C, 2]
+    token_poses = prior.token_poses.to(pose.dtype)
+    own = (kind.reshape(-1), pose.reshape(-1, 3), before.reshape(-1, 3), token_poses)
+    flat = torch.arange(b * c, device=slot.device)
+    frames = _own_frames(prior, *own, flat, actions.reshape(-1, 1)).reshape(b, c, -1, 3)  # [B, C, 5, 3]
+    apart = ~boxes_overlap(pose[:, :, None, :2], pose[:, :, None, 2], half[:, :, None], pose[:, None, :, :2], pose[:, None, :, 2],
+                           half[:, None])  # [B, C, C] pairs not overlapping already
+
+    def hits(rows: torch.Tensor, i: int, mine: torch.Tensor) -> torch.Tensor:
+        """[R, c]: do frames ``mine`` [R, c, 5, 3] of agent ``i`` of scenes ``rows`` overlap an earlier agent's as taken."""
+        ok = (acting[rows, :i] & apart[rows, i, :i])[:, None, :, None]  # [R, 1, i, 1]
+        other = frames[rows, :i][:, None]  # [R, 1, i, 5, 3]
+        hit = boxes_overlap(mine[:, :, None, :, :2], mine[:, :, None, :, 2], half[rows, i][:, None, None, None], other[..., :2],
+                            other[..., 2], half[rows, :i][:, None, :, None])  # [R, c, i, 5]
+        return (hit & ok).flatten(2).any(-1)
+
+    k = logits.shape[-1] if top_k is None else min(int(top_k), logits.shape[-1])
+    for i in range(1, c):
+        rows = acting[:, i].nonzero().squeeze(1)
+        rows = rows[hits(rows, i, frames[rows, i][:, None])[:, 0]]
+        if not len(rows):
+            continue
+        value, tok = logits[rows, i].topk(k, dim=-1)  # [R, k] its shielded top k, most likely first
+        clear = torch.isfinite(value) & ~hits(rows, i, _own_frames(prior, *own, rows * c + i, tok))
+        has = clear.any(-1)
+        rows, first = rows[has], clear[has].float().argmax(-1)
+        taken[rows, i] = tok[has].gather(1, first[:, None]).squeeze(1)
+        replaced[rows, i] = taken[rows, i] != actions[rows, i]
+        frames[rows, i] = _own_frames(prior, *own, rows * c + i, taken[rows, i][:, None])[:, 0]
+    return taken, replaced
+
+
+__all__ = ["DEFAULT_SHIELD_CHECKS", "SHIELD_CHECKS", "event_boxes", "joint_actions", "unsafe_tokens"]

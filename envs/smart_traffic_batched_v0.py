@@ -14,7 +14,7 @@ reference; :class:`envs._core.TrafficCore` underneath both) with tensors instead
   ``("agents", "mask")`` [B, A] (the agents that act at this step), ``("agents",
   "action")`` [B, A] (a token id, Categorical(V)), ``("agents", "reward")``, ``("agents", "done" /
   "terminated" / "truncated")`` [B, A, 1] (true at the step an agent finishes), ``("agents",
-  "info", ...)`` (``collision``, ``offroad``, ``goal_reached``, ``route_progress_m``,
+  "info", ...)`` (``collision``, ``offroad``, ``goal_reached``, ``shield_replaced``, ``route_progress_m``,
   ``action_log_prob``, ``reward_terms`` [B, A, 8]), and the scene's ``"done"`` / ``"terminated"`` /
   ``"truncated"`` [B, 1] (every agent of the scene has finished);
 * controlled agents are those of ``controlled`` (default ``"moving_vehicles"``) whose type's
@@ -81,7 +81,7 @@ from .errors import ActionError, ActionTypeError, EnvConfigError, EnvConfigTypeE
 
 GROUP = "agents"
 ACTION_KEY = (GROUP, "action")
-INFO_KEYS = ("collision", "offroad", "goal_reached", "route_progress_m", "action_log_prob")
+INFO_KEYS = ("collision", "offroad", "goal_reached", "shield_replaced", "route_progress_m", "action_log_prob")
 MAX_SCENES = 8192
 """The most scenes stepped together (``num_scenes``): a scene takes about 13 MB of the device's memory (its prior's
 KV cache, constants and state: 54 GB at 4,096 generated scenes on an H200, docs/scale.md), so 8,192 take about
@@ -155,7 +155,7 @@ class SmartTrafficBatchedEnv(EnvBase):
         obs = {"observation": Unbounded((b, a, d), device=dev)}
         if self.model is not None:
             obs["prior_logits"] = Unbounded((b, a, v), device=dev)
-        info = {k: Binary(n=1, shape=(b, a, 1), device=dev, dtype=torch.bool) for k in ("collision", "offroad", "goal_reached")}
+        info = {k: Binary(n=1, shape=(b, a, 1), device=dev, dtype=torch.bool) for k in ("collision", "offroad", "goal_reached", "shield_replaced")}
         info.update({k: Unbounded((b, a, 1), device=dev) for k in ("route_progress_m", "action_log_prob")})
         info["reward_terms"] = Unbounded((b, a, len(REWARD_TERMS)), device=dev)
         self.observation_spec = Composite({GROUP: group(observation=Composite(obs, shape=(b, a), device=dev),
@@ -223,12 +223,13 @@ class SmartTrafficBatchedEnv(EnvBase):
         zeros = torch.zeros(b, a, 1, device=self.device)
         no = torch.zeros(b, a, 1, dtype=torch.bool, device=self.device)
         if step is None:
-            info = {"collision": no, "offroad": no, "goal_reached": no, "route_progress_m": core.progress_m[..., None].float(),
+            info = {"collision": no, "offroad": no, "goal_reached": no, "shield_replaced": no, "route_progress_m": core.progress_m[..., None].float(),
                     "action_log_prob": zeros, "reward_terms": torch.zeros(b, a, len(REWARD_TERMS), device=self.device)}
             reward, terminated, truncated = zeros, no, no
         else:
             info = {"collision": step.collision[..., None], "offroad": step.offroad[..., None],
-                    "goal_reached": step.goal_reached[..., None], "route_progress_m": step.progress_m[..., None].float(),
+                    "goal_reached": step.goal_reached[..., None], "shield_replaced": step.replaced[..., None],
+                    "route_progress_m": step.progress_m[..., None].float(),
                     "action_log_prob": step.action_log_prob[..., None].float(), "reward_terms": step.terms.float()}
             reward = step.reward[..., None].float()
             terminated, truncated = step.terminated[..., None], step.truncated[..., None]

@@ -46,13 +46,15 @@ is the reference's support (every token without a top-k), ``env.reference`` name
 The shield (``shield=True``, or a list of :data:`envs._shield.SHIELD_CHECKS`; off by default): the tokens
 that would run a controlled agent into another agent or a vehicle off the road (and with ``"gap"``, those that would
 leave a vehicle closer to the agent ahead than it can stop) are taken out of its prior logits (``-inf``), so out of the action mask and the reference too
-(:mod:`envs._shield`).
+(:mod:`envs._shield`). With ``"joint"``, the controlled agents' chosen tokens are also checked against each other when
+the step is taken: one that would run into an earlier agent's token is replaced by the most likely token of its
+shielded top k that does not (``infos[agent]["shield_replaced"]``).
 
 ``infos[agent]`` (fixed keys and shapes, so TorchRL can stack them): ``prior_logits`` [V] and
 ``prior_log_probs`` [V] (the reference's log-probabilities, ``-inf`` outside its top-k) of the
 agent's *next* token (zeros once it is done), ``reference_top_k`` (the reference's k, 0 for the
 full softmax), ``action_log_prob`` (the prior's full-softmax log-probability of the token just taken),
-``collision``, ``offroad``, ``goal_reached`` (this step), ``route_progress_m`` and
+``collision``, ``offroad``, ``goal_reached``, ``shield_replaced`` (this step), ``route_progress_m`` and
 ``reward_terms`` [8] (see :mod:`envs._reward`). Without a prior the three prior keys are absent.
 
 Errors: every argument of the constructor and of ``reset`` is checked before any state is built
@@ -331,6 +333,7 @@ class SmartTrafficEnv(ParallelEnv):
                 "collision": bool(last.collision[0, i]) if last is not None else False,
                 "offroad": bool(last.offroad[0, i]) if last is not None else False,
                 "goal_reached": bool(last.goal_reached[0, i]) if last is not None else False,
+                "shield_replaced": bool(last.replaced[0, i]) if last is not None else False,
                 "route_progress_m": float(self.core.progress_m[0, i]),
                 "reward_terms": (last.terms[0, i].cpu().numpy() if last is not None else np.zeros(len(REWARD_TERMS))).astype(np.float32),
             }

@@ -77,7 +77,8 @@ def test_shield_arguments_are_checked_and_normalised(sample_scenes, embedded_pri
     assert _env(sample_scenes[:1], embedded_prior).shield == DEFAULT_SHIELD_CHECKS == ("collision", "offroad")
     assert _env(sample_scenes[:1], embedded_prior, shield=["offroad", "collision"]).shield == DEFAULT_SHIELD_CHECKS  # the canonical order
     assert _env(sample_scenes[:1], embedded_prior, shield=["gap", "collision"]).shield == ("collision", "gap")
-    assert SHIELD_CHECKS == ("collision", "offroad", "gap")
+    assert SHIELD_CHECKS == ("collision", "offroad", "gap", "joint")
+    assert _env(sample_scenes[:1], embedded_prior, shield=["joint", "gap", "collision"]).shield == ("collision", "gap", "joint")
     assert _env(sample_scenes[:1], embedded_prior, shield="offroad").shield == ("offroad",)
     assert _env(sample_scenes[:1], embedded_prior, shield=False).shield == ()
     with pytest.raises(EnvConfigError, match=r"shield: unknown check\(s\) \['seatbelt'\]"):
@@ -181,7 +182,7 @@ def test_the_batched_env_and_a_finetuning_config_carry_the_shield(sample_scenes,
     assert seen > 0
     cfg = load_finetune_config("tiny", ["shield=true"])
     assert cfg.shield == DEFAULT_SHIELD_CHECKS and cfg.to_dict()["shield"] == list(DEFAULT_SHIELD_CHECKS)
-    assert load_finetune_config("tiny", ['shield=["gap", "offroad", "collision"]']).shield == SHIELD_CHECKS
+    assert load_finetune_config("tiny", ['shield=["joint", "gap", "offroad", "collision"]']).shield == SHIELD_CHECKS
     assert load_finetune_config("tiny", ['shield=["offroad"]']).shield == ("offroad",)
     with pytest.raises(FinetuneConfigError, match=r"shield: unknown check\(s\) \['brakes'\]"):
         load_finetune_config("tiny", ['shield=["brakes"]'])
