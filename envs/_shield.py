@@ -26,7 +26,7 @@ likely first, until ``k`` pass every check asked for:
   braking too gently once too close (a policy that wants speed takes the mildest brake it is allowed);
 * ``"joint"`` (asked for by name; not a mask): when the step is taken and every controlled agent's token is known, a
   token that would run into another controlled agent's, as taken, is replaced by the most likely of the agent's
-  shielded top ``k`` that does not (:func:`joint_actions`). The mask sees another controlled agent driving on or
+  shielded top ``k`` that does not, or the other one yields where this one cannot (:func:`joint_actions`). The mask sees another controlled agent driving on or
   standing only; the policy's collisions the other checks left were mostly with the other controlled agents.
 
 So the top ``k`` of the shielded logits are the ``k`` most likely tokens that pass, and the reference of
@@ -38,7 +38,7 @@ others' moves are predictions), or all of them if none does (nothing is taken ou
 Left alone, such agents (wedged between a road edge and an agent the collision or gap check expects to close in)
 took any token, and they were where the fine-tuned policy's offroad events came from. What the
 shield cannot see: another controlled agent's move other than driving on or standing (a turn across, a swerve; with
-``"joint"``, where the later agent of the pair has a token that keeps clear of it), an
+``"joint"``, where neither agent of the pair has a token that keeps clear of the other), an
 agent beyond the 16 nearest, a pair whose boxes overlap already (left alone, as in the background's rule), offroad on the
 step's in-between frames. The events' boxes are rounded (a little smaller than the exact boxes checked
 here), so a token the shield allows does not collide with a background agent within the step.
@@ -266,47 +266,61 @@ def joint_actions(prior: RolloutState, scenes: SceneBatch, ctrl_slot: torch.Tens
 
     The mask can only guess another controlled agent's move (driving on or standing); here every chosen token is
     known. In the order of the controlled slots, an agent whose chosen token's frames overlap (the scene's boxes, on
-    any of the step's frames) those of an earlier agent's token as taken is given the most likely of its top ``k``
-    shielded tokens that overlaps none of them (the prior's choice among what the shield allows; the chosen token is
-    kept where none does). Pairs overlapping already are left alone, as in the mask's checks. So two controlled agents
-    do not run into each other within a step where one of them has a way out."""
-    taken, replaced = actions.clone(), torch.zeros_like(acting)
+    any of the step's frames) those of earlier agents' tokens as taken is given the most likely of its top ``k``
+    shielded tokens that overlaps none of them (the prior's choice among what the shield allows). Where it has none
+    and runs into one earlier agent only, that one yields instead: it is given the most likely of its top ``k`` that
+    overlaps none of the agents up to this one (a follower that brakes, where the leader cannot get away); otherwise
+    the chosen tokens are kept. Pairs overlapping already are left alone, as in the mask's checks. So two controlled
+    agents do not run into each other within a step where one of them has a way out."""
+    taken = actions.clone()
     b, c = acting.shape
     if c < 2 or int(acting.sum(-1).max()) < 2:
-        return taken, replaced
+        return taken, torch.zeros_like(acting)
     slot = ctrl_slot.clamp(min=0)
     at = (torch.arange(b, device=slot.device)[:, None].expand_as(slot), slot)  # [B, C] each agent's prior slot
     kind, pose, before = prior.agent_type[at], prior.pose[at], prior.previous_pose[at]  # [B, C] / [B, C, 3]
     half = event_boxes(prior, scenes)[at][..., :2].to(pose.dtype) / 2  # [B, C, 2]
     token_poses = prior.token_poses.to(pose.dtype)
     own = (kind.reshape(-1), pose.reshape(-1, 3), before.reshape(-1, 3), token_poses)
-    flat = torch.arange(b * c, device=slot.device)
-    frames = _own_frames(prior, *own, flat, actions.reshape(-1, 1)).reshape(b, c, -1, 3)  # [B, C, 5, 3]
+    frames = _own_frames(prior, *own, torch.arange(b * c, device=slot.device), actions.reshape(-1, 1)).reshape(b, c, -1, 3)  # [B, C, 5, 3]
     apart = ~boxes_overlap(pose[:, :, None, :2], pose[:, :, None, 2], half[:, :, None], pose[:, None, :, :2], pose[:, None, :, 2],
                            half[:, None])  # [B, C, C] pairs not overlapping already
-
-    def hits(rows: torch.Tensor, i: int, mine: torch.Tensor) -> torch.Tensor:
-        """[R, c]: do frames ``mine`` [R, c, 5, 3] of agent ``i`` of scenes ``rows`` overlap an earlier agent's as taken."""
-        ok = (acting[rows, :i] & apart[rows, i, :i])[:, None, :, None]  # [R, 1, i, 1]
-        other = frames[rows, :i][:, None]  # [R, 1, i, 5, 3]
-        hit = boxes_overlap(mine[:, :, None, :, :2], mine[:, :, None, :, 2], half[rows, i][:, None, None, None], other[..., :2],
-                            other[..., 2], half[rows, :i][:, None, :, None])  # [R, c, i, 5]
-        return (hit & ok).flatten(2).any(-1)
-
+    cols = torch.arange(c, device=slot.device)
     k = logits.shape[-1] if top_k is None else min(int(top_k), logits.shape[-1])
+
+    def hits(rows: torch.Tensor, me: torch.Tensor, mine: torch.Tensor, against: torch.Tensor) -> torch.Tensor:
+        """[R, c, C]: do frames ``mine`` [R, c, 5, 3] of agents ``me`` [R] of scenes ``rows`` overlap those, as taken, of
+        each of the agents ``against`` [R, C]."""
+        ok = (acting[rows] & against & apart[rows, me])[:, None, :, None]  # [R, 1, C, 1]
+        other = frames[rows][:, None]  # [R, 1, C, 5, 3]
+        hit = boxes_overlap(mine[:, :, None, :, :2], mine[:, :, None, :, 2], half[rows, me][:, None, None, None], other[..., :2],
+                            other[..., 2], half[rows][:, None, :, None])  # [R, c, C, 5]
+        return (hit & ok).any(-1)
+
+    def way_out(rows: torch.Tensor, me: torch.Tensor, against: torch.Tensor) -> torch.Tensor:
+        """Agents ``me`` of scenes ``rows`` take the most likely of their shielded top k clear of ``against`` [R, C],
+        where they have one; bool [R]: they had."""
+        value, tok = logits[rows, me].topk(k, dim=-1)  # [R, k] most likely first
+        clear = torch.isfinite(value) & ~hits(rows, me, _own_frames(prior, *own, rows * c + me, tok), against).any(-1)
+        has = clear.any(-1)
+        rows, me = rows[has], me[has]
+        taken[rows, me] = tok[has].gather(1, clear[has].float().argmax(-1, keepdim=True)).squeeze(1)
+        frames[rows, me] = _own_frames(prior, *own, rows * c + me, taken[rows, me][:, None])[:, 0]
+        return has
+
     for i in range(1, c):
         rows = acting[:, i].nonzero().squeeze(1)
-        rows = rows[hits(rows, i, frames[rows, i][:, None])[:, 0]]
+        me = torch.full_like(rows, i)
+        hit = hits(rows, me, frames[rows, i][:, None], (cols < i)[None])[:, 0]  # [R, C] the earlier agents it runs into
+        rows, me, hit = rows[hit.any(-1)], me[hit.any(-1)], hit[hit.any(-1)]
         if not len(rows):
             continue
-        value, tok = logits[rows, i].topk(k, dim=-1)  # [R, k] its shielded top k, most likely first
-        clear = torch.isfinite(value) & ~hits(rows, i, _own_frames(prior, *own, rows * c + i, tok))
-        has = clear.any(-1)
-        rows, first = rows[has], clear[has].float().argmax(-1)
-        taken[rows, i] = tok[has].gather(1, first[:, None]).squeeze(1)
-        replaced[rows, i] = taken[rows, i] != actions[rows, i]
-        frames[rows, i] = _own_frames(prior, *own, rows * c + i, taken[rows, i][:, None])[:, 0]
-    return taken, replaced
+        stuck = ~way_out(rows, me, (cols < i)[None])
+        stuck &= hit.sum(-1) == 1  # no way out, and one earlier agent in its way: that one yields, if it can
+        if stuck.any():
+            other = hit[stuck].float().argmax(-1)
+            way_out(rows[stuck], other, (cols <= i)[None] & (cols[None] != other[:, None]))
+    return taken, acting & (taken != actions)
 
 
 __all__ = ["DEFAULT_SHIELD_CHECKS", "SHIELD_CHECKS", "event_boxes", "joint_actions", "unsafe_tokens"]
