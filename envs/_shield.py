@@ -26,8 +26,9 @@ likely first, until ``k`` pass every check asked for:
   braking too gently once too close (a policy that wants speed takes the mildest brake it is allowed);
 * ``"joint"`` (asked for by name; not a mask): when the step is taken and every controlled agent's token is known, a
   token that would run into another controlled agent's, as taken, is replaced by the most likely of the agent's
-  shielded top ``k`` that does not, or the other one yields where this one cannot (:func:`joint_actions`). The mask sees another controlled agent driving on or
-  standing only; the policy's collisions the other checks left were mostly with the other controlled agents.
+  shielded top ``k`` that does not, or the other one yields where this one cannot (:func:`joint_actions`). The mask
+  sees another controlled agent driving on or standing only; the policy's collisions the other checks left were
+  mostly with the other controlled agents.
 
 So the top ``k`` of the shielded logits are the ``k`` most likely tokens that pass, and the reference of
 fine-tuning (the prior's top ``k``, renormalised) is the prior as the shield lets it drive. An agent
