@@ -283,7 +283,7 @@ def joint_actions(prior: RolloutState, scenes: SceneBatch, ctrl_slot: torch.Tens
     half = event_boxes(prior, scenes)[at][..., :2].to(pose.dtype) / 2  # [B, C, 2]
     token_poses = prior.token_poses.to(pose.dtype)
     own = (kind.reshape(-1), pose.reshape(-1, 3), before.reshape(-1, 3), token_poses)
-    frames = _own_frames(prior, *own, torch.arange(b * c, device=slot.device), actions.reshape(-1, 1)).reshape(b, c, -1, 3)  # [B, C, 5, 3]
+    frames = _own_frames(prior, *own, torch.arange(b * c, device=slot.device), actions.reshape(-1, 1)).reshape(b, c, -1, 3)
     apart = ~boxes_overlap(pose[:, :, None, :2], pose[:, :, None, 2], half[:, :, None], pose[:, None, :, :2], pose[:, None, :, 2],
                            half[:, None])  # [B, C, C] pairs not overlapping already
     cols = torch.arange(c, device=slot.device)
@@ -313,7 +313,8 @@ def joint_actions(prior: RolloutState, scenes: SceneBatch, ctrl_slot: torch.Tens
         rows = acting[:, i].nonzero().squeeze(1)
         me = torch.full_like(rows, i)
         hit = hits(rows, me, frames[rows, i][:, None], (cols < i)[None])[:, 0]  # [R, C] the earlier agents it runs into
-        rows, me, hit = rows[hit.any(-1)], me[hit.any(-1)], hit[hit.any(-1)]
+        runs_into = hit.any(-1)
+        rows, me, hit = rows[runs_into], me[runs_into], hit[runs_into]
         if not len(rows):
             continue
         stuck = ~way_out(rows, me, (cols < i)[None])

@@ -155,7 +155,8 @@ class SmartTrafficBatchedEnv(EnvBase):
         obs = {"observation": Unbounded((b, a, d), device=dev)}
         if self.model is not None:
             obs["prior_logits"] = Unbounded((b, a, v), device=dev)
-        info = {k: Binary(n=1, shape=(b, a, 1), device=dev, dtype=torch.bool) for k in ("collision", "offroad", "goal_reached", "shield_replaced")}
+        info = {k: Binary(n=1, shape=(b, a, 1), device=dev, dtype=torch.bool)
+                for k in ("collision", "offroad", "goal_reached", "shield_replaced")}
         info.update({k: Unbounded((b, a, 1), device=dev) for k in ("route_progress_m", "action_log_prob")})
         info["reward_terms"] = Unbounded((b, a, len(REWARD_TERMS)), device=dev)
         self.observation_spec = Composite({GROUP: group(observation=Composite(obs, shape=(b, a), device=dev),
@@ -223,7 +224,8 @@ class SmartTrafficBatchedEnv(EnvBase):
         zeros = torch.zeros(b, a, 1, device=self.device)
         no = torch.zeros(b, a, 1, dtype=torch.bool, device=self.device)
         if step is None:
-            info = {"collision": no, "offroad": no, "goal_reached": no, "shield_replaced": no, "route_progress_m": core.progress_m[..., None].float(),
+            info = {"collision": no, "offroad": no, "goal_reached": no, "shield_replaced": no,
+                    "route_progress_m": core.progress_m[..., None].float(),
                     "action_log_prob": zeros, "reward_terms": torch.zeros(b, a, len(REWARD_TERMS), device=self.device)}
             reward, terminated, truncated = zeros, no, no
         else:

@@ -48,7 +48,7 @@ that would run a controlled agent into another agent or a vehicle off the road (
 leave a vehicle closer to the agent ahead than it can stop) are taken out of its prior logits (``-inf``), so out of the action mask and the reference too
 (:mod:`envs._shield`). With ``"joint"``, the controlled agents' chosen tokens are also checked against each other when
 the step is taken: one that would run into an earlier agent's token is replaced by the most likely token of its
-shielded top k that does not (``infos[agent]["shield_replaced"]``).
+shielded top k that does not, or that agent yields where this one cannot (``infos[agent]["shield_replaced"]``).
 
 ``infos[agent]`` (fixed keys and shapes, so TorchRL can stack them): ``prior_logits`` [V] and
 ``prior_log_probs`` [V] (the reference's log-probabilities, ``-inf`` outside its top-k) of the

@@ -11,21 +11,13 @@ import math
 import pytest
 import torch
 
-from envs import smart_traffic_v0
 from envs._shield import GAP_BRAKING, GAP_CANDIDATES, GAP_HARDEST_BRAKE, GAP_LEADER_BRAKE, GAP_MARGIN_M, GAP_OWN_BRAKE, GAP_RESPONSE_S, event_boxes
 from smart_marl.rollout import FORCED_LATER
 from smart_marl.rollout.frames import token_frames
 from smart_marl.scenario import AgentType
-from test_shield import shielded_steps
+from test_shield import K, _env, shielded_steps
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
-K = 3
-
-
-def _env(scenes, prior, shield):
-    model, vocab = prior
-    return smart_traffic_v0.parallel_env(scenarios=scenes, prior=model, motion_vocab=vocab, controlled="vehicles", max_agents=8,
-                                         horizon_steps=8, terminate_on=(), reference_top_k=K, observation="dict", shield=shield)
 
 
 def _too_close(core, b: int, c: int, tokens: list[int], slack: float = 0.0, late_brakes: list | None = None) -> list[bool]:
@@ -82,7 +74,7 @@ def _too_close(core, b: int, c: int, tokens: list[int], slack: float = 0.0, late
 
 
 def test_the_gap_check_takes_out_the_tokens_that_close_in_and_keeps_those_that_brake(sample_scenes, embedded_prior):
-    env = _env(sample_scenes, embedded_prior, ["gap"])
+    env = _env(sample_scenes, embedded_prior, shield=["gap"], horizon_steps=8)
     taken_out = checked = 0
     late = []  # tokens taken out that brake, but too late
     for core, shielded, plain, _ in shielded_steps(env, embedded_prior, len(sample_scenes), 8):
@@ -119,7 +111,7 @@ def test_an_agent_the_gap_check_fails_everywhere_keeps_the_collision_and_offroad
     def gap(*a, **k):
         return lambda r, tok, frames: torch.ones(tok.shape, dtype=torch.bool) if fails == "every token" else tok % 2 == 0
     monkeypatch.setattr(shield_module, "_gap_test", gap)
-    env = _env(sample_scenes, embedded_prior, ["collision", "offroad", "gap"])
+    env = _env(sample_scenes, embedded_prior, shield=["collision", "offroad", "gap"], horizon_steps=8)
     checked = beyond_the_road = gap_mattered = 0
     for core, shielded, _, _ in shielded_steps(env, embedded_prior, len(sample_scenes), 6):
         without_gap, road = (_shielded_again(core, checks) for checks in (("collision", "offroad"), ("offroad",)))

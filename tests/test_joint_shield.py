@@ -1,9 +1,9 @@
 """The shield's joint check (envs._shield.joint_actions, ``shield=[..., "joint"]``): once the controlled agents have
 chosen, an agent whose token would run into an earlier controlled agent's token, as taken, takes the most likely token
-of its shielded top k that does not; where none does and one earlier agent is in its way, that one yields if it can. Checked against a brute force (the tokens'
-frames placed one agent at a time, boxes tested pair by pair and frame by frame) on the two real WOMD scenes, the
-controlled vehicles driving at the fastest token every other step whatever their masks say, where they run into each
-other."""
+of its shielded top k that does not; where none does and one earlier agent is in its way, that one yields if it can.
+Checked against a brute force (the tokens' frames placed one agent at a time, boxes tested pair by pair and frame by
+frame) on the two real WOMD scenes, the controlled vehicles driving at the fastest token every other step whatever
+their masks say, where they run into each other."""
 
 from __future__ import annotations
 
@@ -11,20 +11,18 @@ import numpy as np
 import pytest
 import torch
 
-from envs import smart_traffic_v0
 from envs._shield import event_boxes
 from smart_marl.geometry_torch import boxes_overlap
 from smart_marl.rollout.frames import token_frames
 from smart_marl.scenario import AgentType
+from test_shield import _env as shield_env
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see tests/conftest.py
 K = 16
 
 
 def _env(scenes, prior, shield):
-    model, vocab = prior
-    return smart_traffic_v0.parallel_env(scenarios=scenes, prior=model, motion_vocab=vocab, controlled="vehicles", max_agents=8,
-                                         horizon_steps=8, terminate_on=(), reference_top_k=K, observation="dict", shield=shield)
+    return shield_env(scenes, prior, shield=shield, horizon_steps=8, reference_top_k=K)
 
 
 def _frames(core, before: dict, slot: int, token: int) -> torch.Tensor:
@@ -41,7 +39,9 @@ def _overlap(a: torch.Tensor, half_a: torch.Tensor, b: torch.Tensor, half_b: tor
 
 
 def _steps(env, prior, seed: int = 0):
-    """Each step of both scenes' episodes: (core before the step, the chosen tokens by controlled slot, the step's infos)."""
+    """Each step of both scenes' episodes, taken: ((the core, its state ``before`` the step, the controlled agents'
+    tracks, prior slots, chosen tokens (None: not acting) and poses at the start), the chosen tokens' frames by
+    controlled slot, every prior slot's half box, the step's infos)."""
     rng = np.random.default_rng(seed)
     fastest = int(prior[1][AgentType.VEHICLE].poses[:, -1, 0].argmax())
     for index in range(2):
@@ -121,5 +121,6 @@ def test_without_the_joint_check_the_chosen_tokens_are_taken(womd_scenes, embedd
                 assert not infos[name]["shield_replaced"]
                 assert torch.allclose(core.hist_pose[0, tracks[c], -5:].double(), chosen_frames[c], atol=1e-3)
                 ran_into += int(any(_overlap(chosen_frames[c], half[slots[c]], chosen_frames[j], half[slots[j]])
+                                    and not _overlap(start[c][None], half[slots[c]], start[j][None], half[slots[j]])
                                     for j in chosen_frames if j < c))
     assert ran_into > 0  # the same choices run controlled agents into each other here
