@@ -5,7 +5,9 @@ of a scene are controlled.
 ``controlled`` selections: ``"sdc"``, ``"predict"`` (the tracks to predict), ``"vehicles"``,
 ``"all"``, ``"moving_vehicles"`` (vehicles whose logged position moves more than
 ``MOVING_MIN_ROUTE_M`` from the current frame to their last valid frame: parked cars are left to
-the background), a list of track ids or names, or a callable(scene) -> [N] bool mask. Only
+the background; and not already inside another agent's box at the current frame, as the collision event measures
+it: a log artefact, such as two simulated cars standing overlapped in a junction, that collides at the first step
+whatever the policy does), a list of track ids or names, or a callable(scene) -> [N] bool mask. Only
 vehicles, pedestrians and cyclists present at the current frame can be controlled;
 ``max_agents`` keeps the nearest to the self-driving car.
 """
@@ -18,6 +20,7 @@ from typing import Iterable
 import numpy as np
 
 from smart_marl.embedded import sample_scenarios
+from smart_marl.geometry import colliding
 from smart_marl.model.checkpoint import CheckpointError, load_prior
 from smart_marl.readers import read_scenarios
 from smart_marl.scenario import AgentType, Scenario
@@ -71,11 +74,27 @@ def load_scenes(scenarios) -> list[Scenario]:
 
 def moving_vehicles_mask(scenario: Scenario, min_route_m: float = MOVING_MIN_ROUTE_M) -> np.ndarray:
     """[N] bool: vehicles present at the current frame whose logged position moves more than
-    ``min_route_m`` between the current frame and their last valid frame."""
+    ``min_route_m`` between the current frame and their last valid frame, and whose box does not overlap another
+    present agent's there (:func:`overlapping_at_start`)."""
     tr, cf = scenario.tracks, scenario.current_frame
     last = tr.valid.shape[1] - 1 - np.argmax(tr.valid[:, ::-1], axis=1)  # [N] last valid frame
     route_m = np.linalg.norm(tr.position[np.arange(tr.num_tracks), last, :2] - tr.position[:, cf, :2], axis=1)
-    return tr.valid[:, cf] & (tr.types == int(AgentType.VEHICLE)) & (route_m > min_route_m)
+    moving = tr.valid[:, cf] & (tr.types == int(AgentType.VEHICLE)) & (route_m > min_route_m)
+    return moving & ~overlapping_at_start(scenario, np.flatnonzero(moving))
+
+
+def overlapping_at_start(scenario: Scenario, query: np.ndarray | None = None) -> np.ndarray:
+    """[N] bool: the tracks (of ``query``, default all) whose rounded box overlaps another present track's at the current
+    frame, the test the collision event makes (:func:`smart_marl.geometry.colliding` on the boxes the events measure,
+    :meth:`~smart_marl.scenario.Tracks.box_size`)."""
+    tr, cf = scenario.tracks, scenario.current_frame
+    out = np.zeros(tr.num_tracks, bool)
+    query = np.arange(tr.num_tracks) if query is None else np.asarray(query, np.int64)
+    if len(query):
+        pose = np.concatenate([tr.position[:, cf, :2], tr.heading[:, cf, None]], -1)[:, None]  # [N, 1, 3]
+        size = tr.box_size()
+        out[query] = colliding(pose, tr.valid[:, cf, None], size[:, 0], size[:, 1], query)
+    return out
 
 
 def controlled_mask(controlled, static: SceneStatic) -> np.ndarray:
@@ -133,5 +152,5 @@ def select_controlled(controlled, static: SceneStatic, max_agents: int | None, t
     return ctrl
 
 
-__all__ = ["MOVING_MIN_ROUTE_M", "SELECTIONS", "controlled_mask", "load_env_prior", "load_scenes", "moving_vehicles_mask",
+__all__ = ["MOVING_MIN_ROUTE_M", "SELECTIONS", "controlled_mask", "load_env_prior", "load_scenes", "moving_vehicles_mask", "overlapping_at_start",
            "select_controlled"]

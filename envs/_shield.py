@@ -54,7 +54,7 @@ import torch
 
 from smart_marl.geometry_torch import boxes_overlap
 from smart_marl.rollout import Draw, RolloutState
-from smart_marl.rollout.avoidance import excluded_tokens, off_road_test
+from smart_marl.rollout.avoidance import excluded_tokens, off_road_test, standing_test
 from smart_marl.rollout.frames import token_frames
 from smart_marl.scenario import AgentType
 from smart_marl.tokens import FRAMES_PER_TOKEN
@@ -221,23 +221,16 @@ def _standing_test(prior: RolloutState, boxes: torch.Tensor, cb: torch.Tensor, c
     """An ``also`` of :func:`~smart_marl.rollout.avoidance.excluded_tokens` for the M acting agents (scenes ``cb``,
     controlled slots ``cc``, prior slots ``slot``): a token whose frames overlap the box of another controlled agent
     of the scene standing where it is now (one that brakes, whose token the shield cannot know), pairs overlapping
-    already left alone. With the constant-velocity check of the main rule, a controlled agent is kept off another's
-    path both ways: whether that one drives on or stops."""
+    already left alone (:func:`~smart_marl.rollout.avoidance.standing_test`). With the constant-velocity check of the
+    main rule, a controlled agent is kept off another's path both ways: whether that one drives on or stops."""
     m = len(cb)
     other_cc = torch.arange(acting.shape[1], device=cb.device)[None].expand(m, -1)  # [M, C] every controlled slot
     ok = acting[cb] & (other_cc != cc[:, None])  # [M, C] the others acting in the same scene
     other_slot = ctrl_slot[cb].clamp(min=0)  # [M, C]
     pose = prior.pose[cb[:, None], other_slot]  # [M, C, 3] where they stand
     half = boxes[cb[:, None], other_slot, :2].to(pose.dtype) / 2
-    own_pose = prior.pose[cb, slot]
-    own_half = boxes[cb, slot, :2].to(pose.dtype) / 2
-    ok = ok & ~boxes_overlap(own_pose[:, None, :2], own_pose[:, None, 2], own_half[:, None], pose[..., :2], pose[..., 2], half)
-
-    def test(r: torch.Tensor, tok: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
-        hit = boxes_overlap(frames[:, :, None, :, :2], frames[:, :, None, :, 2], own_half[r][:, None, None, None],
-                            pose[r][:, None, :, None, :2], pose[r][:, None, :, None, 2], half[r][:, None, :, None])  # [R, c, C, 5]
-        return (hit.any(-1) & ok[r][:, None]).any(-1)
-    return test
+    standing = standing_test(prior.pose[cb, slot], boxes[cb, slot, :2].to(pose.dtype) / 2, pose, half, ok)
+    return lambda r, tok, frames: standing(r, frames)
 
 
 def event_boxes(prior: RolloutState, scenes: SceneBatch) -> torch.Tensor:

@@ -180,3 +180,42 @@ def test_the_shield_measures_boxes_as_the_events_do_not_by_the_priors_shapes(wom
             core.prior.agent_shape, core._unsafe = shape, None
             obs, *_ = env.step({a: int(np.flatnonzero(obs[a]["action_mask"])[-1]) for a in env.agents})
     assert taken > 0
+
+
+def test_the_background_keeps_clear_of_a_controlled_agent_that_may_brake(sample_scenes):
+    """A background car 2 m behind a controlled one, both driving at its speed: at constant velocity the controlled car
+    drives off ahead, but its token comes with the policy's and it may brake. The background's draw keeps clear of it
+    standing where it is too (:func:`smart_marl.rollout.drawing.later_standing_test`): no drawn token of the follower
+    overlaps the controlled car's box there; without that test, many do (the scene exercises it)."""
+    from smart_marl.rollout import drawing
+
+    def follower_overlaps(with_test: bool) -> tuple[int, int]:
+        state = _state(sample_scenes[2], 16)
+        state.logits()
+        speed = (state.pose[0, :, :2] - state.previous_pose[0, :, :2]).norm(dim=-1)
+        veh = _vehicles(state, 100)
+        back, ahead = int(veh[speed[veh].argmax()]), int(veh[speed[veh].argsort()[0]])  # the fastest follows, another leads
+        pose, before = state.pose.clone(), state.previous_pose.clone()
+        h = pose[:, back, 2]
+        gap = float(state.agent_shape[0, back, 0] + state.agent_shape[0, ahead, 0]) / 2 + 2.0
+        shift = torch.stack([gap * torch.cos(h), gap * torch.sin(h), torch.zeros_like(h)], -1)
+        pose[:, ahead], before[:, ahead] = pose[:, back] + shift, before[:, back] + shift  # the same motion, 2 m ahead
+        state.pose, state.previous_pose = pose, before
+        later = torch.full(state.simulated.shape, -1, dtype=torch.long)
+        later[:, ahead] = FORCED_LATER
+        original = drawing.later_standing_test
+        drawing.later_standing_test = original if with_test else (lambda *args: None)
+        try:
+            frames, known = state.draw_ahead(later).frames(state)
+        finally:
+            drawing.later_standing_test = original
+        assert known[:, back].all()
+        half = state.agent_shape[0, [back, ahead], :2].to(pose.dtype) / 2
+        hit = boxes_overlap(frames[:, back, :, :2], frames[:, back, :, 2], half[0], pose[:, ahead, None, :2], pose[:, ahead, None, 2],
+                            half[1]).any(-1)  # [G] the follower's step overlaps the leader standing
+        return int(hit.sum()), int(speed[back])
+
+    hits, speed = follower_overlaps(True)
+    hits_without, _ = follower_overlaps(False)
+    assert speed >= 2  # m per step: the follower drives on at constant velocity
+    assert hits == 0 and hits_without >= 8, (hits, hits_without)

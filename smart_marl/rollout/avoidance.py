@@ -171,6 +171,25 @@ def off_road_test(edges: RoadEdgeTensors, scene: torch.Tensor, pose: torch.Tenso
     return test
 
 
+def standing_test(own_pose: torch.Tensor, own_half: torch.Tensor, other_pose: torch.Tensor, other_half: torch.Tensor,
+                  ok: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    """For M rows at ``own_pose`` [M, 3] with half sizes ``own_half`` [M, 2], each with K others standing at
+    ``other_pose`` [M, K, 3] with half sizes ``other_half`` [M, K, 2] where ``ok`` [M, K]: ``test(r [R], frames
+    [R, c, F, 3]) -> bool [R, c]``, a path of row ``r`` whose box overlaps one of those others, standing where it is,
+    on any frame (exact rectangles). A pair overlapping already is left alone, as in the main rule. What the others do
+    at the step is not known (a controlled agent, whose token comes with the policy's): with the main rule's
+    constant-velocity check, a path is kept clear of them both ways, whether they drive on or stop."""
+    ok = ok & ~boxes_overlap(own_pose[:, None, :2], own_pose[:, None, 2], own_half[:, None], other_pose[..., :2],
+                             other_pose[..., 2], other_half)
+
+    def test(r: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
+        hit = boxes_overlap(frames[:, :, None, :, :2], frames[:, :, None, :, 2], own_half[r][:, None, None, None],
+                            other_pose[r][:, None, :, None, :2], other_pose[r][:, None, :, None, 2],
+                            other_half[r][:, None, :, None])  # [R, c, K, F]
+        return (hit.any(-1) & ok[r][:, None]).any(-1)
+    return test
+
+
 def excluded_tokens(logits: torch.Tensor, rows: torch.Tensor, pose: torch.Tensor, previous_pose: torch.Tensor,
                     size: torch.Tensor, present: torch.Tensor, agent_type: torch.Tensor, token_poses: torch.Tensor,
                     top_k: int, interpolation: str = "spline", known_frames: torch.Tensor | None = None,

@@ -11,7 +11,9 @@ tokens are known (:meth:`RolloutState.draw_ahead <smart_marl.rollout.RolloutStat
 background's tokens cannot depend on them, and a shield can test the policy's tokens against where the
 background will really be (:mod:`envs._shield`). Collision-aware sampling and the stop lines then see a
 forced-later agent as any other neighbour whose token is not known, at constant velocity
-(:mod:`~smart_marl.rollout.avoidance`); an agent forced with a known token is seen on the frames that token
+(:mod:`~smart_marl.rollout.avoidance`), and collision-aware sampling also where it stands now
+(:func:`later_standing_test`: the policy may brake, and a background car close behind it must not drive on
+into it); an agent forced with a known token is seen on the frames that token
 takes it to. With no forced-later slot a draw is the one :meth:`RolloutState.step
 <smart_marl.rollout.RolloutState.step>` makes, bit for bit: the same computation in the same order, the same
 random numbers.
@@ -24,7 +26,8 @@ from dataclasses import dataclass
 import torch
 
 from ..tokens import FRAMES_PER_TOKEN
-from .avoidance import excluded_tokens
+from ..geometry_torch import bound_length, loose
+from .avoidance import excluded_tokens, standing_test, token_reach
 from .frames import token_frames
 from .persistence import tilted
 from .sampling import sample_tokens
@@ -89,8 +92,11 @@ def draw_tokens(state, forced_tokens: torch.Tensor | None) -> Draw:
     top = torch.topk(row_logits, k + 1, dim=-1) if 0 < k < v and (state.avoid_collisions or state.temperature == 1.0) else None
     exclude = None
     pick = torch.ones(len(rows), dtype=torch.bool, device=state.device) if forced_rows is None else forced_rows == -1
-    stop_test = stop_line_test(state, rows[pick]) if state.stop_lines else None
-    if state.avoid_collisions or stop_test is not None:
+    also = stop_test = stop_line_test(state, rows[pick]) if state.stop_lines else None
+    standing = later_standing_test(state, rows[pick], forced_tokens) if state.avoid_collisions and forced_tokens is not None else None
+    if standing is not None:
+        also = standing if stop_test is None else (lambda r, tok: stop_test(r, tok) | standing(r, tok))
+    if state.avoid_collisions or also is not None:
         known = known_frames = None
         if forced_tokens is not None:  # the forced agents' frames of this step, seen by the others' check
             known = sim & (forced_tokens >= 0)
@@ -106,7 +112,7 @@ def draw_tokens(state, forced_tokens: torch.Tensor | None) -> Draw:
         exclude[pick] = excluded_tokens(row_logits.index_select(0, at), rows[at], state.pose, state.previous_pose, state.agent_shape,
                                         sim if state.avoid_collisions else torch.zeros_like(sim),
                                         state.agent_type, state.token_poses, state.top_k, state.interpolation,
-                                        known_frames=known_frames, known=known, also=stop_test,
+                                        known_frames=known_frames, known=known, also=also,
                                         top=None if top is None else (top.values[at], top.indices[at]),
                                         vocab_sizes=state.vocab_sizes)
     # forced-later rows take a placeholder (token 0, in every type's vocabulary) until their token is given
@@ -115,6 +121,49 @@ def draw_tokens(state, forced_tokens: torch.Tensor | None) -> Draw:
                                       None if top is None else (top.values, top.indices), state.log_probs_of, scored=model_logits)
     forced = forced_tokens if forced_tokens is not None else torch.full((g, n), -1, dtype=torch.long, device=state.device)
     return Draw(logits=logits, forced=forced, rows=rows, tokens=tokens, log_probs=log_probs)
+
+
+def later_standing_test(state, rows: torch.Tensor, forced_tokens: torch.Tensor):
+    """An ``also`` of :func:`~smart_marl.rollout.avoidance.excluded_tokens` for sampling rows ``rows`` [M] (flat slot
+    indices): a token whose frames overlap, standing where it is now, an agent of the same group forced later (a
+    controlled agent, whose token comes with the policy's: it may drive on, which the main rule checks at constant
+    velocity, or brake; :func:`~smart_marl.rollout.avoidance.standing_test`, the prior's boxes). None where no slot
+    is forced later, so a draw without them is the plain step's."""
+    later = state.simulated & (forced_tokens == FORCED_LATER)
+    if not bool(later.any()) or not len(rows):
+        return None
+    g, n = later.shape
+    width = int(later.sum(1).max())
+    lg, ls = later.nonzero(as_tuple=True)
+    place = (later.long().cumsum(1) - 1)[lg, ls]  # each later slot's place among its group's
+    slot = torch.zeros(g, width, dtype=torch.long, device=later.device)
+    valid = torch.zeros(g, width, dtype=torch.bool, device=later.device)
+    slot[lg, place], valid[lg, place] = ls, True
+    gi, si = rows // n, rows % n
+    other = slot[gi]  # [M, W]
+    half = state.agent_shape[..., :2].to(state.pose.dtype) / 2
+    own_pose, other_pose = state.pose[gi, si], state.pose[gi[:, None], other]
+    own_half, other_half = half[gi, si], half[gi[:, None], other]
+    types = state.agent_type[gi, si]
+    # only the others a token of the row can reach (the farthest token of its type, both half diagonals)
+    reach = token_reach(state.token_poses).amax(-1)[types]  # [M]
+    apart = bound_length(other_pose[..., :2] - own_pose[:, None, :2])
+    ok = valid[gi] & (other != si[:, None]) & (apart < loose(reach[:, None] + bound_length(own_half)[:, None] + bound_length(other_half)))
+    if not bool(ok.any()):
+        return None
+    test = standing_test(own_pose, own_half, other_pose, other_half, ok)
+    near = ok.any(-1)
+
+    def also(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
+        out = torch.zeros(tok.shape, dtype=torch.bool, device=tok.device)
+        at = near[r].nonzero().squeeze(1)
+        if len(at):
+            rr, local = r[at], state.token_poses[types[r[at]][:, None], tok[at]]  # [R, c, 6, 3]
+            frames = token_frames(local, own_pose[rr][:, None], state.previous_pose.reshape(-1, 3)[rows[rr]][:, None],
+                                  state.interpolation)
+            out[at] = test(rr, frames)
+        return out
+    return also
 
 
 def complete(state, draw: Draw, forced_tokens: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -140,4 +189,4 @@ def complete(state, draw: Draw, forced_tokens: torch.Tensor | None) -> tuple[tor
     return tokens, log_probs
 
 
-__all__ = ["Draw", "FORCED_LATER", "check_forced", "complete", "draw_tokens"]
+__all__ = ["Draw", "FORCED_LATER", "check_forced", "complete", "draw_tokens", "later_standing_test"]
