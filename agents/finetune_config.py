@@ -50,7 +50,8 @@ class FinetuneConfig:
     # environment (envs.smart_traffic_batched_v0)
     num_envs: int = 4  # scenes stepped together (one SMART forward for all of them)
     controlled: str = "moving_vehicles"  # which agents the policy drives: "moving_vehicles" (vehicles whose logged route
-    # from the current frame is longer than moving_min_route_m: parked cars are left to the background) or the env's
+    # from the current frame is longer than moving_min_route_m: parked cars are left to the background; none already
+    # inside another agent's box at the current frame) or the env's
     # "vehicles", "all", "predict", "sdc"; only the types of the vehicles' vocabulary size (one action space per group)
     moving_min_route_m: float = MOVING_MIN_ROUTE_M
     max_agents: int = 4  # controlled agent slots per scene (the nearest to the SDC); scenes with fewer leave slots empty

@@ -113,8 +113,9 @@ def test_an_agent_the_gap_check_fails_everywhere_keeps_the_collision_and_offroad
     monkeypatch.setattr(shield_module, "_gap_test", gap)
     env = _env(sample_scenes, embedded_prior, shield=["collision", "offroad", "gap"], horizon_steps=8)
     checked = beyond_the_road = gap_mattered = 0
-    scenes = 2 if fails == "every token" else len(sample_scenes)  # every token failing is a search of the whole vocabulary
-    for core, shielded, _, _ in shielded_steps(env, embedded_prior, scenes, 6):
+    # every token failing is a search of the whole vocabulary: two scenes; three steps exercise both cases
+    scenes, steps = (2, 3) if fails == "every token" else (len(sample_scenes), 3)
+    for core, shielded, _, _ in shielded_steps(env, embedded_prior, scenes, steps):
         without_gap, road = (_shielded_again(core, checks) for checks in (("collision", "offroad"), ("offroad",)))
         _shielded_again(core, ("collision", "offroad", "gap"))  # the step goes on with its own mask
         for c in core.live[0].nonzero().squeeze(1).tolist():

@@ -11,7 +11,9 @@ draws them, :mod:`~smart_marl.rollout.frames`), the agent's box overlaps the box
 ``NEIGHBOURS`` nearest present agents ``j`` on the same frame, ``j`` moving at constant velocity
 (its last token's displacement repeated, heading held), or, where ``j``'s token of this step is
 forced (a policy's controlled agent, a scripted what-if agent), on the frames that token really
-takes it to (``known_frames``). Pairs whose boxes overlap already at the
+takes it to (``known_frames``); a ``j`` whose token comes later (a controlled agent acting with the step, drawn
+ahead of) also standing where it is (:func:`standing_test`, given by the caller as a second test). Pairs whose boxes
+overlap already at the
 current poses are left alone: pedestrians walking in a group, or boxes that overlap in the log,
 keep doing what the model says. Tokens are checked most likely first until ``k`` are free, so excluding them and then
 sampling the top ``k`` is the same as top-k sampling from the distribution with every colliding token
