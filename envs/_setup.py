@@ -152,5 +152,5 @@ def select_controlled(controlled, static: SceneStatic, max_agents: int | None, t
     return ctrl
 
 
-__all__ = ["MOVING_MIN_ROUTE_M", "SELECTIONS", "controlled_mask", "load_env_prior", "load_scenes", "moving_vehicles_mask", "overlapping_at_start",
-           "select_controlled"]
+__all__ = ["MOVING_MIN_ROUTE_M", "SELECTIONS", "controlled_mask", "load_env_prior", "load_scenes", "moving_vehicles_mask",
+           "overlapping_at_start", "select_controlled"]

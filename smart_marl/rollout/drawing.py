@@ -93,7 +93,7 @@ def draw_tokens(state, forced_tokens: torch.Tensor | None) -> Draw:
     exclude = None
     pick = torch.ones(len(rows), dtype=torch.bool, device=state.device) if forced_rows is None else forced_rows == -1
     also = stop_test = stop_line_test(state, rows[pick]) if state.stop_lines else None
-    standing = later_standing_test(state, rows[pick], forced_tokens) if state.avoid_collisions and forced_tokens is not None else None
+    standing = None if not state.avoid_collisions or forced_tokens is None else later_standing_test(state, rows[pick], forced_tokens)
     if standing is not None:
         also = standing if stop_test is None else (lambda r, tok: stop_test(r, tok) | standing(r, tok))
     if state.avoid_collisions or also is not None:
@@ -148,7 +148,8 @@ def later_standing_test(state, rows: torch.Tensor, forced_tokens: torch.Tensor):
     # only the others a token of the row can reach (the farthest token of its type, both half diagonals)
     reach = token_reach(state.token_poses).amax(-1)[types]  # [M]
     apart = bound_length(other_pose[..., :2] - own_pose[:, None, :2])
-    ok = valid[gi] & (other != si[:, None]) & (apart < loose(reach[:, None] + bound_length(own_half)[:, None] + bound_length(other_half)))
+    radii = bound_length(own_half)[:, None] + bound_length(other_half)
+    ok = valid[gi] & (other != si[:, None]) & (apart < loose(reach[:, None] + radii))
     if not bool(ok.any()):
         return None
     test = standing_test(own_pose, own_half, other_pose, other_half, ok)
