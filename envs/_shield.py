@@ -55,7 +55,7 @@ import torch
 from smart_marl.geometry_torch import boxes_overlap
 from smart_marl.rollout import Draw, RolloutState
 from smart_marl.rollout.avoidance import excluded_tokens, off_road_test, standing_test
-from smart_marl.rollout.frames import token_frames
+from smart_marl.rollout.frames import candidate_frames
 from smart_marl.scenario import AgentType
 from smart_marl.tokens import FRAMES_PER_TOKEN
 
@@ -120,7 +120,7 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
             if fallback:
                 went_off[r] |= fails[0].any(-1)
             if tests:
-                frames = _own_frames(prior, *own, r, tok)  # [R, c, 5, 3]
+                frames = candidate_frames(*own, r, tok, prior.interpolation)  # [R, c, 5, 3]
                 fails += [t(r, tok, frames) for t in tests]
                 if tests[-1] is gap:
                     gap_failed[r] |= fails[-1].any(-1)
@@ -149,15 +149,6 @@ def unsafe_tokens(checks: Sequence[str], prior: RolloutState, scenes: SceneBatch
                               known_frames=None, known=None, also=lambda r, tok: road(again[r], tok))
     out[cb, cc] = taken
     return out
-
-
-def _own_frames(prior: RolloutState, kind: torch.Tensor, pose: torch.Tensor, before: torch.Tensor,
-                token_poses: torch.Tensor, r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
-    """[R, c, 5, 3]: the step's frames of rows ``r`` (types ``kind``, at ``pose`` from ``before``, [M] / [M, 3]) were
-    they to take tokens ``tok`` [R, c], placed as the step places them."""
-    local = token_poses[kind[r][:, None], tok]  # [R, c, 6, 3]
-    return token_frames(local, pose[r][:, None].expand(-1, tok.shape[1], -1), before[r][:, None].expand(-1, tok.shape[1], -1),
-                        prior.interpolation)
 
 
 def _gap_test(prior: RolloutState, boxes: torch.Tensor, cb: torch.Tensor, slot: torch.Tensor,
@@ -196,7 +187,7 @@ def _gap_test(prior: RolloutState, boxes: torch.Tensor, cb: torch.Tensor, slot: 
     vehicle = prior.agent_type[cb, slot] == int(AgentType.VEHICLE)
 
     def test(r: torch.Tensor, tok: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
-        last = frames[:, :, -1]  # [R, c, 3] (frames [R, c, 5, 3]: the tokens' step, _own_frames)
+        last = frames[:, :, -1]  # [R, c, 3] (frames [R, c, 5, 3]: the tokens' step, candidate_frames)
         fwd = torch.stack([last[..., 2].cos(), last[..., 2].sin()], -1)  # [R, c, 2]
         left = torch.stack([-fwd[..., 1], fwd[..., 0]], -1)
         v = ((last[..., :2] - frames[:, :, -2, :2]) / dt * fwd).sum(-1).clamp(min=0.0)  # [R, c] own speed at the end
@@ -276,7 +267,8 @@ def joint_actions(prior: RolloutState, scenes: SceneBatch, ctrl_slot: torch.Tens
     half = event_boxes(prior, scenes)[at][..., :2].to(pose.dtype) / 2  # [B, C, 2]
     token_poses = prior.token_poses.to(pose.dtype)
     own = (kind.reshape(-1), pose.reshape(-1, 3), before.reshape(-1, 3), token_poses)
-    frames = _own_frames(prior, *own, torch.arange(b * c, device=slot.device), actions.reshape(-1, 1)).reshape(b, c, -1, 3)
+    frames = candidate_frames(*own, torch.arange(b * c, device=slot.device), actions.reshape(-1, 1),
+                              prior.interpolation).reshape(b, c, -1, 3)
     apart = ~boxes_overlap(pose[:, :, None, :2], pose[:, :, None, 2], half[:, :, None], pose[:, None, :, :2], pose[:, None, :, 2],
                            half[:, None])  # [B, C, C] pairs not overlapping already
     cols = torch.arange(c, device=slot.device)
@@ -295,11 +287,12 @@ def joint_actions(prior: RolloutState, scenes: SceneBatch, ctrl_slot: torch.Tens
         """Agents ``me`` of scenes ``rows`` take the most likely of their shielded top k clear of ``against`` [R, C],
         where they have one; bool [R]: they had."""
         value, tok = logits[rows, me].topk(k, dim=-1)  # [R, k] most likely first
-        clear = torch.isfinite(value) & ~hits(rows, me, _own_frames(prior, *own, rows * c + me, tok), against).any(-1)
+        mine = candidate_frames(*own, rows * c + me, tok, prior.interpolation)
+        clear = torch.isfinite(value) & ~hits(rows, me, mine, against).any(-1)
         has = clear.any(-1)
         rows, me = rows[has], me[has]
         taken[rows, me] = tok[has].gather(1, clear[has].float().argmax(-1, keepdim=True)).squeeze(1)
-        frames[rows, me] = _own_frames(prior, *own, rows * c + me, taken[rows, me][:, None])[:, 0]
+        frames[rows, me] = candidate_frames(*own, rows * c + me, taken[rows, me][:, None], prior.interpolation)[:, 0]
         return has
 
     for i in range(1, c):

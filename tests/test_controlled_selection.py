@@ -10,7 +10,6 @@ import numpy as np
 
 from envs._setup import moving_vehicles_mask, overlapping_at_start, select_controlled
 from envs._scene import scene_static
-from smart_marl.geometry import colliding
 
 
 def _moved_onto(scene, mover: int, onto: int):
@@ -31,9 +30,13 @@ def test_a_moving_vehicle_inside_another_box_at_the_start_is_not_controlled(samp
     edited = _moved_onto(scene, mover, onto)
     over = overlapping_at_start(edited)
     assert over[mover] and over[onto] and over.sum() == 2
-    size = tr.box_size()
-    pose = np.concatenate([edited.tracks.position[:, cf, :2], edited.tracks.heading[:, cf, None]], -1)[:, None]
-    assert np.array_equal(over, colliding(pose, tr.valid[:, cf, None], size[:, 0], size[:, 1]))  # the collision event's test
+    # just clear of it, behind it along its heading by the two half lengths and 0.3 m: not inside, so still selected
+    size, h = tr.box_size(), float(tr.heading[onto, cf])
+    step = (size[mover, 0] + size[onto, 0]) / 2 + 0.3
+    position = edited.tracks.position.copy()
+    position[mover, cf, :2] -= step * np.array([np.cos(h), np.sin(h)], np.float32)
+    clear = dataclasses.replace(edited, tracks=dataclasses.replace(edited.tracks, position=position))
+    assert not overlapping_at_start(clear).any() and moving_vehicles_mask(clear)[mover]
     expected = moving.copy()
     expected[mover] = False
     assert np.array_equal(moving_vehicles_mask(edited), expected)  # only it leaves the selection

@@ -28,7 +28,7 @@ import torch
 from ..tokens import FRAMES_PER_TOKEN
 from ..geometry_torch import bound_length, loose
 from .avoidance import excluded_tokens, standing_test, token_reach
-from .frames import token_frames
+from .frames import candidate_frames, token_frames
 from .persistence import tilted
 from .sampling import sample_tokens
 from .stop_lines import stop_line_test
@@ -154,15 +154,13 @@ def later_standing_test(state, rows: torch.Tensor, forced_tokens: torch.Tensor):
         return None
     test = standing_test(own_pose, own_half, other_pose, other_half, ok)
     near = ok.any(-1)
+    own = (types, own_pose, state.previous_pose.reshape(-1, 3).index_select(0, rows), state.token_poses)
 
     def also(r: torch.Tensor, tok: torch.Tensor) -> torch.Tensor:
         out = torch.zeros(tok.shape, dtype=torch.bool, device=tok.device)
         at = near[r].nonzero().squeeze(1)
         if len(at):
-            rr, local = r[at], state.token_poses[types[r[at]][:, None], tok[at]]  # [R, c, 6, 3]
-            frames = token_frames(local, own_pose[rr][:, None], state.previous_pose.reshape(-1, 3)[rows[rr]][:, None],
-                                  state.interpolation)
-            out[at] = test(rr, frames)
+            out[at] = test(r[at], candidate_frames(*own, r[at], tok[at], state.interpolation))
         return out
     return also
 

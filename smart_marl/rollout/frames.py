@@ -29,6 +29,16 @@ def token_frames(local: torch.Tensor, start: torch.Tensor, before: torch.Tensor,
     return torch.cat([hermite_frames(before, start, end), end[..., None, :]], -2)
 
 
+def candidate_frames(kind: torch.Tensor, pose: torch.Tensor, before: torch.Tensor, token_poses: torch.Tensor, r: torch.Tensor,
+                     tok: torch.Tensor, interpolation: str = "spline") -> torch.Tensor:
+    """[R, c, 5, 3]: the step's frames of rows ``r`` [R] (of M agents of types ``kind`` [M], at ``pose`` from ``before``
+    [M, 3]) were they to take tokens ``tok`` [R, c] of ``token_poses`` [types, V, 6, 3], placed as the step places them
+    (:func:`token_frames`): the candidates a search over tokens tests."""
+    local = token_poses[kind[r][:, None], tok]  # [R, c, 6, 3]
+    c = tok.shape[1]
+    return token_frames(local, pose[r][:, None].expand(-1, c, -1), before[r][:, None].expand(-1, c, -1), interpolation)
+
+
 def hermite_frames(before: torch.Tensor, start: torch.Tensor, end: torch.Tensor) -> torch.Tensor:
     """The 4 in-between 10 Hz poses [..., 4, 3] of a token from pose ``start`` to pose ``end`` [..., 3]:
     a cubic Hermite curve in x, y and heading whose tangents are ``start - before`` (the previous
